@@ -1,0 +1,54 @@
+# Idempotent setup shared by bin/stgs and bin/test (sourced, not executed):
+# ffmpeg with libx265 (Debian's package when missing and root), a virtualenv
+# with the pinned requirements, this project installed in it (editable), and
+# the native CPU kernels built. A second run costs a few hundred milliseconds.
+
+STGS_ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+STGS_VENV=${STGS_VENV:-$STGS_ROOT/.venv}
+
+stgs_die() { echo "stgs setup: $*" >&2; exit 1; }
+
+stgs_ensure_ffmpeg() {
+  if command -v ffmpeg >/dev/null 2>&1 && command -v ffprobe >/dev/null 2>&1 \
+     && ffmpeg -hide_banner -encoders 2>/dev/null | grep -q libx265; then
+    return 0
+  fi
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    echo "stgs setup: installing ffmpeg (Debian package) ..." >&2
+    { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq ffmpeg; } >/dev/null 2>&1 \
+      || stgs_die "apt-get install ffmpeg failed; install ffmpeg with libx265 and retry"
+    return 0
+  fi
+  stgs_die "ffmpeg and ffprobe with libx265 are required: install them (Debian: sudo apt-get install ffmpeg) and retry"
+}
+
+stgs_ensure_venv() {
+  local python=${PYTHON:-python3}
+  command -v "$python" >/dev/null 2>&1 || stgs_die "python3 (>= 3.11) is required"
+  "$python" -c 'import sys; sys.exit(sys.version_info < (3, 11))' \
+    || stgs_die "python3 >= 3.11 is required (found $("$python" --version 2>&1))"
+  local want
+  want=$(cat "$STGS_ROOT/requirements.lock" "$STGS_ROOT/pyproject.toml" | sha256sum | cut -d' ' -f1)
+  if [ -f "$STGS_VENV/.stgs-stamp" ] && [ "$(cat "$STGS_VENV/.stgs-stamp")" = "$want" ]; then
+    return 0
+  fi
+  echo "stgs setup: creating $STGS_VENV with the pinned requirements (first run downloads torch) ..." >&2
+  "$python" -m venv "$STGS_VENV" || stgs_die "python3 -m venv failed (Debian: apt-get install python3-venv)"
+  "$STGS_VENV/bin/python" -m pip install -q --disable-pip-version-check -r "$STGS_ROOT/requirements.lock" \
+    || stgs_die "installing requirements.lock failed"
+  "$STGS_VENV/bin/python" -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e "$STGS_ROOT" \
+    || stgs_die "installing streamstgs failed"
+  echo "$want" > "$STGS_VENV/.stgs-stamp"
+}
+
+stgs_ensure_native() {
+  # Without a compiler the project still runs on the pure-torch reference splatter.
+  "$STGS_VENV/bin/python" -m stgs.native.build >/dev/null \
+    || echo "stgs setup: warning: native kernels not built; using the (slow) pure-torch reference" >&2
+}
+
+stgs_bootstrap() {
+  stgs_ensure_ffmpeg
+  stgs_ensure_venv
+  stgs_ensure_native
+}

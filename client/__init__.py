@@ -1,0 +1,1 @@
+"""stgs.client: the reference ABR player (`stgs play`, issue 5)."""

@@ -1,0 +1,1 @@
+"""stgs.packager: model dir -> MPEG-DASH tree (`stgs pack`, issue 3)."""

@@ -1,0 +1,1 @@
+"""stgs.server: the async HTTP service for packaged scenes (`stgs serve`, issue 4)."""

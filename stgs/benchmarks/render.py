@@ -1,0 +1,123 @@
+"""Splatter and deformation benchmark: accuracy vs time per backend (`stgs bench render`).
+
+Scene: the procedural synthetic scene at N Gaussians seen from a ground-truth
+camera, and a GOP model of the same N with random weights for `deform`.
+Prints Markdown rows for docs/BENCHMARKS.md. Timings are medians of
+`repeats` runs after one warm-up; compare ratios within one run.
+"""
+
+from __future__ import annotations
+
+import platform
+import statistics
+import time
+from collections.abc import Callable
+
+import torch
+
+from stgs.camera import Camera, intrinsics, look_at
+from stgs.model.gop import GOPModel, GOPShape
+from stgs.native.build import available
+from stgs.render import rasterize
+from stgs.synth.scene import EFFECTS, ProceduralScene
+
+
+def timed(fn: Callable[[], object], repeats: int) -> tuple[float, object]:
+    """Median milliseconds of fn over `repeats` runs (after a warm-up) and its last result."""
+    result = fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = fn()
+        times.append((time.perf_counter() - start) * 1e3)
+    return statistics.median(times), result
+
+
+def bench_camera(width: int, height: int) -> Camera:
+    return Camera("bench", intrinsics(width, height, 60.0),
+                  look_at((0.0, 1.3, 2.6), (0.0, 0.5, 0.0)), width, height)
+
+
+def scene_inputs(n: int, dtype: torch.dtype, cam: Camera) -> list[torch.Tensor]:
+    truth = ProceduralScene(n, EFFECTS, seed=0).at(0.5)
+    args = [truth.means, truth.quats, truth.log_scales.exp(), truth.opacities,
+            truth.colors(cam.center)]
+    return [a.to(dtype) for a in args]
+
+
+def splat_fn(args: list[torch.Tensor], cam: Camera, backend: str, backward: bool):
+    dtype = args[0].dtype
+
+    def run():
+        params = [a.clone().requires_grad_(backward) for a in args]
+        with torch.set_grad_enabled(backward):
+            img = rasterize(*params, cam.viewmat.to(dtype), cam.K.to(dtype), cam.width, cam.height,
+                            backend=backend)
+            if backward:
+                img.sum().backward()
+        return img.detach()
+
+    return run
+
+
+def random_model(n: int) -> GOPModel:
+    torch.manual_seed(0)
+    model = GOPModel(GOPShape(capacity=n, gop_size=60))
+    truth = ProceduralScene(n, EFFECTS, seed=0).at(0.0)
+    with torch.no_grad():
+        for p in model.field.parameters():
+            p.normal_(0, 0.05)
+        model.features.normal_(0, 0.1)
+        model.xyz.copy_(truth.means)
+        model.log_scale.copy_(truth.log_scales)
+        model.rotation.copy_(truth.quats)
+        model.opacity_logit.copy_(torch.logit(truth.opacities.clamp(1e-4, 1 - 1e-4)))
+        model.color.copy_(truth.base_colors)
+    return model
+
+
+def bench_size(n: int, width: int, height: int, repeats: int, reference_max: int) -> list[str]:
+    cam = bench_camera(width, height)
+    rows = []
+    ref64 = None
+    f64 = scene_inputs(n, torch.float64, cam)
+    f32 = scene_inputs(n, torch.float32, cam)
+    runs = [("reference", "fp64", f64), ("reference", "fp32", f32)]
+    if available():
+        runs.append(("native", "fp32", f32))
+    for backend, precision, args in runs:
+        if backend == "reference" and n > reference_max:
+            rows.append(f"| {n} | {backend} {precision} | skipped (> --reference-max) | | |")
+            continue
+        fwd_ms, img = timed(splat_fn(args, cam, backend, False), repeats)
+        bwd_ms, _ = timed(splat_fn(args, cam, backend, True), max(1, repeats // 2))
+        if ref64 is None and precision == "fp64":
+            ref64 = img
+        err = "-" if ref64 is None else f"{(img.double() - ref64).abs().max().item():.1e}"
+        rows.append(f"| {n} | {backend} {precision} | {fwd_ms:.1f} | {bwd_ms:.1f} | {err} |")
+    model = random_model(n)
+    center = cam.center.float()
+    with torch.no_grad():
+        torch_ms, _ = timed(lambda: model.deform(30, center), repeats)
+        line = f"| {n} | deform torch fp32 | {torch_ms:.1f} | | |"
+        rows.append(line)
+        if available():
+            from stgs.model.view import FrameRenderer
+
+            renderer = FrameRenderer(model)
+            native_ms, _ = timed(lambda: renderer.gaussians(30, cam), repeats)
+            rows.append(f"| {n} | deform native fp32 | {native_ms:.1f} | | |")
+            total_ms, _ = timed(lambda: renderer.render(30, cam), repeats)
+            rows.append(f"| {n} | **native deform + splat** | {total_ms:.1f} | | |")
+    return rows
+
+
+def main(sizes: list[int], width: int, height: int, repeats: int, reference_max: int) -> int:
+    print(f"<!-- stgs bench render: {width}x{height}, torch {torch.__version__}, "
+          f"{torch.get_num_threads()} threads, {platform.processor() or platform.machine()} -->")
+    print("| N | backend | forward ms | forward+backward ms | max abs error vs fp64 reference |")
+    print("|---|---|---|---|---|")
+    for n in sizes:
+        for row in bench_size(n, width, height, repeats, reference_max):
+            print(row, flush=True)
+    return 0

@@ -1,0 +1,80 @@
+"""Pinhole cameras in the OpenCV convention (x right, y down, z forward)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass
+class Camera:
+    """One calibrated view."""
+
+    name: str
+    """Identifier (file-name safe)."""
+    K: torch.Tensor
+    """(3, 3) intrinsics, float64."""
+    viewmat: torch.Tensor
+    """(4, 4) world-to-camera, float64."""
+    width: int
+    """Image width in pixels."""
+    height: int
+    """Image height in pixels."""
+
+    @property
+    def center(self) -> torch.Tensor:
+        """Camera centre in world coordinates, (3,)."""
+        rot, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
+        return -rot.T @ t
+
+    def to_json(self) -> dict:
+        return {"name": self.name, "width": self.width, "height": self.height,
+                "K": self.K.tolist(), "viewmat": self.viewmat.tolist()}
+
+    @classmethod
+    def from_json(cls, d: dict) -> Camera:
+        K = torch.tensor(d["K"], dtype=torch.float64)
+        viewmat = torch.tensor(d["viewmat"], dtype=torch.float64)
+        if K.shape != (3, 3) or viewmat.shape != (4, 4):
+            raise ValueError(f"camera {d.get('name')!r}: K must be 3x3 and viewmat 4x4")
+        return cls(str(d["name"]), K, viewmat, int(d["width"]), int(d["height"]))
+
+
+def intrinsics(width: int, height: int, fov_x_deg: float) -> torch.Tensor:
+    """K for a centred principal point and a horizontal field of view."""
+    f = 0.5 * width / math.tan(math.radians(fov_x_deg) / 2)
+    return torch.tensor([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]], dtype=torch.float64)
+
+
+def look_at(eye, target, world_up=(0.0, 1.0, 0.0)) -> torch.Tensor:
+    """World-to-camera 4x4 of a camera at eye looking at target (world y up)."""
+    eye = torch.as_tensor(eye, dtype=torch.float64)
+    target = torch.as_tensor(target, dtype=torch.float64)
+    up = torch.as_tensor(world_up, dtype=torch.float64)
+    forward = target - eye
+    forward = forward / forward.norm()
+    right = torch.linalg.cross(forward, up)
+    if right.norm() < 1e-9:
+        raise ValueError("look_at: viewing direction is parallel to the up vector")
+    right = right / right.norm()
+    down = torch.linalg.cross(forward, right)
+    rot = torch.stack([right, down, forward])
+    view = torch.eye(4, dtype=torch.float64)
+    view[:3, :3] = rot
+    view[:3, 3] = -rot @ eye
+    return view
+
+
+def orbit(count: int, radius: float, height: float, target=(0.0, 0.0, 0.0), width: int = 320,
+          height_px: int = 240, fov_x_deg: float = 60.0, phase_deg: float = 0.0,
+          prefix: str = "orbit") -> list[Camera]:
+    """`count` cameras evenly spaced on a horizontal circle, all looking at target."""
+    K = intrinsics(width, height_px, fov_x_deg)
+    cams = []
+    for i in range(count):
+        angle = math.radians(phase_deg) + 2 * math.pi * i / count
+        eye = (target[0] + radius * math.sin(angle), height, target[2] + radius * math.cos(angle))
+        cams.append(Camera(f"{prefix}{i:02d}", K.clone(), look_at(eye, target), width, height_px))
+    return cams

@@ -1,0 +1,147 @@
+"""The `stgs` command: one entry point, one subcommand per pipeline stage.
+
+User mistakes (bad paths, bad configs, bad input files) raise UserError and
+end as one `stgs: ...` line on stderr with exit status 2; anything else is a
+bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+
+from stgs.errors import UserError
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be positive: {value}")
+    return value
+
+
+def _effects(text: str) -> tuple[str, ...]:
+    return tuple(e.strip() for e in text.split(",") if e.strip())
+
+
+def add_synth(sub: argparse._SubParsersAction) -> None:
+    from stgs.synth import PRESETS
+    from stgs.synth.scene import EFFECTS
+
+    p = sub.add_parser("synth", help="generate a synthetic dynamic scene: ground truth + model dir",
+                       description="Generate a procedural dynamic scene, render its ground-truth "
+                       "multi-view images and fit a StreamSTGS model dir to it in parameter space.")
+    p.add_argument("out", type=Path, help="output model dir (replaced if it is a model dir)")
+    p.add_argument("--preset", choices=sorted(PRESETS), default="small",
+                   help="base configuration (default: small)")
+    p.add_argument("--config", type=Path, help="TOML file overriding SynthConfig fields")
+    p.add_argument("--grid-side", type=_positive_int, help="S: capacity N = S² Gaussians")
+    p.add_argument("--gops", type=_positive_int, dest="num_gops", help="number of GOPs")
+    p.add_argument("--gop-size", type=_positive_int, help="frames per GOP")
+    p.add_argument("--width", type=_positive_int, help="ground-truth image width")
+    p.add_argument("--height", type=_positive_int, help="ground-truth image height")
+    p.add_argument("--cameras", type=_positive_int, dest="num_cameras", help="ground-truth cameras")
+    p.add_argument("--fit-steps", type=int, help="Adam steps of the parameter fit per GOP")
+    p.add_argument("--seed", type=int, help="random seed")
+    p.add_argument("--effects", type=_effects,
+                   help=f"comma-separated effects to simulate (known: {','.join(EFFECTS)})")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(run=run_synth)
+
+
+def synth_config_from_args(args: argparse.Namespace):
+    from stgs.synth import PRESETS, config_from_toml
+
+    cfg = PRESETS[args.preset]
+    if args.config:
+        cfg = config_from_toml(args.config, cfg)
+    overrides = {f.name: getattr(args, f.name) for f in dataclasses.fields(cfg)
+                 if getattr(args, f.name, None) is not None}
+    cfg = dataclasses.replace(cfg, **overrides)
+    cfg.validate()
+    return cfg
+
+
+def run_synth(args: argparse.Namespace) -> int:
+    from stgs.synth import synthesize
+
+    cfg = synth_config_from_args(args)
+    report = synthesize(cfg, args.out, progress=not args.quiet)
+    print(f"wrote {args.out}: {cfg.grid_side ** 2} Gaussians, {cfg.num_gops} GOPs x "
+          f"{cfg.gop_size} frames, effects {','.join(cfg.effects) or 'none'}")
+    print(f"fidelity of the model vs ground truth: {report.fidelity_psnr:.2f} dB PSNR "
+          f"over {report.fidelity_views} views")
+    return 0
+
+
+def add_demo(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("demo", help="run the end-to-end demo on the embedded default scene",
+                       description="Synthesise the default scene, render a free-viewpoint orbit "
+                       "from the model and write frames, a contact sheet and a fidelity summary.")
+    p.add_argument("--out", type=Path, default=Path("demo-output"),
+                   help="output folder (default: ./demo-output)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(run=run_demo)
+
+
+def run_demo(args: argparse.Namespace) -> int:
+    from stgs.demo import run
+
+    return run(args.out, progress=not args.quiet)
+
+
+def add_bench(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bench", help="benchmarks (accuracy vs time), printed as a Markdown table",
+                       description="Run a benchmark suite and print Markdown for docs/BENCHMARKS.md.")
+    p.add_argument("suite", choices=["render"], help="render: splatter and deform, per backend")
+    p.add_argument("--sizes", default="16384,65536,147456",
+                   help="comma-separated Gaussian counts (default: 16384,65536,147456)")
+    p.add_argument("--width", type=_positive_int, default=640)
+    p.add_argument("--height", type=_positive_int, default=360)
+    p.add_argument("--repeats", type=_positive_int, default=5, help="timed runs per measurement")
+    p.add_argument("--reference-max", type=int, default=65536,
+                   help="skip the reference backends above this many Gaussians (time)")
+    p.set_defaults(run=run_bench)
+
+
+def run_bench(args: argparse.Namespace) -> int:
+    from stgs.benchmarks.render import main as bench_render
+
+    try:
+        sizes = [int(s) for s in args.sizes.split(",") if s]
+    except ValueError:
+        raise UserError(f"--sizes must be comma-separated integers, got {args.sizes!r}") from None
+    return bench_render(sizes, args.width, args.height, args.repeats, args.reference_max)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="stgs", description="StreamSTGS: streamable free-viewpoint video.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for add in (add_synth, add_demo, add_bench):
+        add(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.run(args)
+    except UserError as exc:
+        print(f"stgs: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # unwritable output, missing file, full disk: the user's environment
+        where = f": {exc.filename}" if exc.filename else ""
+        print(f"stgs: {exc.strerror or exc}{where}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("stgs: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,51 @@
+"""File output that never leaves a half-written file behind, and PNG I/O."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write data to path through a temp file in the same folder and rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def to_uint8(image: torch.Tensor) -> np.ndarray:
+    """(H, W, 3) float RGB in [0, 1] -> uint8 RGB (clipped, rounded)."""
+    return (image.detach().float().clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
+
+
+def encode_png(image: torch.Tensor) -> bytes:
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(to_uint8(image), cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise RuntimeError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def save_png(path: Path, image: torch.Tensor) -> None:
+    """Write an (H, W, 3) float RGB image in [0, 1] as an 8-bit PNG, atomically."""
+    atomic_write_bytes(Path(path), encode_png(image))
+
+
+def load_png(path: Path) -> torch.Tensor:
+    """Read an RGB PNG as an (H, W, 3) float32 tensor in [0, 1]."""
+    data = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if data is None:
+        raise OSError(f"{path}: not a readable image")
+    return torch.from_numpy(cv2.cvtColor(data, cv2.COLOR_BGR2RGB)).float() / 255.0

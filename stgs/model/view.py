@@ -1,0 +1,42 @@
+"""Render one frame of a GOP model from a camera: deform, then splat."""
+
+from __future__ import annotations
+
+import torch
+
+from stgs.camera import Camera
+from stgs.model.gop import Gaussians, GOPModel
+from stgs.native.build import available
+from stgs.render import rasterize
+
+
+class FrameRenderer:
+    """Renders frames of one GOP, using the native deform and splat when they are built."""
+
+    def __init__(self, model: GOPModel, native: bool | None = None):
+        self.model = model
+        self.native = available() if native is None else native
+        self._weights = None
+        if self.native:
+            from stgs.model.native_deform import PackedWeights
+
+            self._weights = PackedWeights(model)
+
+    @torch.no_grad()
+    def gaussians(self, frame: int, camera: Camera) -> Gaussians:
+        """The deformed Gaussians of `frame` seen from `camera` (culled to its view when native)."""
+        if not self.native:
+            return self.model.deform(frame, camera.center.float())
+        from stgs.model.native_deform import deform_native
+
+        return deform_native(self.model, frame, camera.center.float(), self._weights,
+                             camera.viewmat, camera.K, camera.width, camera.height)
+
+    @torch.no_grad()
+    def render(self, frame: int, camera: Camera, background: torch.Tensor | None = None) -> torch.Tensor:
+        """(H, W, 3) float32 image of `frame` from `camera`."""
+        g = self.gaussians(frame, camera)
+        bg = background.float() if background is not None else None
+        return rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, camera.viewmat.float(),
+                         camera.K.float(), camera.width, camera.height, bg,
+                         backend="auto" if self.native else "reference")

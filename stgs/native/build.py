@@ -1,0 +1,136 @@
+"""Build and load the native CPU kernels (C++ with OpenMP, loaded through ctypes).
+
+The library is compiled once per source/flag/compiler combination into a cache
+folder (``$STGS_NATIVE_CACHE``, else ``$XDG_CACHE_HOME/stgs/native``, else
+``~/.cache/stgs/native``), written atomically, and reused. The README's setup
+builds it (``python -m stgs.native.build``); the first import builds it if the
+setup did not. Without a compiler everything still works on the pure-torch
+reference, slower.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+SOURCES = ("splat.cpp", "deform.cpp")
+HEADERS = ("fastmath.h",)
+CSRC = Path(__file__).with_name("csrc")
+FLAGS = ["-O3", "-march=native", "-fopenmp", "-fPIC", "-shared", "-std=c++17",
+         "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math", "-Wall", "-Wextra"]
+"""-ffp-contract=off keeps forward and backward recomputations bit-identical;
+-fno-trapping-math lets floor and float->int conversions vectorise (no FP traps are used)."""
+
+
+class NativeUnavailableError(RuntimeError):
+    """The native library could not be built or loaded."""
+
+
+def compiler() -> str:
+    return os.environ.get("CXX") or shutil.which("g++") or shutil.which("c++") or "c++"
+
+
+def cache_dir() -> Path:
+    if os.environ.get("STGS_NATIVE_CACHE"):
+        return Path(os.environ["STGS_NATIVE_CACHE"])
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "stgs" / "native"
+
+
+def build_key(cxx: str) -> str:
+    digest = hashlib.sha256()
+    for name in SOURCES + HEADERS:
+        digest.update(name.encode())
+        digest.update((CSRC / name).read_bytes())
+    digest.update(" ".join(FLAGS).encode())
+    try:
+        version = subprocess.run([cxx, "--version"], capture_output=True, text=True,
+                                 check=False).stdout
+    except OSError as exc:
+        raise NativeUnavailableError(f"no C++ compiler ({cxx}): {exc}") from exc
+    digest.update(version.encode())
+    digest.update(cpu_flags().encode())  # -march=native: a build is only valid on its CPU
+    return digest.hexdigest()[:16]
+
+
+def cpu_flags() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith(("flags", "Features")):
+                return line
+    except OSError:
+        pass
+    return ""
+
+
+def library_path() -> Path:
+    return cache_dir() / f"libstgs_native-{build_key(compiler())}.so"
+
+
+def build(verbose: bool = False) -> Path:
+    """Compile the kernels unless an up-to-date build is cached; returns the library path."""
+    target = library_path()
+    if target.exists():
+        return target
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
+    os.close(fd)
+    cmd = [compiler(), *FLAGS, "-I", str(CSRC), *(str(CSRC / s) for s in SOURCES), "-o", tmp]
+    if verbose:
+        print("building native kernels:", " ".join(cmd), file=sys.stderr)
+    proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    if proc.returncode != 0:
+        os.unlink(tmp)
+        raise NativeUnavailableError(f"native build failed: {proc.stderr.strip()[:2000]}")
+    os.replace(tmp, target)
+    return target
+
+
+_LIB: ctypes.CDLL | None = None
+_ERROR: str | None = None
+
+
+def load() -> ctypes.CDLL:
+    """The loaded native library (built on first use); raises NativeUnavailableError."""
+    global _LIB, _ERROR
+    if _LIB is not None:
+        return _LIB
+    if _ERROR is not None:
+        raise NativeUnavailableError(_ERROR)
+    if os.environ.get("STGS_NATIVE", "1") == "0":
+        _ERROR = "disabled by STGS_NATIVE=0"
+        raise NativeUnavailableError(_ERROR)
+    try:
+        _LIB = ctypes.CDLL(str(build()))
+    except (NativeUnavailableError, OSError) as exc:
+        _ERROR = str(exc)
+        raise NativeUnavailableError(_ERROR) from exc
+    return _LIB
+
+
+def available() -> bool:
+    try:
+        load()
+    except NativeUnavailableError:
+        return False
+    return True
+
+
+def main() -> int:
+    try:
+        path = build(verbose=True)
+    except NativeUnavailableError as exc:
+        print(f"stgs: {exc}", file=sys.stderr)
+        return 1
+    print(path)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

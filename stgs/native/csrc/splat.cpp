@@ -1,0 +1,709 @@
+// Native CPU splatter: projection, tile binning, front-to-back compositing and
+// its backward pass. Mirrors stgs/render/project.py and stgs/render/reference.py
+// (the oracle); constants and numerics are the contract in DESIGN.md.
+//
+// Exposed through a C ABI and loaded with ctypes, so building it needs only a
+// C++ compiler with OpenMP (no torch headers, no CUDA).
+
+#include <omp.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <vector>
+
+#include "fastmath.h"
+
+#if defined(__AVX512F__)
+#include <immintrin.h>
+#endif
+
+namespace {
+
+constexpr double kNearZ = 0.01;
+constexpr double kBlur = 0.3;
+constexpr double kExtentMargin = 1.0 + 1e-4;
+constexpr float kAlphaMin = 1.0f / 255.0f;
+constexpr float kAlphaMax = 0.99f;
+constexpr float kTMin = 1e-4f;
+constexpr int kTile = 16;
+constexpr int kTilePixels = kTile * kTile;
+
+struct Rect {
+  int32_t u0, u1, v0, v1;  // inclusive pixel bounds
+};
+
+// Screen-space rows of one Gaussian, as the compositor reads them.
+struct Splat {
+  float mx, my, a, b, c, o, r, g, bl;
+};
+
+struct RasterCtx {
+  int width = 0, height = 0, tiles_x = 0, tiles_y = 0;
+  std::vector<int64_t> tile_start;  // (tiles + 1) offsets into ids
+  std::vector<int32_t> ids;         // Gaussian ids, per tile, front to back
+  std::vector<Rect> rects;          // per Gaussian pixel rect (u0 > u1 when off screen)
+  std::vector<float> trans_final;   // per pixel
+  std::vector<int32_t> n_contrib;   // per pixel: list entries up to the last one added
+};
+
+// Stable LSD radix sort of ids by non-negative float keys (bit patterns are monotone).
+void radix_sort_by_depth(std::vector<int32_t>& ids, const float* depth) {
+  const size_t n = ids.size();
+  std::vector<int32_t> tmp(n);
+  std::vector<uint32_t> keys(n), keys_tmp(n);
+  for (size_t i = 0; i < n; ++i) std::memcpy(&keys[i], &depth[ids[i]], 4);
+  for (int shift = 0; shift < 32; shift += 8) {
+    size_t count[257] = {0};
+    for (size_t i = 0; i < n; ++i) ++count[((keys[i] >> shift) & 255u) + 1];
+    for (int b = 0; b < 256; ++b) count[b + 1] += count[b];
+    for (size_t i = 0; i < n; ++i) {
+      const size_t dst = count[(keys[i] >> shift) & 255u]++;
+      tmp[dst] = ids[i];
+      keys_tmp[dst] = keys[i];
+    }
+    ids.swap(tmp);
+    keys.swap(keys_tmp);
+  }
+}
+
+// Inclusive pixel range whose centres lie within [m - h, m + h], clipped to [0, size).
+void pixel_range(float m, float h, int size, int32_t& lo, int32_t& hi) {
+  const double first = std::ceil(double(m) - double(h) - 0.5);
+  const double last = std::floor(double(m) + double(h) - 0.5);
+  lo = int32_t(std::max(0.0, std::min(first, double(size))));
+  hi = int32_t(std::max(-1.0, std::min(last, double(size - 1))));
+}
+
+Splat load_splat(int32_t g, const float* xy, const float* conic, const float* opac,
+                 const float* color) {
+  return {xy[2 * g],        xy[2 * g + 1],        conic[3 * g],         conic[3 * g + 1],
+          conic[3 * g + 2], opac[g],              color[3 * g],         color[3 * g + 1],
+          color[3 * g + 2]};
+}
+
+// -0.5 q of the Gaussian at a pixel offset; q >= 0 up to rounding, which callers clip.
+inline float raw_power(const Splat& s, float dx, float dy) {
+  return -0.5f * (s.a * dx * dx + 2.0f * s.b * dx * dy + s.c * dy * dy);
+}
+
+// Fills ctx.tile_start / ctx.ids from Gaussians in depth order. Each thread bins
+// a contiguous run of the depth order, and its entries go after those of the
+// threads before it, so every tile's list stays front to back.
+void bin_by_tile(RasterCtx& ctx, const std::vector<int32_t>& ordered, int nthreads) {
+  const int tiles = ctx.tiles_x * ctx.tiles_y;
+  const int64_t n = int64_t(ordered.size());
+  nthreads = int(std::max<int64_t>(1, std::min<int64_t>(nthreads, n / 4096 + 1)));
+  std::vector<int64_t> counts(size_t(nthreads) * tiles, 0);
+  auto for_tiles = [&](int32_t g, auto&& fn) {
+    const Rect& r = ctx.rects[g];
+    for (int ty = r.v0 / kTile; ty <= r.v1 / kTile; ++ty)
+      for (int tx = r.u0 / kTile; tx <= r.u1 / kTile; ++tx) fn(ty * ctx.tiles_x + tx);
+  };
+#pragma omp parallel num_threads(nthreads)
+  {
+    const int t = omp_get_thread_num();
+    int64_t* mine = &counts[size_t(t) * tiles];
+    for (int64_t i = n * t / nthreads; i < n * (t + 1) / nthreads; ++i)
+      for_tiles(ordered[i], [&](int tile) { ++mine[tile]; });
+  }
+  ctx.tile_start.assign(tiles + 1, 0);
+  std::vector<int64_t> offsets(size_t(nthreads) * tiles);
+  int64_t total = 0;
+  for (int tile = 0; tile < tiles; ++tile) {
+    ctx.tile_start[tile] = total;
+    for (int t = 0; t < nthreads; ++t) {
+      offsets[size_t(t) * tiles + tile] = total;
+      total += counts[size_t(t) * tiles + tile];
+    }
+  }
+  ctx.tile_start[tiles] = total;
+  ctx.ids.resize(total);
+#pragma omp parallel num_threads(nthreads)
+  {
+    const int t = omp_get_thread_num();
+    int64_t* next = &offsets[size_t(t) * tiles];
+    for (int64_t i = n * t / nthreads; i < n * (t + 1) / nthreads; ++i) {
+      const int32_t g = ordered[i];
+      for_tiles(g, [&](int tile) { ctx.ids[next[tile]++] = g; });
+    }
+  }
+}
+
+// Per-tile compositing state, one lane per pixel (structure of arrays so that
+// a tile row of kTile pixels is one vector).
+struct TileState {
+  alignas(64) float trans[kTilePixels];
+  alignas(64) float acc_r[kTilePixels];
+  alignas(64) float acc_g[kTilePixels];
+  alignas(64) float acc_b[kTilePixels];
+  alignas(64) int32_t last[kTilePixels];
+  alignas(64) int32_t live[kTilePixels];  // 1 while the pixel still composites
+};
+
+// The tile's pixel window (x0, y0) and its width/height clipped to the image.
+struct TileBox {
+  int x0, y0, w, h;
+};
+
+TileBox tile_box(const RasterCtx& ctx, int tile) {
+  const int x0 = (tile % ctx.tiles_x) * kTile, y0 = (tile / ctx.tiles_x) * kTile;
+  return {x0, y0, std::min(kTile, ctx.width - x0), std::min(kTile, ctx.height - y0)};
+}
+
+// Alpha of a Gaussian at the kTile pixel centres of one tile row (0 outside [u0, u1]).
+inline void row_alpha(const Splat& s, int x0, float dy, int u0, int u1, float* __restrict alpha,
+                      float* __restrict falloff, float* __restrict power_out) {
+  const float base_dx = float(x0) + 0.5f - s.mx;
+  const float lo = float(u0 - x0), hi = float(u1 - x0);
+#pragma omp simd
+  for (int i = 0; i < kTile; ++i) {
+    const float fi = float(i);
+    const float power = raw_power(s, base_dx + fi, dy);
+    const float f = stgs::fast_exp(power < 0.0f ? power : 0.0f);
+    const float a = std::min(s.o * f, kAlphaMax);
+    alpha[i] = (fi >= lo && fi <= hi) ? a : 0.0f;
+    falloff[i] = f;
+    power_out[i] = power;
+  }
+}
+
+constexpr int kScanEvery = 16;
+
+// Recomputes which rows still composite; false once the whole tile is saturated.
+bool refresh_live_rows(const TileState& st, bool* row_live) {
+  bool any = false;
+  for (int v = 0; v < kTile; ++v) {
+    int live = 0;
+    for (int i = 0; i < kTile; ++i) live |= st.live[v * kTile + i];
+    row_live[v] = row_live[v] && live;
+    any = any || row_live[v];
+  }
+  return any;
+}
+
+void render_tile(const RasterCtx& ctx, int tile, const float* xy, const float* conic,
+                 const float* opac, const float* color, const float* bg, float* out,
+                 float* trans_final, int32_t* n_contrib) {
+  const TileBox box = tile_box(ctx, tile);
+  TileState st;
+  for (int p = 0; p < kTilePixels; ++p) {
+    st.trans[p] = 1.0f;
+    st.acc_r[p] = st.acc_g[p] = st.acc_b[p] = 0.0f;
+    st.last[p] = 0;
+    st.live[p] = (p % kTile < box.w && p / kTile < box.h) ? 1 : 0;
+  }
+  // row_live[v]: the row still has a compositing pixel; refreshed every kScanEvery Gaussians.
+  bool row_live[kTile];
+  for (int v = 0; v < kTile; ++v) row_live[v] = v < box.h;
+  const int64_t begin = ctx.tile_start[tile], end = ctx.tile_start[tile + 1];
+  alignas(64) float alpha[kTile], falloff[kTile], power[kTile];
+  for (int64_t k = begin; k < end; ++k) {
+    if ((k - begin) % kScanEvery == kScanEvery - 1 && !refresh_live_rows(st, row_live)) break;
+    const int32_t g = ctx.ids[k];
+    const Rect& r = ctx.rects[g];
+    const Splat s = load_splat(g, xy, conic, opac, color);
+    const int v0 = std::max(r.v0, box.y0), v1 = std::min(r.v1, box.y0 + box.h - 1);
+    const int32_t rank = int32_t(k - begin + 1);
+    for (int v = v0; v <= v1; ++v) {
+      const int row = v - box.y0;
+      if (!row_live[row]) continue;
+      const float dy = float(v) + 0.5f - s.my;
+      row_alpha(s, box.x0, dy, r.u0, r.u1, alpha, falloff, power);
+      float* trans = st.trans + row * kTile;
+      float* ar = st.acc_r + row * kTile;
+      float* ag = st.acc_g + row * kTile;
+      float* ab = st.acc_b + row * kTile;
+      int32_t* last = st.last + row * kTile;
+      int32_t* live = st.live + row * kTile;
+#pragma omp simd
+      for (int i = 0; i < kTile; ++i) {
+        const float a = alpha[i];
+        const bool take = live[i] && a >= kAlphaMin;
+        const float next = trans[i] * (1.0f - a);
+        const bool stop = take && next < kTMin;
+        const bool add = take && !stop;
+        const float w = add ? a * trans[i] : 0.0f;
+        ar[i] += s.r * w;
+        ag[i] += s.g * w;
+        ab[i] += s.bl * w;
+        trans[i] = add ? next : trans[i];
+        last[i] = add ? rank : last[i];
+        live[i] = stop ? 0 : live[i];
+      }
+    }
+  }
+  for (int v = 0; v < box.h; ++v) {
+    for (int u = 0; u < box.w; ++u) {
+      const int p = v * kTile + u;
+      const int64_t pix = int64_t(box.y0 + v) * ctx.width + (box.x0 + u);
+      out[3 * pix] = st.acc_r[p] + st.trans[p] * bg[0];
+      out[3 * pix + 1] = st.acc_g[p] + st.trans[p] * bg[1];
+      out[3 * pix + 2] = st.acc_b[p] + st.trans[p] * bg[2];
+      trans_final[pix] = st.trans[p];
+      n_contrib[pix] = st.last[p];
+    }
+  }
+}
+
+// Per-thread gradient sums for one Gaussian: xy(2) conic(3) opacity(1) colour(3).
+constexpr int kGradStride = 9;
+
+void backward_tile(const RasterCtx& ctx, int tile, const float* xy, const float* conic,
+                   const float* opac, const float* color, const float* bg,
+                   const float* grad_out, float* grads, double* grad_bg) {
+  const TileBox box = tile_box(ctx, tile);
+  // trans: transmittance after the contributions still to be undone; acc_*:
+  // colour composited behind the current Gaussian (background included).
+  TileState st;
+  alignas(64) float d_r[kTilePixels], d_g[kTilePixels], d_b[kTilePixels];
+  int32_t max_last = 0;
+  for (int p = 0; p < kTilePixels; ++p) {
+    const int u = p % kTile, v = p / kTile;
+    const bool in = u < box.w && v < box.h;
+    const int64_t pix = int64_t(box.y0 + v) * ctx.width + (box.x0 + u);
+    st.trans[p] = in ? ctx.trans_final[pix] : 1.0f;
+    st.last[p] = in ? ctx.n_contrib[pix] : 0;
+    d_r[p] = in ? grad_out[3 * pix] : 0.0f;
+    d_g[p] = in ? grad_out[3 * pix + 1] : 0.0f;
+    d_b[p] = in ? grad_out[3 * pix + 2] : 0.0f;
+    st.acc_r[p] = st.trans[p] * bg[0];
+    st.acc_g[p] = st.trans[p] * bg[1];
+    st.acc_b[p] = st.trans[p] * bg[2];
+    if (in) {
+      grad_bg[0] += double(st.trans[p]) * d_r[p];
+      grad_bg[1] += double(st.trans[p]) * d_g[p];
+      grad_bg[2] += double(st.trans[p]) * d_b[p];
+    }
+    max_last = std::max(max_last, st.last[p]);
+  }
+  const int64_t begin = ctx.tile_start[tile];
+  alignas(64) float alpha[kTile], falloff[kTile], power[kTile];
+  for (int32_t k = max_last - 1; k >= 0; --k) {
+    const int32_t g = ctx.ids[begin + k];
+    const Rect& r = ctx.rects[g];
+    const Splat s = load_splat(g, xy, conic, opac, color);
+    const int v0 = std::max(r.v0, box.y0), v1 = std::min(r.v1, box.y0 + box.h - 1);
+    float gmx = 0, gmy = 0, ga = 0, gb = 0, gc = 0, go = 0, gr = 0, gg = 0, gbl = 0;
+    for (int v = v0; v <= v1; ++v) {
+      const int row = v - box.y0;
+      const float dy = float(v) + 0.5f - s.my;
+      row_alpha(s, box.x0, dy, r.u0, r.u1, alpha, falloff, power);
+      float* trans = st.trans + row * kTile;
+      float* ar = st.acc_r + row * kTile;
+      float* ag = st.acc_g + row * kTile;
+      float* ab = st.acc_b + row * kTile;
+      const int32_t* last = st.last + row * kTile;
+      const float* dr = d_r + row * kTile;
+      const float* dg = d_g + row * kTile;
+      const float* db = d_b + row * kTile;
+#pragma omp simd reduction(+ : gmx, gmy, ga, gb, gc, go, gr, gg, gbl)
+      for (int i = 0; i < kTile; ++i) {
+        const float a = alpha[i];
+        const bool took = k < last[i] && a >= kAlphaMin;
+        const float one_minus = 1.0f - a;
+        const float t_before = took ? trans[i] / one_minus : trans[i];
+        const float w = took ? a * t_before : 0.0f;
+        gr += w * dr[i];
+        gg += w * dg[i];
+        gbl += w * db[i];
+        const float g_alpha = took ? dr[i] * (s.r * t_before - ar[i] / one_minus) +
+                                         dg[i] * (s.g * t_before - ag[i] / one_minus) +
+                                         db[i] * (s.bl * t_before - ab[i] / one_minus)
+                                   : 0.0f;
+        ar[i] += s.r * w;
+        ag[i] += s.g * w;
+        ab[i] += s.bl * w;
+        trans[i] = t_before;
+        // No gradient through the 0.99 clamp, nor through the power clip at 0.
+        const bool open_alpha = s.o * falloff[i] <= kAlphaMax;
+        go += open_alpha ? g_alpha * falloff[i] : 0.0f;
+        const float g_power = (open_alpha && power[i] <= 0.0f) ? g_alpha * s.o * falloff[i] : 0.0f;
+        const float dx = float(box.x0 + i) + 0.5f - s.mx;
+        gmx += g_power * (s.a * dx + s.b * dy);
+        gmy += g_power * (s.b * dx + s.c * dy);
+        ga += g_power * (-0.5f * dx * dx);
+        gb += g_power * (-dx * dy);
+        gc += g_power * (-0.5f * dy * dy);
+      }
+    }
+    float* out = &grads[int64_t(g) * kGradStride];
+    out[0] += gmx; out[1] += gmy;
+    out[2] += ga; out[3] += gb; out[4] += gc;
+    out[5] += go;
+    out[6] += gr; out[7] += gg; out[8] += gbl;
+  }
+}
+
+#if defined(__AVX512F__)
+// AVX-512 versions of render_tile / backward_tile: one tile row of 16 pixels is
+// one register, live pixels are a 16-bit mask per row. Same numerics as the
+// portable versions above (which stay the build for CPUs without AVX-512).
+
+struct SplatVec {
+  __m512 mx, a, b2, c, o, r, g, bl, amin, amax, tmin, one, half;
+  explicit SplatVec(const Splat& s)
+      : mx(_mm512_set1_ps(s.mx)), a(_mm512_set1_ps(s.a)), b2(_mm512_set1_ps(2.0f * s.b)),
+        c(_mm512_set1_ps(s.c)), o(_mm512_set1_ps(s.o)), r(_mm512_set1_ps(s.r)),
+        g(_mm512_set1_ps(s.g)), bl(_mm512_set1_ps(s.bl)), amin(_mm512_set1_ps(kAlphaMin)),
+        amax(_mm512_set1_ps(kAlphaMax)), tmin(_mm512_set1_ps(kTMin)), one(_mm512_set1_ps(1.0f)),
+        half(_mm512_set1_ps(-0.5f)) {}
+};
+
+// e^x for x <= 0 (the same reduction and polynomial as stgs::fast_exp).
+inline __m512 exp_v(__m512 x) {
+  x = _mm512_max_ps(x, _mm512_set1_ps(-87.0f));
+  const __m512 n = _mm512_roundscale_ps(
+      _mm512_fmadd_ps(x, _mm512_set1_ps(1.44269504088896341f), _mm512_set1_ps(0.5f)),
+      _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC);
+  __m512 r = _mm512_fnmadd_ps(n, _mm512_set1_ps(0.693145751953125f), x);
+  r = _mm512_fnmadd_ps(n, _mm512_set1_ps(1.428606765330187045e-06f), r);
+  __m512 p = _mm512_set1_ps(1.9875691500e-4f);
+  p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(1.3981999507e-3f));
+  p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(8.3334519073e-3f));
+  p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(4.1665795894e-2f));
+  p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(1.6666665459e-1f));
+  p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(5.0000001201e-1f));
+  p = _mm512_fmadd_ps(_mm512_mul_ps(p, r), r, _mm512_add_ps(r, _mm512_set1_ps(1.0f)));
+  return _mm512_scalef_ps(p, n);
+}
+
+// Power (-0.5 q, unclipped), falloff e^min(power, 0) and clamped alpha along a row.
+struct RowEval {
+  __m512 dx, power, falloff, alpha;
+};
+
+inline RowEval eval_row(const SplatVec& v, __m512 px, float dy, __mmask16 inside) {
+  RowEval e;
+  e.dx = _mm512_sub_ps(px, v.mx);
+  const __m512 dyv = _mm512_set1_ps(dy);
+  const __m512 cdy2 = _mm512_mul_ps(_mm512_mul_ps(v.c, dyv), dyv);
+  const __m512 q = _mm512_fmadd_ps(_mm512_mul_ps(v.a, e.dx), e.dx,
+                                   _mm512_fmadd_ps(_mm512_mul_ps(v.b2, dyv), e.dx, cdy2));
+  e.power = _mm512_mul_ps(v.half, q);
+  e.falloff = exp_v(_mm512_min_ps(e.power, _mm512_setzero_ps()));
+  e.alpha = _mm512_maskz_min_ps(inside, _mm512_mul_ps(v.o, e.falloff), v.amax);
+  return e;
+}
+
+inline __mmask16 span_mask(int x0, int u0, int u1) {
+  const int lo = std::max(0, u0 - x0), hi = std::min(kTile - 1, u1 - x0);
+  if (lo > hi) return 0;
+  return __mmask16(((1u << (hi - lo + 1)) - 1u) << lo);
+}
+
+inline __m512 pixel_centres(int x0) {
+  return _mm512_add_ps(_mm512_set1_ps(float(x0) + 0.5f),
+                       _mm512_setr_ps(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15));
+}
+
+void render_tile_avx512(const RasterCtx& ctx, int tile, const float* xy, const float* conic,
+                        const float* opac, const float* color, const float* bg, float* out,
+                        float* trans_final, int32_t* n_contrib) {
+  const TileBox box = tile_box(ctx, tile);
+  __m512 trans[kTile], ar[kTile], ag[kTile], ab[kTile];
+  __m512i last[kTile];
+  __mmask16 live[kTile];
+  int live_rows = 0;
+  const __mmask16 width_mask = __mmask16((1u << box.w) - 1u);
+  for (int v = 0; v < kTile; ++v) {
+    trans[v] = _mm512_set1_ps(1.0f);
+    ar[v] = ag[v] = ab[v] = _mm512_setzero_ps();
+    last[v] = _mm512_setzero_si512();
+    live[v] = v < box.h ? width_mask : 0;
+    live_rows += v < box.h;
+  }
+  const __m512 px = pixel_centres(box.x0);
+  const int64_t begin = ctx.tile_start[tile], end = ctx.tile_start[tile + 1];
+  for (int64_t k = begin; k < end && live_rows > 0; ++k) {
+    const int32_t g = ctx.ids[k];
+    const Rect& r = ctx.rects[g];
+    const Splat s = load_splat(g, xy, conic, opac, color);
+    const SplatVec sv(s);
+    const __mmask16 inside = span_mask(box.x0, r.u0, r.u1);
+    const __m512i rank = _mm512_set1_epi32(int32_t(k - begin + 1));
+    const int v0 = std::max(r.v0, box.y0), v1 = std::min(r.v1, box.y0 + box.h - 1);
+    for (int v = v0; v <= v1; ++v) {
+      const int row = v - box.y0;
+      const __mmask16 lv = live[row] & inside;
+      if (!lv) continue;
+      const RowEval e = eval_row(sv, px, float(v) + 0.5f - s.my, inside);
+      const __mmask16 take = _mm512_mask_cmp_ps_mask(lv, e.alpha, sv.amin, _CMP_GE_OQ);
+      const __m512 next = _mm512_mul_ps(trans[row], _mm512_sub_ps(sv.one, e.alpha));
+      const __mmask16 stop = _mm512_mask_cmp_ps_mask(take, next, sv.tmin, _CMP_LT_OQ);
+      const __mmask16 add = take & ~stop;
+      const __m512 w = _mm512_maskz_mul_ps(add, e.alpha, trans[row]);
+      ar[row] = _mm512_fmadd_ps(sv.r, w, ar[row]);
+      ag[row] = _mm512_fmadd_ps(sv.g, w, ag[row]);
+      ab[row] = _mm512_fmadd_ps(sv.bl, w, ab[row]);
+      trans[row] = _mm512_mask_mov_ps(trans[row], add, next);
+      last[row] = _mm512_mask_mov_epi32(last[row], add, rank);
+      live[row] &= ~stop;
+      if (stop && live[row] == 0) --live_rows;
+    }
+  }
+  alignas(64) float tr[kTile], rr[kTile], gg[kTile], bb[kTile];
+  alignas(64) int32_t ll[kTile];
+  for (int v = 0; v < box.h; ++v) {
+    _mm512_store_ps(tr, trans[v]);
+    _mm512_store_ps(rr, ar[v]);
+    _mm512_store_ps(gg, ag[v]);
+    _mm512_store_ps(bb, ab[v]);
+    _mm512_store_si512(ll, last[v]);
+    for (int u = 0; u < box.w; ++u) {
+      const int64_t pix = int64_t(box.y0 + v) * ctx.width + (box.x0 + u);
+      out[3 * pix] = rr[u] + tr[u] * bg[0];
+      out[3 * pix + 1] = gg[u] + tr[u] * bg[1];
+      out[3 * pix + 2] = bb[u] + tr[u] * bg[2];
+      trans_final[pix] = tr[u];
+      n_contrib[pix] = ll[u];
+    }
+  }
+}
+
+inline float hsum(__m512 v) { return _mm512_reduce_add_ps(v); }
+
+void backward_tile_avx512(const RasterCtx& ctx, int tile, const float* xy, const float* conic,
+                          const float* opac, const float* color, const float* bg,
+                          const float* grad_out, float* grads, double* grad_bg) {
+  const TileBox box = tile_box(ctx, tile);
+  __m512 trans[kTile], ar[kTile], ag[kTile], ab[kTile], dr[kTile], dg[kTile], db[kTile];
+  __m512i last[kTile];
+  int32_t max_last = 0;
+  for (int v = 0; v < kTile; ++v) {
+    alignas(64) float t[kTile] = {0}, r[kTile] = {0}, g[kTile] = {0}, b[kTile] = {0};
+    alignas(64) int32_t l[kTile] = {0};
+    for (int u = 0; u < kTile; ++u) t[u] = 1.0f;
+    if (v < box.h) {
+      for (int u = 0; u < box.w; ++u) {
+        const int64_t pix = int64_t(box.y0 + v) * ctx.width + (box.x0 + u);
+        t[u] = ctx.trans_final[pix];
+        l[u] = ctx.n_contrib[pix];
+        r[u] = grad_out[3 * pix];
+        g[u] = grad_out[3 * pix + 1];
+        b[u] = grad_out[3 * pix + 2];
+        grad_bg[0] += double(t[u]) * r[u];
+        grad_bg[1] += double(t[u]) * g[u];
+        grad_bg[2] += double(t[u]) * b[u];
+        max_last = std::max(max_last, l[u]);
+      }
+    }
+    trans[v] = _mm512_load_ps(t);
+    last[v] = _mm512_load_si512(l);
+    dr[v] = _mm512_load_ps(r);
+    dg[v] = _mm512_load_ps(g);
+    db[v] = _mm512_load_ps(b);
+    ar[v] = _mm512_mul_ps(trans[v], _mm512_set1_ps(bg[0]));
+    ag[v] = _mm512_mul_ps(trans[v], _mm512_set1_ps(bg[1]));
+    ab[v] = _mm512_mul_ps(trans[v], _mm512_set1_ps(bg[2]));
+  }
+  const __m512 px = pixel_centres(box.x0);
+  const int64_t begin = ctx.tile_start[tile];
+  for (int32_t k = max_last - 1; k >= 0; --k) {
+    const int32_t g = ctx.ids[begin + k];
+    const Rect& r = ctx.rects[g];
+    const Splat s = load_splat(g, xy, conic, opac, color);
+    const SplatVec sv(s);
+    const __mmask16 inside = span_mask(box.x0, r.u0, r.u1);
+    const __m512i rank = _mm512_set1_epi32(k);
+    const int v0 = std::max(r.v0, box.y0), v1 = std::min(r.v1, box.y0 + box.h - 1);
+    __m512 gmx = _mm512_setzero_ps(), gmy = gmx, ga = gmx, gb = gmx, gc = gmx, go = gmx;
+    __m512 gr = gmx, gg = gmx, gbl = gmx;
+    for (int v = v0; v <= v1; ++v) {
+      const int row = v - box.y0;
+      // Pixels whose compositing reached this Gaussian (rank < last) inside its span.
+      const __mmask16 reached = _mm512_mask_cmp_epi32_mask(inside, rank, last[row], _MM_CMPINT_LT);
+      if (!reached) continue;
+      const float dy = float(v) + 0.5f - s.my;
+      const RowEval e = eval_row(sv, px, dy, inside);
+      const __mmask16 took = _mm512_mask_cmp_ps_mask(reached, e.alpha, sv.amin, _CMP_GE_OQ);
+      if (!took) continue;
+      const __m512 inv = _mm512_div_ps(sv.one, _mm512_sub_ps(sv.one, e.alpha));
+      const __m512 t_before = _mm512_mask_mul_ps(trans[row], took, trans[row], inv);
+      const __m512 w = _mm512_maskz_mul_ps(took, e.alpha, t_before);
+      gr = _mm512_fmadd_ps(w, dr[row], gr);
+      gg = _mm512_fmadd_ps(w, dg[row], gg);
+      gbl = _mm512_fmadd_ps(w, db[row], gbl);
+      __m512 g_alpha = _mm512_mul_ps(dr[row], _mm512_fmsub_ps(sv.r, t_before, _mm512_mul_ps(ar[row], inv)));
+      g_alpha = _mm512_fmadd_ps(dg[row], _mm512_fmsub_ps(sv.g, t_before, _mm512_mul_ps(ag[row], inv)), g_alpha);
+      g_alpha = _mm512_fmadd_ps(db[row], _mm512_fmsub_ps(sv.bl, t_before, _mm512_mul_ps(ab[row], inv)), g_alpha);
+      g_alpha = _mm512_maskz_mov_ps(took, g_alpha);
+      ar[row] = _mm512_fmadd_ps(sv.r, w, ar[row]);
+      ag[row] = _mm512_fmadd_ps(sv.g, w, ag[row]);
+      ab[row] = _mm512_fmadd_ps(sv.bl, w, ab[row]);
+      trans[row] = t_before;
+      // No gradient through the 0.99 clamp, nor through the power clip at 0.
+      const __m512 raw_alpha = _mm512_mul_ps(sv.o, e.falloff);
+      const __mmask16 open = _mm512_mask_cmp_ps_mask(took, raw_alpha, sv.amax, _CMP_LE_OQ);
+      go = _mm512_mask3_fmadd_ps(g_alpha, e.falloff, go, open);
+      const __mmask16 flows = _mm512_mask_cmp_ps_mask(open, e.power, _mm512_setzero_ps(), _CMP_LE_OQ);
+      const __m512 g_power = _mm512_maskz_mul_ps(flows, g_alpha, raw_alpha);
+      const __m512 dyv = _mm512_set1_ps(dy);
+      gmx = _mm512_fmadd_ps(g_power, _mm512_fmadd_ps(sv.a, e.dx, _mm512_mul_ps(_mm512_set1_ps(s.b), dyv)), gmx);
+      gmy = _mm512_fmadd_ps(g_power, _mm512_fmadd_ps(_mm512_set1_ps(s.b), e.dx, _mm512_mul_ps(sv.c, dyv)), gmy);
+      ga = _mm512_fmadd_ps(g_power, _mm512_mul_ps(sv.half, _mm512_mul_ps(e.dx, e.dx)), ga);
+      gb = _mm512_fnmadd_ps(g_power, _mm512_mul_ps(e.dx, dyv), gb);
+      gc = _mm512_fmadd_ps(g_power, _mm512_set1_ps(-0.5f * dy * dy), gc);
+    }
+    float* o = &grads[int64_t(g) * kGradStride];
+    o[0] += hsum(gmx); o[1] += hsum(gmy);
+    o[2] += hsum(ga); o[3] += hsum(gb); o[4] += hsum(gc);
+    o[5] += hsum(go);
+    o[6] += hsum(gr); o[7] += hsum(gg); o[8] += hsum(gbl);
+  }
+}
+constexpr auto kRenderTile = render_tile_avx512;
+constexpr auto kBackwardTile = backward_tile_avx512;
+#else
+constexpr auto kRenderTile = render_tile;
+constexpr auto kBackwardTile = backward_tile;
+#endif  // __AVX512F__
+
+}  // namespace
+
+extern "C" {
+
+// Projection in double precision; mirrors stgs.render.project.project.
+// viewmat: 4x4 row-major world-to-camera; K: 3x3 row-major.
+void stgs_project(int64_t n, const float* means, const float* quats, const float* scales,
+                  const float* opac, const double* viewmat, const double* K, float* means2d,
+                  float* conics, float* depths, float* extents, int nthreads) {
+#pragma omp parallel for num_threads(nthreads) schedule(static)
+  for (int64_t i = 0; i < n; ++i) {
+    const double px = means[3 * i], py = means[3 * i + 1], pz = means[3 * i + 2];
+    const double x = viewmat[0] * px + viewmat[1] * py + viewmat[2] * pz + viewmat[3];
+    const double y = viewmat[4] * px + viewmat[5] * py + viewmat[6] * pz + viewmat[7];
+    const double z = viewmat[8] * px + viewmat[9] * py + viewmat[10] * pz + viewmat[11];
+    const bool valid = z >= kNearZ;
+    const double zs = valid ? z : 1.0;
+    const double xn = x / zs, yn = y / zs;
+    means2d[2 * i] = float(K[0] * xn + K[1] * yn + K[2]);
+    means2d[2 * i + 1] = float(K[4] * yn + K[5]);
+    depths[i] = valid ? float(z) : -1.0f;
+    // Rotation from the overflow-safe normalised quaternion (zero -> identity).
+    double q[4] = {quats[4 * i], quats[4 * i + 1], quats[4 * i + 2], quats[4 * i + 3]};
+    double peak = std::max(std::max(std::fabs(q[0]), std::fabs(q[1])),
+                           std::max(std::fabs(q[2]), std::fabs(q[3])));
+    if (peak > 0) {
+      for (double& c : q) c /= peak;
+      const double nrm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+      for (double& c : q) c /= nrm;
+    } else {
+      q[0] = 1; q[1] = q[2] = q[3] = 0;
+    }
+    const double w = q[0], qx = q[1], qy = q[2], qz = q[3];
+    const double R[9] = {1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - w * qz), 2 * (qx * qz + w * qy),
+                         2 * (qx * qy + w * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - w * qx),
+                         2 * (qx * qz - w * qy), 2 * (qy * qz + w * qx), 1 - 2 * (qx * qx + qy * qy)};
+    // jac = K[:2,:2] @ d(xn,yn)/d(p_cam); M = jac @ Rcw @ R @ diag(s).
+    const double dn[6] = {1 / zs, 0, -xn / zs, 0, 1 / zs, -yn / zs};
+    double jac[6];
+    for (int r = 0; r < 2; ++r)
+      for (int c = 0; c < 3; ++c)
+        jac[3 * r + c] = K[3 * r] * dn[c] + K[3 * r + 1] * dn[3 + c];
+    double jw[6];
+    for (int r = 0; r < 2; ++r)
+      for (int c = 0; c < 3; ++c)
+        jw[3 * r + c] = jac[3 * r] * viewmat[c] + jac[3 * r + 1] * viewmat[4 + c] +
+                        jac[3 * r + 2] * viewmat[8 + c];
+    double M[6];
+    for (int r = 0; r < 2; ++r)
+      for (int c = 0; c < 3; ++c)
+        M[3 * r + c] = (jw[3 * r] * R[c] + jw[3 * r + 1] * R[3 + c] + jw[3 * r + 2] * R[6 + c]) *
+                       double(scales[3 * i + c]);
+    const double a0 = M[0] * M[0] + M[1] * M[1] + M[2] * M[2];
+    const double b0 = M[0] * M[3] + M[1] * M[4] + M[2] * M[5];
+    const double c0 = M[3] * M[3] + M[4] * M[4] + M[5] * M[5];
+    const double m01 = M[0] * M[4] - M[1] * M[3], m02 = M[0] * M[5] - M[2] * M[3],
+                 m12 = M[1] * M[5] - M[2] * M[4];
+    const double det = m01 * m01 + m02 * m02 + m12 * m12 + kBlur * (a0 + c0) + kBlur * kBlur;
+    conics[3 * i] = float((c0 + kBlur) / det);
+    conics[3 * i + 1] = float(-b0 / det);
+    conics[3 * i + 2] = float((a0 + kBlur) / det);
+    const double level = 255.0 * double(opac[i]);
+    if (valid && level >= 1.0) {
+      const double quad = 2.0 * std::log(level);
+      extents[2 * i] = float(std::sqrt(quad * (a0 + kBlur)) * kExtentMargin + 1e-3);
+      extents[2 * i + 1] = float(std::sqrt(quad * (c0 + kBlur)) * kExtentMargin + 1e-3);
+    } else {
+      extents[2 * i] = extents[2 * i + 1] = -1.0f;
+    }
+  }
+}
+
+// Bins, sorts and composites. Returns a context for the backward pass (free it
+// with stgs_raster_free) and writes the (H, W, 3) image to out.
+void* stgs_raster_forward(int64_t n, const float* xy, const float* conic, const float* opac,
+                          const float* color, const float* depth, const float* extent,
+                          const float* bg, int width, int height, float* out, int nthreads) {
+  auto* ctx = new RasterCtx();
+  ctx->width = width;
+  ctx->height = height;
+  ctx->tiles_x = (width + kTile - 1) / kTile;
+  ctx->tiles_y = (height + kTile - 1) / kTile;
+  const int tiles = ctx->tiles_x * ctx->tiles_y;
+  ctx->rects.resize(n);
+  std::vector<int32_t> visible;
+  visible.reserve(n);
+  for (int64_t i = 0; i < n; ++i) {
+    Rect& r = ctx->rects[i];
+    r = {0, -1, 0, -1};
+    if (!(extent[2 * i] >= 0.0f)) continue;
+    pixel_range(xy[2 * i], extent[2 * i], width, r.u0, r.u1);
+    pixel_range(xy[2 * i + 1], extent[2 * i + 1], height, r.v0, r.v1);
+    if (r.u0 <= r.u1 && r.v0 <= r.v1) visible.push_back(int32_t(i));
+  }
+  radix_sort_by_depth(visible, depth);
+  bin_by_tile(*ctx, visible, nthreads);
+  ctx->trans_final.resize(int64_t(width) * height);
+  ctx->n_contrib.resize(int64_t(width) * height);
+#pragma omp parallel for num_threads(nthreads) schedule(dynamic, 1)
+  for (int t = 0; t < tiles; ++t)
+    kRenderTile(*ctx, t, xy, conic, opac, color, bg, out, ctx->trans_final.data(),
+                ctx->n_contrib.data());
+  return ctx;
+}
+
+// Gradients of the composited image with respect to the forward's inputs.
+void stgs_raster_backward(void* handle, int64_t n, const float* xy, const float* conic,
+                          const float* opac, const float* color, const float* bg,
+                          const float* grad_out, float* grad_xy, float* grad_conic,
+                          float* grad_opac, float* grad_color, float* grad_bg, int nthreads) {
+  const auto* ctx = static_cast<const RasterCtx*>(handle);
+  const int tiles = ctx->tiles_x * ctx->tiles_y;
+  std::vector<float> partial(size_t(nthreads) * n * kGradStride, 0.0f);
+  std::vector<double> partial_bg(size_t(nthreads) * 3, 0.0);
+#pragma omp parallel num_threads(nthreads)
+  {
+    const int tid = omp_get_thread_num();
+    float* mine = partial.data() + size_t(tid) * n * kGradStride;
+#pragma omp for schedule(dynamic, 1)
+    for (int t = 0; t < tiles; ++t)
+      kBackwardTile(*ctx, t, xy, conic, opac, color, bg, grad_out, mine, &partial_bg[3 * tid]);
+  }
+#pragma omp parallel for num_threads(nthreads) schedule(static)
+  for (int64_t i = 0; i < n; ++i) {
+    float sum[kGradStride] = {0};
+    for (int t = 0; t < nthreads; ++t)
+      for (int j = 0; j < kGradStride; ++j) sum[j] += partial[(size_t(t) * n + i) * kGradStride + j];
+    grad_xy[2 * i] = sum[0]; grad_xy[2 * i + 1] = sum[1];
+    grad_conic[3 * i] = sum[2]; grad_conic[3 * i + 1] = sum[3]; grad_conic[3 * i + 2] = sum[4];
+    grad_opac[i] = sum[5];
+    grad_color[3 * i] = sum[6]; grad_color[3 * i + 1] = sum[7]; grad_color[3 * i + 2] = sum[8];
+  }
+  for (int ch = 0; ch < 3; ++ch) {
+    double s = 0;
+    for (int t = 0; t < nthreads; ++t) s += partial_bg[3 * t + ch];
+    grad_bg[ch] = float(s);
+  }
+}
+
+// Number of (tile, Gaussian) pairs the last forward binned: a cost statistic.
+int64_t stgs_raster_pairs(void* handle) {
+  return int64_t(static_cast<RasterCtx*>(handle)->ids.size());
+}
+
+void stgs_raster_free(void* handle) { delete static_cast<RasterCtx*>(handle); }
+
+}  // extern "C"

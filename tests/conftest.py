@@ -1,0 +1,38 @@
+"""Shared fixtures: small random scenes and cameras for the splatter tests."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+"""../shared beside the checkout (real data, DASH schema); tests that need it skip without it."""
+
+os.environ.setdefault("STGS_NATIVE", "1")
+
+
+def random_scene(n: int, seed: int, dtype=torch.float64, spread: float = 0.6, depth: float = 3.0,
+                 log_scale: float = -3.0) -> list[torch.Tensor]:
+    """means, quats, scales, opacities, colors of n random Gaussians in front of an identity camera."""
+    gen = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=gen, dtype=dtype) * spread
+    means[:, 2] += depth
+    quats = torch.randn(n, 4, generator=gen, dtype=dtype)
+    scales = torch.exp(torch.randn(n, 3, generator=gen, dtype=dtype) * 0.5 + log_scale)
+    opacities = torch.rand(n, generator=gen, dtype=dtype)
+    colors = torch.rand(n, 3, generator=gen, dtype=dtype)
+    return [means, quats, scales, opacities, colors]
+
+
+def pinhole(width: int, height: int, focal: float, dtype=torch.float64) -> tuple[torch.Tensor, torch.Tensor]:
+    """(viewmat, K) of an identity-pose camera with a centred principal point."""
+    K = torch.tensor([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1]], dtype=dtype)
+    return torch.eye(4, dtype=dtype), K
+
+
+@pytest.fixture
+def small_camera():
+    return pinhole(48, 32, 40.0)

@@ -1,0 +1,123 @@
+"""GOP model: shapes, the deformation field's architecture, and the native deform vs torch."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from stgs.camera import Camera, intrinsics, look_at
+from stgs.model.gop import FEATURE_DIM, HIDDEN, GOPModel, GOPShape, frame_time, positional_encoding
+from stgs.model.native_deform import PackedWeights, deform_native
+from stgs.model.view import FrameRenderer
+
+
+def random_model(n=300, gop_size=10, window=3, seed=0) -> GOPModel:
+    torch.manual_seed(seed)
+    model = GOPModel(GOPShape(capacity=n, gop_size=gop_size, window=window))
+    with torch.no_grad():
+        for p in model.parameters():
+            p.normal_(0, 0.4)
+        model.xyz.normal_(0, 0.5)
+        model.log_scale.normal_(-3, 0.3)
+        model.opacity_logit.normal_(0, 2)
+    return model
+
+
+def test_shapes_follow_gop_size_and_window():
+    shape = GOPShape(capacity=64, gop_size=60, window=3)
+    model = GOPModel(shape)
+    assert shape.num_features == 62 and shape.grid_side == 8
+    assert model.features.shape == (62, 64, FEATURE_DIM)
+    assert GOPShape(capacity=50).grid_side == 0
+
+
+def test_frame_uses_its_window_of_features():
+    model = GOPModel(GOPShape(capacity=5, gop_size=4, window=3))
+    with torch.no_grad():
+        for e in range(model.shape.num_features):
+            model.features[e] = e
+    for i in range(4):
+        window = model.window_features(i).reshape(5, 3, FEATURE_DIM)
+        assert torch.equal(window[:, :, 0], torch.tensor([i, i + 1, i + 2]).float().expand(5, 3))
+    with pytest.raises(ValueError, match="outside the GOP"):
+        model.window_features(4)
+
+
+def test_deformation_field_architecture():
+    field = GOPModel(GOPShape(capacity=1, window=3, pe_freqs=4)).field
+    linears = [m for m in field.modules() if isinstance(m, nn.Linear)]
+    assert all(m.bias is None for m in linears), "no biases anywhere"
+    assert field.temporal.in_features == 3 * FEATURE_DIM + 8 and field.temporal.out_features == HIDDEN
+    for decoder, in_dim, out_dim in [(field.d_pos, HIDDEN, 3), (field.d_cov, HIDDEN, 7),
+                                     (field.d_opacity, HIDDEN + 3, 1), (field.d_color, HIDDEN + 3, 3)]:
+        first, last = decoder[0], decoder[2]
+        assert (first.in_features, first.out_features) == (in_dim, HIDDEN)
+        assert (last.in_features, last.out_features) == (HIDDEN, out_dim)
+
+
+def test_time_normalised_per_gop_and_encoding():
+    assert frame_time(0, 60) == 0.0 and frame_time(59, 60) == 1.0
+    pe = positional_encoding(0.5, 2)  # sin(pi/2), sin(pi), cos(pi/2), cos(pi)
+    assert torch.allclose(pe, torch.tensor([1.0, 0.0, 0.0, -1.0]), atol=1e-6)
+
+
+def test_zero_field_gives_canonical_gaussians():
+    model = random_model()
+    with torch.no_grad():
+        for p in model.field.parameters():
+            p.zero_()
+    g = model.deform(3, torch.tensor([0.0, 0.0, -3.0]))
+    assert torch.equal(g.means, model.xyz)
+    assert torch.allclose(g.scales, model.log_scale.exp())
+    assert torch.allclose(g.opacities, torch.sigmoid(model.opacity_logit))
+    assert torch.allclose(g.colors, torch.relu(model.color))
+
+
+def test_view_direction_reaches_only_opacity_and_colour():
+    model = random_model()
+    a = model.deform(2, torch.tensor([0.0, 0.0, -3.0]))
+    b = model.deform(2, torch.tensor([3.0, 1.0, 0.0]))
+    assert torch.equal(a.means, b.means) and torch.equal(a.scales, b.scales)
+    assert torch.equal(a.quats, b.quats)
+    assert not torch.allclose(a.colors, b.colors) and not torch.allclose(a.opacities, b.opacities)
+    assert (a.opacities >= 0).all() and (a.opacities <= 1).all()
+
+
+def test_delta_opacity_is_bounded_by_tanh():
+    model = random_model()
+    with torch.no_grad():
+        model.field.d_opacity[2].weight.mul_(1e4)  # saturate the tanh
+    base = torch.sigmoid(model.opacity_logit)
+    g = model.deform(1, torch.zeros(3))
+    assert ((g.opacities - base.clamp(0, 1)).abs() <= 1.0 + 1e-6).all()
+
+
+@pytest.mark.parametrize("window", [1, 3, 5])
+def test_native_deform_matches_torch(window):
+    model = random_model(n=777, window=window)
+    center = torch.tensor([0.3, -0.2, -4.0])
+    with torch.no_grad():
+        ref = model.deform(5, center)
+        nat = deform_native(model, 5, center, PackedWeights(model))
+    for name in ("means", "quats", "scales", "opacities", "colors"):
+        a, b = getattr(ref, name), getattr(nat, name)
+        assert torch.allclose(a, b, rtol=1e-4, atol=1e-5), name
+
+
+def test_native_culling_does_not_change_the_image():
+    model = random_model(n=2000)
+    cam = Camera("c", intrinsics(64, 48, 40.0), look_at((0.0, 0.0, -3.0), (0.8, 0.0, 0.0)), 64, 48)
+    renderer = FrameRenderer(model, native=True)
+    culled = renderer.gaussians(4, cam)
+    with torch.no_grad():
+        full = deform_native(model, 4, cam.center.float(), PackedWeights(model))
+    assert (culled.opacities == 0).sum() > (full.opacities == 0).sum()  # some were culled
+    args = (cam.viewmat.float(), cam.K.float(), 64, 48)
+    from stgs.render import rasterize
+
+    a = rasterize(culled.means, culled.quats, culled.scales, culled.opacities, culled.colors, *args)
+    b = rasterize(full.means, full.quats, full.scales, full.opacities, full.colors, *args)
+    assert torch.equal(a, b)
+    slow = FrameRenderer(model, native=False).render(4, cam)
+    assert (slow.double() - a.double()).abs().max() < 1e-4
