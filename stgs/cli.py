@@ -98,25 +98,44 @@ def run_demo(args: argparse.Namespace) -> int:
 def add_bench(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmarks (accuracy vs time), printed as a Markdown table",
                        description="Run a benchmark suite and print Markdown for docs/BENCHMARKS.md.")
-    p.add_argument("suite", choices=["render"], help="render: splatter and deform, per backend")
+    p.add_argument("suite", choices=["render", "synth"],
+                   help="render: splatter and deform per backend and Gaussian count; "
+                   "synth: fit fidelity vs fit iterations")
     p.add_argument("--sizes", default="16384,65536,147456",
                    help="comma-separated Gaussian counts (default: 16384,65536,147456)")
     p.add_argument("--width", type=_positive_int, default=640)
     p.add_argument("--height", type=_positive_int, default=360)
     p.add_argument("--repeats", type=_positive_int, default=5, help="timed runs per measurement")
     p.add_argument("--reference-max", type=int, default=65536,
-                   help="skip the reference backends above this many Gaussians (time)")
+                   help="render: skip the reference backends above this many Gaussians (time)")
+    p.add_argument("--steps", default="25,50,100,200,400,800",
+                   help="synth: comma-separated fit steps per GOP (default: 25,50,100,200,400,800)")
+    p.add_argument("--preset", default="small", help="synth: SynthConfig preset (default: small)")
     p.set_defaults(run=run_bench)
 
 
+def _int_list(text: str, option: str) -> list[int]:
+    try:
+        values = [int(s) for s in text.split(",") if s]
+    except ValueError:
+        raise UserError(f"{option} must be comma-separated integers, got {text!r}") from None
+    if not values or min(values) < 0:
+        raise UserError(f"{option} must list non-negative integers, got {text!r}")
+    return values
+
+
 def run_bench(args: argparse.Namespace) -> int:
+    if args.suite == "synth":
+        from stgs.benchmarks.synth import main as bench_synth
+        from stgs.synth import PRESETS
+
+        if args.preset not in PRESETS:
+            raise UserError(f"--preset must be one of {', '.join(sorted(PRESETS))}")
+        return bench_synth(_int_list(args.steps, "--steps"), args.preset)
     from stgs.benchmarks.render import main as bench_render
 
-    try:
-        sizes = [int(s) for s in args.sizes.split(",") if s]
-    except ValueError:
-        raise UserError(f"--sizes must be comma-separated integers, got {args.sizes!r}") from None
-    return bench_render(sizes, args.width, args.height, args.repeats, args.reference_max)
+    return bench_render(_int_list(args.sizes, "--sizes"), args.width, args.height, args.repeats,
+                        args.reference_max)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -22,7 +22,9 @@ from pathlib import Path
 SOURCES = ("splat.cpp", "deform.cpp")
 HEADERS = ("fastmath.h",)
 CSRC = Path(__file__).with_name("csrc")
-FLAGS = ["-O3", "-march=native", "-fopenmp", "-fPIC", "-shared", "-std=c++17",
+ARCH = os.environ.get("STGS_NATIVE_ARCH", "native")
+"""-march target; e.g. STGS_NATIVE_ARCH=x86-64-v3 builds the portable (no AVX-512) kernels."""
+FLAGS = ["-O3", f"-march={ARCH}", "-fopenmp", "-fPIC", "-shared", "-std=c++17",
          "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math", "-Wall", "-Wextra"]
 """-ffp-contract=off keeps forward and backward recomputations bit-identical;
 -fno-trapping-math lets floor and float->int conversions vectorise (no FP traps are used)."""

@@ -7,11 +7,12 @@ compiler). Both follow DESIGN.md's numerics; tests hold them to each other.
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 import torch
 
-from stgs.native.build import NativeUnavailableError, available
+from stgs.native.build import NativeUnavailableError, available, load
 from stgs.render.project import Projected, project
 from stgs.render.reference import composite_reference
 
@@ -21,12 +22,21 @@ MAX_IMAGE_SIDE = 16384
 """Largest width or height accepted (bounds the image allocation)."""
 
 
+def _value_range(t: torch.Tensor) -> tuple[float, float]:
+    """(min, max) of a tensor; NaN propagates into both, so a non-finite input shows here."""
+    if t.numel() == 0:
+        return 0.0, 0.0
+    lo, hi = torch.aminmax(t.detach())
+    return lo.item(), hi.item()
+
+
 def _check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height,
                   background) -> None:
     n = means.shape[0] if means.dim() == 2 else -1
     shapes = {"means": (means, (n, 3)), "quats": (quats, (n, 4)), "scales": (scales, (n, 3)),
               "opacities": (opacities, (n,)), "colors": (colors, (n, 3)),
               "viewmat": (viewmat, (4, 4)), "K": (K, (3, 3)), "background": (background, (3,))}
+    ranges = {}
     for name, (t, shape) in shapes.items():
         if not isinstance(t, torch.Tensor):
             raise TypeError(f"rasterize: {name} must be a torch.Tensor")
@@ -35,14 +45,15 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, he
                              "(N Gaussians taken from means)")
         if t.dtype not in (torch.float32, torch.float64):
             raise ValueError(f"rasterize: {name} has dtype {t.dtype}; use float32 or float64")
-        if not torch.isfinite(t).all():
+        ranges[name] = lo, hi = _value_range(t)
+        if not (math.isfinite(lo) and math.isfinite(hi)):
             raise ValueError(f"rasterize: {name} contains NaN or Inf")
     dtypes = {t.dtype for t in (means, quats, scales, opacities, colors)}
     if len(dtypes) != 1:
         raise ValueError(f"rasterize: Gaussian inputs mix dtypes {sorted(map(str, dtypes))}")
-    if n and (opacities.min() < 0 or opacities.max() > 1):
+    if ranges["opacities"][0] < 0 or ranges["opacities"][1] > 1:
         raise ValueError("rasterize: opacities must lie in [0, 1]")
-    if n and scales.min() < 0:
+    if ranges["scales"][0] < 0:
         raise ValueError("rasterize: scales must be non-negative (linear, not log)")
     for name, side in (("width", width), ("height", height)):
         if not isinstance(side, int) or not 0 < side <= MAX_IMAGE_SIDE:
@@ -57,9 +68,7 @@ def choose_backend(dtype: torch.dtype, device: torch.device, backend: Backend = 
     if backend == "native":
         if not native_ok:
             raise ValueError("rasterize: the native backend takes float32 CPU tensors")
-        if not available():
-            from stgs.native.build import load
-            load()  # raises NativeUnavailableError with the build error
+        load()  # raises NativeUnavailableError with the build error
         return "native"
     if backend != "auto":
         raise ValueError(f"rasterize: unknown backend {backend!r}")

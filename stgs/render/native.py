@@ -20,7 +20,7 @@ def library() -> ctypes.CDLL:
         lib.stgs_project.restype = None
         lib.stgs_raster_forward.argtypes = [c_int64] + [c_void_p] * 7 + [c_int, c_int, c_void_p, c_int]
         lib.stgs_raster_forward.restype = c_void_p
-        lib.stgs_raster_backward.argtypes = [c_void_p, c_int64] + [c_void_p] * 11 + [c_int]
+        lib.stgs_raster_backward.argtypes = [c_void_p, c_int64] + [c_void_p] * 7 + [c_int]
         lib.stgs_raster_backward.restype = None
         lib.stgs_raster_pairs.argtypes = [c_void_p]
         lib.stgs_raster_pairs.restype = c_int64
@@ -96,8 +96,6 @@ class NativeComposite(torch.autograd.Function):
         means2d, conics, opacities, colors, background = ctx.saved_tensors
         grads = [torch.zeros_like(t) for t in (means2d, conics, opacities, colors, background)]
         grad_out = f32(grad_out)
-        library().stgs_raster_backward(
-            ctx.handle.handle, means2d.shape[0], ptr(means2d), ptr(conics), ptr(opacities),
-            ptr(colors), ptr(background), ptr(grad_out), *(ptr(g) for g in grads),
-            torch.get_num_threads())
+        library().stgs_raster_backward(ctx.handle.handle, means2d.shape[0], ptr(background),
+                                       ptr(grad_out), *(ptr(g) for g in grads), torch.get_num_threads())
         return (*grads, None, None, None, None)

@@ -16,6 +16,8 @@
 #include "fastmath.h"
 
 #if defined(__AVX512F__)
+// GCC 12's AVX-512 headers trip -Wmaybe-uninitialized on their own internals.
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
 #include <immintrin.h>
 #endif
 
@@ -34,16 +36,18 @@ struct Rect {
   int32_t u0, u1, v0, v1;  // inclusive pixel bounds
 };
 
-// Screen-space rows of one Gaussian, as the compositor reads them.
-struct Splat {
+// One Gaussian as the compositor reads it: one cache line per Gaussian.
+struct alignas(64) Splat {
   float mx, my, a, b, c, o, r, g, bl;
+  float min_power;  // ln(1 / (255 o)) - 1e-3: below this power alpha < 1/255 everywhere
+  Rect rect;        // inclusive pixel bounds of the opacity-aware extent
 };
 
 struct RasterCtx {
   int width = 0, height = 0, tiles_x = 0, tiles_y = 0;
   std::vector<int64_t> tile_start;  // (tiles + 1) offsets into ids
   std::vector<int32_t> ids;         // Gaussian ids, per tile, front to back
-  std::vector<Rect> rects;          // per Gaussian pixel rect (u0 > u1 when off screen)
+  std::vector<Splat> splats;        // per Gaussian (rect u0 > u1 when off screen)
   std::vector<float> trans_final;   // per pixel
   std::vector<int32_t> n_contrib;   // per pixel: list entries up to the last one added
 };
@@ -76,12 +80,6 @@ void pixel_range(float m, float h, int size, int32_t& lo, int32_t& hi) {
   hi = int32_t(std::max(-1.0, std::min(last, double(size - 1))));
 }
 
-Splat load_splat(int32_t g, const float* xy, const float* conic, const float* opac,
-                 const float* color) {
-  return {xy[2 * g],        xy[2 * g + 1],        conic[3 * g],         conic[3 * g + 1],
-          conic[3 * g + 2], opac[g],              color[3 * g],         color[3 * g + 1],
-          color[3 * g + 2]};
-}
 
 // -0.5 q of the Gaussian at a pixel offset; q >= 0 up to rounding, which callers clip.
 inline float raw_power(const Splat& s, float dx, float dy) {
@@ -97,7 +95,7 @@ void bin_by_tile(RasterCtx& ctx, const std::vector<int32_t>& ordered, int nthrea
   nthreads = int(std::max<int64_t>(1, std::min<int64_t>(nthreads, n / 4096 + 1)));
   std::vector<int64_t> counts(size_t(nthreads) * tiles, 0);
   auto for_tiles = [&](int32_t g, auto&& fn) {
-    const Rect& r = ctx.rects[g];
+    const Rect& r = ctx.splats[g].rect;
     for (int ty = r.v0 / kTile; ty <= r.v1 / kTile; ++ty)
       for (int tx = r.u0 / kTile; tx <= r.u1 / kTile; ++tx) fn(ty * ctx.tiles_x + tx);
   };
@@ -183,9 +181,8 @@ bool refresh_live_rows(const TileState& st, bool* row_live) {
   return any;
 }
 
-void render_tile(const RasterCtx& ctx, int tile, const float* xy, const float* conic,
-                 const float* opac, const float* color, const float* bg, float* out,
-                 float* trans_final, int32_t* n_contrib) {
+[[maybe_unused]] void render_tile(const RasterCtx& ctx, int tile, const float* bg, float* out, float* trans_final,
+                 int32_t* n_contrib) {
   const TileBox box = tile_box(ctx, tile);
   TileState st;
   for (int p = 0; p < kTilePixels; ++p) {
@@ -202,8 +199,8 @@ void render_tile(const RasterCtx& ctx, int tile, const float* xy, const float* c
   for (int64_t k = begin; k < end; ++k) {
     if ((k - begin) % kScanEvery == kScanEvery - 1 && !refresh_live_rows(st, row_live)) break;
     const int32_t g = ctx.ids[k];
-    const Rect& r = ctx.rects[g];
-    const Splat s = load_splat(g, xy, conic, opac, color);
+    const Splat& s = ctx.splats[g];
+    const Rect& r = s.rect;
     const int v0 = std::max(r.v0, box.y0), v1 = std::min(r.v1, box.y0 + box.h - 1);
     const int32_t rank = int32_t(k - begin + 1);
     for (int v = v0; v <= v1; ++v) {
@@ -250,9 +247,8 @@ void render_tile(const RasterCtx& ctx, int tile, const float* xy, const float* c
 // Per-thread gradient sums for one Gaussian: xy(2) conic(3) opacity(1) colour(3).
 constexpr int kGradStride = 9;
 
-void backward_tile(const RasterCtx& ctx, int tile, const float* xy, const float* conic,
-                   const float* opac, const float* color, const float* bg,
-                   const float* grad_out, float* grads, double* grad_bg) {
+[[maybe_unused]] void backward_tile(const RasterCtx& ctx, int tile, const float* bg, const float* grad_out,
+                   float* grads, double* grad_bg) {
   const TileBox box = tile_box(ctx, tile);
   // trans: transmittance after the contributions still to be undone; acc_*:
   // colour composited behind the current Gaussian (background included).
@@ -282,8 +278,8 @@ void backward_tile(const RasterCtx& ctx, int tile, const float* xy, const float*
   alignas(64) float alpha[kTile], falloff[kTile], power[kTile];
   for (int32_t k = max_last - 1; k >= 0; --k) {
     const int32_t g = ctx.ids[begin + k];
-    const Rect& r = ctx.rects[g];
-    const Splat s = load_splat(g, xy, conic, opac, color);
+    const Splat& s = ctx.splats[g];
+    const Rect& r = s.rect;
     const int v0 = std::max(r.v0, box.y0), v1 = std::min(r.v1, box.y0 + box.h - 1);
     float gmx = 0, gmy = 0, ga = 0, gb = 0, gc = 0, go = 0, gr = 0, gg = 0, gbl = 0;
     for (int v = v0; v <= v1; ++v) {
@@ -374,14 +370,19 @@ struct RowEval {
   __m512 dx, power, falloff, alpha;
 };
 
+inline __m512 row_power(const SplatVec& v, __m512 px, float dy) {
+  const __m512 dx = _mm512_sub_ps(px, v.mx);
+  const __m512 dyv = _mm512_set1_ps(dy);
+  const __m512 cdy2 = _mm512_mul_ps(_mm512_mul_ps(v.c, dyv), dyv);
+  const __m512 q = _mm512_fmadd_ps(_mm512_mul_ps(v.a, dx), dx,
+                                   _mm512_fmadd_ps(_mm512_mul_ps(v.b2, dyv), dx, cdy2));
+  return _mm512_mul_ps(v.half, q);
+}
+
 inline RowEval eval_row(const SplatVec& v, __m512 px, float dy, __mmask16 inside) {
   RowEval e;
   e.dx = _mm512_sub_ps(px, v.mx);
-  const __m512 dyv = _mm512_set1_ps(dy);
-  const __m512 cdy2 = _mm512_mul_ps(_mm512_mul_ps(v.c, dyv), dyv);
-  const __m512 q = _mm512_fmadd_ps(_mm512_mul_ps(v.a, e.dx), e.dx,
-                                   _mm512_fmadd_ps(_mm512_mul_ps(v.b2, dyv), e.dx, cdy2));
-  e.power = _mm512_mul_ps(v.half, q);
+  e.power = row_power(v, px, dy);
   e.falloff = exp_v(_mm512_min_ps(e.power, _mm512_setzero_ps()));
   e.alpha = _mm512_maskz_min_ps(inside, _mm512_mul_ps(v.o, e.falloff), v.amax);
   return e;
@@ -398,8 +399,7 @@ inline __m512 pixel_centres(int x0) {
                        _mm512_setr_ps(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15));
 }
 
-void render_tile_avx512(const RasterCtx& ctx, int tile, const float* xy, const float* conic,
-                        const float* opac, const float* color, const float* bg, float* out,
+void render_tile_avx512(const RasterCtx& ctx, int tile, const float* bg, float* out,
                         float* trans_final, int32_t* n_contrib) {
   const TileBox box = tile_box(ctx, tile);
   __m512 trans[kTile], ar[kTile], ag[kTile], ab[kTile];
@@ -416,11 +416,14 @@ void render_tile_avx512(const RasterCtx& ctx, int tile, const float* xy, const f
   }
   const __m512 px = pixel_centres(box.x0);
   const int64_t begin = ctx.tile_start[tile], end = ctx.tile_start[tile + 1];
-  for (int64_t k = begin; k < end && live_rows > 0; ++k) {
+  for (int64_t k = begin; k < end; ++k) {
+    if ((k - begin) % kScanEvery == 0 && live_rows == 0) break;
     const int32_t g = ctx.ids[k];
-    const Rect& r = ctx.rects[g];
-    const Splat s = load_splat(g, xy, conic, opac, color);
+    const Splat& s = ctx.splats[g];
+    const Rect& r = s.rect;
     const SplatVec sv(s);
+    // alpha >= 1/255 needs power >= ln(1 / (255 o)); rows below it everywhere skip the exp.
+    const __m512 min_power = _mm512_set1_ps(s.min_power);
     const __mmask16 inside = span_mask(box.x0, r.u0, r.u1);
     const __m512i rank = _mm512_set1_epi32(int32_t(k - begin + 1));
     const int v0 = std::max(r.v0, box.y0), v1 = std::min(r.v1, box.y0 + box.h - 1);
@@ -428,7 +431,9 @@ void render_tile_avx512(const RasterCtx& ctx, int tile, const float* xy, const f
       const int row = v - box.y0;
       const __mmask16 lv = live[row] & inside;
       if (!lv) continue;
-      const RowEval e = eval_row(sv, px, float(v) + 0.5f - s.my, inside);
+      const float dy = float(v) + 0.5f - s.my;
+      if (!_mm512_mask_cmp_ps_mask(lv, row_power(sv, px, dy), min_power, _CMP_GE_OQ)) continue;
+      const RowEval e = eval_row(sv, px, dy, inside);
       const __mmask16 take = _mm512_mask_cmp_ps_mask(lv, e.alpha, sv.amin, _CMP_GE_OQ);
       const __m512 next = _mm512_mul_ps(trans[row], _mm512_sub_ps(sv.one, e.alpha));
       const __mmask16 stop = _mm512_mask_cmp_ps_mask(take, next, sv.tmin, _CMP_LT_OQ);
@@ -440,7 +445,10 @@ void render_tile_avx512(const RasterCtx& ctx, int tile, const float* xy, const f
       trans[row] = _mm512_mask_mov_ps(trans[row], add, next);
       last[row] = _mm512_mask_mov_epi32(last[row], add, rank);
       live[row] &= ~stop;
-      if (stop && live[row] == 0) --live_rows;
+    }
+    if ((k - begin) % kScanEvery == kScanEvery - 1) {
+      live_rows = 0;
+      for (int v = 0; v < kTile; ++v) live_rows += live[v] != 0;
     }
   }
   alignas(64) float tr[kTile], rr[kTile], gg[kTile], bb[kTile];
@@ -464,9 +472,8 @@ void render_tile_avx512(const RasterCtx& ctx, int tile, const float* xy, const f
 
 inline float hsum(__m512 v) { return _mm512_reduce_add_ps(v); }
 
-void backward_tile_avx512(const RasterCtx& ctx, int tile, const float* xy, const float* conic,
-                          const float* opac, const float* color, const float* bg,
-                          const float* grad_out, float* grads, double* grad_bg) {
+void backward_tile_avx512(const RasterCtx& ctx, int tile, const float* bg, const float* grad_out,
+                          float* grads, double* grad_bg) {
   const TileBox box = tile_box(ctx, tile);
   __m512 trans[kTile], ar[kTile], ag[kTile], ab[kTile], dr[kTile], dg[kTile], db[kTile];
   __m512i last[kTile];
@@ -502,8 +509,8 @@ void backward_tile_avx512(const RasterCtx& ctx, int tile, const float* xy, const
   const int64_t begin = ctx.tile_start[tile];
   for (int32_t k = max_last - 1; k >= 0; --k) {
     const int32_t g = ctx.ids[begin + k];
-    const Rect& r = ctx.rects[g];
-    const Splat s = load_splat(g, xy, conic, opac, color);
+    const Splat& s = ctx.splats[g];
+    const Rect& r = s.rect;
     const SplatVec sv(s);
     const __mmask16 inside = span_mask(box.x0, r.u0, r.u1);
     const __m512i rank = _mm512_set1_epi32(k);
@@ -643,15 +650,21 @@ void* stgs_raster_forward(int64_t n, const float* xy, const float* conic, const 
   ctx->tiles_x = (width + kTile - 1) / kTile;
   ctx->tiles_y = (height + kTile - 1) / kTile;
   const int tiles = ctx->tiles_x * ctx->tiles_y;
-  ctx->rects.resize(n);
+  ctx->splats.resize(n);
+#pragma omp parallel for num_threads(nthreads) schedule(static)
+  for (int64_t i = 0; i < n; ++i) {
+    Splat& s = ctx->splats[i];
+    s = {xy[2 * i], xy[2 * i + 1], conic[3 * i], conic[3 * i + 1], conic[3 * i + 2], opac[i],
+         color[3 * i], color[3 * i + 1], color[3 * i + 2], 0.0f, {0, -1, 0, -1}};
+    if (!(extent[2 * i] >= 0.0f)) continue;
+    s.min_power = -std::log(255.0f * opac[i]) - 1e-3f;
+    pixel_range(xy[2 * i], extent[2 * i], width, s.rect.u0, s.rect.u1);
+    pixel_range(xy[2 * i + 1], extent[2 * i + 1], height, s.rect.v0, s.rect.v1);
+  }
   std::vector<int32_t> visible;
   visible.reserve(n);
   for (int64_t i = 0; i < n; ++i) {
-    Rect& r = ctx->rects[i];
-    r = {0, -1, 0, -1};
-    if (!(extent[2 * i] >= 0.0f)) continue;
-    pixel_range(xy[2 * i], extent[2 * i], width, r.u0, r.u1);
-    pixel_range(xy[2 * i + 1], extent[2 * i + 1], height, r.v0, r.v1);
+    const Rect& r = ctx->splats[i].rect;
     if (r.u0 <= r.u1 && r.v0 <= r.v1) visible.push_back(int32_t(i));
   }
   radix_sort_by_depth(visible, depth);
@@ -660,16 +673,16 @@ void* stgs_raster_forward(int64_t n, const float* xy, const float* conic, const 
   ctx->n_contrib.resize(int64_t(width) * height);
 #pragma omp parallel for num_threads(nthreads) schedule(dynamic, 1)
   for (int t = 0; t < tiles; ++t)
-    kRenderTile(*ctx, t, xy, conic, opac, color, bg, out, ctx->trans_final.data(),
+    kRenderTile(*ctx, t, bg, out, ctx->trans_final.data(),
                 ctx->n_contrib.data());
   return ctx;
 }
 
 // Gradients of the composited image with respect to the forward's inputs.
-void stgs_raster_backward(void* handle, int64_t n, const float* xy, const float* conic,
-                          const float* opac, const float* color, const float* bg,
-                          const float* grad_out, float* grad_xy, float* grad_conic,
-                          float* grad_opac, float* grad_color, float* grad_bg, int nthreads) {
+// The forward's inputs are read from the context (the caller keeps them unchanged).
+void stgs_raster_backward(void* handle, int64_t n, const float* bg, const float* grad_out,
+                          float* grad_xy, float* grad_conic, float* grad_opac, float* grad_color,
+                          float* grad_bg, int nthreads) {
   const auto* ctx = static_cast<const RasterCtx*>(handle);
   const int tiles = ctx->tiles_x * ctx->tiles_y;
   std::vector<float> partial(size_t(nthreads) * n * kGradStride, 0.0f);
@@ -680,7 +693,7 @@ void stgs_raster_backward(void* handle, int64_t n, const float* xy, const float*
     float* mine = partial.data() + size_t(tid) * n * kGradStride;
 #pragma omp for schedule(dynamic, 1)
     for (int t = 0; t < tiles; ++t)
-      kBackwardTile(*ctx, t, xy, conic, opac, color, bg, grad_out, mine, &partial_bg[3 * tid]);
+      kBackwardTile(*ctx, t, bg, grad_out, mine, &partial_bg[3 * tid]);
   }
 #pragma omp parallel for num_threads(nthreads) schedule(static)
   for (int64_t i = 0; i < n; ++i) {
