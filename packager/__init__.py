@@ -1,1 +1,5 @@
-"""stgs.packager: model dir -> MPEG-DASH tree (`stgs pack`, issue 3)."""
+"""stgs.packager: model dir -> MPEG-DASH tree (`stgs pack`); the profile is in manifests/PROFILE.md."""
+
+from stgs.packager.packer import DEFAULT_QPS, MANIFEST, STATS, PackConfig, pack
+
+__all__ = ["DEFAULT_QPS", "MANIFEST", "STATS", "PackConfig", "pack"]

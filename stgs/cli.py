@@ -79,6 +79,50 @@ def run_synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _qps(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(q) for q in text.split(",") if q.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a comma-separated list of integers: {text!r}") from None
+
+
+def add_pack(sub: argparse._SubParsersAction) -> None:
+    from stgs.codec.video import PRESETS
+    from stgs.packager import DEFAULT_QPS
+
+    p = sub.add_parser("pack", help="package a model dir as an MPEG-DASH tree",
+                       description="PLAS-sort each GOP, write its keyframe segment (lossless JPEG XL "
+                       "attribute images + weights) and its feature video at every QP, then the MPD.")
+    p.add_argument("model_dir", type=Path, help="model dir (stgs synth / stgs train output)")
+    p.add_argument("out_dir", type=Path, help="output folder (a DASH tree any static server can serve)")
+    p.add_argument("--qps", type=_qps, default=DEFAULT_QPS,
+                   help=f"comma-separated feature-video QPs (default: {','.join(map(str, DEFAULT_QPS))})")
+    p.add_argument("--preset", choices=PRESETS, default="medium", help="x265 preset (default: medium)")
+    p.add_argument("--codec", default="hevc", help="feature-video codec (default and only: hevc)")
+    p.add_argument("--jobs", type=_positive_int, help="parallel encodes (default: core count)")
+    p.add_argument("--no-sort", action="store_true", help="skip the PLAS sort (for comparisons)")
+    p.add_argument("--resume", action="store_true",
+                   help="reuse segments a previous interrupted run of the same inputs completed")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(run=run_pack)
+
+
+def run_pack(args: argparse.Namespace) -> int:
+    from stgs.packager import MANIFEST, PackConfig, pack
+
+    cfg = PackConfig(qps=args.qps, preset=args.preset, codec=args.codec, sort=not args.no_sort,
+                     resume=args.resume)
+    if args.jobs:
+        cfg.jobs = args.jobs
+    stats = pack(args.model_dir, args.out_dir, cfg, progress=not args.quiet)
+    print(f"wrote {args.out_dir / MANIFEST}: {len(stats['gops'])} GOPs, keyframes "
+          f"{stats['keyframe_bandwidth'] / 1e3:.0f} kbit/s")
+    for rid, rep in stats["representations"].items():
+        print(f"  {rid}: {rep['bandwidth'] / 1e3:8.0f} kbit/s  features {rep['mean_feature_psnr']:.2f} dB  "
+              f"rendered {rep['mean_render_psnr']:.2f} dB")
+    return 0
+
+
 def add_demo(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="run the end-to-end demo on the embedded default scene",
                        description="Synthesise the default scene, render a free-viewpoint orbit "
@@ -98,9 +142,10 @@ def run_demo(args: argparse.Namespace) -> int:
 def add_bench(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmarks (accuracy vs time), printed as a Markdown table",
                        description="Run a benchmark suite and print Markdown for docs/BENCHMARKS.md.")
-    p.add_argument("suite", choices=["render", "synth"],
+    p.add_argument("suite", choices=["render", "synth", "pack"],
                    help="render: splatter and deform per backend and Gaussian count; "
-                   "synth: fit fidelity vs fit iterations")
+                   "synth: fit fidelity vs fit iterations; pack: rate, distortion and codec time per "
+                   "QP and x265 preset, PLAS vs no sort, PLAS time")
     p.add_argument("--sizes", default="16384,65536,147456",
                    help="comma-separated Gaussian counts (default: 16384,65536,147456)")
     p.add_argument("--width", type=_positive_int, default=640)
@@ -111,6 +156,12 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", default="25,50,100,200,400,800",
                    help="synth: comma-separated fit steps per GOP (default: 25,50,100,200,400,800)")
     p.add_argument("--preset", default="small", help="synth: SynthConfig preset (default: small)")
+    p.add_argument("--qps", default="16,20,24,28,32", help="pack: QPs (default: 16,20,24,28,32)")
+    p.add_argument("--presets", default="ultrafast,veryfast,medium,slow",
+                   help="pack: x265 presets (default: ultrafast,veryfast,medium,slow)")
+    p.add_argument("--sides", default="128,256,384", help="pack: PLAS grid sides S (default: 128,256,384)")
+    p.add_argument("--plot", type=Path, default=Path("docs/rate_distortion.png"),
+                   help="pack: where to write the rate-distortion plot (default: docs/rate_distortion.png)")
     p.set_defaults(run=run_bench)
 
 
@@ -125,6 +176,15 @@ def _int_list(text: str, option: str) -> list[int]:
 
 
 def run_bench(args: argparse.Namespace) -> int:
+    if args.suite == "pack":
+        from stgs.benchmarks.pack import main as bench_pack
+        from stgs.codec.video import PRESETS as X265_PRESETS
+
+        presets = [p for p in args.presets.split(",") if p]
+        unknown = sorted(set(presets) - set(X265_PRESETS))
+        if unknown:
+            raise UserError(f"--presets: unknown x265 preset(s) {unknown}")
+        return bench_pack(_int_list(args.qps, "--qps"), presets, _int_list(args.sides, "--sides"), args.plot)
     if args.suite == "synth":
         from stgs.benchmarks.synth import main as bench_synth
         from stgs.synth import PRESETS
@@ -141,7 +201,7 @@ def run_bench(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="stgs", description="StreamSTGS: streamable free-viewpoint video.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for add in (add_synth, add_demo, add_bench):
+    for add in (add_synth, add_pack, add_demo, add_bench):
         add(sub)
     return parser
 

@@ -59,7 +59,8 @@ def gop_file_name(index: int) -> str:
 def save_gop(model: GOPModel, path: Path) -> str:
     """Write one GOP atomically; returns its sha256."""
     tensors = {k: v.detach().to(torch.float32).contiguous() for k, v in model.state_dict().items()}
-    data = save(tensors, metadata={"format": FORMAT, "version": str(VERSION)})
+    # One metadata key: safetensors writes several in hash order (re-saves would differ byte-wise).
+    data = save(tensors, metadata={"streamstgs": json.dumps({"format": FORMAT, "version": VERSION})})
     atomic_write_bytes(path, data)
     return hashlib.sha256(data).hexdigest()
 

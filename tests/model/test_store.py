@@ -38,7 +38,7 @@ def test_files_are_safetensors_with_versioned_json(model_dir):
     assert [g["file"] for g in doc["gops"]] == ["gop_0000.safetensors", "gop_0001.safetensors"]
     header_len = int.from_bytes((path / "gop_0000.safetensors").read_bytes()[:8], "little")
     header = json.loads((path / "gop_0000.safetensors").read_bytes()[8:8 + header_len])
-    assert header["__metadata__"]["format"] == "streamstgs-model"
+    assert json.loads(header["__metadata__"]["streamstgs"]) == {"format": "streamstgs-model", "version": 1}
     assert not list(path.glob(".*")), "no temp files left behind"
 
 

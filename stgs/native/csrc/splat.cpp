@@ -138,6 +138,16 @@ struct TileState {
   alignas(64) float acc_b[kTilePixels];
   alignas(64) int32_t last[kTilePixels];
   alignas(64) int32_t live[kTilePixels];  // 1 while the pixel still composites
+
+  // Pointers to one tile row of every per-pixel array.
+  struct Row {
+    float *trans, *r, *g, *b;
+    int32_t *last, *live;
+  };
+  Row row(int v) {
+    const int o = v * kTile;
+    return {trans + o, acc_r + o, acc_g + o, acc_b + o, last + o, live + o};
+  }
 };
 
 // The tile's pixel window (x0, y0) and its width/height clipped to the image.
@@ -208,12 +218,9 @@ bool refresh_live_rows(const TileState& st, bool* row_live) {
       if (!row_live[row]) continue;
       const float dy = float(v) + 0.5f - s.my;
       row_alpha(s, box.x0, dy, r.u0, r.u1, alpha, falloff, power);
-      float* trans = st.trans + row * kTile;
-      float* ar = st.acc_r + row * kTile;
-      float* ag = st.acc_g + row * kTile;
-      float* ab = st.acc_b + row * kTile;
-      int32_t* last = st.last + row * kTile;
-      int32_t* live = st.live + row * kTile;
+      const TileState::Row px = st.row(row);
+      float *trans = px.trans, *ar = px.r, *ag = px.g, *ab = px.b;
+      int32_t *last = px.last, *live = px.live;
 #pragma omp simd
       for (int i = 0; i < kTile; ++i) {
         const float a = alpha[i];
@@ -286,11 +293,9 @@ constexpr int kGradStride = 9;
       const int row = v - box.y0;
       const float dy = float(v) + 0.5f - s.my;
       row_alpha(s, box.x0, dy, r.u0, r.u1, alpha, falloff, power);
-      float* trans = st.trans + row * kTile;
-      float* ar = st.acc_r + row * kTile;
-      float* ag = st.acc_g + row * kTile;
-      float* ab = st.acc_b + row * kTile;
-      const int32_t* last = st.last + row * kTile;
+      const TileState::Row px = st.row(row);
+      float *trans = px.trans, *ar = px.r, *ag = px.g, *ab = px.b;
+      const int32_t* last = px.last;
       const float* dr = d_r + row * kTile;
       const float* dg = d_g + row * kTile;
       const float* db = d_b + row * kTile;

@@ -1,0 +1,167 @@
+"""The keyframe segment: everything of a GOP except its temporal features.
+
+Container: a safetensors file (an 8-byte little-endian header length, a JSON
+header naming every tensor's dtype, shape and byte range, then raw bytes).
+Parsing it executes nothing. Tensors:
+
+| name               | dtype   | shape        | content |
+|--------------------|---------|--------------|---------|
+| image.<attribute>  | uint8   | (bytes,)     | a lossless JPEG XL file (attributes.SPECS) |
+| range.<attribute>  | float32 | (2, C)       | [lo, hi] normalisation range of that image |
+| range.features     | float32 | (2, 16)      | per-channel range of the feature video's 12-bit codes |
+| field.<name>       | float32 | Linear shape | deformation-field weights (docs/MODEL_FORMAT.md) |
+
+The header's `__metadata__` has one key, `streamstgs`, whose value is a JSON
+object (sorted keys) with format, version, gop, grid_side, capacity,
+gop_size, window, pe_freqs, feature_bits (all strings). A decoder checks the byte size, the
+header, every tensor name and shape and every image's dimensions against what
+the manifest announced before decoding anything.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load, save
+
+from stgs.codec.attributes import SPECS, apply_attributes, dequantize, encode_attributes
+from stgs.codec.features import VIDEO_BITS
+from stgs.codec.jxl import ImageDecodeError, decode_jxl, encode_jxl
+from stgs.model.gop import FEATURE_DIM, DeformationField, GOPModel, GOPShape
+
+FORMAT = "streamstgs-keyframe"
+VERSION = 1
+MIME_TYPE = "application/vnd.streamstgs.keyframe"
+EXTENSION = ".stgk"
+MAX_HEADER_BYTES = 1 << 20
+META_KEY = "streamstgs"
+"""The one `__metadata__` entry: a JSON object (sorted keys) of the fields below."""
+
+
+class KeyframeError(ValueError):
+    """A keyframe segment that is corrupt or does not match the manifest."""
+
+
+@dataclass
+class Keyframe:
+    """A decoded keyframe segment."""
+
+    gop: int
+    shape: GOPShape
+    attributes: dict[str, torch.Tensor]
+    """Dequantised canonical attributes, name -> (N, C)."""
+    field: dict[str, torch.Tensor]
+    """Deformation-field state dict."""
+    feature_ranges: torch.Tensor
+    """(2, 16) range of the feature codes."""
+
+    def to_model(self, features: torch.Tensor) -> GOPModel:
+        """The GOP model with these canonical attributes and the given (E, N, 16) features."""
+        model = GOPModel(self.shape)
+        model.field.load_state_dict(self.field)
+        apply_attributes(model, self.attributes)
+        with torch.no_grad():
+            model.features.copy_(features)
+        return model
+
+
+def encode_keyframe(gop: int, model: GOPModel, feature_ranges: torch.Tensor) -> bytes:
+    """Keyframe segment bytes of a PLAS-sorted GOP model."""
+    side = model.shape.grid_side
+    if side == 0:
+        raise ValueError("the capacity must be a square S² to form attribute images")
+    tensors: dict[str, torch.Tensor] = {}
+    for name, (codes, rng) in encode_attributes(model, side).items():
+        tensors[f"image.{name}"] = torch.frombuffer(bytearray(encode_jxl(codes)), dtype=torch.uint8)
+        tensors[f"range.{name}"] = rng.contiguous()
+    tensors["range.features"] = feature_ranges.float().contiguous()
+    for name, weight in model.field.state_dict().items():
+        tensors[f"field.{name}"] = weight.detach().float().contiguous()
+    meta = {"format": FORMAT, "version": str(VERSION), "gop": str(gop), "grid_side": str(side),
+            "capacity": str(model.shape.capacity), "gop_size": str(model.shape.gop_size),
+            "window": str(model.shape.window), "pe_freqs": str(model.shape.pe_freqs),
+            "feature_bits": str(VIDEO_BITS)}
+    # One metadata key: safetensors writes several in hash order, which would break byte-identical re-packs.
+    return save(tensors, metadata={META_KEY: json.dumps(meta, sort_keys=True)})
+
+
+def _header(data: bytes) -> dict:
+    if len(data) < 8:
+        raise KeyframeError("keyframe segment is truncated")
+    size = struct.unpack_from("<Q", data)[0]
+    if size > MAX_HEADER_BYTES or 8 + size > len(data):
+        raise KeyframeError(f"keyframe header claims {size} bytes")
+    try:
+        header = json.loads(data[8:8 + size])
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise KeyframeError(f"keyframe header is not JSON ({exc})") from exc
+    if not isinstance(header, dict):
+        raise KeyframeError("keyframe header is not a JSON object")
+    return header
+
+
+def expected_tensors(shape: GOPShape) -> dict[str, tuple[int, ...] | None]:
+    """name -> shape (None for the variable-length JPEG XL byte strings)."""
+    want: dict[str, tuple[int, ...] | None] = {}
+    for spec in SPECS:
+        want[f"image.{spec.name}"] = None
+        want[f"range.{spec.name}"] = (2, spec.channels)
+    want["range.features"] = (2, FEATURE_DIM)
+    field = DeformationField(shape.window, shape.pe_freqs)
+    want |= {f"field.{k}": tuple(v.shape) for k, v in field.state_dict().items()}
+    return want
+
+
+def decode_keyframe(data: bytes, shape: GOPShape, gop: int, max_bytes: int) -> Keyframe:
+    """Parse and check a keyframe segment against the shape and GOP index the manifest announced."""
+    if len(data) > max_bytes:
+        raise KeyframeError(f"keyframe segment is {len(data)} bytes, over the {max_bytes}-byte limit")
+    header = _header(data)
+    try:
+        meta = json.loads((header.get("__metadata__") or {}).get(META_KEY, "{}"))
+    except (json.JSONDecodeError, TypeError, AttributeError) as exc:
+        raise KeyframeError(f"keyframe metadata is not JSON ({exc})") from exc
+    if not isinstance(meta, dict):
+        raise KeyframeError("keyframe metadata is not a JSON object")
+    want_meta = {"format": FORMAT, "version": str(VERSION), "gop": str(gop),
+                 "grid_side": str(shape.grid_side), "capacity": str(shape.capacity),
+                 "gop_size": str(shape.gop_size), "window": str(shape.window),
+                 "pe_freqs": str(shape.pe_freqs), "feature_bits": str(VIDEO_BITS)}
+    for key, value in want_meta.items():
+        if meta.get(key) != value:
+            raise KeyframeError(f"keyframe {key} is {meta.get(key)!r}, expected {value!r}")
+    want = expected_tensors(shape)
+    names = set(header) - {"__metadata__"}
+    if names != set(want):
+        raise KeyframeError(f"keyframe tensors differ from the format (missing {sorted(set(want) - names)}, "
+                            f"unknown {sorted(names - set(want))})")
+    for name, shp in want.items():
+        entry = header[name]
+        dtype = "U8" if shp is None else "F32"
+        if not isinstance(entry, dict) or entry.get("dtype") != dtype:
+            raise KeyframeError(f"keyframe tensor {name} must be {dtype}")
+        if shp is not None and tuple(entry.get("shape", ())) != shp:
+            raise KeyframeError(f"keyframe tensor {name} has shape {entry.get('shape')}, expected {list(shp)}")
+    try:
+        tensors = load(data)
+    except (SafetensorError, ValueError) as exc:
+        raise KeyframeError(f"keyframe segment is corrupt ({exc})") from exc
+    for name, t in tensors.items():
+        if t.dtype == torch.float32 and not torch.isfinite(t).all():
+            raise KeyframeError(f"keyframe tensor {name} contains NaN or Inf")
+    side = shape.grid_side
+    attributes = {}
+    for spec in SPECS:
+        try:
+            codes = decode_jxl(tensors[f"image.{spec.name}"].numpy().tobytes(), (side, side, spec.channels),
+                               spec.dtype)
+            attributes[spec.name] = dequantize(spec, np.asarray(codes), tensors[f"range.{spec.name}"])
+        except (ImageDecodeError, ValueError) as exc:
+            raise KeyframeError(f"keyframe image {spec.name}: {exc}") from exc
+    field = {k[len("field."):]: v for k, v in tensors.items() if k.startswith("field.")}
+    return Keyframe(gop, shape, attributes, field, tensors["range.features"])

@@ -1,0 +1,321 @@
+"""The MPEG-DASH MPD model: the one place that builds and parses manifest XML.
+
+Dataclasses mirror the subset of ISO/IEC 23009-1 that StreamSTGS uses (a
+static MPD, Periods, AdaptationSets with a SegmentTemplate, Representations,
+descriptors); `to_xml` builds the document with lxml and `parse_mpd` reads one
+back with a hardened parser (no DTDs, no entities, no network).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+
+from lxml import etree
+
+NS = "urn:mpeg:dash:schema:mpd:2011"
+PROFILE_LIVE = "urn:mpeg:dash:profile:isoff-live:2011"
+"""Segment-template addressing of separate init and media segments."""
+PROFILE_STGS = "urn:streamstgs:profile:2026"
+"""The StreamSTGS-over-DASH profile (manifests/PROFILE.md)."""
+KEYFRAME_SCHEME = "urn:streamstgs:keyframe:2026"
+"""SupplementalProperty scheme marking the keyframe AdaptationSet."""
+FEATURE_SCHEME = "urn:streamstgs:features:2026"
+"""SupplementalProperty scheme marking the feature-video AdaptationSet."""
+MAX_MPD_BYTES = 1 << 20
+"""Largest manifest `parse_mpd` accepts."""
+
+
+class MPDError(ValueError):
+    """A manifest that is not well-formed or not what this profile expects."""
+
+
+def _q(tag: str) -> str:
+    return f"{{{NS}}}{tag}"
+
+
+def format_duration(seconds: float) -> str:
+    """xs:duration for a non-negative number of seconds, e.g. PT2.5S, PT1H0M3S."""
+    if not math.isfinite(seconds) or seconds < 0:
+        raise ValueError(f"duration must be finite and non-negative, got {seconds}")
+    millis = round(seconds * 1000)
+    hours, rest = divmod(millis, 3_600_000)
+    minutes, rest = divmod(rest, 60_000)
+    secs = f"{rest / 1000:.3f}".rstrip("0").rstrip(".")
+    if hours:
+        return f"PT{hours}H{minutes}M{secs}S"
+    if minutes:
+        return f"PT{minutes}M{secs}S"
+    return f"PT{secs}S"
+
+
+_DURATION = re.compile(r"^P(?:(\d+)D)?(?:T(?:(\d+)H)?(?:(\d+)M)?(?:(\d+(?:\.\d+)?)S)?)?$")
+
+
+def parse_duration(text: str) -> float:
+    """Seconds of an xs:duration without years or months (what MPDs use)."""
+    match = _DURATION.match(text.strip()) if text else None
+    if not match or text.strip() in ("P", "PT"):
+        raise MPDError(f"unsupported duration {text!r}")
+    days, hours, minutes, secs = match.groups()
+    return (int(days or 0) * 86400 + int(hours or 0) * 3600 + int(minutes or 0) * 60
+            + float(secs or 0.0))
+
+
+@dataclass
+class Descriptor:
+    """A DASH descriptor (SupplementalProperty, EssentialProperty, Role)."""
+
+    scheme_id_uri: str
+    """@schemeIdUri."""
+    value: str | None = None
+    """@value."""
+
+    def to_element(self, tag: str) -> etree._Element:
+        el = etree.Element(_q(tag), schemeIdUri=self.scheme_id_uri)
+        if self.value is not None:
+            el.set("value", self.value)
+        return el
+
+    @classmethod
+    def from_element(cls, el: etree._Element) -> Descriptor:
+        return cls(_required(el, "schemeIdUri"), el.get("value"))
+
+
+@dataclass
+class SegmentTemplate:
+    """Number-based segment addressing: segment k covers [k - startNumber] * duration."""
+
+    media: str
+    """Media URL template ($RepresentationID$, $Number$ with optional %0Nd)."""
+    timescale: int
+    """Ticks per second."""
+    duration: int
+    """Segment duration in ticks."""
+    start_number: int = 0
+    """$Number$ of the first segment."""
+    initialization: str | None = None
+    """Init segment URL template, if any."""
+
+    def to_element(self) -> etree._Element:
+        el = etree.Element(_q("SegmentTemplate"), media=self.media, timescale=str(self.timescale),
+                           duration=str(self.duration), startNumber=str(self.start_number))
+        if self.initialization is not None:
+            el.set("initialization", self.initialization)
+        return el
+
+    @classmethod
+    def from_element(cls, el: etree._Element) -> SegmentTemplate:
+        return cls(_required(el, "media"), _int(el, "timescale", 1), _int(el, "duration"),
+                   _int(el, "startNumber", 1), el.get("initialization"))
+
+    @property
+    def seconds(self) -> float:
+        """Segment duration in seconds."""
+        return self.duration / self.timescale
+
+
+@dataclass
+class Representation:
+    """One encoding of an AdaptationSet's content."""
+
+    id: str
+    """@id, also $RepresentationID$."""
+    bandwidth: int
+    """@bandwidth in bit/s."""
+    codecs: str | None = None
+    """RFC 6381 codecs string."""
+    width: int | None = None
+    height: int | None = None
+    frame_rate: str | None = None
+    """@frameRate, e.g. '31' or '30000/1001'."""
+    association_id: list[str] = field(default_factory=list)
+    """@associationId: Representations this one is tied to."""
+    association_type: list[str] = field(default_factory=list)
+    """@associationType: one 4CC per associationId entry."""
+
+    def to_element(self) -> etree._Element:
+        el = etree.Element(_q("Representation"), id=self.id, bandwidth=str(self.bandwidth))
+        for attr, value in (("codecs", self.codecs), ("width", self.width), ("height", self.height),
+                            ("frameRate", self.frame_rate)):
+            if value is not None:
+                el.set(attr, str(value))
+        if self.association_id:
+            el.set("associationId", " ".join(self.association_id))
+            el.set("associationType", " ".join(self.association_type))
+        return el
+
+    @classmethod
+    def from_element(cls, el: etree._Element) -> Representation:
+        return cls(_required(el, "id"), _int(el, "bandwidth"), el.get("codecs"),
+                   _opt_int(el, "width"), _opt_int(el, "height"), el.get("frameRate"),
+                   (el.get("associationId") or "").split(), (el.get("associationType") or "").split())
+
+
+@dataclass
+class AdaptationSet:
+    """A set of interchangeable Representations of one content component."""
+
+    id: int
+    content_type: str
+    """@contentType, e.g. 'video' or 'application'."""
+    mime_type: str
+    """@mimeType of every Representation."""
+    segment_template: SegmentTemplate
+    representations: list[Representation]
+    supplemental: list[Descriptor] = field(default_factory=list)
+    """SupplementalProperty descriptors."""
+    codecs: str | None = None
+    segment_alignment: bool = True
+    """@segmentAlignment: segment k of every Representation covers the same time."""
+
+    def to_element(self) -> etree._Element:
+        el = etree.Element(_q("AdaptationSet"), id=str(self.id), contentType=self.content_type,
+                           mimeType=self.mime_type)
+        if self.codecs:
+            el.set("codecs", self.codecs)
+        el.set("segmentAlignment", "true" if self.segment_alignment else "false")
+        el.set("startWithSAP", "1")
+        for d in self.supplemental:
+            el.append(d.to_element("SupplementalProperty"))
+        el.append(self.segment_template.to_element())
+        for rep in self.representations:
+            el.append(rep.to_element())
+        return el
+
+    @classmethod
+    def from_element(cls, el: etree._Element) -> AdaptationSet:
+        template = el.find(_q("SegmentTemplate"))
+        if template is None:
+            raise MPDError(f"AdaptationSet {el.get('id')!r} has no SegmentTemplate")
+        return cls(_int(el, "id"), el.get("contentType") or "", _required(el, "mimeType"),
+                   SegmentTemplate.from_element(template),
+                   [Representation.from_element(r) for r in el.findall(_q("Representation"))],
+                   [Descriptor.from_element(d) for d in el.findall(_q("SupplementalProperty"))],
+                   el.get("codecs"), el.get("segmentAlignment") == "true")
+
+    def has_scheme(self, scheme: str) -> bool:
+        return any(d.scheme_id_uri == scheme for d in self.supplemental)
+
+
+@dataclass
+class Period:
+    id: str
+    adaptation_sets: list[AdaptationSet]
+    start: float = 0.0
+
+    def to_element(self) -> etree._Element:
+        el = etree.Element(_q("Period"), id=self.id, start=format_duration(self.start))
+        for a in self.adaptation_sets:
+            el.append(a.to_element())
+        return el
+
+    @classmethod
+    def from_element(cls, el: etree._Element) -> Period:
+        start = el.get("start")
+        return cls(el.get("id") or "", [AdaptationSet.from_element(a) for a in el.findall(_q("AdaptationSet"))],
+                   parse_duration(start) if start else 0.0)
+
+
+@dataclass
+class MPD:
+    """A static Media Presentation Description."""
+
+    duration: float
+    """@mediaPresentationDuration in seconds."""
+    min_buffer_time: float
+    """@minBufferTime in seconds."""
+    periods: list[Period]
+    profiles: list[str] = field(default_factory=lambda: [PROFILE_LIVE, PROFILE_STGS])
+    base_url: str | None = None
+    """A BaseURL element, if any (relative URLs resolve against the MPD's URL)."""
+
+    def to_xml(self) -> bytes:
+        root = etree.Element(_q("MPD"), nsmap={None: NS}, type="static",
+                             profiles=",".join(self.profiles),
+                             mediaPresentationDuration=format_duration(self.duration),
+                             minBufferTime=format_duration(self.min_buffer_time))
+        if self.base_url:
+            etree.SubElement(root, _q("BaseURL")).text = self.base_url
+        for p in self.periods:
+            root.append(p.to_element())
+        return etree.tostring(root, xml_declaration=True, encoding="UTF-8", pretty_print=True)
+
+    def adaptation_set(self, scheme: str) -> AdaptationSet:
+        """The first AdaptationSet of the first Period marked with `scheme`."""
+        for a in self.periods[0].adaptation_sets:
+            if a.has_scheme(scheme):
+                return a
+        raise MPDError(f"no AdaptationSet with SupplementalProperty {scheme}")
+
+
+def _required(el: etree._Element, attr: str) -> str:
+    value = el.get(attr)
+    if value is None:
+        raise MPDError(f"{etree.QName(el).localname} lacks @{attr}")
+    return value
+
+
+def _int(el: etree._Element, attr: str, default: int | None = None) -> int:
+    value = el.get(attr)
+    if value is None:
+        if default is None:
+            raise MPDError(f"{etree.QName(el).localname} lacks @{attr}")
+        return default
+    try:
+        return int(value)
+    except ValueError:
+        raise MPDError(f"{etree.QName(el).localname}@{attr} is not an integer: {value!r}") from None
+
+
+def _opt_int(el: etree._Element, attr: str) -> int | None:
+    return _int(el, attr) if el.get(attr) is not None else None
+
+
+def secure_parser() -> etree.XMLParser:
+    """An XML parser that resolves no entities, loads no DTD and touches no network."""
+    return etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False,
+                           remove_comments=True)
+
+
+def parse_mpd(data: bytes) -> MPD:
+    """Parse a static MPD (bounded size, hardened parser)."""
+    if len(data) > MAX_MPD_BYTES:
+        raise MPDError(f"manifest is {len(data)} bytes, over the {MAX_MPD_BYTES}-byte limit")
+    try:
+        root = etree.fromstring(data, secure_parser())
+    except etree.XMLSyntaxError as exc:
+        raise MPDError(f"manifest is not well-formed XML ({exc})") from exc
+    if root.tag != _q("MPD"):
+        raise MPDError("not an MPEG-DASH MPD (root element is not MPD in the DASH namespace)")
+    if root.get("type", "static") != "static":
+        raise MPDError("only static MPDs are supported")
+    base = root.find(_q("BaseURL"))
+    return MPD(parse_duration(_required(root, "mediaPresentationDuration")),
+               parse_duration(_required(root, "minBufferTime")),
+               [Period.from_element(p) for p in root.findall(_q("Period"))],
+               (root.get("profiles") or "").split(","),
+               base.text.strip() if base is not None and base.text else None)
+
+
+def expand_template(template: str, representation_id: str, number: int | None = None) -> str:
+    """Substitute $RepresentationID$, $Number$ / $Number%0Nd$ and $$ in a segment URL template."""
+    def sub(match: re.Match) -> str:
+        name, fmt = match.group(1), match.group(2)
+        if name == "":
+            return "$"
+        if name == "RepresentationID":
+            return representation_id
+        if name == "Number":
+            if number is None:
+                raise MPDError(f"template {template!r} needs $Number$")
+            if fmt:
+                width = re.fullmatch(r"%0(\d+)d", fmt)
+                if not width:
+                    raise MPDError(f"unsupported format tag {fmt!r} in {template!r}")
+                return f"{number:0{int(width.group(1))}d}"
+            return str(number)
+        raise MPDError(f"unsupported identifier ${name}$ in {template!r}")
+
+    return re.sub(r"\$([A-Za-z]*)(%[^$]*)?\$", sub, template)

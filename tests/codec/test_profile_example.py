@@ -1,0 +1,31 @@
+"""manifests/example.mpd: valid DASH, and a StreamSTGS profile the parser accepts."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, PROFILE_STGS, parse_mpd
+from tests.conftest import SHARED
+
+EXAMPLE = Path(__file__).resolve().parents[2] / "manifests" / "example.mpd"
+
+
+def test_example_validates_against_the_schema():
+    xsd = SHARED / "dash" / "DASH-MPD.xsd"
+    if not xsd.is_file():
+        pytest.skip("../shared/dash is absent")
+    from stgs.mpd_schema import schema_errors
+
+    assert schema_errors(EXAMPLE.read_bytes(), xsd) == []
+
+
+def test_example_parses_as_the_profile():
+    mpd = parse_mpd(EXAMPLE.read_bytes())
+    assert PROFILE_STGS in mpd.profiles
+    kf = mpd.adaptation_set(KEYFRAME_SCHEME)
+    assert kf.representations[0].id == "keyframes"
+    assert "grid_side=32" in kf.supplemental[0].value
+    video = mpd.adaptation_set(FEATURE_SCHEME)
+    assert [r.id for r in video.representations] == ["qp16", "qp20", "qp24", "qp28", "qp32"]

@@ -1,0 +1,211 @@
+"""`stgs pack` end to end on a synthetic scene, with real ffmpeg/ffprobe and OpenImageIO."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import subprocess
+from pathlib import Path
+
+import pytest
+from safetensors.torch import load_file, save_file
+from stgs.packager import MANIFEST, STATS, PackConfig, pack
+
+from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, expand_template, parse_mpd
+from stgs.synth import SynthConfig, synthesize
+from tests.conftest import SHARED
+from tests.test_cli import stgs
+
+SCENE = SynthConfig(grid_side=16, num_gops=2, gop_size=6, width=64, height=48, num_cameras=2, fit_steps=200)
+QPS = (16, 20, 24, 28, 32)
+XSD = SHARED / "dash" / "DASH-MPD.xsd"
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    out = tmp_path_factory.mktemp("pack") / "scene"
+    synthesize(SCENE, out, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def packed(scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("pack") / "dash"
+    stats = pack(scene, out, PackConfig(qps=QPS, jobs=2), progress=False)
+    return out, stats
+
+
+def tree_digest(root: Path) -> dict[str, str]:
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_mpd_validates_against_the_dash_schema(packed):
+    if not XSD.is_file():
+        pytest.skip("../shared/dash is absent")
+    from stgs.mpd_schema import schema_errors
+
+    out, _ = packed
+    assert schema_errors((out / MANIFEST).read_bytes(), XSD) == []
+
+
+def test_mpd_follows_the_profile(packed):
+    out, stats = packed
+    mpd = parse_mpd((out / MANIFEST).read_bytes())
+    assert len(mpd.periods) == 1 and mpd.duration == pytest.approx(2 * 6 / 30.0)
+    kf = mpd.adaptation_set(KEYFRAME_SCHEME)
+    video = mpd.adaptation_set(FEATURE_SCHEME)
+    assert kf.segment_template.start_number == video.segment_template.start_number == 0
+    assert kf.segment_template.seconds == pytest.approx(0.2) == video.segment_template.seconds
+    assert [r.id for r in video.representations] == [f"qp{q}" for q in QPS]
+    for rep in video.representations:
+        assert rep.codecs.startswith("hvc1.4.") and rep.association_id == ["keyframes"]
+        assert rep.bandwidth == stats["representations"][rep.id]["bandwidth"]
+        for k in range(2):
+            seg = out / expand_template(video.segment_template.media, rep.id, k)
+            assert seg.is_file()
+            assert rep.bandwidth >= seg.stat().st_size * 8 / 0.2  # the largest segment fits
+    for k in range(2):
+        assert (out / expand_template(kf.segment_template.media, "keyframes", k)).is_file()
+
+
+def test_ffprobe_lists_one_video_stream_per_qp(packed):
+    out, _ = packed
+    probe = subprocess.run(["ffprobe", "-v", "error", "-show_entries", "stream=codec_name,width",
+                            "-of", "json", str(out / MANIFEST)], capture_output=True, text=True, check=True)
+    streams = json.loads(probe.stdout)["streams"]
+    assert len(streams) == len(QPS)
+    assert all(s["codec_name"] == "hevc" and s["width"] == 64 for s in streams)
+
+
+@pytest.mark.parametrize("qp,gop", [(16, 0), (20, 1), (32, 1)])
+def test_any_single_segment_decodes_alone(packed, tmp_path, qp, gop):
+    out, _ = packed
+    mpd = parse_mpd((out / MANIFEST).read_bytes())
+    st = mpd.adaptation_set(FEATURE_SCHEME).segment_template
+    joined = tmp_path / "alone.mp4"
+    joined.write_bytes((out / expand_template(st.initialization, f"qp{qp}")).read_bytes()
+                       + (out / expand_template(st.media, f"qp{qp}", gop)).read_bytes())
+    raw = subprocess.run(["ffmpeg", "-v", "error", "-i", str(joined), "-f", "rawvideo", "-pix_fmt",
+                          "gray12le", "-"], capture_output=True, check=True).stdout
+    num_features = SCENE.gop_size + 3 - 1
+    assert len(raw) == num_features * 64 * 64 * 2  # exactly E frames
+
+
+def test_rate_and_distortion_fall_with_qp(packed):
+    _, stats = packed
+    for gop in stats["gops"]:
+        reps = [gop["representations"][f"qp{q}"] for q in QPS]
+        sizes = [r["bytes"] for r in reps]
+        psnrs = [r["feature_psnr"] for r in reps]
+        assert sizes == sorted(sizes, reverse=True) and len(set(sizes)) == len(sizes)
+        assert psnrs == sorted(psnrs, reverse=True) and len(set(psnrs)) == len(psnrs)
+
+
+def test_rendered_views_at_qp20_are_faithful(packed):
+    _, stats = packed
+    for gop in stats["gops"]:
+        assert gop["representations"]["qp20"]["render_psnr"] >= 40.0
+
+
+def test_repack_is_byte_identical_and_resume_completes(scene, packed, tmp_path):
+    out, _ = packed
+    again = tmp_path / "again"
+    pack(scene, again, PackConfig(qps=QPS, jobs=1), progress=False)
+    assert tree_digest(again) == tree_digest(out)
+    seg = next(again.rglob("seg_00001.m4s"))
+    seg.unlink()
+    pack(scene, again, PackConfig(qps=QPS, resume=True), progress=False)
+    assert tree_digest(again) == tree_digest(out)
+
+
+def test_interrupted_pack_leaves_no_manifest(scene, tmp_path, monkeypatch):
+    import stgs.packager.packer as pack_module
+
+    calls = {"n": 0}
+    real = pack_module.encode_gop
+
+    def failing(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pack_module, "encode_gop", failing)
+    out = tmp_path / "dash"
+    with pytest.raises(KeyboardInterrupt):
+        pack(scene, out, PackConfig(qps=QPS, jobs=1), progress=False)
+    assert not (out / MANIFEST).exists() and not (out / STATS).exists()
+    assert not [p for p in out.rglob(".*") if p.name != ".pack-state.json"], "temp files left behind"
+
+
+def test_different_input_gets_new_segment_names(scene, packed, tmp_path):
+    out, _ = packed
+    other = tmp_path / "other"
+    pack(scene, other, PackConfig(qps=(20,), jobs=2), progress=False)
+    names = {p.relative_to(other).parts[0] for p in other.iterdir()}
+    assert not names & {p.relative_to(out).parts[0] for p in out.iterdir() if p.name.startswith("v-")}
+
+
+def corrupt_copy(scene: Path, tmp_path: Path, edit) -> Path:
+    import shutil
+
+    dst = tmp_path / "model"
+    shutil.copytree(scene, dst)
+    edit(dst)
+    return dst
+
+
+def nan_features(d: Path) -> None:
+    tensors = load_file(str(d / "gop_0001.safetensors"))
+    tensors["features"][0, 0, 0] = float("nan")
+    save_file(tensors, str(d / "gop_0001.safetensors"))
+
+
+def non_square(d: Path) -> None:
+    doc = json.loads((d / "model.json").read_text())
+    doc["capacity"] = 255
+    (d / "model.json").write_text(json.dumps(doc))
+
+
+@pytest.mark.parametrize("case,message", [
+    ("missing", "not a model dir"),
+    ("garbage", "not valid JSON"),
+    ("non-square", "is not a square"),
+    ("nan", "NaN or Inf"),
+    ("unwritable", ""),
+])
+def test_bad_input_is_one_line_and_writes_nothing(scene, tmp_path, case, message):
+    model = {"missing": lambda: tmp_path / "nowhere",
+             "garbage": lambda: corrupt_copy(scene, tmp_path, lambda d: (d / "model.json").write_text("{")),
+             "non-square": lambda: corrupt_copy(scene, tmp_path, non_square),
+             "nan": lambda: corrupt_copy(scene, tmp_path, nan_features),
+             "unwritable": lambda: scene}[case]()
+    if case == "unwritable":
+        (tmp_path / "file").write_text("x")
+        out = tmp_path / "file" / "dash"
+    else:
+        out = tmp_path / "dash"
+    result = stgs("pack", str(model), str(out), "--qps", "20", "--quiet")
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("stgs: ") and message in lines[0]
+    assert "Traceback" not in result.stderr
+    assert not (out / MANIFEST).exists()
+    if case != "nan":  # the NaN sits in GOP 1: GOP 0's segments may exist, never a manifest
+        assert not out.exists() or not any(out.rglob("*.m4s"))
+
+
+def test_pack_cli_rejects_bad_options(scene, tmp_path):
+    result = stgs("pack", str(scene), str(tmp_path / "o"), "--qps", "20,99")
+    assert result.returncode == 2 and "--qps" in result.stderr
+    result = stgs("pack", str(scene), str(tmp_path / "o"), "--codec", "av1")
+    assert result.returncode == 2 and "not supported" in result.stderr
+
+
+def test_defaults_and_what_names_the_output():
+    cfg = PackConfig()
+    assert cfg.qps == QPS and cfg.preset == "medium" and cfg.sort and cfg.codec == "hevc"
+    assert dataclasses.replace(cfg, sort=False).digest_fields() != cfg.digest_fields()
+    assert dataclasses.replace(cfg, jobs=7, resume=True).digest_fields() == cfg.digest_fields()
