@@ -160,6 +160,7 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--presets", default="ultrafast,veryfast,medium,slow",
                    help="pack: x265 presets (default: ultrafast,veryfast,medium,slow)")
     p.add_argument("--sides", default="128,256,384", help="pack: PLAS grid sides S (default: 128,256,384)")
+    p.add_argument("--scene", default="demo", help="pack: synthetic scene preset to pack (default: demo)")
     p.add_argument("--plot", type=Path, default=Path("docs/rate_distortion.png"),
                    help="pack: where to write the rate-distortion plot (default: docs/rate_distortion.png)")
     p.set_defaults(run=run_bench)
@@ -176,6 +177,8 @@ def _int_list(text: str, option: str) -> list[int]:
 
 
 def run_bench(args: argparse.Namespace) -> int:
+    from stgs.synth import PRESETS
+
     if args.suite == "pack":
         from stgs.benchmarks.pack import main as bench_pack
         from stgs.codec.video import PRESETS as X265_PRESETS
@@ -184,10 +187,12 @@ def run_bench(args: argparse.Namespace) -> int:
         unknown = sorted(set(presets) - set(X265_PRESETS))
         if unknown:
             raise UserError(f"--presets: unknown x265 preset(s) {unknown}")
-        return bench_pack(_int_list(args.qps, "--qps"), presets, _int_list(args.sides, "--sides"), args.plot)
+        if args.scene not in PRESETS:
+            raise UserError(f"--scene must be one of {', '.join(sorted(PRESETS))}")
+        return bench_pack(_int_list(args.qps, "--qps"), presets, _int_list(args.sides, "--sides"), args.plot,
+                          PRESETS[args.scene])
     if args.suite == "synth":
         from stgs.benchmarks.synth import main as bench_synth
-        from stgs.synth import PRESETS
 
         if args.preset not in PRESETS:
             raise UserError(f"--preset must be one of {', '.join(sorted(PRESETS))}")

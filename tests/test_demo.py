@@ -34,3 +34,15 @@ def test_bench_render_smoke():
     backends = [r.split("|")[2].strip() for r in rows]
     assert backends == ["reference fp64", "reference fp32", "native fp32", "deform torch fp32",
                         "deform native fp32", "**native deform + splat**"]
+
+
+def test_bench_pack_smoke(tmp_path):
+    plot = tmp_path / "rd.png"
+    result = stgs("bench", "pack", "--scene", "small", "--qps", "20,32", "--presets", "ultrafast",
+                  "--sides", "16", "--plot", str(plot))
+    assert result.returncode == 0, result.stderr
+    rows = [line for line in result.stdout.splitlines() if line.startswith("| ultrafast |")
+            or line.startswith("| medium |")]
+    assert len(rows) == 4  # ultrafast with PLAS, medium without, at QPs 20 and 32
+    assert plot.stat().st_size > 10_000
+    assert "| 16 | 256 |" in result.stdout

@@ -7,7 +7,6 @@ plots (matplotlib PNG).
 
 from __future__ import annotations
 
-import dataclasses
 import statistics
 import tempfile
 import time
@@ -19,14 +18,13 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import torch
 
+from stgs.codec.mp4 import split_fragmented
 from stgs.codec.plas import PLASConfig, neighbour_distance, plas_order
-from stgs.codec.video import decode_segment
+from stgs.codec.video import decode_segment, encode_gop
+from stgs.metrics import psnr
 from stgs.packager.packer import PackConfig, Packer
-from stgs.synth import PRESETS, synthesize
+from stgs.synth import PRESETS, SynthConfig, synthesize
 from stgs.synth.scene import EFFECTS, ProceduralScene
-
-SCENE = dataclasses.replace(PRESETS["demo"], fit_steps=200)
-"""4,096 Gaussians, two GOPs of 30 frames (the demo scene, shorter fit)."""
 
 
 def codec_rows(model_dir: Path, out: Path, qps: list[int], presets: list[str], sort: bool) -> list[dict]:
@@ -62,6 +60,24 @@ def codec_rows(model_dir: Path, out: Path, qps: list[int], presets: list[str], s
                 "encode_ms_per_frame": statistics.mean(r["encode_s"] for r in runs) / shape.num_features * 1e3,
                 "decode_ms_per_frame": statistics.mean(r["decode_s"] for r in runs) / shape.num_features * 1e3,
             })
+    return rows
+
+
+def qp_vs_crf_rows(model_dir: Path, out: Path, values: list[int]) -> list[dict]:
+    """GOP 0 at preset medium: constant QP vs CRF of the same value, sizes and feature PSNR."""
+    packer = Packer(model_dir, out / "crf", PackConfig(qps=tuple(values), jobs=1), progress=False)
+    _, _, frames, _, _ = packer.prepare_gop(0)
+    shape = packer.meta.shape
+    rows = []
+    for value in values:
+        row = {"value": value}
+        for mode in ("qp", "crf"):
+            init, media = split_fragmented(encode_gop(frames, value, packer.timing, "medium", crf=mode == "crf"))
+            decoded = decode_segment(init, media, shape.num_features, 4 * packer.side, 4 * packer.side)
+            row[f"{mode}_kb"] = len(media) / 1024
+            row[f"{mode}_psnr"] = psnr(torch.from_numpy(decoded.astype("float32")) / 4095,
+                                       torch.from_numpy(frames.astype("float32")) / 4095)
+        rows.append(row)
     return rows
 
 
@@ -105,14 +121,17 @@ def plas_rows(sides: list[int]) -> list[dict]:
     return rows
 
 
-def main(qps: list[int], presets: list[str], sides: list[int], plot_path: Path) -> int:
+def main(qps: list[int], presets: list[str], sides: list[int], plot_path: Path,
+         scene: SynthConfig | None = None) -> int:
+    scene = scene or PRESETS["demo"]
     with tempfile.TemporaryDirectory() as tmp:
         model_dir = Path(tmp) / "scene"
-        synthesize(SCENE, model_dir, progress=False)
+        synthesize(scene, model_dir, progress=False)
         rows = codec_rows(model_dir, Path(tmp), qps, presets, sort=True)
         rows += codec_rows(model_dir, Path(tmp), qps, ["medium"], sort=False)
-    print(f"<!-- stgs bench pack: demo scene, {SCENE.grid_side ** 2} Gaussians, {SCENE.num_gops} GOPs x "
-          f"{SCENE.gop_size} frames, {torch.get_num_threads()} threads -->")
+        crf_rows = qp_vs_crf_rows(model_dir, Path(tmp), qps)
+    print(f"<!-- stgs bench pack: synthetic scene, {scene.grid_side ** 2} Gaussians, {scene.num_gops} GOPs x "
+          f"{scene.gop_size} frames, views {scene.width}x{scene.height}, {torch.get_num_threads()} threads -->")
     print("| preset | PLAS | QP | features KB/frame | total KB/frame | features PSNR dB | rendered PSNR dB "
           "| encode ms/frame | decode ms/frame |")
     print("|---|---|---|---|---|---|---|---|---|")
@@ -122,6 +141,11 @@ def main(qps: list[int], presets: list[str], sides: list[int], plot_path: Path) 
               f"| {r['encode_ms_per_frame']:.1f} | {r['decode_ms_per_frame']:.2f} |")
     plot(rows, plot_path)
     print(f"\nplot: {plot_path}\n")
+    print("| value | constant QP: KB (GOP 0) | QP: features PSNR dB | CRF: KB | CRF: features PSNR dB |")
+    print("|---|---|---|---|---|")
+    for r in crf_rows:
+        print(f"| {r['value']} | {r['qp_kb']:.1f} | {r['qp_psnr']:.2f} | {r['crf_kb']:.1f} | {r['crf_psnr']:.2f} |")
+    print()
     print("| S | N | PLAS seconds | mean neighbour distance, random order | after PLAS | ratio |")
     print("|---|---|---|---|---|---|")
     for r in plas_rows(sides):

@@ -53,13 +53,15 @@ def require_ffmpeg() -> None:
         raise UserError("ffmpeg and ffprobe are required (Debian: apt-get install ffmpeg)")
 
 
-def x265_params(qp: int, keyint: int) -> str:
-    return ":".join([f"qp={qp}", f"keyint={keyint}", f"min-keyint={keyint}", "scenecut=0",
+def x265_params(qp: int, keyint: int, crf: bool = False) -> str:
+    """x265 settings; crf=True uses the value as a CRF instead of a constant QP (benchmarks only)."""
+    return ":".join([f"{'crf' if crf else 'qp'}={qp}", f"keyint={keyint}", f"min-keyint={keyint}", "scenecut=0",
                      "open-gop=0", "info=0", "pools=1", "frame-threads=1", "lookahead-threads=0",
                      "log-level=error"])
 
 
-def encode_gop(frames: np.ndarray, qp: int, timing: VideoTiming, preset: str = "medium") -> bytes:
+def encode_gop(frames: np.ndarray, qp: int, timing: VideoTiming, preset: str = "medium",
+               crf: bool = False) -> bytes:
     """(E, H, W) uint16 12-bit frames -> a single-fragment fragmented MP4 (HEVC Rext, gray 12-bit)."""
     if frames.ndim != 3 or frames.dtype != np.uint16:
         raise ValueError("encode_gop takes (E, H, W) uint16 frames")
@@ -72,7 +74,7 @@ def encode_gop(frames: np.ndarray, qp: int, timing: VideoTiming, preset: str = "
             ffmpeg.input("pipe:", format="rawvideo", pix_fmt="gray12le", s=f"{w}x{h}",
                          framerate=f"{timing.rate.numerator}/{timing.rate.denominator}")
             .output(out_path, format="mp4", vcodec="libx265", pix_fmt="gray12le", preset=preset,
-                    **{"x265-params": x265_params(qp, e), "tag:v": "hvc1",
+                    **{"x265-params": x265_params(qp, e, crf), "tag:v": "hvc1",
                        "movflags": "+frag_keyframe+empty_moov+default_base_moof",
                        "fflags": "+bitexact", "flags:v": "+bitexact", "map_metadata": "-1",
                        "video_track_timescale": timing.timescale, "frag_duration": 2_000_000_000})
