@@ -11,7 +11,7 @@ import pytest
 from stgs.cli import build_parser
 from stgs.model.store import load_model
 
-SUBCOMMANDS = ["synth", "demo", "bench"]
+SUBCOMMANDS = ["synth", "pack", "demo", "bench"]
 
 
 def stgs(*args, cwd=None):
