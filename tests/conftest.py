@@ -1,17 +1,16 @@
-"""Shared fixtures: small random scenes and cameras for the splatter tests."""
+"""Shared helpers: random scenes and cameras for the splatter tests, the stgs command in a subprocess."""
 
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 from pathlib import Path
 
-import pytest
 import torch
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 """../shared beside the checkout (real data, DASH schema); tests that need it skip without it."""
-
-os.environ.setdefault("STGS_NATIVE", "1")
 
 
 def random_scene(n: int, seed: int, dtype=torch.float64, spread: float = 0.6, depth: float = 3.0,
@@ -33,6 +32,7 @@ def pinhole(width: int, height: int, focal: float, dtype=torch.float64) -> tuple
     return torch.eye(4, dtype=dtype), K
 
 
-@pytest.fixture
-def small_camera():
-    return pinhole(48, 32, 40.0)
+def run_stgs(*args, cwd=None) -> subprocess.CompletedProcess:
+    """Run the stgs command in a subprocess (as a user would), capturing its output."""
+    return subprocess.run([sys.executable, "-m", "stgs.cli", *args], capture_output=True, text=True,
+                          cwd=cwd, env={**os.environ, "PYTHONWARNINGS": "ignore"}, timeout=600)

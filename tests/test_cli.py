@@ -2,21 +2,13 @@
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-
 import pytest
 
 from stgs.cli import build_parser
 from stgs.model.store import load_model
+from tests.conftest import run_stgs as stgs
 
 SUBCOMMANDS = ["synth", "pack", "demo", "bench"]
-
-
-def stgs(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "stgs.cli", *args], capture_output=True, text=True,
-                          cwd=cwd, env={**os.environ, "PYTHONWARNINGS": "ignore"}, timeout=600)
 
 
 def test_every_subcommand_has_help():

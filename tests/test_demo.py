@@ -6,7 +6,7 @@ import json
 
 import cv2
 
-from tests.test_cli import stgs
+from tests.conftest import run_stgs as stgs
 
 
 def test_demo_writes_frames_sheet_and_summary(tmp_path):

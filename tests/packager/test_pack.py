@@ -15,7 +15,7 @@ from stgs.packager import MANIFEST, STATS, PackConfig, pack
 from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, expand_template, parse_mpd
 from stgs.synth import SynthConfig, synthesize
 from tests.conftest import SHARED
-from tests.test_cli import stgs
+from tests.conftest import run_stgs as stgs
 
 SCENE = SynthConfig(grid_side=16, num_gops=2, gop_size=6, width=64, height=48, num_cameras=2, fit_steps=200)
 QPS = (16, 20, 24, 28, 32)
