@@ -8,15 +8,21 @@ STGS_VENV=${STGS_VENV:-$STGS_ROOT/.venv}
 
 stgs_die() { echo "stgs setup: $*" >&2; exit 1; }
 
+stgs_has_ffmpeg() {
+  command -v ffmpeg >/dev/null 2>&1 && command -v ffprobe >/dev/null 2>&1 || return 1
+  # Read the whole list first: `ffmpeg | grep -q` can die of SIGPIPE and fail under pipefail.
+  local encoders
+  encoders=$(ffmpeg -hide_banner -encoders 2>/dev/null) || return 1
+  [[ $encoders == *libx265* ]]
+}
+
 stgs_ensure_ffmpeg() {
-  if command -v ffmpeg >/dev/null 2>&1 && command -v ffprobe >/dev/null 2>&1 \
-     && ffmpeg -hide_banner -encoders 2>/dev/null | grep -q libx265; then
-    return 0
-  fi
+  stgs_has_ffmpeg && return 0
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
     echo "stgs setup: installing ffmpeg (Debian package) ..." >&2
     { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq ffmpeg; } >/dev/null 2>&1 \
       || stgs_die "apt-get install ffmpeg failed; install ffmpeg with libx265 and retry"
+    stgs_has_ffmpeg || stgs_die "the installed ffmpeg lacks libx265; install an ffmpeg built with it"
     return 0
   fi
   stgs_die "ffmpeg and ffprobe with libx265 are required: install them (Debian: sudo apt-get install ffmpeg) and retry"
