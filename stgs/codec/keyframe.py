@@ -70,6 +70,13 @@ class Keyframe:
         return model
 
 
+def keyframe_metadata(gop: int, shape: GOPShape) -> dict[str, str]:
+    """The metadata a keyframe segment of GOP `gop` carries (and a decoder expects)."""
+    return {"format": FORMAT, "version": str(VERSION), "gop": str(gop), "grid_side": str(shape.grid_side),
+            "capacity": str(shape.capacity), "gop_size": str(shape.gop_size), "window": str(shape.window),
+            "pe_freqs": str(shape.pe_freqs), "feature_bits": str(VIDEO_BITS)}
+
+
 def encode_keyframe(gop: int, model: GOPModel, feature_ranges: torch.Tensor) -> bytes:
     """Keyframe segment bytes of a PLAS-sorted GOP model."""
     side = model.shape.grid_side
@@ -82,10 +89,7 @@ def encode_keyframe(gop: int, model: GOPModel, feature_ranges: torch.Tensor) -> 
     tensors["range.features"] = feature_ranges.float().contiguous()
     for name, weight in model.field.state_dict().items():
         tensors[f"field.{name}"] = weight.detach().float().contiguous()
-    meta = {"format": FORMAT, "version": str(VERSION), "gop": str(gop), "grid_side": str(side),
-            "capacity": str(model.shape.capacity), "gop_size": str(model.shape.gop_size),
-            "window": str(model.shape.window), "pe_freqs": str(model.shape.pe_freqs),
-            "feature_bits": str(VIDEO_BITS)}
+    meta = keyframe_metadata(gop, model.shape)
     # One metadata key: safetensors writes several in hash order, which would break byte-identical re-packs.
     return save(tensors, metadata={META_KEY: json.dumps(meta, sort_keys=True)})
 
@@ -128,11 +132,7 @@ def decode_keyframe(data: bytes, shape: GOPShape, gop: int, max_bytes: int) -> K
         raise KeyframeError(f"keyframe metadata is not JSON ({exc})") from exc
     if not isinstance(meta, dict):
         raise KeyframeError("keyframe metadata is not a JSON object")
-    want_meta = {"format": FORMAT, "version": str(VERSION), "gop": str(gop),
-                 "grid_side": str(shape.grid_side), "capacity": str(shape.capacity),
-                 "gop_size": str(shape.gop_size), "window": str(shape.window),
-                 "pe_freqs": str(shape.pe_freqs), "feature_bits": str(VIDEO_BITS)}
-    for key, value in want_meta.items():
+    for key, value in keyframe_metadata(gop, shape).items():
         if meta.get(key) != value:
             raise KeyframeError(f"keyframe {key} is {meta.get(key)!r}, expected {value!r}")
     want = expected_tensors(shape)
