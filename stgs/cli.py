@@ -123,6 +123,31 @@ def run_pack(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_serve(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("serve", help="serve packaged scenes over HTTP (DASH)",
+                       description="Serve the DASH trees under ROOT (byte ranges, ETag/304, CORS, "
+                       "immutable segments) with a scene catalogue at / and /scenes, /healthz and /metrics.")
+    p.add_argument("root", type=Path, help="folder of packaged scenes (or one packaged scene)")
+    p.add_argument("--host", default="127.0.0.1", help="listen address (default: 127.0.0.1)")
+    p.add_argument("--port", type=int, default=8080, help="listen port (default: 8080; 0 picks one)")
+    p.add_argument("--max-transfers", type=_positive_int, default=512,
+                   help="file transfers in flight at once (default: 512)")
+    p.add_argument("--quiet", action="store_true", help="no access log")
+    p.set_defaults(run=run_serve)
+
+
+def run_serve(args: argparse.Namespace) -> int:
+    from stgs.server.app import ServeConfig, run
+
+    if not args.root.is_dir():
+        raise UserError(f"{args.root}: not a folder")
+    if not 0 <= args.port <= 65535:
+        raise UserError(f"--port must be in 0..65535, got {args.port}")
+    run(ServeConfig(root=args.root, host=args.host, port=args.port, max_transfers=args.max_transfers,
+                    access_log=not args.quiet))
+    return 0
+
+
 def add_demo(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="run the end-to-end demo on the embedded default scene",
                        description="Synthesise the default scene, render a free-viewpoint orbit "
@@ -142,10 +167,10 @@ def run_demo(args: argparse.Namespace) -> int:
 def add_bench(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmarks (accuracy vs time), printed as a Markdown table",
                        description="Run a benchmark suite and print Markdown for docs/BENCHMARKS.md.")
-    p.add_argument("suite", choices=["render", "synth", "pack"],
+    p.add_argument("suite", choices=["render", "synth", "pack", "serve"],
                    help="render: splatter and deform per backend and Gaussian count; "
                    "synth: fit fidelity vs fit iterations; pack: rate, distortion and codec time per "
-                   "QP and x265 preset, PLAS vs no sort, PLAS time")
+                   "QP and x265 preset, PLAS vs no sort, PLAS time; serve: stgs serve vs nginx with wrk")
     p.add_argument("--sizes", default="16384,65536,147456",
                    help="comma-separated Gaussian counts (default: 16384,65536,147456)")
     p.add_argument("--width", type=_positive_int, default=640)
@@ -161,6 +186,9 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
                    help="pack: x265 presets (default: ultrafast,veryfast,medium,slow)")
     p.add_argument("--sides", default="128,256,384", help="pack: PLAS grid sides S (default: 128,256,384)")
     p.add_argument("--scene", default="demo", help="pack: synthetic scene preset to pack (default: demo)")
+    p.add_argument("--dash", type=Path, help="serve: a packaged scene to serve (default: pack the demo scene)")
+    p.add_argument("--clients", default="1,16,64,256", help="serve: concurrent clients (default: 1,16,64,256)")
+    p.add_argument("--seconds", type=_positive_int, default=8, help="serve: seconds per measurement (default: 8)")
     p.add_argument("--plot", type=Path, default=Path("docs/rate_distortion.png"),
                    help="pack: where to write the rate-distortion plot (default: docs/rate_distortion.png)")
     p.set_defaults(run=run_bench)
@@ -177,6 +205,10 @@ def _int_list(text: str, option: str) -> list[int]:
 
 
 def run_bench(args: argparse.Namespace) -> int:
+    if args.suite == "serve":
+        from stgs.benchmarks.serve import main as bench_serve
+
+        return bench_serve(args.dash, _int_list(args.clients, "--clients"), args.seconds)
     from stgs.synth import PRESETS
 
     if args.suite == "pack":
@@ -203,16 +235,20 @@ def run_bench(args: argparse.Namespace) -> int:
                         args.reference_max)
 
 
-def build_parser() -> argparse.ArgumentParser:
+COMMANDS = {"synth": add_synth, "pack": add_pack, "serve": add_serve, "demo": add_demo, "bench": add_bench}
+
+
+def build_parser(commands: tuple[str, ...] | None = None) -> argparse.ArgumentParser:
+    """The stgs parser; `commands` limits it to some subcommands (the server image has no torch)."""
     parser = argparse.ArgumentParser(prog="stgs", description="StreamSTGS: streamable free-viewpoint video.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for add in (add_synth, add_pack, add_demo, add_bench):
-        add(sub)
+    for name in commands or tuple(COMMANDS):
+        COMMANDS[name](sub)
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def main(argv: list[str] | None = None, commands: tuple[str, ...] | None = None) -> int:
+    args = build_parser(commands).parse_args(argv)
     try:
         return args.run(args)
     except UserError as exc:

@@ -10,6 +10,10 @@ import cv2
 import numpy as np
 import torch
 
+FILE_MODE = 0o644
+"""Mode of every file we write (what a static web server or CDN origin expects)."""
+DIR_MODE = 0o755
+
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write data to path through a temp file in the same folder and rename."""
@@ -19,6 +23,7 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
+        os.chmod(tmp, FILE_MODE)  # mkstemp makes 0600; published files must be readable by any server
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

@@ -23,6 +23,10 @@ KEYFRAME_SCHEME = "urn:streamstgs:keyframe:2026"
 """SupplementalProperty scheme marking the keyframe AdaptationSet."""
 FEATURE_SCHEME = "urn:streamstgs:features:2026"
 """SupplementalProperty scheme marking the feature-video AdaptationSet."""
+KEYFRAME_MIME_TYPE = "application/vnd.streamstgs.keyframe"
+"""@mimeType of the keyframe AdaptationSet (container: stgs.codec.keyframe)."""
+KEYFRAME_EXTENSION = ".stgk"
+"""File extension of keyframe segments."""
 MAX_MPD_BYTES = 1 << 20
 """Largest manifest `parse_mpd` accepts."""
 

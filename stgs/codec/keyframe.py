@@ -33,11 +33,12 @@ from stgs.codec.attributes import SPECS, apply_attributes, dequantize, encode_at
 from stgs.codec.features import VIDEO_BITS
 from stgs.codec.jxl import ImageDecodeError, decode_jxl, encode_jxl
 from stgs.model.gop import FEATURE_DIM, DeformationField, GOPModel, GOPShape
+from stgs.mpd import KEYFRAME_EXTENSION, KEYFRAME_MIME_TYPE
 
 FORMAT = "streamstgs-keyframe"
 VERSION = 1
-MIME_TYPE = "application/vnd.streamstgs.keyframe"
-EXTENSION = ".stgk"
+MIME_TYPE = KEYFRAME_MIME_TYPE
+EXTENSION = KEYFRAME_EXTENSION
 MAX_HEADER_BYTES = 1 << 20
 META_KEY = "streamstgs"
 """The one `__metadata__` entry: a JSON object (sorted keys) of the fields below."""

@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from stgs.camera import Camera, orbit
 from stgs.errors import UserError
-from stgs.fsio import atomic_write_bytes, load_png, save_png
+from stgs.fsio import DIR_MODE, atomic_write_bytes, load_png, save_png
 from stgs.metrics import psnr
 from stgs.model.gop import GOPShape
 from stgs.model.store import load_model, save_model
@@ -204,6 +204,7 @@ def synthesize(cfg: SynthConfig, out: Path, progress: bool = True) -> SynthRepor
     cameras = ground_truth_cameras(cfg)
     report = SynthReport()
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-", dir=out.parent))
+    staging.chmod(DIR_MODE)  # mkdtemp makes 0700
     try:
         write_ground_truth(staging, scene, cfg, cameras, progress)
         gops = []

@@ -209,3 +209,10 @@ def test_defaults_and_what_names_the_output():
     assert cfg.qps == QPS and cfg.preset == "medium" and cfg.sort and cfg.codec == "hevc"
     assert dataclasses.replace(cfg, sort=False).digest_fields() != cfg.digest_fields()
     assert dataclasses.replace(cfg, jobs=7, resume=True).digest_fields() == cfg.digest_fields()
+
+
+def test_published_files_are_world_readable(packed):
+    out, _ = packed
+    for path in out.rglob("*"):
+        mode = path.stat().st_mode & 0o777
+        assert mode & 0o444 == 0o444, f"{path} is {oct(mode)}: a static server of another user cannot read it"

@@ -1,0 +1,27 @@
+# stgs serve: the streaming server only (aiohttp, lxml, prometheus-client; no torch).
+# Build from the repository root:  docker build -f docker/server.Dockerfile -t streamstgs-server .
+# Run:  docker run -p 8080:8080 -v /path/to/packaged/scenes:/data:ro streamstgs-server
+FROM python:3.11-slim
+
+WORKDIR /app
+COPY requirements.lock pyproject.toml README.md ./
+COPY stgs ./stgs
+COPY server ./server
+COPY packager ./packager
+COPY client ./client
+COPY harness ./harness
+# The server's slice of requirements.lock, at exactly the versions the README's setup installs.
+RUN grep -E '^(aiohttp|aiohappyeyeballs|aiosignal|attrs|frozenlist|multidict|propcache|yarl|idna|typing_extensions|lxml|prometheus_client)==' \
+        requirements.lock > server-requirements.txt \
+    && pip install --no-cache-dir --no-deps -r server-requirements.txt \
+    && pip install --no-cache-dir --no-deps . \
+    && useradd --create-home --uid 10001 stgs
+
+USER stgs
+VOLUME ["/data"]
+EXPOSE 8080
+HEALTHCHECK --interval=15s --timeout=3s --start-period=5s --retries=3 \
+    CMD python -c "import urllib.request,sys; sys.exit(urllib.request.urlopen('http://127.0.0.1:8080/healthz', timeout=2).status != 200)"
+STOPSIGNAL SIGTERM
+ENTRYPOINT ["python", "-m", "stgs.server.main"]
+CMD ["/data", "--host", "0.0.0.0", "--port", "8080"]

@@ -1,0 +1,95 @@
+"""docker/: the Dockerfiles and the compose file have the pieces issue 4 asks for.
+
+No Docker engine runs here, so the images are not built; this checks the files
+and that the server's entry point really needs none of the heavy packages the
+server image leaves out.
+"""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from importlib.metadata import requires
+from pathlib import Path
+
+from packaging.requirements import Requirement
+
+DOCKER = Path(__file__).resolve().parents[2] / "docker"
+LOCK = Path(__file__).resolve().parents[2] / "requirements.lock"
+
+
+def instructions(path: Path) -> list[tuple[str, str]]:
+    """(INSTRUCTION, arguments) of a Dockerfile, continuation lines joined, comments dropped."""
+    text = re.sub(r"\\\n", " ", path.read_text())
+    out = []
+    for line in text.splitlines():
+        line = line.strip()
+        if line and not line.startswith("#"):
+            word, _, rest = line.partition(" ")
+            out.append((word.upper(), rest.strip()))
+    return out
+
+
+def test_server_image():
+    ins = instructions(DOCKER / "server.Dockerfile")
+    kinds = [k for k, _ in ins]
+    assert ins[0][0] == "FROM" and "slim" in ins[0][1]
+    user = [a for k, a in ins if k == "USER"]
+    assert user and user[-1] not in ("root", "0")
+    assert any(k == "HEALTHCHECK" and "/healthz" in a for k, a in ins)
+    assert any(k == "VOLUME" and "/data" in a for k, a in ins)
+    assert "EXPOSE" in kinds and "ENTRYPOINT" in kinds
+    assert any(k == "RUN" and "requirements.lock" in a for k, a in ins)
+
+
+def server_slice_pattern() -> re.Pattern:
+    run = next(a for k, a in instructions(DOCKER / "server.Dockerfile") if k == "RUN" and "grep" in a)
+    return re.compile(re.search(r"'(\^\(.*?\)==)'", run).group(1))
+
+
+def closure(package: str) -> set[str]:
+    """The package and everything it requires on this Python (no extras), as normalised names."""
+    todo, seen = [package], set()
+    while todo:
+        name = re.sub(r"[-_.]+", "_", todo.pop()).lower()
+        if name in seen:
+            continue
+        seen.add(name)
+        for text in requires(name) or []:
+            req = Requirement(text)
+            if req.marker is None or req.marker.evaluate({"extra": ""}):
+                todo.append(req.name)
+    return seen
+
+
+def test_server_slice_covers_what_the_server_imports():
+    pattern = server_slice_pattern()
+    pinned = {re.sub(r"[-_.]+", "_", line.split("==")[0]).lower() for line in LOCK.read_text().splitlines()
+              if pattern.match(line)}
+    needed = set().union(*(closure(p) for p in ("aiohttp", "lxml", "prometheus_client")))
+    assert needed <= pinned, f"missing from the server image: {sorted(needed - pinned)}"
+
+
+def test_server_entry_point_needs_no_torch():
+    code = ("import sys; from stgs.cli import build_parser; build_parser(('serve',)); import stgs.server.app; "
+            "sys.exit(1 if {'torch', 'numpy', 'cv2'} & set(sys.modules) else 0)")
+    assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0
+
+
+def test_packager_image():
+    ins = instructions(DOCKER / "packager.Dockerfile")
+    assert ins[0][0] == "FROM" and "slim" in ins[0][1]
+    assert any(k == "RUN" and "ffmpeg" in a and "apt-get" in a for k, a in ins)
+    assert any(k == "RUN" and "-r requirements.lock" in a for k, a in ins)
+    user = [a for k, a in ins if k == "USER"]
+    assert user and user[-1] not in ("root", "0")
+
+
+def test_compose_puts_a_caching_proxy_in_front():
+    compose = (DOCKER / "compose.yaml").read_text()
+    assert re.search(r"^  server:", compose, re.M) and re.search(r"^  cache:", compose, re.M)
+    assert "image: nginx" in compose and "server.Dockerfile" in compose
+    conf = (DOCKER / "nginx-cache.conf").read_text()
+    assert "proxy_cache_path" in conf and "proxy_pass http://server:8080" in conf
+    assert "proxy_cache stgs;" in conf

@@ -1,0 +1,254 @@
+"""`stgs serve` on loopback: headers, ranges, caching, traversal, catalogue, metrics, load."""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import os
+import subprocess
+from pathlib import Path
+
+import aiohttp
+import pytest
+from stgs.packager import PackConfig, pack
+from stgs.server.app import ServeConfig, build_app
+
+from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, expand_template, parse_mpd
+from stgs.synth import SynthConfig, synthesize
+
+# fps = G: one-second GOPs (ffmpeg's DASH demuxer reads mediaPresentationDuration in whole seconds).
+SCENE = SynthConfig(grid_side=16, num_gops=2, gop_size=6, fps=6.0, width=48, height=36, num_cameras=2,
+                    fit_steps=60)
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory):
+    base = tmp_path_factory.mktemp("serve")
+    synthesize(SCENE, base / "model", progress=False)
+    root = base / "root"
+    pack(base / "model", root / "scene1", PackConfig(qps=(20, 32), jobs=2), progress=False)
+    (base / "secret.mpd").write_text("secret")
+    (root / "scene1" / "escape.mpd").symlink_to(base / "secret.mpd")
+    (root / "scene1" / "notes.txt").write_text("not a media file")
+    return root
+
+
+def scene_files(root: Path) -> list[str]:
+    mpd = parse_mpd((root / "scene1" / "manifest.mpd").read_bytes())
+    kf = mpd.adaptation_set(KEYFRAME_SCHEME).segment_template
+    video = mpd.adaptation_set(FEATURE_SCHEME)
+    files = ["manifest.mpd", "stats.json"] + [expand_template(kf.media, "keyframes", k) for k in range(2)]
+    for rep in video.representations:
+        files.append(expand_template(video.segment_template.initialization, rep.id))
+        files += [expand_template(video.segment_template.media, rep.id, k) for k in range(2)]
+    return files
+
+
+@pytest.fixture
+async def client(aiohttp_client, root):
+    return await aiohttp_client(build_app(ServeConfig(root=root, max_transfers=8)))
+
+
+async def test_content_types_and_cache_lifetimes(client, root):
+    for rel in scene_files(root):
+        resp = await client.get(f"/scene1/{rel}")
+        assert resp.status == 200, rel
+        body = await resp.read()
+        assert body == (root / "scene1" / rel).read_bytes()
+        want = {".mpd": "application/dash+xml", ".json": "application/json", ".mp4": "video/mp4",
+                ".m4s": "video/iso.segment", ".stgk": "application/vnd.streamstgs.keyframe"}[Path(rel).suffix]
+        assert resp.headers["Content-Type"] == want
+        cache = resp.headers["Cache-Control"]
+        if rel.endswith((".mpd", ".json")):
+            assert "max-age=2" in cache
+        else:
+            assert "immutable" in cache and "max-age=31536000" in cache
+        assert resp.headers["Access-Control-Allow-Origin"] == "*"
+        assert "ETag" in resp.headers and "Last-Modified" in resp.headers
+
+
+async def test_head_has_headers_and_no_body(client, root):
+    rel = scene_files(root)[-1]
+    resp = await client.head(f"/scene1/{rel}")
+    assert resp.status == 200
+    assert int(resp.headers["Content-Length"]) == (root / "scene1" / rel).stat().st_size
+    assert await resp.read() == b""
+
+
+async def test_byte_ranges(client, root):
+    rel = scene_files(root)[-1]
+    data = (root / "scene1" / rel).read_bytes()
+    size = len(data)
+    for header, want, span in [("bytes=0-99", data[:100], f"0-99/{size}"),
+                               ("bytes=100-", data[100:], f"100-{size - 1}/{size}"),
+                               ("bytes=-50", data[-50:], f"{size - 50}-{size - 1}/{size}"),
+                               (f"bytes={size - 1}-{size + 500}", data[-1:], f"{size - 1}-{size - 1}/{size}")]:
+        resp = await client.get(f"/scene1/{rel}", headers={"Range": header})
+        assert resp.status == 206, header
+        assert resp.headers["Content-Range"] == f"bytes {span}"
+        assert await resp.read() == want
+    resp = await client.get(f"/scene1/{rel}", headers={"Range": f"bytes={size}-"})
+    assert resp.status == 416
+    assert resp.headers["Content-Range"] == f"bytes */{size}"
+
+
+async def test_conditional_requests(client, root):
+    rel = scene_files(root)[-1]
+    first = await client.get(f"/scene1/{rel}")
+    etag, modified = first.headers["ETag"], first.headers["Last-Modified"]
+    assert (await client.get(f"/scene1/{rel}", headers={"If-None-Match": etag})).status == 304
+    assert (await client.get(f"/scene1/{rel}", headers={"If-Modified-Since": modified})).status == 304
+    assert (await client.get(f"/scene1/{rel}", headers={"If-None-Match": '"other"'})).status == 200
+
+
+async def test_cors_preflight(client):
+    resp = await client.options("/scene1/manifest.mpd", headers={"Origin": "https://player.example",
+                                                                   "Access-Control-Request-Method": "GET"})
+    assert resp.status == 204
+    assert "Range" in resp.headers["Access-Control-Allow-Headers"]
+
+
+async def raw_get(client, target: str) -> int:
+    """Send a request line exactly as written (no client-side path normalisation); return the status."""
+    reader, writer = await asyncio.open_connection(client.server.host, client.server.port)
+    writer.write(f"GET {target} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n".encode())
+    await writer.drain()
+    line = await reader.readline()
+    writer.close()
+    return int(line.split()[1])
+
+
+@pytest.mark.parametrize("target", [
+    "/scene1/../../secret.mpd", "/scene1/%2e%2e/%2e%2e/secret.mpd", "/%2E%2E/secret.mpd",
+    "/scene1/escape.mpd",  # a symlink pointing out of ROOT
+    "//etc/passwd", "/etc/passwd", "/scene1/notes.txt", "/scene1/.pack-state.json",
+    "/scene1/manifest.mpd%00.txt", "/scene1/..%2fmanifest.mpd", "/nope.mpd",
+])
+async def test_never_leaves_root(client, target):
+    assert await raw_get(client, target) == 404
+
+
+async def test_catalogue_health_and_metrics(client):
+    data = await (await client.get("/scenes")).json()
+    [scene] = data["scenes"]
+    assert scene["name"] == "scene1" and scene["gops"] == 2
+    assert scene["gop_seconds"] == pytest.approx(1.0)
+    assert [r["id"] for r in scene["ladder"]] == ["qp20", "qp32"]
+    assert (await (await client.get("/")).json()) == data
+    assert (await (await client.get("/healthz")).json()) == {"status": "ok"}
+    await client.get("/scene1/manifest.mpd")
+    text = await (await client.get("/metrics")).text()
+    assert 'stgs_http_requests_total{method="GET",status="200"}' in text
+    assert "stgs_http_request_seconds_bucket" in text and "stgs_http_in_flight" in text
+    sent = [line for line in text.splitlines() if line.startswith("stgs_http_sent_bytes_total")]
+    assert float(sent[0].split()[1]) > 0
+
+
+async def test_oversized_headers_are_refused(aiohttp_server, root):
+    server = await aiohttp_server(build_app(ServeConfig(root=root)), max_field_size=1024)
+    reader, writer = await asyncio.open_connection(server.host, server.port)
+    writer.write(b"GET /healthz HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 5000 + b"\r\n\r\n")
+    await writer.drain()
+    line = await reader.readline()
+    writer.close()
+    assert int(line.split()[1]) in (400, 431)
+
+
+async def test_ffmpeg_decodes_every_representation_over_http(aiohttp_server, root):
+    server = await aiohttp_server(build_app(ServeConfig(root=root)))
+    url = f"http://{server.host}:{server.port}/scene1/manifest.mpd"
+    for stream in range(2):  # qp20, qp32
+        proc = await asyncio.create_subprocess_exec(
+            "ffmpeg", "-v", "error", "-i", url, "-map", f"0:{stream}", "-f", "rawvideo", "-pix_fmt", "gray12le",
+            "-", stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        out, _ = await proc.communicate()
+        assert proc.returncode == 0
+        frames = len(out) // (64 * 64 * 2)
+        assert frames == 2 * (SCENE.gop_size + 2)  # every frame of both GOPs
+
+
+def open_fds() -> int:
+    return len(os.listdir("/proc/self/fd"))
+
+
+async def test_200_concurrent_clients_get_every_byte(aiohttp_server, root):
+    server = await aiohttp_server(build_app(ServeConfig(root=root, max_transfers=64)))
+    files = scene_files(root)
+    want = {rel: hashlib.sha256((root / "scene1" / rel).read_bytes()).hexdigest() for rel in files}
+    fds_before = open_fds()
+
+    async def one_client(session: aiohttp.ClientSession) -> list[tuple[str, int, str]]:
+        got = []
+        for rel in files:
+            async with session.get(f"http://{server.host}:{server.port}/scene1/{rel}") as resp:
+                got.append((rel, resp.status, hashlib.sha256(await resp.read()).hexdigest()))
+        return got
+
+    connector = aiohttp.TCPConnector(limit=0)
+    async with aiohttp.ClientSession(connector=connector) as session:
+        results = await asyncio.wait_for(asyncio.gather(*(one_client(session) for _ in range(200))), 120)
+    for got in results:
+        for rel, status, digest in got:
+            assert status == 200 and digest == want[rel], rel
+    await asyncio.sleep(0.2)
+    assert open_fds() <= fds_before + 5, "file descriptors leaked"
+
+
+async def test_a_client_that_disconnects_mid_segment_does_not_disturb_others(aiohttp_server, root, tmp_path):
+    big = root / "scene1" / "big_test_segment.m4s"
+    big.write_bytes(os.urandom(32 << 20))
+    try:
+        server = await aiohttp_server(build_app(ServeConfig(root=root)))
+        url = f"http://{server.host}:{server.port}/scene1/big_test_segment.m4s"
+        reader, writer = await asyncio.open_connection(server.host, server.port)
+        writer.write(b"GET /scene1/big_test_segment.m4s HTTP/1.1\r\nHost: x\r\n\r\n")
+        await writer.drain()
+        await reader.read(65536)  # some of the body, then hang up
+        writer.transport.abort()
+        async with aiohttp.ClientSession() as session, session.get(url) as resp:
+            body = await resp.read()
+        assert resp.status == 200 and body == big.read_bytes()
+    finally:
+        big.unlink()
+
+
+def test_serve_cli_rejects_a_missing_root(tmp_path):
+    from tests.conftest import run_stgs
+
+    result = run_stgs("serve", str(tmp_path / "nowhere"))
+    assert result.returncode == 2 and "not a folder" in result.stderr
+
+
+def test_sigterm_shuts_down_cleanly_during_a_transfer(root):
+    """A real `stgs serve` process: SIGTERM mid-download ends it with status 0, the transfer finishes or is cut."""
+    import signal
+    import socket
+    import sys
+    import time
+
+    big = root / "scene1" / "sigterm_test_segment.m4s"
+    big.write_bytes(os.urandom(64 << 20))
+    proc = subprocess.Popen([sys.executable, "-m", "stgs.server.main", str(root), "--port", "0", "--quiet"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()
+        port = int(line.rsplit(":", 1)[1].split()[0].rstrip("/"))
+        sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+        sock.sendall(b"GET /scene1/sigterm_test_segment.m4s HTTP/1.1\r\nHost: x\r\n\r\n")
+        sock.recv(65536)  # the transfer is under way; read no more for now
+        proc.send_signal(signal.SIGTERM)
+        start = time.monotonic()
+        received = 0
+        while True:
+            chunk = sock.recv(1 << 20)
+            if not chunk:
+                break
+            received += len(chunk)
+        sock.close()
+        assert proc.wait(timeout=30) == 0
+        assert time.monotonic() - start < 25
+        assert received > 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        big.unlink()
