@@ -38,7 +38,7 @@ CONTENT_TYPES = {
     ".json": "application/json",
 }
 """The only files served, by extension."""
-MANIFEST_NAMES = (".mpd", ".json")
+MUTABLE_SUFFIXES = (".mpd", ".json")
 """Mutable documents: short cache lifetime. Everything else is an immutable segment."""
 CORS_HEADERS = {
     "Access-Control-Allow-Origin": "*",
@@ -122,7 +122,7 @@ def resolve_path(root: Path, url_path: str) -> Path | None:
 
 
 def cache_control(path: Path, cfg: ServeConfig) -> str:
-    if path.suffix in MANIFEST_NAMES:
+    if path.suffix in MUTABLE_SUFFIXES:
         return f"public, max-age={cfg.manifest_max_age}, must-revalidate"
     return f"public, max-age={cfg.segment_max_age}, immutable"
 
