@@ -50,6 +50,7 @@ from stgs.mpd import (
     Representation,
     SegmentTemplate,
 )
+from stgs.synth import GROUND_TRUTH_DIR, load_ground_truth
 
 DEFAULT_QPS = (16, 20, 24, 28, 32)
 MANIFEST = "manifest.mpd"
@@ -157,10 +158,8 @@ def check_output_dir(out: Path) -> None:
 
 def stats_cameras(model_dir: Path, model: GOPModel, count: int) -> list[Camera]:
     """Ground-truth cameras of a synthetic scene, else an orbit around the Gaussians."""
-    cams_path = Path(model_dir) / "gt" / "cameras.json"
-    if cams_path.is_file():
-        cams = [Camera.from_json(c) for c in json.loads(cams_path.read_text())["cameras"]]
-        return cams[:count]
+    if (Path(model_dir) / GROUND_TRUTH_DIR / "cameras.json").is_file():
+        return load_ground_truth(model_dir)[1][:count]
     visible = torch.sigmoid(model.opacity_logit) > 0.05
     pts = model.xyz.detach()[visible] if visible.any() else model.xyz.detach()
     center = pts.median(0).values

@@ -8,6 +8,7 @@ same run. Only loopback addresses are used; every run is bounded in time.
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import shutil
 import socket
@@ -116,8 +117,8 @@ def main(scene_dir: Path | None, clients: list[int], seconds: int) -> int:
             from stgs.packager import PackConfig, pack
             from stgs.synth import PRESETS, synthesize
 
-            scene_cfg = PRESETS["demo"]
-            synthesize(scene_cfg.__class__(**{**scene_cfg.__dict__, "fit_steps": 20}), tmp / "model", progress=False)
+            # Serving does not care how well the scene is fitted: a short fit is enough.
+            synthesize(dataclasses.replace(PRESETS["demo"], fit_steps=20), tmp / "model", progress=False)
             scene_dir = tmp / "dash"
             pack(tmp / "model", scene_dir, PackConfig(), progress=False)
         scene_dir = Path(scene_dir).resolve()
