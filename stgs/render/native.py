@@ -87,15 +87,17 @@ class NativeComposite(torch.autograd.Function):
                 height):
         inputs = [f32(t) for t in (means2d, conics, opacities, colors, background)]
         out, handle = raster_forward(*inputs, f32(depths), f32(extents), width, height)
-        ctx.handle = handle
-        ctx.save_for_backward(*inputs)
+        ctx.handle = handle  # holds its own copy of every Gaussian input the backward reads
+        ctx.num_gaussians = means2d.shape[0]
+        ctx.save_for_backward(inputs[4])
         return out
 
     @staticmethod
     def backward(ctx, grad_out):
-        means2d, conics, opacities, colors, background = ctx.saved_tensors
-        grads = [torch.zeros_like(t) for t in (means2d, conics, opacities, colors, background)]
+        (background,) = ctx.saved_tensors
+        n = ctx.num_gaussians
+        grads = [torch.zeros(n, 2), torch.zeros(n, 3), torch.zeros(n), torch.zeros(n, 3), torch.zeros(3)]
         grad_out = f32(grad_out)
-        library().stgs_raster_backward(ctx.handle.handle, means2d.shape[0], ptr(background),
-                                       ptr(grad_out), *(ptr(g) for g in grads), torch.get_num_threads())
+        library().stgs_raster_backward(ctx.handle.handle, n, ptr(background), ptr(grad_out),
+                                       *(ptr(g) for g in grads), torch.get_num_threads())
         return (*grads, None, None, None, None)

@@ -384,10 +384,11 @@ inline __m512 row_power(const SplatVec& v, __m512 px, float dy) {
   return _mm512_mul_ps(v.half, q);
 }
 
-inline RowEval eval_row(const SplatVec& v, __m512 px, float dy, __mmask16 inside) {
+// `power` is row_power(v, px, dy), which callers already need for their early exits.
+inline RowEval eval_row(const SplatVec& v, __m512 px, __m512 power, __mmask16 inside) {
   RowEval e;
   e.dx = _mm512_sub_ps(px, v.mx);
-  e.power = row_power(v, px, dy);
+  e.power = power;
   e.falloff = exp_v(_mm512_min_ps(e.power, _mm512_setzero_ps()));
   e.alpha = _mm512_maskz_min_ps(inside, _mm512_mul_ps(v.o, e.falloff), v.amax);
   return e;
@@ -437,8 +438,9 @@ void render_tile_avx512(const RasterCtx& ctx, int tile, const float* bg, float* 
       const __mmask16 lv = live[row] & inside;
       if (!lv) continue;
       const float dy = float(v) + 0.5f - s.my;
-      if (!_mm512_mask_cmp_ps_mask(lv, row_power(sv, px, dy), min_power, _CMP_GE_OQ)) continue;
-      const RowEval e = eval_row(sv, px, dy, inside);
+      const __m512 power = row_power(sv, px, dy);
+      if (!_mm512_mask_cmp_ps_mask(lv, power, min_power, _CMP_GE_OQ)) continue;
+      const RowEval e = eval_row(sv, px, power, inside);
       const __mmask16 take = _mm512_mask_cmp_ps_mask(lv, e.alpha, sv.amin, _CMP_GE_OQ);
       const __m512 next = _mm512_mul_ps(trans[row], _mm512_sub_ps(sv.one, e.alpha));
       const __mmask16 stop = _mm512_mask_cmp_ps_mask(take, next, sv.tmin, _CMP_LT_OQ);
@@ -528,7 +530,7 @@ void backward_tile_avx512(const RasterCtx& ctx, int tile, const float* bg, const
       const __mmask16 reached = _mm512_mask_cmp_epi32_mask(inside, rank, last[row], _MM_CMPINT_LT);
       if (!reached) continue;
       const float dy = float(v) + 0.5f - s.my;
-      const RowEval e = eval_row(sv, px, dy, inside);
+      const RowEval e = eval_row(sv, px, row_power(sv, px, dy), inside);
       const __mmask16 took = _mm512_mask_cmp_ps_mask(reached, e.alpha, sv.amin, _CMP_GE_OQ);
       if (!took) continue;
       const __m512 inv = _mm512_div_ps(sv.one, _mm512_sub_ps(sv.one, e.alpha));
@@ -684,7 +686,7 @@ void* stgs_raster_forward(int64_t n, const float* xy, const float* conic, const 
 }
 
 // Gradients of the composited image with respect to the forward's inputs.
-// The forward's inputs are read from the context (the caller keeps them unchanged).
+// The forward's inputs are read from the copies the context keeps (ctx.splats).
 void stgs_raster_backward(void* handle, int64_t n, const float* bg, const float* grad_out,
                           float* grad_xy, float* grad_conic, float* grad_opac, float* grad_color,
                           float* grad_bg, int nthreads) {
