@@ -30,7 +30,7 @@ from tqdm import tqdm
 
 from stgs.camera import Camera, orbit
 from stgs.codec.features import dequantize_features, feature_ranges, quantize_features, tile_frames, untile_frames
-from stgs.codec.keyframe import EXTENSION, MIME_TYPE, decode_keyframe, encode_keyframe
+from stgs.codec.keyframe import EXTENSION, MIME_TYPE, Keyframe, decode_keyframe, encode_keyframe
 from stgs.codec.mp4 import hevc_codecs, set_timeline, split_fragmented
 from stgs.codec.plas import PLASConfig, permute_gop, plas_order, sort_key
 from stgs.codec.video import PRESETS, VideoTiming, decode_segment, encode_gop, require_ffmpeg
@@ -167,17 +167,31 @@ def stats_cameras(model_dir: Path, model: GOPModel, count: int) -> list[Camera]:
     return orbit(count, radius, float(center[1]) + 0.3 * radius, tuple(center.tolist()), 320, 240)
 
 
-def render_psnr(reference: FrameRenderer, decoded: FrameRenderer, cameras: list[Camera],
-                frames: list[int]) -> float:
-    """PSNR of the mean squared error over all (frame, camera) views."""
-    mse = []
-    for f in frames:
-        for cam in cameras:
-            a = reference.render(f, cam).clamp(0, 1)
-            b = decoded.render(f, cam).clamp(0, 1)
-            mse.append((a.double() - b.double()).square().mean().item())
+def mse_psnr(mse: list[float]) -> float:
+    """PSNR of the mean of squared errors (99 dB when identical)."""
     m = sum(mse) / len(mse)
     return 99.0 if m == 0 else 10 * math.log10(1.0 / m)
+
+
+@dataclass
+class PreparedGOP:
+    """Everything a GOP's QP tasks share, computed once per GOP."""
+
+    index: int
+    original: GOPModel
+    """The uncompressed GOP as stored in the model dir."""
+    frames: np.ndarray
+    """(E, 4S, 4S) 12-bit feature frames of the sorted GOP."""
+    ranges: torch.Tensor
+    """(2, 16) feature ranges."""
+    keyframe: bytes
+    """The keyframe segment."""
+    decoded_keyframe: Keyframe
+    """The keyframe segment as a client decodes it."""
+    views: list[tuple[int, Camera]]
+    """(frame, camera) pairs the rendered-view PSNR uses."""
+    reference: list[torch.Tensor]
+    """Those views rendered from the uncompressed GOP."""
 
 
 class Packer:
@@ -212,8 +226,8 @@ class Packer:
     def write(self, rel: str, data: bytes) -> None:
         atomic_write_bytes(self.out / rel, data)
 
-    def prepare_gop(self, k: int) -> tuple[GOPModel, GOPModel, np.ndarray, torch.Tensor, bytes]:
-        """(original, sorted, frames, feature ranges, keyframe bytes) of GOP k."""
+    def prepare_gop(self, k: int) -> PreparedGOP:
+        """Sort, tile, write nothing yet: GOP k's keyframe, feature frames and reference views."""
         original = load_gop(self.model_dir, self.meta, k)
         if self.cfg.sort:
             cfg = PLASConfig(**{**asdict(self.cfg.plas), "seed": self.cfg.plas.seed + k})
@@ -225,7 +239,13 @@ class Packer:
         ranges = feature_ranges(feats)
         frames = tile_frames(quantize_features(feats, ranges), self.side).numpy().astype(np.uint16)
         keyframe = encode_keyframe(k, model, ranges)
-        return original, model, frames, ranges, keyframe
+        cams = stats_cameras(self.model_dir, original, self.cfg.stats_views)
+        g = self.meta.shape.gop_size
+        views = [(f, cam) for f in sorted({0, g // 2, g - 1})[: self.cfg.stats_frames] for cam in cams]
+        renderer = FrameRenderer(original)
+        reference = [renderer.render(f, cam).clamp(0, 1) for f, cam in views]
+        decoded = decode_keyframe(keyframe, self.meta.shape, k, max_bytes=len(keyframe))
+        return PreparedGOP(k, original, frames, ranges, keyframe, decoded, views, reference)
 
     def encode_task(self, k: int, qp: int, frames: np.ndarray) -> tuple[bytes, bytes]:
         init, media = split_fragmented(encode_gop(frames, qp, self.timing, self.cfg.preset))
@@ -237,22 +257,19 @@ class Packer:
                                "Representations need one init segment for all GOPs")
         return init, media
 
-    def measure(self, k: int, qp: int, init: bytes, media: bytes, frames: np.ndarray,
-                keyframe_bytes: bytes, original: GOPModel, ranges: torch.Tensor) -> dict:
+    def measure(self, gop: PreparedGOP, init: bytes, media: bytes) -> dict:
+        """Bytes, decoded-feature PSNR and rendered-view PSNR of one media segment."""
         shape = self.meta.shape
         h = w = 4 * self.side
         decoded_frames = decode_segment(init, media, shape.num_features, h, w)
         codes = untile_frames(torch.from_numpy(decoded_frames.astype(np.int32)), self.side)
-        original_codes = untile_frames(torch.from_numpy(frames.astype(np.int32)), self.side)
+        original_codes = untile_frames(torch.from_numpy(gop.frames.astype(np.int32)), self.side)
         feature_psnr = psnr(codes.float() / 4095, original_codes.float() / 4095)
-        kf = decode_keyframe(keyframe_bytes, shape, k, max_bytes=len(keyframe_bytes))
-        decoded = kf.to_model(dequantize_features(codes, ranges))
-        cams = stats_cameras(self.model_dir, original, self.cfg.stats_views)
-        g = shape.gop_size
-        sample = sorted({0, g // 2, g - 1})[: self.cfg.stats_frames]
-        rendered = render_psnr(FrameRenderer(original), FrameRenderer(decoded), cams, sample)
+        renderer = FrameRenderer(gop.decoded_keyframe.to_model(dequantize_features(codes, gop.ranges)))
+        mse = [(renderer.render(f, cam).clamp(0, 1).double() - ref.double()).square().mean().item()
+               for (f, cam), ref in zip(gop.views, gop.reference, strict=True)]
         return {"bytes": len(media), "feature_psnr": round(min(feature_psnr, 99.0), 4),
-                "render_psnr": round(rendered, 4)}
+                "render_psnr": round(mse_psnr(mse), 4)}
 
     def run(self) -> dict:
         cfg = self.cfg
@@ -260,16 +277,16 @@ class Packer:
         total = self.meta.num_gops * len(cfg.qps)
         bar = tqdm(total=total, desc="pack GOPs x QPs", unit="seg", disable=not self.progress)
 
-        def qp_job(k: int, qp: int, prepared: tuple) -> None:
-            original, _, frames, ranges, keyframe = prepared
+        def qp_job(gop: PreparedGOP, qp: int) -> None:
+            k = gop.index
             task = f"gop{k}-qp{qp}"
             done = self.state.done(self.out, task)
             if done is None:
-                init, media = self.encode_task(k, qp, frames)
+                init, media = self.encode_task(k, qp, gop.frames)
                 files = {self.feature_path(qp, k): media, self.feature_path(qp, None): init}
                 for rel, data in files.items():
                     self.write(rel, data)
-                done = self.measure(k, qp, init, media, frames, keyframe, original, ranges)
+                done = self.measure(gop, init, media)
                 self.state.record(task, files, done)
             results[k].representations[rep_id(qp)] = done
             bar.update(1)
@@ -278,10 +295,10 @@ class Packer:
         with ThreadPoolExecutor(max_workers=cfg.jobs) as pool:
             previous: list = []
             for k in range(self.meta.num_gops):
-                prepared = self.prepare_gop(k)
-                self.write(self.keyframe_path(k), prepared[4])
-                results[k].keyframe_bytes = len(prepared[4])
-                current = [pool.submit(qp_job, k, qp, prepared) for qp in cfg.qps]
+                gop = self.prepare_gop(k)
+                self.write(self.keyframe_path(k), gop.keyframe)
+                results[k].keyframe_bytes = len(gop.keyframe)
+                current = [pool.submit(qp_job, gop, qp) for qp in cfg.qps]
                 for future in previous:
                     future.result()
                 previous = current

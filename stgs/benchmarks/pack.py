@@ -36,16 +36,16 @@ def codec_rows(model_dir: Path, out: Path, qps: list[int], presets: list[str], s
         shape = packer.meta.shape
         per_qp: dict[int, list[dict]] = {qp: [] for qp in qps}
         for k in range(packer.meta.num_gops):
-            original, _, frames, ranges, keyframe = packer.prepare_gop(k)
+            gop = packer.prepare_gop(k)
             for qp in qps:
                 start = time.perf_counter()
-                init, media = packer.encode_task(k, qp, frames)
+                init, media = packer.encode_task(k, qp, gop.frames)
                 encode_s = time.perf_counter() - start
                 start = time.perf_counter()
                 decode_segment(init, media, shape.num_features, 4 * packer.side, 4 * packer.side)
                 decode_s = time.perf_counter() - start
-                m = packer.measure(k, qp, init, media, frames, keyframe, original, ranges)
-                per_qp[qp].append({**m, "keyframe_bytes": len(keyframe), "encode_s": encode_s,
+                m = packer.measure(gop, init, media)
+                per_qp[qp].append({**m, "keyframe_bytes": len(gop.keyframe), "encode_s": encode_s,
                                    "decode_s": decode_s})
             packer.init_segments.clear()
         for qp in qps:
@@ -66,7 +66,7 @@ def codec_rows(model_dir: Path, out: Path, qps: list[int], presets: list[str], s
 def qp_vs_crf_rows(model_dir: Path, out: Path, values: list[int]) -> list[dict]:
     """GOP 0 at preset medium: constant QP vs CRF of the same value, sizes and feature PSNR."""
     packer = Packer(model_dir, out / "crf", PackConfig(qps=tuple(values), jobs=1), progress=False)
-    _, _, frames, _, _ = packer.prepare_gop(0)
+    frames = packer.prepare_gop(0).frames
     shape = packer.meta.shape
     rows = []
     for value in values:
