@@ -28,8 +28,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from stgs.camera import Camera, orbit
-from stgs.codec.features import dequantize_features, feature_ranges, quantize_features, tile_frames, untile_frames
+from stgs.camera import Camera
+from stgs.codec.features import VIDEO_MAX, feature_ranges, features_from_frames, quantize_features, tile_frames
 from stgs.codec.keyframe import EXTENSION, MIME_TYPE, Keyframe, decode_keyframe, encode_keyframe
 from stgs.codec.mp4 import hevc_codecs, set_timeline, split_fragmented
 from stgs.codec.plas import PLASConfig, permute_gop, plas_order, sort_key
@@ -39,7 +39,7 @@ from stgs.fsio import atomic_write_bytes
 from stgs.metrics import psnr
 from stgs.model.gop import GOPModel
 from stgs.model.store import SceneMeta, load_gop, read_meta
-from stgs.model.view import FrameRenderer
+from stgs.model.view import FrameRenderer, framing_orbit
 from stgs.mpd import (
     FEATURE_SCHEME,
     KEYFRAME_SCHEME,
@@ -51,10 +51,9 @@ from stgs.mpd import (
     SegmentTemplate,
 )
 from stgs.synth import GROUND_TRUTH_DIR, load_ground_truth
+from stgs.tree import CAMERAS, CAMERAS_FORMAT, MANIFEST, STATS
 
 DEFAULT_QPS = (16, 20, 24, 28, 32)
-MANIFEST = "manifest.mpd"
-STATS = "stats.json"
 STATE = ".pack-state.json"
 KEYFRAME_REP = "keyframes"
 
@@ -160,11 +159,7 @@ def stats_cameras(model_dir: Path, model: GOPModel, count: int) -> list[Camera]:
     """Ground-truth cameras of a synthetic scene, else an orbit around the Gaussians."""
     if (Path(model_dir) / GROUND_TRUTH_DIR / "cameras.json").is_file():
         return load_ground_truth(model_dir)[1][:count]
-    visible = torch.sigmoid(model.opacity_logit) > 0.05
-    pts = model.xyz.detach()[visible] if visible.any() else model.xyz.detach()
-    center = pts.median(0).values
-    radius = float((pts - center).norm(dim=1).quantile(0.9)) * 2.5 + 1e-3
-    return orbit(count, radius, float(center[1]) + 0.3 * radius, tuple(center.tolist()), 320, 240)
+    return framing_orbit(model, count, 320, 240)
 
 
 def mse_psnr(mse: list[float]) -> float:
@@ -262,10 +257,10 @@ class Packer:
         shape = self.meta.shape
         h = w = 4 * self.side
         decoded_frames = decode_segment(init, media, shape.num_features, h, w)
-        codes = untile_frames(torch.from_numpy(decoded_frames.astype(np.int32)), self.side)
-        original_codes = untile_frames(torch.from_numpy(gop.frames.astype(np.int32)), self.side)
-        feature_psnr = psnr(codes.float() / 4095, original_codes.float() / 4095)
-        renderer = FrameRenderer(gop.decoded_keyframe.to_model(dequantize_features(codes, gop.ranges)))
+        feature_psnr = psnr(torch.from_numpy(decoded_frames.astype(np.float32)) / VIDEO_MAX,
+                            torch.from_numpy(gop.frames.astype(np.float32)) / VIDEO_MAX)
+        features = features_from_frames(decoded_frames, self.side, gop.ranges)
+        renderer = FrameRenderer(gop.decoded_keyframe.to_model(features))
         mse = [(renderer.render(f, cam).clamp(0, 1).double() - ref.double()).square().mean().item()
                for (f, cam), ref in zip(gop.views, gop.reference, strict=True)]
         return {"bytes": len(media), "feature_psnr": round(min(feature_psnr, 99.0), 4),
@@ -308,8 +303,17 @@ class Packer:
         codecs = {qp: hevc_codecs((self.out / self.feature_path(qp, None)).read_bytes()) for qp in cfg.qps}
         stats = self.stats_doc(results)
         atomic_write_bytes(self.out / STATS, (json.dumps(stats, indent=2) + "\n").encode())
+        self.write_cameras()
         atomic_write_bytes(self.out / MANIFEST, self.manifest(results, codecs).to_xml())
         return stats
+
+    def write_cameras(self) -> None:
+        """The scene's cameras beside the MPD (players offer them as viewpoints), when the model dir has them."""
+        if not (self.model_dir / GROUND_TRUTH_DIR / "cameras.json").is_file():
+            return
+        cameras = load_ground_truth(self.model_dir)[1]
+        doc = {"format": CAMERAS_FORMAT, "version": 1, "cameras": [c.to_json() for c in cameras]}
+        atomic_write_bytes(self.out / CAMERAS, (json.dumps(doc, indent=1) + "\n").encode())
 
     def seconds_per_gop(self) -> float:
         return self.meta.shape.gop_size / self.meta.fps

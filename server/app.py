@@ -29,6 +29,7 @@ from stgs.mpd import (
     MPDError,
     parse_mpd,
 )
+from stgs.tree import MANIFEST
 
 CONTENT_TYPES = {
     ".mpd": "application/dash+xml",
@@ -173,8 +174,8 @@ def scene_summary(name: str, manifest: Path) -> dict:
 
 def catalogue(root: Path) -> list[dict]:
     """Every packaged scene at root or one folder below, skipping unreadable manifests."""
-    candidates = [(".", root / "manifest.mpd")]
-    candidates += [(d.name, d / "manifest.mpd") for d in sorted(root.iterdir())
+    candidates = [(".", root / MANIFEST)]
+    candidates += [(d.name, d / MANIFEST) for d in sorted(root.iterdir())
                    if d.is_dir() and not d.name.startswith(".")]
     scenes = []
     for name, manifest in candidates:

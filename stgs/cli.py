@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import sys
 from pathlib import Path
 
@@ -148,6 +149,103 @@ def run_serve(args: argparse.Namespace) -> int:
     return 0
 
 
+def _vector(text: str) -> tuple[float, float, float]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(map(math.isfinite, values)):
+        raise argparse.ArgumentTypeError(f"expected three finite numbers x,y,z, got {text!r}")
+    return values
+
+
+def _size(text: str) -> tuple[int, int]:
+    w, sep, h = text.lower().partition("x")
+    if not (sep and w.isdigit() and h.isdigit() and int(w) > 0 and int(h) > 0):
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 640x360, got {text!r}")
+    return int(w), int(h)
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number of seconds: {text!r}") from None
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"must be a non-negative number of seconds: {text!r}")
+    return value
+
+
+def add_play(sub: argparse._SubParsersAction) -> None:
+    from stgs.client.abr import RULES
+
+    p = sub.add_parser("play", help="stream a packaged scene over HTTP and render it on the CPU",
+                       description="Stream a StreamSTGS scene from its MPD URL: the ABR rule picks each GOP's "
+                       "feature QP, the next GOP is downloaded and decoded while the current one plays, and "
+                       "every frame is deformed and splatted on the CPU. Writes a JSON playback log.")
+    p.add_argument("url", help="URL of the scene's manifest.mpd (http:// or https://)")
+    p.add_argument("--abr", choices=sorted(RULES), default="dynamic",
+                   help="ABR rule (default: dynamic = throughput while the buffer is low, BOLA when full)")
+    p.add_argument("--qp", type=int, help="pin the feature Representation of this QP (no adaptation)")
+    p.add_argument("--buffer", type=_seconds, help="seconds to buffer ahead (default: three GOPs)")
+    p.add_argument("--start", type=_seconds, default=0.0, help="start at the GOP holding this time (seconds)")
+    p.add_argument("--duration", type=_seconds, help="seconds to play (default: to the end)")
+    p.add_argument("--realtime", action="store_true",
+                   help="pace frames to the clock and drop the ones rendering cannot make "
+                   "(default: render every frame as fast as possible)")
+    view = p.add_argument_group("viewpoint (default: an orbit framing the scene)")
+    view.add_argument("--camera", help="a camera of the scene by name (from cameras.json beside the MPD)")
+    view.add_argument("--path", default="orbit",
+                      help="'orbit' or a JSON file listing cameras (Camera.to_json) played in turn")
+    view.add_argument("--orbit-seconds", type=_seconds, help="seconds per orbit turn (default: the whole playback)")
+    view.add_argument("--eye", type=_vector, help="explicit camera position x,y,z (with --target)")
+    view.add_argument("--target", type=_vector, default=(0.0, 0.0, 0.0), help="point the --eye camera looks at")
+    view.add_argument("--fov", type=float, default=60.0, help="horizontal field of view, degrees (default: 60)")
+    view.add_argument("--size", type=_size, help="image size WIDTHxHEIGHT (default: the camera's, else 640x360)")
+    p.add_argument("--out", type=Path, help="write frames: a folder of PNGs, or a .mp4 file")
+    p.add_argument("--log", type=Path, help="JSON playback log (default: playback.json beside --out, else none)")
+    p.add_argument("--timeout", type=_seconds, default=10.0, help="seconds without data before a request fails")
+    p.add_argument("--retries", type=int, default=3, help="retries per request (default: 3)")
+    p.set_defaults(run=run_play)
+
+
+def run_play(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from stgs.client import PlayConfig, play
+    from stgs.client.download import DownloadSettings
+    from stgs.client.view import ViewSpec
+
+    if not args.url.startswith(("http://", "https://")):
+        raise UserError(f"{args.url}: the manifest URL must start with http:// or https://")
+    if args.retries < 0 or args.timeout <= 0:
+        raise UserError("--retries must be >= 0 and --timeout > 0")
+    if not 1 <= args.fov < 180:
+        raise UserError("--fov must be in [1, 180) degrees")
+    width, height = args.size or (None, None)
+    view = ViewSpec(camera=args.camera, eye=args.eye, target=args.target, path=args.path,
+                    orbit_seconds=args.orbit_seconds, width=width, height=height, fov_deg=args.fov)
+    log = args.log
+    if log is None and args.out is not None:
+        log = (args.out.parent if args.out.suffix.lower() == ".mp4" else args.out) / "playback.json"
+    cfg = PlayConfig(url=args.url, abr=args.abr, qp=args.qp, buffer_s=args.buffer, start_s=args.start,
+                     duration_s=args.duration, realtime=args.realtime, view=view, out=args.out, log=log,
+                     download=DownloadSettings(read_timeout_s=args.timeout, retries=args.retries))
+    summary = asyncio.run(play(cfg))
+    print_playback(summary)
+    if log is not None:
+        print(f"playback log: {log}")
+    return 0
+
+
+def print_playback(s: dict) -> None:
+    qps = ",".join(str(g["qp"]) for g in s["gops"])
+    print(f"played {s['gops_played']} GOP(s), {s['frames']} frames, start-up {s['startup_delay_s']:.2f} s, "
+          f"QPs {qps}, {s['switches']} switch(es)")
+    print(f"stalls {s['stalls']['count']} ({s['stalls']['total_s']:.2f} s), dropped frames {s['dropped_frames']}, "
+          f"{s['kb_per_frame']:.1f} KB/frame, render {s['render_ms_median'] or 0:.1f} ms/frame median")
+
+
 def add_demo(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="run the end-to-end demo on the embedded default scene",
                        description="Synthesise the default scene, render a free-viewpoint orbit "
@@ -235,7 +333,8 @@ def run_bench(args: argparse.Namespace) -> int:
                         args.reference_max)
 
 
-COMMANDS = {"synth": add_synth, "pack": add_pack, "serve": add_serve, "demo": add_demo, "bench": add_bench}
+COMMANDS = {"synth": add_synth, "pack": add_pack, "serve": add_serve, "play": add_play, "demo": add_demo,
+            "bench": add_bench}
 
 
 def build_parser(commands: tuple[str, ...] | None = None) -> argparse.ArgumentParser:

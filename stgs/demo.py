@@ -1,28 +1,34 @@
-"""`stgs demo`: the end-to-end path that exists so far, on the embedded default scene.
+"""`stgs demo`: the whole path on the embedded default scene, on this machine, with no downloads.
 
-Synthesise the default scene (preset "demo"), render a free-viewpoint orbit
-from the fitted model, and write the frames, a contact sheet and a
-truth | model | error comparison, printing the model's fidelity.
+synthesise (preset "demo") -> pack (five QPs) -> serve on a free loopback
+port -> play a free-viewpoint orbit with the dynamic ABR -> write the video,
+a contact sheet, a truth | streamed | error comparison and a summary.
+
+This is the one place that drives every stage; it imports them lazily.
 """
 
 from __future__ import annotations
 
+import asyncio
 import json
 import math
+import threading
 import time
 from pathlib import Path
 
+import cv2
 import torch
-from tqdm import tqdm
 
 from stgs.camera import Camera, intrinsics, look_at
 from stgs.fsio import atomic_write_bytes, load_png, save_png
-from stgs.model.store import load_model
+from stgs.metrics import psnr
 from stgs.model.view import FrameRenderer
 from stgs.native.build import available
 from stgs.synth import GROUND_TRUTH_DIR, PRESETS, SCENE_TARGET, load_ground_truth, synthesize
 
 SHEET_COLUMNS = 6
+SHEET_ROWS = 2
+COMPARE_FRAMES = 4
 
 
 def orbit_camera(frame: int, frames: int, width: int, height: int) -> Camera:
@@ -44,46 +50,112 @@ def grid(images: list[torch.Tensor], columns: int) -> torch.Tensor:
     return sheet
 
 
+def video_frames(path: Path, count: int) -> list[torch.Tensor]:
+    """`count` frames spread evenly over an MP4, as (H, W, 3) float RGB."""
+    cap = cv2.VideoCapture(str(path))
+    total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+    frames = []
+    for i in range(count):
+        cap.set(cv2.CAP_PROP_POS_FRAMES, i * total // count)
+        ok, bgr = cap.read()
+        if ok:
+            frames.append(torch.from_numpy(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)).float() / 255)
+    cap.release()
+    return frames
+
+
+class TruthProbe:
+    """Compares every streamed GOP with the ground truth and the uncompressed model at a scene camera."""
+
+    def __init__(self, model_dir: Path, gop_size: int):
+        from stgs.model.store import load_model
+
+        self.model_dir, self.gop_size = model_dir, gop_size
+        self.doc, cameras = load_ground_truth(model_dir)
+        self.camera = cameras[0]
+        self.local = load_model(model_dir)[1]
+        self.rows: list[tuple[float, float]] = []
+        """(PSNR vs truth, PSNR vs uncompressed model) per compared frame."""
+        self.compare: list[torch.Tensor] = []
+        self.lock = threading.Lock()
+
+    def __call__(self, k: int, renderer: FrameRenderer) -> None:
+        local = FrameRenderer(self.local[k])
+        for i in (0, self.gop_size // 2):
+            f = k * self.gop_size + i
+            truth = load_png(self.model_dir / GROUND_TRUTH_DIR /
+                             self.doc["pattern"].format(camera=self.camera.name, frame=f))
+            streamed = renderer.render(i, self.camera).clamp(0, 1)
+            reference = local.render(i, self.camera).clamp(0, 1)
+            with self.lock:
+                self.rows.append((psnr(streamed, truth), psnr(streamed, reference)))
+                if len(self.compare) < 3 * COMPARE_FRAMES:
+                    self.compare += [truth, streamed, ((streamed - truth).abs() * 10).clamp(0, 1)]
+
+
+async def stream(dash: Path, play_cfg_kwargs: dict, probe: TruthProbe) -> dict:
+    """Serve `dash` on a free loopback port and play it; returns the playback log."""
+    from aiohttp import web
+
+    from stgs.client import PlayConfig, play
+    from stgs.server.app import ServeConfig, build_app
+
+    runner = web.AppRunner(build_app(ServeConfig(root=dash, port=0, access_log=False)), access_log=None)
+    await runner.setup()
+    site = web.TCPSite(runner, "127.0.0.1", 0)
+    await site.start()
+    try:
+        host, port = runner.addresses[0][:2]
+        return await play(PlayConfig(url=f"http://{host}:{port}/manifest.mpd", **play_cfg_kwargs), on_gop=probe)
+    finally:
+        await runner.cleanup()
+
+
 def run(out: Path, progress: bool = True) -> int:
+    from stgs.client.view import ViewSpec
+    from stgs.packager import PackConfig, pack
+
     out = Path(out)
     cfg = PRESETS["demo"]
     print(f"stgs demo: native kernels {'on' if available() else 'OFF (pure-torch reference)'}")
-    start = time.perf_counter()
+    clock = time.perf_counter()
     report = synthesize(cfg, out / "model", progress=progress)
-    synth_s = time.perf_counter() - start
-    meta, gops = load_model(out / "model")
-    renderers = [FrameRenderer(g) for g in gops]
-    frames = meta.num_frames
-    orbit_frames, times = [], []
-    for f in tqdm(range(frames), desc="render orbit", unit="frame", disable=not progress):
-        gop, local = divmod(f, meta.shape.gop_size)
-        cam = orbit_camera(f, frames, cfg.width, cfg.height)
-        t0 = time.perf_counter()
-        image = renderers[gop].render(local, cam).clamp(0, 1)
-        times.append(time.perf_counter() - t0)
-        save_png(out / "frames" / f"{f:05d}.png", image)
-        orbit_frames.append(image)
-    step = max(1, frames // (2 * SHEET_COLUMNS))
-    save_png(out / "contact_sheet.png", grid(orbit_frames[::step][:2 * SHEET_COLUMNS], SHEET_COLUMNS))
-    doc, cameras = load_ground_truth(out / "model")
-    compare = []
-    for f in range(0, frames, max(1, frames // 4))[:4]:
-        gop, local = divmod(f, meta.shape.gop_size)
-        truth = load_png(out / "model" / GROUND_TRUTH_DIR / doc["pattern"].format(camera=cameras[0].name, frame=f))
-        model = renderers[gop].render(local, cameras[0]).clamp(0, 1)
-        compare += [truth, model, ((model - truth).abs() * 10).clamp(0, 1)]
-    save_png(out / "compare.png", grid(compare, 3))
-    ms = sorted(t * 1e3 for t in times)
-    summary = {"gaussians": meta.shape.capacity, "gops": meta.num_gops, "frames": frames,
-               "resolution": [cfg.width, cfg.height], "fidelity_psnr_db": report.fidelity_psnr,
-               "fidelity_views": report.fidelity_views, "synth_seconds": synth_s,
-               "render_ms_median": ms[len(ms) // 2], "render_fps": 1e3 / ms[len(ms) // 2]}
+    synth_s = time.perf_counter() - clock
+    clock = time.perf_counter()
+    stats = pack(out / "model", out / "dash", PackConfig(), progress=progress)
+    pack_s = time.perf_counter() - clock
+    frames = cfg.num_gops * cfg.gop_size
+    orbit = out / "orbit.mp4"
+    probe = TruthProbe(out / "model", cfg.gop_size)
+    path = out / "orbit_path.json"
+    atomic_write_bytes(path, json.dumps([orbit_camera(f, frames, cfg.width, cfg.height).to_json()
+                                         for f in range(frames)]).encode())
+    log = asyncio.run(stream(out / "dash", {"abr": "dynamic", "out": orbit, "log": out / "playback.json",
+                                            "view": ViewSpec(path=str(path))}, probe))
+    save_png(out / "contact_sheet.png", grid(video_frames(orbit, SHEET_COLUMNS * SHEET_ROWS), SHEET_COLUMNS))
+    save_png(out / "compare.png", grid(probe.compare, 3))
+    truth_db = sum(r[0] for r in probe.rows) / len(probe.rows)
+    model_db = sum(r[1] for r in probe.rows) / len(probe.rows)
+    summary = {
+        "gaussians": cfg.grid_side ** 2, "gops": cfg.num_gops, "frames": frames,
+        "resolution": [cfg.width, cfg.height], "synth_seconds": synth_s, "pack_seconds": pack_s,
+        "model_fidelity_psnr_db": report.fidelity_psnr,
+        "streamed_vs_truth_psnr_db": truth_db, "streamed_vs_model_psnr_db": model_db,
+        "qps": [g["qp"] for g in log["gops"]], "kb_per_frame": log["kb_per_frame"],
+        "startup_delay_s": log["startup_delay_s"], "stalls": log["stalls"],
+        "render_ms_median": log["render_ms_median"], "render_fps": log["render_fps"],
+        "ladder_kbps": {rid: rep["bandwidth"] / 1e3 for rid, rep in stats["representations"].items()},
+    }
     atomic_write_bytes(out / "summary.json", (json.dumps(summary, indent=2) + "\n").encode())
-    print(f"model: {meta.shape.capacity} Gaussians, {meta.num_gops} GOPs x {meta.shape.gop_size} "
-          f"frames at {meta.fps:g} fps ({cfg.width}x{cfg.height})")
-    print(f"fidelity vs ground truth: {report.fidelity_psnr:.2f} dB PSNR over {report.fidelity_views} views")
+    print(f"scene: {summary['gaussians']} Gaussians, {cfg.num_gops} GOPs x {cfg.gop_size} frames at "
+          f"{cfg.fps:g} fps ({cfg.width}x{cfg.height}); synthesised in {synth_s:.0f} s, packed in {pack_s:.0f} s")
+    print(f"streamed with the dynamic ABR: QPs {','.join(map(str, summary['qps']))}, "
+          f"{summary['kb_per_frame']:.1f} KB/frame, start-up {summary['startup_delay_s']:.2f} s, "
+          f"{log['stalls']['count']} stall(s)")
+    print(f"streamed frames vs ground truth: {truth_db:.2f} dB PSNR (uncompressed model: "
+          f"{report.fidelity_psnr:.2f} dB; streamed vs model {model_db:.2f} dB)")
     print(f"render (deform + splat): {summary['render_ms_median']:.1f} ms/frame median "
           f"({summary['render_fps']:.0f} fps)")
-    print(f"wrote {out / 'frames'}/ ({frames} PNG), {out / 'contact_sheet.png'}, "
-          f"{out / 'compare.png'}, {out / 'summary.json'}")
+    print(f"wrote {orbit}, {out / 'contact_sheet.png'}, {out / 'compare.png'}, {out / 'playback.json'}, "
+          f"{out / 'summary.json'}")
     return 0

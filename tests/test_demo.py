@@ -9,21 +9,27 @@ import cv2
 from tests.conftest import run_stgs as stgs
 
 
-def test_demo_writes_frames_sheet_and_summary(tmp_path):
+def test_demo_streams_the_default_scene_end_to_end(tmp_path):
     out = tmp_path / "demo"
     result = stgs("demo", "--out", str(out), "--quiet")
     assert result.returncode == 0, result.stderr
-    assert "fidelity vs ground truth" in result.stdout and "dB PSNR" in result.stdout
+    assert "streamed frames vs ground truth" in result.stdout and "dB PSNR" in result.stdout
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"] == 60 and summary["gaussians"] == 4096
-    assert summary["fidelity_psnr_db"] > 40.0
-    frames = sorted((out / "frames").glob("*.png"))
-    assert len(frames) == 60
-    first = cv2.imread(str(frames[0]))
-    assert first.shape == (240, 320, 3) and first.std() > 5  # a real picture, not a blank
+    assert summary["model_fidelity_psnr_db"] > 40.0
+    assert summary["streamed_vs_truth_psnr_db"] > 35.0  # after compression at whatever QPs the ABR picked
+    assert summary["stalls"]["count"] == 0 and summary["kb_per_frame"] > 0
+    assert set(summary["qps"]) <= {16, 20, 24, 28, 32} and len(summary["qps"]) == 2
+    log = json.loads((out / "playback.json").read_text())
+    assert log["abr"] == "dynamic" and log["frames"] == 60 and log["error"] is None
+    cap = cv2.VideoCapture(str(out / "orbit.mp4"))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 60
+    ok, first = cap.read()
+    assert ok and first.shape == (240, 320, 3) and first.std() > 5  # a real picture, not a blank
     sheet = cv2.imread(str(out / "contact_sheet.png"))
     assert sheet.shape == (2 * 240, 6 * 320, 3)
     assert cv2.imread(str(out / "compare.png")).shape == (4 * 240, 3 * 320, 3)
+    assert (out / "dash" / "manifest.mpd").is_file() and (out / "dash" / "cameras.json").is_file()
 
 
 def test_bench_render_smoke():

@@ -216,3 +216,17 @@ def test_published_files_are_world_readable(packed):
     for path in out.rglob("*"):
         mode = path.stat().st_mode & 0o777
         assert mode & 0o444 == 0o444, f"{path} is {oct(mode)}: a static server of another user cannot read it"
+
+
+def test_scene_cameras_are_published_beside_the_mpd(scene, packed):
+    from stgs.camera import Camera
+    from stgs.synth import load_ground_truth
+    from stgs.tree import CAMERAS, CAMERAS_FORMAT
+
+    out, _ = packed
+    doc = json.loads((out / CAMERAS).read_text())
+    assert doc["format"] == CAMERAS_FORMAT and doc["version"] == 1
+    published = [Camera.from_json(c) for c in doc["cameras"]]
+    truth = load_ground_truth(scene)[1]
+    assert [c.name for c in published] == [c.name for c in truth]
+    assert all((a.viewmat == b.viewmat).all() and (a.K == b.K).all() for a, b in zip(published, truth, strict=True))

@@ -1,0 +1,152 @@
+"""HTTP downloads for the player: one keep-alive aiohttp session, timeouts, retries, throughput samples.
+
+Every request is size-capped before its body is read (Content-Length) and
+while it is read (the cap the manifest implies), retried with exponential
+backoff on connection errors, timeouts, truncated bodies and 5xx/429, and
+recorded as a throughput sample (bytes, seconds, time to first byte) for
+the ABR. A progress callback can abandon a transfer mid-way.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import aiohttp
+
+CHUNK = 1 << 16
+RETRY_STATUS = frozenset({408, 429, 500, 502, 503, 504})
+
+
+@dataclass
+class DownloadSettings:
+    """Network behaviour of the player's downloader."""
+
+    connect_timeout_s: float = 5.0
+    """Seconds to open a connection."""
+    read_timeout_s: float = 10.0
+    """Seconds without any byte arriving before a request fails."""
+    total_timeout_s: float = 120.0
+    """Seconds one request may take in all."""
+    retries: int = 3
+    """Retries after the first attempt (connection errors, timeouts, 5xx, truncated bodies)."""
+    backoff_s: float = 0.25
+    """First retry delay; doubles per retry."""
+    max_backoff_s: float = 4.0
+    """Longest retry delay."""
+    connections: int = 4
+    """Keep-alive connections to the server."""
+
+
+@dataclass
+class Sample:
+    """One finished (or abandoned) HTTP transfer."""
+
+    url: str
+    kind: str
+    """keyframe, init, media or document."""
+    bytes: int
+    seconds: float
+    """Request start to last byte."""
+    ttfb: float
+    """Request start to response headers."""
+    status: int
+    attempts: int = 1
+    abandoned: bool = False
+
+    @property
+    def kbps(self) -> float:
+        return self.bytes * 8 / 1e3 / max(self.seconds, 1e-6)
+
+
+class FetchError(Exception):
+    """A download that failed for good (after retries where retrying makes sense)."""
+
+    def __init__(self, url: str, reason: str, attempts: int = 1):
+        super().__init__(f"{url}: {reason}" + (f" (after {attempts} attempts)" if attempts > 1 else ""))
+        self.url, self.reason, self.attempts = url, reason, attempts
+
+
+class AbandonError(Exception):
+    """The progress callback asked to drop this transfer; `sample` counts the wasted bytes."""
+
+    def __init__(self, sample: Sample):
+        super().__init__(f"abandoned {sample.url} after {sample.bytes} bytes")
+        self.sample = sample
+
+
+class _RetryableError(Exception):
+    pass
+
+
+Progress = Callable[[int, int | None, float], bool]
+"""(bytes so far, Content-Length or None, seconds since the request started) -> abandon?"""
+
+
+@dataclass
+class Downloader:
+    """The player's HTTP client; use as `async with Downloader(settings) as d`."""
+
+    settings: DownloadSettings = field(default_factory=DownloadSettings)
+    samples: list[Sample] = field(default_factory=list)
+    """Every transfer so far, in completion order."""
+    retries: int = 0
+    """Retries made so far (all requests)."""
+
+    async def __aenter__(self) -> Downloader:
+        s = self.settings
+        timeout = aiohttp.ClientTimeout(total=s.total_timeout_s, sock_connect=s.connect_timeout_s,
+                                        sock_read=s.read_timeout_s)
+        self._session = aiohttp.ClientSession(timeout=timeout, connector=aiohttp.TCPConnector(limit=s.connections),
+                                              auto_decompress=False)
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self._session.close()
+
+    async def fetch(self, url: str, kind: str, max_bytes: int, progress: Progress | None = None) -> bytes:
+        """The body of `url` (200 only), at most max_bytes; raises FetchError or AbandonError."""
+        attempts = self.settings.retries + 1
+        last = "no attempt"
+        for attempt in range(1, attempts + 1):
+            try:
+                data, sample = await self._once(url, kind, max_bytes, progress)
+            except _RetryableError as exc:
+                last = str(exc)
+                if attempt < attempts:
+                    self.retries += 1
+                    await asyncio.sleep(min(self.settings.max_backoff_s, self.settings.backoff_s * 2 ** (attempt - 1)))
+                continue
+            sample.attempts = attempt
+            self.samples.append(sample)
+            return data
+        raise FetchError(url, last, attempts)
+
+    async def _once(self, url: str, kind: str, max_bytes: int, progress: Progress | None) -> tuple[bytes, Sample]:
+        start = time.perf_counter()
+        try:
+            async with self._session.get(url) as resp:
+                ttfb = time.perf_counter() - start
+                if resp.status in RETRY_STATUS:
+                    raise _RetryableError(f"HTTP {resp.status}")
+                if resp.status != 200:
+                    raise FetchError(url, f"HTTP {resp.status} {resp.reason or ''}".rstrip())
+                length = resp.content_length
+                if length is not None and length > max_bytes:
+                    raise FetchError(url, f"{length} bytes announced, over the {max_bytes}-byte limit")
+                body = bytearray()
+                async for chunk in resp.content.iter_chunked(CHUNK):
+                    body += chunk
+                    if len(body) > max_bytes:
+                        raise FetchError(url, f"body exceeds the {max_bytes}-byte limit")
+                    if progress is not None and progress(len(body), length, time.perf_counter() - start):
+                        resp.close()
+                        raise AbandonError(Sample(url, kind, len(body), time.perf_counter() - start, ttfb,
+                                               resp.status, abandoned=True))
+                if length is not None and len(body) != length:
+                    raise _RetryableError(f"truncated body ({len(body)} of {length} bytes)")
+                return bytes(body), Sample(url, kind, len(body), time.perf_counter() - start, ttfb, resp.status)
+        except (aiohttp.ClientError, asyncio.TimeoutError, ConnectionError) as exc:
+            raise _RetryableError(f"{type(exc).__name__}: {exc}".rstrip(": ")) from exc

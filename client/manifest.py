@@ -1,0 +1,172 @@
+"""A StreamSTGS presentation as the client sees it: the MPD, resolved against its URL.
+
+Finds the keyframe and feature-video AdaptationSets by their scheme URIs,
+reads the scene's sizes from the keyframe descriptor, checks them against the
+client's caps before anything is downloaded, and turns the SegmentTemplates
+into absolute URLs (BaseURL and relative templates resolve against the MPD's
+URL, RFC 3986).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from urllib.parse import urljoin
+
+from stgs.model.gop import GOPShape
+from stgs.mpd import (
+    FEATURE_SCHEME,
+    KEYFRAME_SCHEME,
+    MPD,
+    PROFILE_STGS,
+    AdaptationSet,
+    MPDError,
+    expand_template,
+    parse_mpd,
+)
+
+MAX_CAPACITY = 1 << 22
+"""Most Gaussians per GOP the client accepts (4 M; 1.3 GB of features per 62-frame GOP)."""
+MAX_GOP_SIZE = 1024
+MAX_WINDOW = 16
+MAX_PE_FREQS = 16
+MAX_GOPS = 1 << 20
+SEGMENT_SLACK = 1.25
+"""A segment may exceed @bandwidth x duration by this factor (the packager's @bandwidth covers the largest)."""
+MAX_SEGMENT_BYTES = 1 << 30
+"""Fixed cap on any segment, whatever the manifest says."""
+MAX_INIT_BYTES = 1 << 20
+
+
+@dataclass(frozen=True)
+class Rung:
+    """One feature Representation of the ladder."""
+
+    rep_id: str
+    bandwidth: int
+    """@bandwidth, bit/s."""
+    qp: int | None
+    """QP parsed from the id (`qp<N>`), if it has that form."""
+
+
+def _descriptor_fields(value: str | None) -> dict[str, str]:
+    fields = {}
+    for item in (value or "").split(";"):
+        if "=" in item:
+            key, _, val = item.partition("=")
+            fields[key.strip()] = val.strip()
+    return fields
+
+
+def _bounded_int(fields: dict[str, str], key: str, lo: int, hi: int) -> int:
+    try:
+        value = int(fields[key])
+    except (KeyError, ValueError):
+        raise MPDError(f"keyframe descriptor lacks an integer {key}") from None
+    if not lo <= value <= hi:
+        raise MPDError(f"keyframe descriptor {key}={value} is outside {lo}..{hi} (client limit)")
+    return value
+
+
+def _qp_of(rep_id: str) -> int | None:
+    return int(rep_id[2:]) if rep_id.startswith("qp") and rep_id[2:].isdigit() else None
+
+
+class Presentation:
+    """A parsed, checked StreamSTGS MPD with URL construction for every segment."""
+
+    def __init__(self, mpd: MPD, url: str):
+        if PROFILE_STGS not in mpd.profiles:
+            raise MPDError(f"not a StreamSTGS manifest: @profiles lacks {PROFILE_STGS} "
+                           f"(it lists {', '.join(p for p in mpd.profiles if p) or 'nothing'})")
+        if len(mpd.periods) != 1:
+            raise MPDError(f"a StreamSTGS MPD has exactly one Period, this one has {len(mpd.periods)}")
+        self.mpd = mpd
+        self.url = url
+        self.base = urljoin(url, mpd.base_url) if mpd.base_url else url
+        self.keyframes: AdaptationSet = mpd.adaptation_set(KEYFRAME_SCHEME)
+        self.features: AdaptationSet = mpd.adaptation_set(FEATURE_SCHEME)
+        if len(self.keyframes.representations) != 1:
+            raise MPDError("the keyframe AdaptationSet must have exactly one Representation")
+        if not self.features.representations:
+            raise MPDError("the feature AdaptationSet has no Representation")
+        if self.features.segment_template.initialization is None:
+            raise MPDError("the feature SegmentTemplate has no initialization")
+        desc = next(d for d in self.keyframes.supplemental if d.scheme_id_uri == KEYFRAME_SCHEME)
+        fields = _descriptor_fields(desc.value)
+        capacity = _bounded_int(fields, "capacity", 1, MAX_CAPACITY)
+        self.shape = GOPShape(capacity, _bounded_int(fields, "gop_size", 2, MAX_GOP_SIZE),
+                              _bounded_int(fields, "window", 1, MAX_WINDOW),
+                              _bounded_int(fields, "pe_freqs", 1, MAX_PE_FREQS))
+        side = _bounded_int(fields, "grid_side", 1, math.isqrt(MAX_CAPACITY))
+        if side * side != capacity:
+            raise MPDError(f"keyframe descriptor: grid_side {side} does not match capacity {capacity}")
+        try:
+            self.fps = float(fields["fps"])
+        except (KeyError, ValueError):
+            raise MPDError("keyframe descriptor lacks fps") from None
+        if not 0 < self.fps <= 1000:
+            raise MPDError(f"keyframe descriptor fps={self.fps} is out of range")
+        self.segment_seconds = self.keyframes.segment_template.seconds
+        if not 0 < self.segment_seconds <= 3600 or self.features.segment_template.seconds != self.segment_seconds:
+            raise MPDError("keyframe and feature segments must have one positive duration")
+        self.num_gops = max(1, math.ceil(mpd.duration / self.segment_seconds - 1e-9))
+        if self.num_gops > MAX_GOPS:
+            raise MPDError(f"{self.num_gops} GOPs is over the client limit of {MAX_GOPS}")
+        self.ladder = sorted((Rung(r.id, r.bandwidth, _qp_of(r.id)) for r in self.features.representations),
+                             key=lambda r: (r.bandwidth, r.rep_id))
+        self.keyframe_rep = self.keyframes.representations[0]
+
+    @classmethod
+    def parse(cls, data: bytes, url: str) -> Presentation:
+        return cls(parse_mpd(data), url)
+
+    @property
+    def grid_side(self) -> int:
+        return self.shape.grid_side
+
+    @property
+    def duration(self) -> float:
+        return self.mpd.duration
+
+    def gop_at(self, seconds: float) -> int:
+        """The GOP that holds presentation time `seconds` (clamped to the last GOP)."""
+        if not math.isfinite(seconds) or seconds < 0:
+            raise MPDError(f"start time must be a non-negative number of seconds, got {seconds}")
+        return min(self.num_gops - 1, int(seconds / self.segment_seconds + 1e-9))
+
+    def _number(self, gop: int, template_start: int) -> int:
+        if not 0 <= gop < self.num_gops:
+            raise MPDError(f"GOP {gop} is outside 0..{self.num_gops - 1}")
+        return template_start + gop
+
+    def keyframe_url(self, gop: int) -> str:
+        t = self.keyframes.segment_template
+        return urljoin(self.base, expand_template(t.media, self.keyframe_rep.id, self._number(gop, t.start_number)))
+
+    def init_url(self, rep_id: str) -> str:
+        return urljoin(self.base, expand_template(self.features.segment_template.initialization, rep_id))
+
+    def media_url(self, rep_id: str, gop: int) -> str:
+        t = self.features.segment_template
+        return urljoin(self.base, expand_template(t.media, rep_id, self._number(gop, t.start_number)))
+
+    def sibling_url(self, name: str) -> str:
+        """URL of a document beside the MPD (stats.json, cameras.json)."""
+        return urljoin(self.url, name)
+
+    def max_keyframe_bytes(self) -> int:
+        return self._cap(self.keyframe_rep.bandwidth)
+
+    def max_media_bytes(self, rep_id: str) -> int:
+        return self._cap(self.rung(rep_id).bandwidth)
+
+    def _cap(self, bandwidth: int) -> int:
+        return min(MAX_SEGMENT_BYTES, math.ceil(bandwidth * self.segment_seconds / 8 * SEGMENT_SLACK) + 4096)
+
+    def rung(self, rep_id: str) -> Rung:
+        for r in self.ladder:
+            if r.rep_id == rep_id:
+                return r
+        raise MPDError(f"no feature Representation {rep_id!r}; the ladder has "
+                       f"{', '.join(r.rep_id for r in self.ladder)}")

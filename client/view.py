@@ -1,0 +1,121 @@
+"""Where the player looks from: a scene camera, an explicit pose, an orbit or a trajectory file."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from stgs.camera import Camera, intrinsics, look_at
+from stgs.errors import UserError
+from stgs.model.gop import GOPModel
+from stgs.model.view import framing_orbit
+from stgs.tree import CAMERAS_FORMAT
+
+MAX_PATH_CAMERAS = 100_000
+MAX_IMAGE_SIDE = 8192
+
+
+@dataclass
+class ViewSpec:
+    """The viewpoint options of `stgs play` (exactly one of camera / eye / path is used)."""
+
+    camera: str | None = None
+    """Name of a camera of the scene (cameras.json beside the MPD)."""
+    eye: tuple[float, float, float] | None = None
+    """Explicit camera position (with `target`)."""
+    target: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Point an explicit camera looks at."""
+    path: str = "orbit"
+    """'orbit' (a circle framing the scene) or a JSON file: a list of cameras (Camera.to_json) played in turn."""
+    orbit_seconds: float | None = None
+    """Seconds per orbit turn (None: the whole playback)."""
+    width: int | None = None
+    """Image width (None: the scene camera's, else 640)."""
+    height: int | None = None
+    """Image height (None: the scene camera's, else 360)."""
+    fov_deg: float = 60.0
+    """Horizontal field of view of explicit and orbit cameras."""
+
+    def size(self, default: tuple[int, int] = (640, 360)) -> tuple[int, int]:
+        w, h = self.width or default[0], self.height or default[1]
+        if not (1 <= w <= MAX_IMAGE_SIDE and 1 <= h <= MAX_IMAGE_SIDE):
+            raise UserError(f"image size {w}x{h} is outside 1..{MAX_IMAGE_SIDE}")
+        return w, h
+
+
+class Trajectory:
+    """Presentation frame j (counted from the start of playback) -> camera."""
+
+    def __init__(self, cameras: list[Camera]):
+        if not cameras:
+            raise UserError("a trajectory needs at least one camera")
+        self.cameras = cameras
+
+    def camera(self, j: int) -> Camera:
+        return self.cameras[j % len(self.cameras)]
+
+
+def parse_scene_cameras(doc: object) -> list[Camera]:
+    """Cameras of a cameras.json document (from the network: checked, never trusted)."""
+    if not isinstance(doc, dict) or doc.get("format") != CAMERAS_FORMAT or not isinstance(doc.get("cameras"), list):
+        raise UserError(f"cameras.json is not a {CAMERAS_FORMAT} document")
+    return _cameras(doc["cameras"], "cameras.json")
+
+
+def _cameras(items: list, where: str) -> list[Camera]:
+    if len(items) > MAX_PATH_CAMERAS:
+        raise UserError(f"{where}: more than {MAX_PATH_CAMERAS} cameras")
+    cameras = []
+    for i, item in enumerate(items):
+        try:
+            cam = Camera.from_json(item)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise UserError(f"{where}: camera {i} is malformed ({exc})") from None
+        if not (1 <= cam.width <= MAX_IMAGE_SIDE and 1 <= cam.height <= MAX_IMAGE_SIDE):
+            raise UserError(f"{where}: camera {cam.name!r} has image size {cam.width}x{cam.height}")
+        cameras.append(cam)
+    return cameras
+
+
+def load_path_file(path: Path) -> list[Camera]:
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise UserError(f"{path}: cannot read the camera path ({exc})") from None
+    items = doc.get("cameras") if isinstance(doc, dict) else doc
+    if not isinstance(items, list):
+        raise UserError(f"{path}: a camera path is a JSON list of cameras or {{\"cameras\": [...]}}")
+    return _cameras(items, str(path))
+
+
+def build_trajectory(spec: ViewSpec, scene_cameras: list[Camera] | None, first_gop: GOPModel,
+                     frames_per_turn: int) -> Trajectory:
+    """The trajectory `spec` asks for; orbits frame the first GOP's Gaussians."""
+    if spec.camera is not None:
+        if not scene_cameras:
+            raise UserError("--camera needs the scene's cameras.json beside the MPD, and this scene has none")
+        by_name = {c.name: c for c in scene_cameras}
+        if spec.camera not in by_name:
+            raise UserError(f"no camera {spec.camera!r} in this scene; it has {', '.join(by_name)}")
+        cam = by_name[spec.camera]
+        return Trajectory([cam] if spec.width is None and spec.height is None else [_resized(cam, spec)])
+    if spec.eye is not None:
+        w, h = spec.size()
+        try:
+            view = look_at(spec.eye, spec.target)
+        except ValueError as exc:
+            raise UserError(f"--eye/--target: {exc}") from None
+        return Trajectory([Camera("pose", intrinsics(w, h, spec.fov_deg), view, w, h)])
+    if spec.path != "orbit":
+        return Trajectory(load_path_file(Path(spec.path)))
+    w, h = spec.size()
+    return Trajectory(framing_orbit(first_gop, max(1, frames_per_turn), w, h, spec.fov_deg))
+
+
+def _resized(cam: Camera, spec: ViewSpec) -> Camera:
+    w, h = spec.size((cam.width, cam.height))
+    K = cam.K.clone()
+    K[0] *= w / cam.width
+    K[1] *= h / cam.height
+    return Camera(cam.name, K, cam.viewmat, w, h)

@@ -1,0 +1,63 @@
+"""The client's view of an MPD: scheme lookup, descriptor caps, URL resolution."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from stgs.client.manifest import MAX_CAPACITY, Presentation
+
+from stgs.mpd import MPDError
+
+EXAMPLE = (Path(__file__).resolve().parents[2] / "manifests" / "example.mpd").read_bytes()
+
+
+def test_example_resolves_every_segment_url_against_the_mpd_url():
+    p = Presentation.parse(EXAMPLE, "http://cdn.example/scenes/a/manifest.mpd?token=1")
+    assert p.shape.capacity == 1024 and p.grid_side == 32 and p.shape.gop_size == 30 and p.fps == 30
+    assert p.num_gops == 2 and p.segment_seconds == 1.0
+    assert [r.qp for r in p.ladder] == [32, 28, 24, 20, 16]  # ascending bandwidth
+    version = "v-e4a5254e8706"
+    assert p.keyframe_url(1) == f"http://cdn.example/scenes/a/{version}/keyframes/gop_00001.stgk"
+    assert p.init_url("qp20") == f"http://cdn.example/scenes/a/{version}/features/qp20/init.mp4"
+    assert p.media_url("qp20", 0) == f"http://cdn.example/scenes/a/{version}/features/qp20/seg_00000.m4s"
+    assert p.sibling_url("stats.json") == "http://cdn.example/scenes/a/stats.json"
+    with pytest.raises(MPDError, match="GOP 2 is outside"):
+        p.media_url("qp20", 2)
+
+
+@pytest.mark.parametrize("base,expected", [
+    ("https://other.example/store/", "https://other.example/store/"),
+    ("../shared/", "http://cdn.example/scenes/shared/"),
+])
+def test_base_url(base, expected):
+    mpd = EXAMPLE.replace(b'<Period id="0"', f"<BaseURL>{base}</BaseURL>\n  <Period id=\"0\"".encode())
+    p = Presentation.parse(mpd, "http://cdn.example/scenes/a/manifest.mpd")
+    assert p.keyframe_url(0).startswith(expected + "v-")
+
+
+def test_start_time_maps_to_its_gop():
+    p = Presentation.parse(EXAMPLE, "http://h/m.mpd")
+    assert [p.gop_at(t) for t in (0, 0.99, 1.0, 1.5, 99)] == [0, 0, 1, 1, 1]
+
+
+def test_segment_caps_follow_bandwidth():
+    p = Presentation.parse(EXAMPLE, "http://h/m.mpd")
+    assert p.max_media_bytes("qp16") > 1758992 / 8  # one second at @bandwidth, with slack
+    assert p.max_media_bytes("qp16") < 1758992 / 8 * 1.5
+    with pytest.raises(MPDError, match="no feature Representation 'qp99'"):
+        p.max_media_bytes("qp99")
+
+
+@pytest.mark.parametrize("edit,message", [
+    ((b"urn:streamstgs:profile:2026", b"urn:other:profile"), "not a StreamSTGS manifest"),
+    ((b"urn:streamstgs:keyframe:2026", b"urn:other:keyframe"), "no AdaptationSet with SupplementalProperty"),
+    ((b"capacity=1024;grid_side=32", f"capacity={MAX_CAPACITY * 4};grid_side=4096".encode()), "client limit"),
+    ((b"grid_side=32", b"grid_side=31"), "does not match capacity"),
+    ((b"gop_size=30", b"gop_size=x"), "lacks an integer gop_size"),
+    ((b'type="static"', b'type="dynamic"'), "only static"),
+    ((b"<MPD ", b"<NotMPD "), "not well-formed"),
+])
+def test_refuses_what_is_not_this_profile(edit, message):
+    with pytest.raises(MPDError, match=message):
+        Presentation.parse(EXAMPLE.replace(*edit), "http://h/m.mpd")
