@@ -36,6 +36,7 @@ SEGMENT_SLACK = 1.25
 MAX_SEGMENT_BYTES = 1 << 30
 """Fixed cap on any segment, whatever the manifest says."""
 MAX_INIT_BYTES = 1 << 20
+DURATION_PRECISION_S = 1e-3
 
 
 @dataclass(frozen=True)
@@ -110,7 +111,9 @@ class Presentation:
         self.segment_seconds = self.keyframes.segment_template.seconds
         if not 0 < self.segment_seconds <= 3600 or self.features.segment_template.seconds != self.segment_seconds:
             raise MPDError("keyframe and feature segments must have one positive duration")
-        self.num_gops = max(1, math.ceil(mpd.duration / self.segment_seconds - 1e-9))
+        # @mediaPresentationDuration is written to the millisecond: a GOP that starts within 1 ms of its end
+        # is rounding, not content.
+        self.num_gops = max(1, math.ceil((mpd.duration - DURATION_PRECISION_S) / self.segment_seconds))
         if self.num_gops > MAX_GOPS:
             raise MPDError(f"{self.num_gops} GOPs is over the client limit of {MAX_GOPS}")
         self.ladder = sorted((Rung(r.id, r.bandwidth, _qp_of(r.id)) for r in self.features.representations),

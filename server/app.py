@@ -10,9 +10,11 @@ resolving symlinks, and not hidden are served; anything else is 404.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import time
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -243,6 +245,25 @@ def build_app(cfg: ServeConfig) -> web.Application:
     app.router.add_route("OPTIONS", "/{tail:.*}", preflight)
     app.router.add_get("/{tail:.*}", serve_file)  # also answers HEAD
     return app
+
+
+@contextlib.asynccontextmanager
+async def loopback(root: Path, middlewares: tuple = ()) -> AsyncIterator[str]:
+    """Serve `root` on a free loopback port inside the running event loop; yields the base URL (ends in /).
+
+    For the demo, benchmarks and tests; `middlewares` run before the server's own (e.g. a test-only delay).
+    """
+    app = build_app(ServeConfig(root=root, port=0, access_log=False))
+    for i, middleware in enumerate(middlewares):
+        app.middlewares.insert(i, middleware)
+    runner = web.AppRunner(app, access_log=None)
+    await runner.setup()
+    try:
+        await web.TCPSite(runner, "127.0.0.1", 0).start()
+        host, port = runner.addresses[0][:2]
+        yield f"http://{host}:{port}/"
+    finally:
+        await runner.cleanup()
 
 
 def run(cfg: ServeConfig) -> None:

@@ -265,10 +265,11 @@ def run_demo(args: argparse.Namespace) -> int:
 def add_bench(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmarks (accuracy vs time), printed as a Markdown table",
                        description="Run a benchmark suite and print Markdown for docs/BENCHMARKS.md.")
-    p.add_argument("suite", choices=["render", "synth", "pack", "serve"],
+    p.add_argument("suite", choices=["render", "synth", "pack", "serve", "play"],
                    help="render: splatter and deform per backend and Gaussian count; "
                    "synth: fit fidelity vs fit iterations; pack: rate, distortion and codec time per "
-                   "QP and x265 preset, PLAS vs no sort, PLAS time; serve: stgs serve vs nginx with wrk")
+                   "QP and x265 preset, PLAS vs no sort, PLAS time; serve: stgs serve vs nginx with wrk; "
+                   "play: the player's per-GOP download and pre-decode, per-frame deform and splat")
     p.add_argument("--sizes", default="16384,65536,147456",
                    help="comma-separated Gaussian counts (default: 16384,65536,147456)")
     p.add_argument("--width", type=_positive_int, default=640)
@@ -279,12 +280,13 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", default="25,50,100,200,400,800",
                    help="synth: comma-separated fit steps per GOP (default: 25,50,100,200,400,800)")
     p.add_argument("--preset", default="small", help="synth: SynthConfig preset (default: small)")
-    p.add_argument("--qps", default="16,20,24,28,32", help="pack: QPs (default: 16,20,24,28,32)")
+    p.add_argument("--qps", default="16,20,24,28,32", help="pack, play: QPs (default: 16,20,24,28,32)")
     p.add_argument("--presets", default="ultrafast,veryfast,medium,slow",
                    help="pack: x265 presets (default: ultrafast,veryfast,medium,slow)")
     p.add_argument("--sides", default="128,256,384", help="pack: PLAS grid sides S (default: 128,256,384)")
-    p.add_argument("--scene", default="demo", help="pack: synthetic scene preset to pack (default: demo)")
-    p.add_argument("--dash", type=Path, help="serve: a packaged scene to serve (default: pack the demo scene)")
+    p.add_argument("--scene", help="pack, play: synthetic scene preset to pack (default: demo for pack, "
+                   "large (65,536 Gaussians, 2-second GOPs) for play)")
+    p.add_argument("--dash", type=Path, help="serve, play: a packaged scene (default: synthesise and pack one)")
     p.add_argument("--clients", default="1,16,64,256", help="serve: concurrent clients (default: 1,16,64,256)")
     p.add_argument("--seconds", type=_positive_int, default=8, help="serve: seconds per measurement (default: 8)")
     p.add_argument("--plot", type=Path, default=Path("docs/rate_distortion.png"),
@@ -309,6 +311,15 @@ def run_bench(args: argparse.Namespace) -> int:
         return bench_serve(args.dash, _int_list(args.clients, "--clients"), args.seconds)
     from stgs.synth import PRESETS
 
+    scene = args.scene or ("large" if args.suite == "play" else "demo")
+    if scene not in PRESETS:
+        raise UserError(f"--scene must be one of {', '.join(sorted(PRESETS))}")
+    if args.suite == "play":
+        from stgs.benchmarks.play import main as bench_play
+
+        if args.dash is not None and not (args.dash / "manifest.mpd").is_file():
+            raise UserError(f"--dash {args.dash}: no manifest.mpd there")
+        return bench_play(args.dash, PRESETS[scene], _int_list(args.qps, "--qps"), args.width, args.height)
     if args.suite == "pack":
         from stgs.benchmarks.pack import main as bench_pack
         from stgs.codec.video import PRESETS as X265_PRESETS
@@ -317,10 +328,8 @@ def run_bench(args: argparse.Namespace) -> int:
         unknown = sorted(set(presets) - set(X265_PRESETS))
         if unknown:
             raise UserError(f"--presets: unknown x265 preset(s) {unknown}")
-        if args.scene not in PRESETS:
-            raise UserError(f"--scene must be one of {', '.join(sorted(PRESETS))}")
         return bench_pack(_int_list(args.qps, "--qps"), presets, _int_list(args.sides, "--sides"), args.plot,
-                          PRESETS[args.scene])
+                          PRESETS[scene])
     if args.suite == "synth":
         from stgs.benchmarks.synth import main as bench_synth
 

@@ -95,20 +95,11 @@ class TruthProbe:
 
 async def stream(dash: Path, play_cfg_kwargs: dict, probe: TruthProbe) -> dict:
     """Serve `dash` on a free loopback port and play it; returns the playback log."""
-    from aiohttp import web
-
     from stgs.client import PlayConfig, play
-    from stgs.server.app import ServeConfig, build_app
+    from stgs.server.app import loopback
 
-    runner = web.AppRunner(build_app(ServeConfig(root=dash, port=0, access_log=False)), access_log=None)
-    await runner.setup()
-    site = web.TCPSite(runner, "127.0.0.1", 0)
-    await site.start()
-    try:
-        host, port = runner.addresses[0][:2]
-        return await play(PlayConfig(url=f"http://{host}:{port}/manifest.mpd", **play_cfg_kwargs), on_gop=probe)
-    finally:
-        await runner.cleanup()
+    async with loopback(dash) as base:
+        return await play(PlayConfig(url=base + "manifest.mpd", **play_cfg_kwargs), on_gop=probe)
 
 
 def run(out: Path, progress: bool = True) -> int:

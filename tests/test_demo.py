@@ -52,3 +52,20 @@ def test_bench_pack_smoke(tmp_path):
     assert len(rows) == 4  # ultrafast with PLAS, medium without, at QPs 20 and 32
     assert plot.stat().st_size > 10_000
     assert "| 16 | 256 |" in result.stdout
+
+
+def test_bench_play_smoke(tmp_path):
+    from stgs.packager import PackConfig, pack
+
+    from stgs.synth import SynthConfig, synthesize
+
+    synthesize(SynthConfig(grid_side=8, num_gops=2, gop_size=4, width=32, height=24, num_cameras=1, fit_steps=10),
+               tmp_path / "model", progress=False)
+    pack(tmp_path / "model", tmp_path / "dash", PackConfig(qps=(20, 32), preset="ultrafast"), progress=False)
+    result = stgs("bench", "play", "--dash", str(tmp_path / "dash"), "--qps", "20,32", "--width", "64",
+                  "--height", "48")
+    assert result.returncode == 0, result.stderr
+    rows = [line for line in result.stdout.splitlines() if line.startswith(("| QP ", "| dynamic"))]
+    assert [r.split("|")[1].strip() for r in rows] == ["QP 20", "QP 32", "dynamic ABR"]
+    kb = [float(r.split("|")[3]) for r in rows[:2]]
+    assert kb[0] > kb[1] > 0

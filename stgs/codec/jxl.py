@@ -46,7 +46,7 @@ def pad_small(data: bytes) -> bytes:
     """
     if len(data) >= MIN_FILE_BYTES or not data.startswith(b"\x00\x00\x00\x0cJXL "):
         return data
-    pad = MIN_FILE_BYTES - len(data) - 8
+    pad = max(0, MIN_FILE_BYTES - len(data) - 8)  # a skip box is at least its 8-byte header
     return data + struct.pack(">I4s", 8 + pad, b"skip") + bytes(pad)
 
 

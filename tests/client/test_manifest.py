@@ -36,6 +36,17 @@ def test_base_url(base, expected):
     assert p.keyframe_url(0).startswith(expected + "v-")
 
 
+@pytest.mark.parametrize("gops,gop_size,fps", [(2, 4, 30.0), (3, 7, 29.97), (5, 60, 30.0), (1, 2, 240.0)])
+def test_gop_count_survives_millisecond_durations(gops, gop_size, fps):
+    from stgs.mpd import format_duration
+
+    ticks = round(gop_size / fps * 90000)
+    mpd = (EXAMPLE.replace(b'mediaPresentationDuration="PT2S"',
+                           f'mediaPresentationDuration="{format_duration(gops * gop_size / fps)}"'.encode())
+           .replace(b'timescale="1024" duration="1024"', f'timescale="90000" duration="{ticks}"'.encode()))
+    assert Presentation.parse(mpd, "http://h/m.mpd").num_gops == gops
+
+
 def test_start_time_maps_to_its_gop():
     p = Presentation.parse(EXAMPLE, "http://h/m.mpd")
     assert [p.gop_at(t) for t in (0, 0.99, 1.0, 1.5, 99)] == [0, 0, 1, 1, 1]

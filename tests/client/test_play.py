@@ -18,7 +18,7 @@ from stgs.client import PlaybackError, PlayConfig, play
 from stgs.client.download import DownloadSettings
 from stgs.client.view import ViewSpec
 from stgs.packager import PackConfig, pack
-from stgs.server.app import ServeConfig, build_app
+from stgs.server.app import loopback
 
 from stgs.camera import Camera
 from stgs.errors import UserError
@@ -44,18 +44,8 @@ def scene(tmp_path_factory) -> Path:
 @contextlib.asynccontextmanager
 async def serving(root: Path, middleware=None):
     """The real server on a free loopback port; yields the MPD URL."""
-    app = build_app(ServeConfig(root=root, port=0, access_log=False))
-    if middleware is not None:
-        app.middlewares.insert(0, middleware)
-    runner = web.AppRunner(app, access_log=None)
-    await runner.setup()
-    site = web.TCPSite(runner, "127.0.0.1", 0)
-    await site.start()
-    host, port = runner.addresses[0][:2]
-    try:
-        yield f"http://{host}:{port}/manifest.mpd"
-    finally:
-        await runner.cleanup()
+    async with loopback(root, (middleware,) if middleware else ()) as base:
+        yield base + "manifest.mpd"
 
 
 def copy_tree(scene: Path, tmp_path: Path) -> Path:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import struct
+
 import numpy as np
 import pytest
 import torch
@@ -27,6 +29,18 @@ def test_jxl_round_trip_is_bit_exact():
         assert back.dtype == codes.dtype and np.array_equal(back, codes), name
         spec = next(s for s in SPECS if s.name == name)
         assert int(codes.max()) < spec.levels
+
+
+@pytest.mark.parametrize("missing", [1, 4, 7, 8, 9, 100])
+def test_small_files_are_padded_to_the_minimum_whatever_their_size(missing):
+    from stgs.codec.jxl import MIN_FILE_BYTES, pad_small
+
+    container = b"\x00\x00\x00\x0cJXL \r\n\x87\n"
+    data = container + b"\x00" * (MIN_FILE_BYTES - missing - len(container))
+    padded = pad_small(data)
+    assert padded.startswith(data) and len(padded) >= MIN_FILE_BYTES
+    size, kind = struct.unpack(">I4s", padded[len(data):len(data) + 8])
+    assert kind == b"skip" and size == len(padded) - len(data)  # one well-formed box to the end
 
 
 @pytest.mark.parametrize("spec", SPECS, ids=lambda s: s.name)
