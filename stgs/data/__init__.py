@@ -1,0 +1,78 @@
+"""Multi-view video datasets behind one reader interface (`open_dataset`).
+
+A dataset is synchronized frames from calibrated cameras: `cameras(frame)`
+(OpenCV pinhole, world-to-camera), `image(frame, camera)` as (H, W, 3)
+float32 RGB in [0, 1], `mask(frame, camera)` (foreground, (H, W) bool) where
+the dataset has masks. Readers:
+
+- `PanopticReader`: the Panoptic / Dynamic 3D Gaussians layout
+  (`train_meta.json`, `ims/<cam>/<frame>.jpg`, `seg/<cam>/<frame>.png`);
+- `N3DVReader`: Neural 3D Video (LLFF `poses_bounds.npy` + `cam*.mp4`),
+  frames extracted once with ffmpeg and downscaled by 2 (the custom);
+- `SynthReader`: the ground truth inside a `stgs synth` model dir.
+
+`split(dataset, holdout)` gives the train / validation camera names.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Protocol
+
+import torch
+
+from stgs.camera import Camera
+from stgs.errors import UserError
+
+
+class Dataset(Protocol):
+    name: str
+    fps: float
+    num_frames: int
+    camera_names: list[str]
+    default_holdout: list[str]
+    """Validation cameras by convention (N3DV: cam00)."""
+
+    def cameras(self, frame: int) -> list[Camera]:
+        """Every camera at `frame`, in camera_names order."""
+
+    def image(self, frame: int, camera: str) -> torch.Tensor:
+        """(H, W, 3) float32 RGB in [0, 1]."""
+
+    def mask(self, frame: int, camera: str) -> torch.Tensor | None:
+        """(H, W) bool foreground mask, or None when the dataset has none."""
+
+
+def check_frame(ds: Dataset, frame: int) -> None:
+    if not 0 <= frame < ds.num_frames:
+        raise UserError(f"{ds.name}: frame {frame} is outside 0..{ds.num_frames - 1}")
+
+
+def split(ds: Dataset, holdout: list[str] | None = None) -> tuple[list[str], list[str]]:
+    """(train, validation) camera names; `holdout` names the validation cameras (None: the dataset's default)."""
+    val = list(ds.default_holdout if holdout is None else holdout)
+    unknown = sorted(set(val) - set(ds.camera_names))
+    if unknown:
+        raise UserError(f"{ds.name}: no camera(s) {unknown} to hold out; cameras are {', '.join(ds.camera_names)}")
+    train = [c for c in ds.camera_names if c not in val]
+    if not train:
+        raise UserError(f"{ds.name}: holding out {val} leaves no training camera")
+    return train, val
+
+
+def open_dataset(path: Path, kind: str = "auto", **options) -> Dataset:
+    """The reader for `path` (kind: auto, panoptic, n3dv, synth)."""
+    from stgs.data.n3dv import N3DVReader
+    from stgs.data.panoptic import PanopticReader
+    from stgs.data.synth import SynthReader
+
+    path = Path(path)
+    readers = {"panoptic": PanopticReader, "n3dv": N3DVReader, "synth": SynthReader}
+    if kind == "auto":
+        kind = next((k for k, r in readers.items() if r.recognises(path)), "")
+        if not kind:
+            raise UserError(f"{path}: not a dataset this version reads (Panoptic train_meta.json, N3DV "
+                            "poses_bounds.npy + cam*.mp4, or a stgs synth model dir)")
+    if kind not in readers:
+        raise UserError(f"unknown dataset kind {kind!r}; known: auto, {', '.join(readers)}")
+    return readers[kind](path, **options)
