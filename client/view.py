@@ -6,7 +6,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from stgs.camera import Camera, intrinsics, look_at
+from stgs.camera import Camera, intrinsics, look_at, resize
 from stgs.errors import UserError
 from stgs.model.gop import GOPModel
 from stgs.model.view import framing_orbit
@@ -99,7 +99,7 @@ def build_trajectory(spec: ViewSpec, scene_cameras: list[Camera] | None, first_g
         if spec.camera not in by_name:
             raise UserError(f"no camera {spec.camera!r} in this scene; it has {', '.join(by_name)}")
         cam = by_name[spec.camera]
-        return Trajectory([cam] if spec.width is None and spec.height is None else [_resized(cam, spec)])
+        return Trajectory([resize(cam, *spec.size((cam.width, cam.height)))])
     if spec.eye is not None:
         w, h = spec.size()
         try:
@@ -111,11 +111,3 @@ def build_trajectory(spec: ViewSpec, scene_cameras: list[Camera] | None, first_g
         return Trajectory(load_path_file(Path(spec.path)))
     w, h = spec.size()
     return Trajectory(framing_orbit(first_gop, max(1, frames_per_turn), w, h, spec.fov_deg))
-
-
-def _resized(cam: Camera, spec: ViewSpec) -> Camera:
-    w, h = spec.size((cam.width, cam.height))
-    K = cam.K.clone()
-    K[0] *= w / cam.width
-    K[1] *= h / cam.height
-    return Camera(cam.name, K, cam.viewmat, w, h)

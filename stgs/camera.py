@@ -42,6 +42,16 @@ class Camera:
         return cls(str(d["name"]), K, viewmat, int(d["width"]), int(d["height"]))
 
 
+def resize(cam: Camera, width: int, height: int) -> Camera:
+    """The same view at another image size (intrinsics scaled per axis)."""
+    if (width, height) == (cam.width, cam.height):
+        return cam
+    K = cam.K.clone()
+    K[0] *= width / cam.width
+    K[1] *= height / cam.height
+    return Camera(cam.name, K, cam.viewmat, width, height)
+
+
 def intrinsics(width: int, height: int, fov_x_deg: float) -> torch.Tensor:
     """K for a centred principal point and a horizontal field of view."""
     f = 0.5 * width / math.tan(math.radians(fov_x_deg) / 2)

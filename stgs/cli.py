@@ -246,6 +246,90 @@ def print_playback(s: dict) -> None:
           f"{s['kb_per_frame']:.1f} KB/frame, render {s['render_ms_median'] or 0:.1f} ms/frame median")
 
 
+def _names(text: str) -> list[str]:
+    return [n.strip() for n in text.split(",") if n.strip()]
+
+
+def add_train(sub: argparse._SubParsersAction) -> None:
+    from stgs.train.config import BUDGETS
+
+    p = sub.add_parser("train", help="train a StreamSTGS model dir from multi-view video (CPU)",
+                       description="Per-GOP StreamSTGS training: triangulated initial points, a coarse canonical "
+                       "stage, then per GOP canonical Gaussians + temporal features + deformation field with the "
+                       "paper's losses, relocation and pruning. Writes a model dir `stgs pack` accepts.")
+    p.add_argument("dataset", type=Path, help="Panoptic folder (train_meta.json), N3DV folder "
+                   "(poses_bounds.npy + cam*.mp4) or a stgs synth model dir")
+    p.add_argument("out", type=Path, help="output model dir")
+    p.add_argument("--budget", choices=sorted(BUDGETS), default="quick",
+                   help="quick (CI, minutes), cpu (a 60-frame GOP at 640x360 in ~1 h), paper (12k it, ~150k Gaussians)")
+    p.add_argument("--kind", choices=["auto", "panoptic", "n3dv", "synth"], default="auto", help="dataset layout")
+    p.add_argument("--holdout", type=_names, help="comma-separated validation cameras (default: the dataset's)")
+    p.add_argument("--gops", type=_positive_int, dest="max_gops", help="train at most this many GOPs")
+    p.add_argument("--gop-size", type=_positive_int, help="frames per GOP (default 60)")
+    p.add_argument("--start-frame", type=int, help="first frame")
+    p.add_argument("--grid-side", type=_positive_int, help="S: capacity N = S² Gaussians")
+    p.add_argument("--iterations", type=_positive_int, help="iterations per GOP")
+    p.add_argument("--coarse-iterations", type=int, help="iterations of the coarse canonical stage")
+    p.add_argument("--scale", type=float, help="training image scale (0.5 = half size)")
+    p.add_argument("--window", type=_positive_int, help="sliding window W (default 3)")
+    p.add_argument("--no-aux", dest="aux", action="store_false", default=None,
+                   help="no transformer-guided auxiliary pass")
+    p.add_argument("--no-dynamic-density", dest="dynamic", action="store_false", default=None,
+                   help="no extra loss on dynamic pixels")
+    p.add_argument("--no-temporal-reg", dest="temporal_weight", action="store_const", const=0.0,
+                   help="no temporal Huber consistency of features")
+    p.add_argument("--no-relocate", dest="relocate", action="store_false", default=None,
+                   help="no relocation of dead Gaussians")
+    p.add_argument("--seed", type=int, help="random seed (default 0)")
+    p.add_argument("--threads", type=_positive_int, help="torch threads")
+    p.add_argument("--resume", action="store_true", help="continue an interrupted run from its checkpoints")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(run=run_train)
+
+
+TRAIN_OVERRIDES = ("max_gops", "gop_size", "start_frame", "grid_side", "iterations", "coarse_iterations", "scale",
+                   "window", "aux", "dynamic", "temporal_weight", "relocate", "seed", "threads", "holdout")
+
+
+def run_train(args: argparse.Namespace) -> int:
+    from stgs.train import budget, train
+
+    overrides = {k: getattr(args, k) for k in TRAIN_OVERRIDES if getattr(args, k) is not None}
+    cfg = budget(args.budget, **overrides)
+    report = train(args.dataset, args.out, cfg, progress=not args.quiet, resume=args.resume, kind=args.kind)
+    for g in report["gops"]:
+        val = f", validation {g['val_psnr']:.2f} dB" if g["val_psnr"] is not None else ""
+        print(f"GOP {g['gop']}: {g['iterations']} iterations in {g['seconds']:.0f} s, train {g['train_psnr']:.2f} dB"
+              f"{val}, {g['relocated']} relocated, {g['pruned']} pruned")
+    print(f"wrote {args.out} ({report['capacity']} Gaussians per GOP, {len(report['gops'])} GOP(s))")
+    return 0
+
+
+def add_eval(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("eval", help="PSNR/SSIM of a model dir (and its packaged stream) on held-out cameras",
+                       description="Render the validation cameras of every GOP from the uncompressed model and, "
+                       "with --dash, from every Representation of its DASH tree; compare with the dataset.")
+    p.add_argument("model_dir", type=Path, help="model dir (stgs train output)")
+    p.add_argument("dataset", type=Path, help="the dataset it was trained on")
+    p.add_argument("--dash", type=Path, help="the model's packaged tree (stgs pack output) to evaluate per QP")
+    p.add_argument("--holdout", type=_names, help="validation cameras (default: those the model was trained without)")
+    p.add_argument("--stride", type=_positive_int, default=1, help="evaluate every n-th frame (default: 1)")
+    p.add_argument("--out", type=Path, help="where eval.json and eval_grid.png go (default: MODEL_DIR)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(run=run_eval)
+
+
+def run_eval(args: argparse.Namespace) -> int:
+    from stgs.evaluate import evaluate
+
+    result = evaluate(args.model_dir, args.dataset, args.out or args.model_dir, args.dash, args.holdout,
+                      args.stride, progress=not args.quiet)
+    for name, stream in result["streams"].items():
+        print(f"{name}: PSNR {stream['psnr']:.2f} dB, SSIM {stream['ssim']:.4f} over {len(stream['gops'])} GOP(s)")
+    print(f"wrote {(args.out or args.model_dir) / 'eval.json'}")
+    return 0
+
+
 def add_demo(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="run the end-to-end demo on the embedded default scene",
                        description="Synthesise the default scene, render a free-viewpoint orbit "
@@ -342,8 +426,8 @@ def run_bench(args: argparse.Namespace) -> int:
                         args.reference_max)
 
 
-COMMANDS = {"synth": add_synth, "pack": add_pack, "serve": add_serve, "play": add_play, "demo": add_demo,
-            "bench": add_bench}
+COMMANDS = {"synth": add_synth, "train": add_train, "eval": add_eval, "pack": add_pack, "serve": add_serve,
+            "play": add_play, "demo": add_demo, "bench": add_bench}
 
 
 def build_parser(commands: tuple[str, ...] | None = None) -> argparse.ArgumentParser:

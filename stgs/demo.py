@@ -20,7 +20,7 @@ import cv2
 import torch
 
 from stgs.camera import Camera, intrinsics, look_at
-from stgs.fsio import atomic_write_bytes, load_png, save_png
+from stgs.fsio import atomic_write_bytes, image_grid, load_png, save_png
 from stgs.metrics import psnr
 from stgs.model.view import FrameRenderer
 from stgs.native.build import available
@@ -37,17 +37,6 @@ def orbit_camera(frame: int, frames: int, width: int, height: int) -> Camera:
     eye = (3.0 * math.sin(angle), 1.2 + 0.3 * math.sin(2 * angle), 3.0 * math.cos(angle))
     return Camera(f"orbit{frame:05d}", intrinsics(width, height, 60.0), look_at(eye, SCENE_TARGET),
                   width, height)
-
-
-def grid(images: list[torch.Tensor], columns: int) -> torch.Tensor:
-    """Tile equally sized (H, W, 3) images row-major, padding the last row with black."""
-    h, w, _ = images[0].shape
-    rows = math.ceil(len(images) / columns)
-    sheet = torch.zeros(rows * h, columns * w, 3)
-    for i, img in enumerate(images):
-        r, c = divmod(i, columns)
-        sheet[r * h:(r + 1) * h, c * w:(c + 1) * w] = img
-    return sheet
 
 
 def video_frames(path: Path, count: int) -> list[torch.Tensor]:
@@ -123,8 +112,8 @@ def run(out: Path, progress: bool = True) -> int:
                                          for f in range(frames)]).encode())
     log = asyncio.run(stream(out / "dash", {"abr": "dynamic", "out": orbit, "log": out / "playback.json",
                                             "view": ViewSpec(path=str(path))}, probe))
-    save_png(out / "contact_sheet.png", grid(video_frames(orbit, SHEET_COLUMNS * SHEET_ROWS), SHEET_COLUMNS))
-    save_png(out / "compare.png", grid(probe.compare, 3))
+    save_png(out / "contact_sheet.png", image_grid(video_frames(orbit, SHEET_COLUMNS * SHEET_ROWS), SHEET_COLUMNS))
+    save_png(out / "compare.png", image_grid(probe.compare, 3))
     truth_db = sum(r[0] for r in probe.rows) / len(probe.rows)
     model_db = sum(r[1] for r in probe.rows) / len(probe.rows)
     summary = {

@@ -54,3 +54,14 @@ def load_png(path: Path) -> torch.Tensor:
     if data is None:
         raise OSError(f"{path}: not a readable image")
     return torch.from_numpy(cv2.cvtColor(data, cv2.COLOR_BGR2RGB)).float() / 255.0
+
+
+def image_grid(images: list[torch.Tensor], columns: int) -> torch.Tensor:
+    """Tile equally sized (H, W, 3) images row-major, padding the last row with black."""
+    h, w, _ = images[0].shape
+    rows = -(-len(images) // columns)
+    sheet = torch.zeros(rows * h, columns * w, 3)
+    for i, img in enumerate(images):
+        r, c = divmod(i, columns)
+        sheet[r * h:(r + 1) * h, c * w:(c + 1) * w] = img
+    return sheet

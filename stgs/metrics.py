@@ -13,3 +13,47 @@ def psnr(image: torch.Tensor, reference: torch.Tensor, peak: float = 1.0) -> flo
         raise ValueError(f"psnr: shapes differ {tuple(image.shape)} vs {tuple(reference.shape)}")
     mse = (image.double() - reference.double()).square().mean().item()
     return math.inf if mse == 0 else 10 * math.log10(peak * peak / mse)
+
+
+SSIM_WINDOW = 11
+SSIM_SIGMA = 1.5
+SSIM_C1 = 0.01 ** 2
+SSIM_C2 = 0.03 ** 2
+
+
+def _gaussian_window(dtype: torch.dtype) -> torch.Tensor:
+    x = torch.arange(SSIM_WINDOW, dtype=dtype) - (SSIM_WINDOW - 1) / 2
+    g = torch.exp(-x.square() / (2 * SSIM_SIGMA ** 2))
+    g = g / g.sum()
+    return (g[:, None] * g[None, :]).expand(3, 1, SSIM_WINDOW, SSIM_WINDOW).contiguous()
+
+
+def ssim_map(image: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+    """Per-pixel SSIM (Wang et al. 2004; 11x11 Gaussian window, σ 1.5, zero padding as in 3DGS) of (H, W, 3)
+    images in [0, 1], averaged over channels: (H, W). Differentiable."""
+    if image.shape != reference.shape or image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"ssim: need two (H, W, 3) images, got {tuple(image.shape)} and {tuple(reference.shape)}")
+    x = image.permute(2, 0, 1)[None]
+    y = reference.to(image.dtype).permute(2, 0, 1)[None]
+    win = _gaussian_window(image.dtype)
+
+    def blur(t: torch.Tensor) -> torch.Tensor:
+        return torch.nn.functional.conv2d(t, win, padding=SSIM_WINDOW // 2, groups=3)
+
+    mu_x, mu_y = blur(x), blur(y)
+    var_x = blur(x * x) - mu_x.square()
+    var_y = blur(y * y) - mu_y.square()
+    cov = blur(x * y) - mu_x * mu_y
+    num = (2 * mu_x * mu_y + SSIM_C1) * (2 * cov + SSIM_C2)
+    den = (mu_x.square() + mu_y.square() + SSIM_C1) * (var_x + var_y + SSIM_C2)
+    return (num / den)[0].mean(0)
+
+
+def ssim(image: torch.Tensor, reference: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean SSIM (a 0-d tensor), over the pixels of `mask` ((H, W) bool) when given."""
+    values = ssim_map(image, reference)
+    if mask is None:
+        return values.mean()
+    if mask.sum() == 0:
+        return values.new_ones(())
+    return values[mask].mean()

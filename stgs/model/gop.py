@@ -106,7 +106,10 @@ class DeformationField(nn.Module):
     def forward(self, window_feats: torch.Tensor, t: float | torch.Tensor, means: torch.Tensor,
                 camera_center: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """Offsets (ΔX, ΔS, ΔQ, ΔO, ΔC) for canonical means (R, 3) seen from camera_center ((3,) or (R, 3))."""
-        h = self.hidden(window_feats, t)
+        return self.decode(self.hidden(window_feats, t), means, camera_center)
+
+    def decode(self, h: torch.Tensor, means: torch.Tensor, camera_center: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """The decoders D_v, D_cov, D_o, D_c applied to a hidden state h (R, 64)."""
         d_x = self.d_pos(h)
         cov = self.d_cov(h)
         view = means + d_x - camera_center.to(means.dtype)
@@ -149,8 +152,11 @@ class GOPModel(nn.Module):
     def deform(self, frame: int, camera_center: torch.Tensor) -> Gaussians:
         """The Gaussians of GOP frame `frame` as seen from `camera_center` (pure torch)."""
         t = frame_time(frame, self.shape.gop_size)
-        d_x, d_s, d_q, d_o, d_c = self.field(self.window_features(frame), t, self.xyz,
-                                             camera_center)
+        return self.apply_offsets(self.field(self.window_features(frame), t, self.xyz, camera_center))
+
+    def apply_offsets(self, offsets: tuple[torch.Tensor, ...]) -> Gaussians:
+        """Canonical Gaussians + the field's offsets (ΔX, ΔS, ΔQ, ΔO, ΔC), activated (DESIGN.md)."""
+        d_x, d_s, d_q, d_o, d_c = offsets
         opacity = (torch.sigmoid(self.opacity_logit) + d_o).clamp(0.0, 1.0)
         return Gaussians(self.xyz + d_x, self.rotation + d_q, torch.exp(self.log_scale + d_s),
                          opacity, torch.relu(self.color) + d_c)

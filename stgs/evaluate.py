@@ -1,0 +1,130 @@
+"""`stgs eval MODEL_DIR DATASET`: quality of a trained model on held-out cameras, uncompressed and streamed.
+
+Per frame and per GOP: PSNR and SSIM of renders from the validation cameras
+against the dataset's images, for the uncompressed model dir and, with
+`--dash`, for every feature Representation of the packaged tree (decoded
+exactly as a player decodes it). LPIPS is not computed: its network weights
+would have to be downloaded. Writes eval.json and a side-by-side grid
+(render | ground truth | 10x error).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import torch
+
+from stgs.codec.features import features_from_frames
+from stgs.codec.keyframe import decode_keyframe
+from stgs.codec.video import decode_segment
+from stgs.data import open_dataset
+from stgs.errors import UserError
+from stgs.fsio import atomic_write_bytes, image_grid, save_png
+from stgs.metrics import psnr, ssim
+from stgs.model.gop import GOPModel
+from stgs.model.store import load_gop, read_meta
+from stgs.model.view import FrameRenderer
+from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, MPDError, expand_template, parse_mpd
+from stgs.train.trainer import scale_camera
+from stgs.tree import MANIFEST
+
+GRID_ROWS = 4
+
+
+def packaged_gops(dash: Path) -> dict[str, Callable[[int], GOPModel]]:
+    """Representation id -> (GOP index -> the GOP as a player decodes it) for a local DASH tree."""
+    try:
+        mpd = parse_mpd((dash / MANIFEST).read_bytes())
+        kf_set, video = mpd.adaptation_set(KEYFRAME_SCHEME), mpd.adaptation_set(FEATURE_SCHEME)
+    except (OSError, MPDError) as exc:
+        raise UserError(f"{dash}: not a packaged scene ({exc})") from None
+    fields = dict(item.split("=", 1) for item in kf_set.supplemental[0].value.split(";") if "=" in item)
+    from stgs.model.gop import GOPShape
+
+    shape = GOPShape(int(fields["capacity"]), int(fields["gop_size"]), int(fields["window"]), int(fields["pe_freqs"]))
+    side = shape.grid_side
+
+    def loader(rep: str) -> Callable[[int], GOPModel]:
+        init = (dash / expand_template(video.segment_template.initialization, rep)).read_bytes()
+
+        def load(k: int) -> GOPModel:
+            n = kf_set.segment_template.start_number + k
+            data = (dash / expand_template(kf_set.segment_template.media, kf_set.representations[0].id, n)).read_bytes()
+            kf = decode_keyframe(data, shape, k, max_bytes=len(data))
+            media = (dash / expand_template(video.segment_template.media, rep, n)).read_bytes()
+            frames = decode_segment(init, media, shape.num_features, 4 * side, 4 * side)
+            return kf.to_model(features_from_frames(frames, side, kf.feature_ranges))
+
+        return load
+
+    return {r.id: loader(r.id) for r in video.representations}
+
+
+def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None, holdout: list[str] | None = None,
+             stride: int = 1, progress: bool = True) -> dict:
+    from tqdm import tqdm
+
+    meta = read_meta(model_dir)
+    extra = meta.extra or {}
+    ds = open_dataset(dataset)
+    cams_val = holdout or extra.get("validation_cameras") or list(ds.default_holdout)
+    if not cams_val:
+        raise UserError("no validation cameras: pass --holdout (the model dir names none)")
+    unknown = sorted(set(cams_val) - set(ds.camera_names))
+    if unknown:
+        raise UserError(f"{ds.name}: no camera(s) {unknown}")
+    start = int(extra.get("start_frame", 0))
+    scale = float((extra.get("config") or {}).get("scale", 1.0))
+    g = meta.shape.gop_size
+    if start + meta.num_gops * g > ds.num_frames:
+        raise UserError(f"{ds.name} has {ds.num_frames} frames; the model needs {start + meta.num_gops * g}")
+    sources: dict[str, Callable[[int], GOPModel]] = {"uncompressed": lambda k: load_gop(model_dir, meta, k)}
+    if dash is not None:
+        sources |= packaged_gops(Path(dash))
+    result: dict = {"model_dir": str(model_dir), "dataset": ds.name, "validation_cameras": cams_val,
+                    "frame_stride": stride, "lpips": None, "streams": {}}
+    grid_rows: list[torch.Tensor] = []
+    for name, load in sources.items():
+        per_gop = []
+        for k in tqdm(range(meta.num_gops), desc=f"eval {name}", unit="gop", disable=not progress):
+            renderer = FrameRenderer(load(k))
+            rows = []
+            for i in range(0, g, stride):
+                f = start + k * g + i
+                by_name = {c.name: c for c in ds.cameras(f)}
+                for cam_name in cams_val:
+                    cam = scale_camera(by_name[cam_name], scale)
+                    truth = ds.image(f, cam_name)
+                    if truth.shape[:2] != (cam.height, cam.width):
+                        truth = torch.from_numpy(cv2.resize(truth.numpy(), (cam.width, cam.height),
+                                                            interpolation=cv2.INTER_AREA))
+                    image = renderer.render(i, cam).clamp(0, 1)
+                    rows.append({"frame": f, "camera": cam_name, "psnr": _finite(psnr(image, truth)),
+                                 "ssim": float(ssim(image, truth))})
+                    if name == "uncompressed" and len(grid_rows) < 3 * GRID_ROWS and i % max(1, g // 2) == 0:
+                        grid_rows += [image, truth, ((image - truth).abs() * 10).clamp(0, 1)]
+            per_gop.append({"gop": k, "psnr": _mean(r["psnr"] for r in rows), "ssim": _mean(r["ssim"] for r in rows),
+                            "frames": rows})
+        result["streams"][name] = {"psnr": _mean(p["psnr"] for p in per_gop),
+                                   "ssim": _mean(p["ssim"] for p in per_gop), "gops": per_gop}
+    report = Path(model_dir) / "train_report.json"
+    if report.is_file():
+        result["train_seconds_per_gop"] = [gop.get("seconds") for gop in json.loads(report.read_text())["gops"]]
+    out = Path(out)
+    atomic_write_bytes(out / "eval.json", (json.dumps(result, indent=1) + "\n").encode())
+    if grid_rows:
+        save_png(out / "eval_grid.png", image_grid(grid_rows, 3))
+    return result
+
+
+def _finite(value: float) -> float:
+    return value if math.isfinite(value) else 99.0
+
+
+def _mean(values) -> float:
+    values = list(values)
+    return sum(values) / len(values) if values else math.nan

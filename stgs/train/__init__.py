@@ -1,0 +1,6 @@
+"""stgs.train: per-GOP StreamSTGS training from multi-view video (`stgs train`)."""
+
+from stgs.train.config import BUDGETS, TrainConfig, budget
+from stgs.train.trainer import DivergedError, train
+
+__all__ = ["BUDGETS", "DivergedError", "TrainConfig", "budget", "train"]

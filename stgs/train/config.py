@@ -1,0 +1,128 @@
+"""Training configuration: one dataclass flows through a run; named budgets set its size."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+from stgs.errors import UserError
+
+
+@dataclass
+class LearningRates:
+    """Adam learning rates (3DGS / 4DGS defaults; position and MLP decay exponentially to `*_final`)."""
+
+    position: float = 1.6e-4
+    """× the scene extent."""
+    position_final: float = 1.6e-6
+    features: float = 2.5e-3
+    opacity: float = 5e-2
+    scale: float = 5e-3
+    rotation: float = 1e-3
+    color: float = 2.5e-3
+    field: float = 1.6e-3
+    field_final: float = 1.6e-4
+    aux: float = 1e-3
+
+
+@dataclass
+class TrainConfig:
+    """Everything that determines a training run."""
+
+    budget: str = "quick"
+    """Named size this config started from (quick, cpu, paper)."""
+    grid_side: int = 24
+    """S: the scene's capacity is N = S² Gaussians."""
+    gop_size: int = 60
+    """Frames per GOP (G)."""
+    window: int = 3
+    """Sliding window W."""
+    pe_freqs: int = 4
+    """Frequencies of γ(t)."""
+    scale: float = 1.0
+    """Image scale for training (0.5: half width and height)."""
+    start_frame: int = 0
+    """First dataset frame."""
+    max_gops: int | None = None
+    """Train at most this many GOPs (None: every whole GOP of the dataset)."""
+    holdout: list[str] | None = None
+    """Validation cameras (None: the dataset's convention)."""
+    coarse_iterations: int = 1000
+    """Canonical 3DGS stage on frames from all times."""
+    iterations: int = 600
+    """Iterations per GOP."""
+    feature_noise: float = 1e-3
+    """λ of the feature noise λ·U(−0.5, 0.5) (simulates the video codec)."""
+    lambda_ssim: float = 0.2
+    """SSIM share of the photometric loss."""
+    dynamic: bool = True
+    """Dynamic-aware density: an extra photometric term on dynamic pixels."""
+    dynamic_theta: float = 0.05
+    """A pixel is dynamic when its luminance std over `dynamic_frames` frames exceeds this."""
+    dynamic_frames: int = 30
+    dynamic_weight: float = 1.0
+    aux: bool = True
+    """Transformer-guided auxiliary pass with self-distillation."""
+    aux_ssim_weight: float = 0.2
+    distill_weight: float = 0.005
+    temporal_weight: float = 1.0
+    """Huber temporal consistency of features (0: off)."""
+    huber_delta: float = 0.01
+    temporal_sample: int = 8192
+    """Gaussians per iteration in the temporal term (bounds its cost)."""
+    opacity_weight: float = 0.01
+    smooth_weight: float = 0.01
+    """Spatial smoothness of the PLAS-sorted attribute grids (0: off)."""
+    sort_every: int = 1000
+    """Iterations between PLAS sorts of the Gaussians (the smoothness term needs a sorted grid)."""
+    relocate: bool = True
+    """MCMC-style relocation of dead Gaussians to live ones (keeps the count at capacity)."""
+    relocate_every: int = 100
+    relocate_until: float = 0.8
+    """Fraction of the iterations after which relocation stops."""
+    dead_opacity: float = 0.005
+    """Average opacity below which a Gaussian is dead (relocated, and pruned at the end)."""
+    lr: LearningRates = field(default_factory=LearningRates)
+    seed: int = 0
+    checkpoint_every: int = 200
+    """Iterations between checkpoints (for --resume)."""
+    init_points: int = 0
+    """Use at most this many triangulated points (0: all)."""
+    threads: int | None = None
+    """torch threads (None: torch's default)."""
+
+    def validate(self) -> None:
+        checks = [(self.grid_side >= 2, "grid_side must be >= 2"), (self.gop_size >= 2, "gop_size must be >= 2"),
+                  (1 <= self.window <= 8, "window must be in 1..8"), (0 < self.scale <= 1, "scale must be in (0, 1]"),
+                  (self.coarse_iterations >= 0 and self.iterations >= 1, "iterations must be positive"),
+                  (self.feature_noise >= 0, "feature_noise must be >= 0"),
+                  (self.relocate_every >= 1 and self.checkpoint_every >= 1 and self.sort_every >= 1,
+                   "every-N settings must be >= 1"),
+                  (self.max_gops is None or self.max_gops >= 1, "max_gops must be >= 1")]
+        for ok, message in checks:
+            if not ok:
+                raise UserError(f"train config: {message}")
+
+
+BUDGETS = {
+    "quick": TrainConfig(coarse_iterations=1000, iterations=600,
+                         lr=LearningRates(position=8e-4, position_final=8e-6)),
+    "cpu": TrainConfig(budget="cpu", grid_side=128, scale=1.0, coarse_iterations=1500, iterations=6000,
+                       sort_every=2000, checkpoint_every=500),
+    "paper": TrainConfig(budget="paper", grid_side=388, coarse_iterations=3000, iterations=12000,
+                         sort_every=3000, checkpoint_every=1000),
+}
+"""quick: CI (tiny, minutes); cpu: a 60-frame Panoptic GOP at 640x360 in about an hour on 2 cores;
+paper: 12k iterations, ~150k Gaussians, for a bigger machine."""
+
+SWITCHES = {"aux": "--no-aux", "dynamic": "--no-dynamic-density", "temporal_weight": "--no-temporal-reg",
+            "relocate": "--no-relocate"}
+"""Config fields the ablation switches turn off."""
+
+
+def budget(name: str, **overrides) -> TrainConfig:
+    if name not in BUDGETS:
+        raise UserError(f"unknown budget {name!r}; choose from {', '.join(BUDGETS)}")
+    cfg = dataclasses.replace(BUDGETS[name], **overrides)
+    cfg.validate()
+    return cfg

@@ -1,0 +1,172 @@
+"""Initial point cloud from calibrated views: match, triangulate, filter (OpenCV); else random in the frustum.
+
+1. SIFT keypoints per training camera (inside the dilated foreground mask
+   where the dataset has masks), matched between each camera and its
+   nearest neighbours (Lowe's ratio test), kept only near the epipolar line
+   the known calibration predicts;
+2. `cv2.triangulatePoints`, kept when in front of both cameras and
+   reprojecting within `max_reprojection_px` in both;
+3. multi-view consistency: a point must land inside the image (and the
+   foreground mask) of at least `min_views` cameras with a colour close to
+   its own in at least `min_consistent` cameras besides the pair.
+If that leaves too few points, `random_frustum_points` fills in.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import torch
+
+from stgs.camera import Camera
+
+
+@dataclass
+class InitConfig:
+    """Settings of the point-cloud initialisation."""
+
+    neighbours: int = 3
+    """Each camera is matched with this many nearest cameras."""
+    ratio: float = 0.75
+    """Lowe's ratio test threshold."""
+    max_epipolar_px: float = 2.0
+    """Largest distance of a match to its epipolar line."""
+    max_reprojection_px: float = 2.0
+    """Largest reprojection error in either camera of the pair."""
+    min_views: int = 3
+    """Cameras a point must project into (inside the image and the mask)."""
+    min_consistent: int = 1
+    """Other cameras whose pixel colour must match the point's."""
+    color_tolerance: float = 0.12
+    """Largest colour difference (mean absolute, [0, 1]) that counts as consistent."""
+    max_features: int = 4000
+    """SIFT keypoints per image."""
+
+
+def projection(cam: Camera) -> np.ndarray:
+    return (cam.K @ cam.viewmat[:3]).numpy()
+
+
+def project(cam: Camera, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates (P, 2) and depths (P,) of world points in a camera."""
+    cam_pts = points @ cam.viewmat[:3, :3].numpy().T + cam.viewmat[:3, 3].numpy()
+    z = cam_pts[:, 2]
+    uv = cam_pts @ cam.K.numpy().T
+    return uv[:, :2] / np.where(np.abs(uv[:, 2:]) < 1e-12, 1e-12, uv[:, 2:]), z
+
+
+def fundamental(a: Camera, b: Camera) -> np.ndarray:
+    """F with x_b^T F x_a = 0 from the known calibration."""
+    ra, ta = a.viewmat[:3, :3].numpy(), a.viewmat[:3, 3].numpy()
+    rb, tb = b.viewmat[:3, :3].numpy(), b.viewmat[:3, 3].numpy()
+    r = rb @ ra.T
+    t = tb - r @ ta
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    return np.linalg.inv(b.K.numpy()).T @ tx @ r @ np.linalg.inv(a.K.numpy())
+
+
+def _to_gray(image: torch.Tensor) -> np.ndarray:
+    return cv2.cvtColor((image.numpy() * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+
+
+def _sample(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    h, w = image.shape[:2]
+    x = np.clip(np.round(uv[:, 0] - 0.5).astype(int), 0, w - 1)
+    y = np.clip(np.round(uv[:, 1] - 0.5).astype(int), 0, h - 1)
+    return image[y, x]
+
+
+def triangulate(cameras: list[Camera], images: list[torch.Tensor], masks: list[torch.Tensor | None],
+                cfg: InitConfig | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(P, 3) points and (P, 3) colours from calibrated views (see the module docstring)."""
+    cfg = cfg or InitConfig()
+    sift = cv2.SIFT_create(nfeatures=cfg.max_features)
+    feats = []
+    for img, mask in zip(images, masks, strict=True):
+        m = None
+        if mask is not None:
+            m = cv2.dilate(mask.numpy().astype(np.uint8) * 255, np.ones((9, 9), np.uint8))
+        kps, desc = sift.detectAndCompute(_to_gray(img), m)
+        feats.append((np.array([k.pt for k in kps], dtype=np.float64).reshape(-1, 2) + 0.5, desc))
+    centres = np.stack([c.center.numpy() for c in cameras])
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    points, colors = [], []
+    pairs = set()
+    for i in range(len(cameras)):
+        dist = np.linalg.norm(centres - centres[i], axis=1)
+        for j in np.argsort(dist)[1:cfg.neighbours + 1]:
+            pairs.add((min(i, int(j)), max(i, int(j))))
+    for i, j in sorted(pairs):
+        (pi, di), (pj, dj) = feats[i], feats[j]
+        if di is None or dj is None or len(di) < 2 or len(dj) < 2:
+            continue
+        good = [m for m, n in matcher.knnMatch(di, dj, k=2) if m.distance < cfg.ratio * n.distance]
+        if not good:
+            continue
+        xa = pi[[m.queryIdx for m in good]]
+        xb = pj[[m.trainIdx for m in good]]
+        F = fundamental(cameras[i], cameras[j])
+        lines = np.c_[xa, np.ones(len(xa))] @ F.T
+        epi = np.abs(np.sum(lines * np.c_[xb, np.ones(len(xb))], axis=1)) / np.linalg.norm(lines[:, :2], axis=1)
+        keep = epi < cfg.max_epipolar_px
+        if not keep.any():
+            continue
+        xa, xb = xa[keep], xb[keep]
+        hom = cv2.triangulatePoints(projection(cameras[i]), projection(cameras[j]), xa.T, xb.T)
+        pts = (hom[:3] / np.where(np.abs(hom[3]) < 1e-12, 1e-12, hom[3])).T
+        ok = np.ones(len(pts), dtype=bool)
+        for cam, x in ((cameras[i], xa), (cameras[j], xb)):
+            uv, z = project(cam, pts)
+            ok &= (z > 0.01) & (np.linalg.norm(uv - x, axis=1) < cfg.max_reprojection_px)
+        col = (_sample(images[i].numpy(), xa[ok]) + _sample(images[j].numpy(), xb[ok])) / 2
+        points.append(pts[ok])
+        colors.append(col)
+    if not points:
+        return torch.empty(0, 3), torch.empty(0, 3)
+    pts, col = np.concatenate(points), np.concatenate(colors)
+    keep = consistent(pts, col, cameras, images, masks, cfg)
+    return torch.from_numpy(pts[keep]).float(), torch.from_numpy(col[keep]).float()
+
+
+def consistent(points: np.ndarray, colors: np.ndarray, cameras: list[Camera], images: list[torch.Tensor],
+               masks: list[torch.Tensor | None], cfg: InitConfig) -> np.ndarray:
+    """Points seen by min_views cameras and colour-consistent in min_consistent + 2 of them."""
+    views = np.zeros(len(points), dtype=int)
+    agree = np.zeros(len(points), dtype=int)
+    for cam, img, mask in zip(cameras, images, masks, strict=True):
+        uv, z = project(cam, points)
+        inside = (z > 0.01) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        if mask is not None:
+            inside &= _sample(mask.numpy(), uv)
+        views += inside
+        diff = np.abs(_sample(img.numpy(), uv) - colors).mean(axis=1)
+        agree += inside & (diff < cfg.color_tolerance)
+    return (views >= cfg.min_views) & (agree >= cfg.min_consistent + 2)
+
+
+def random_frustum_points(cameras: list[Camera], count: int, gen: torch.Generator) -> torch.Tensor:
+    """`count` random points in the region most cameras see: around the point nearest every optical axis."""
+    centres = torch.stack([c.center for c in cameras])
+    axes = torch.stack([c.viewmat[2, :3] for c in cameras])  # viewing directions (world)
+    eye = torch.eye(3, dtype=torch.float64)
+    A = sum(eye - a[:, None] @ a[None] for a in axes)
+    b = sum((eye - a[:, None] @ a[None]) @ c for a, c in zip(axes, centres, strict=True))
+    focus = torch.linalg.lstsq(A, b[:, None]).solution[:, 0]
+    radius = float((centres - focus).norm(dim=1).mean()) * 0.35
+    out, tries = [], 0
+    while sum(len(o) for o in out) < count and tries < 50:
+        tries += 1
+        cand = focus + (torch.rand(4 * count, 3, generator=gen, dtype=torch.float64) * 2 - 1) * radius
+        seen = torch.zeros(len(cand), dtype=torch.long)
+        for cam in cameras:
+            uv, z = project(cam, cand.numpy())
+            seen += torch.from_numpy((z > 0.01) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width)
+                                     & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height))
+        out.append(cand[seen >= max(1, len(cameras) // 2)])
+    pts = torch.cat(out) if out else torch.empty(0, 3, dtype=torch.float64)
+    if len(pts) < count:  # nothing is seen by half the cameras: fall back to the ball itself
+        extra = focus + (torch.rand(count - len(pts), 3, generator=gen, dtype=torch.float64) * 2 - 1) * radius
+        pts = torch.cat([pts, extra])
+    return pts[:count].float()

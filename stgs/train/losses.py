@@ -1,0 +1,43 @@
+"""Training losses of the paper (each a small function with a hand-checkable value; tests/train/test_losses.py)."""
+
+from __future__ import annotations
+
+import torch
+
+from stgs.metrics import ssim
+
+
+def photometric(image: torch.Tensor, target: torch.Tensor, lambda_ssim: float = 0.2,
+                mask: torch.Tensor | None = None) -> torch.Tensor:
+    """(1 − λ)·L1 + λ·(1 − SSIM), over the pixels of `mask` ((H, W) bool) when given."""
+    diff = (image - target).abs()
+    if mask is not None:
+        if not mask.any():
+            return image.sum() * 0.0
+        l1 = diff[mask].mean()
+    else:
+        l1 = diff.mean()
+    return (1 - lambda_ssim) * l1 + lambda_ssim * (1 - ssim(image, target, mask))
+
+
+def temporal_huber(features: torch.Tensor, delta: float = 0.01) -> torch.Tensor:
+    """Mean Huber penalty of consecutive feature differences e_{i+1} − e_i of (E, N, C) features."""
+    if features.shape[0] < 2:
+        return features.sum() * 0.0
+    return torch.nn.functional.huber_loss(features[1:], features[:-1], delta=delta)
+
+
+def self_distillation(student: torch.Tensor, teacher: torch.Tensor) -> torch.Tensor:
+    """Mean squared distance of the MLP's hidden state to the transformer's (teacher held fixed)."""
+    return (student - teacher.detach()).square().mean()
+
+
+def opacity_l1(opacities: torch.Tensor) -> torch.Tensor:
+    """Mean opacity (opacities are non-negative): pushes unneeded Gaussians to 0 so they can be relocated."""
+    return opacities.abs().mean()
+
+
+def grid_smoothness(values: torch.Tensor, side: int) -> torch.Tensor:
+    """Mean squared difference of 4-neighbours of (S², C) attributes laid out as the S x S PLAS grid."""
+    grid = values.reshape(side, side, -1)
+    return ((grid[1:] - grid[:-1]).square().mean() + (grid[:, 1:] - grid[:, :-1]).square().mean()) / 2

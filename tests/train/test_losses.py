@@ -1,0 +1,72 @@
+"""Training losses against hand-computed values."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from stgs.metrics import SSIM_C1, SSIM_C2, ssim, ssim_map
+from stgs.train import losses
+from stgs.train.dynamic import dynamic_mask
+
+
+def test_temporal_huber_by_hand():
+    # two features of one Gaussian, one channel: differences 0.005 (quadratic zone) and 0.03 (linear zone)
+    f = torch.tensor([[[0.0]], [[0.005]], [[0.035]]])
+    # huber(d) = 0.5 d² for |d| <= δ, δ (|d| - 0.5 δ) beyond; δ = 0.01
+    expected = (0.5 * 0.005 ** 2 + 0.01 * (0.03 - 0.005)) / 2
+    assert losses.temporal_huber(f, 0.01).item() == pytest.approx(expected, rel=1e-5)
+    assert losses.temporal_huber(f[:1], 0.01).item() == 0.0
+
+
+def test_ssim_of_flat_images_by_hand():
+    a = torch.full((30, 30, 3), 0.2, dtype=torch.float64)  # float64: no rounding in the variances
+    b = torch.full((30, 30, 3), 0.6, dtype=torch.float64)
+    # away from the zero-padded border: means 0.2 and 0.6, no variance
+    expected = (2 * 0.2 * 0.6 + SSIM_C1) / (0.2 ** 2 + 0.6 ** 2 + SSIM_C1)
+    assert ssim_map(a, b)[15, 15].item() == pytest.approx(expected, rel=1e-5)
+    assert ssim(a, a).item() == pytest.approx(1.0, abs=1e-6)
+    assert SSIM_C2 > 0
+
+
+def test_masked_ssim_and_photometric_use_only_the_mask():
+    gen = torch.Generator().manual_seed(0)
+    a = torch.rand(24, 24, 3, generator=gen)
+    b = a.clone()
+    b[:, 12:] = torch.rand(24, 12, 3, generator=gen)  # the right half differs
+    left = torch.zeros(24, 24, dtype=torch.bool)
+    left[:, :6] = True  # far from the right half (the 11x11 window reaches 5 pixels)
+    assert ssim(a, b, left).item() == pytest.approx(1.0, abs=1e-6)
+    assert losses.photometric(a, b, 0.2, left).item() == pytest.approx(0.0, abs=1e-6)
+    right = ~left
+    l1 = (a - b).abs()[right].mean().item()
+    expected = 0.8 * l1 + 0.2 * (1 - ssim(a, b, right).item())
+    assert losses.photometric(a, b, 0.2, right).item() == pytest.approx(expected, rel=1e-6)
+    assert losses.photometric(a, b, 0.2, torch.zeros(24, 24, dtype=torch.bool)).item() == 0.0
+
+
+def test_self_distillation_only_moves_the_student():
+    student = torch.tensor([[0.5, -0.5]], requires_grad=True)
+    teacher = torch.tensor([[0.0, 0.5]], requires_grad=True)
+    loss = losses.self_distillation(student, teacher)
+    assert loss.item() == pytest.approx((0.25 + 1.0) / 2)
+    loss.backward()
+    assert torch.allclose(student.grad, torch.tensor([[0.5, -1.0]]))  # d/ds mean((s - t)²) = (s - t)
+    assert teacher.grad is None
+
+
+def test_grid_smoothness_and_opacity_by_hand():
+    v = torch.tensor([[0.0], [1.0], [0.0], [1.0]])  # 2x2 grid: [[0, 1], [0, 1]]
+    # vertical neighbours equal (0), horizontal differ by 1: (0 + 1) / 2
+    assert losses.grid_smoothness(v, 2).item() == pytest.approx(0.5)
+    assert losses.opacity_l1(torch.tensor([0.0, 0.5, 1.0])).item() == pytest.approx(0.5)
+
+
+def test_dynamic_mask_marks_moving_pixels():
+    frames = torch.zeros(6, 4, 4, 3)
+    frames[::2, 1, 2] = 1.0  # blinking pixel
+    mask = dynamic_mask(frames, 0.05)
+    assert mask[1, 2] and mask.sum() == 1
+    assert not math.isnan(frames.std())
