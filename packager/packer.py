@@ -308,12 +308,17 @@ class Packer:
         return stats
 
     def write_cameras(self) -> None:
-        """The scene's cameras beside the MPD (players offer them as viewpoints), when the model dir has them."""
-        if not (self.model_dir / GROUND_TRUTH_DIR / "cameras.json").is_file():
+        """The scene's cameras beside the MPD (players offer them as viewpoints), when the model dir has them:
+        its cameras.json (stgs train) or its ground-truth cameras (stgs synth)."""
+        if (self.model_dir / CAMERAS).is_file():
+            data = (self.model_dir / CAMERAS).read_bytes()
+        elif (self.model_dir / GROUND_TRUTH_DIR / "cameras.json").is_file():
+            cameras = load_ground_truth(self.model_dir)[1]
+            doc = {"format": CAMERAS_FORMAT, "version": 1, "cameras": [c.to_json() for c in cameras]}
+            data = (json.dumps(doc, indent=1) + "\n").encode()
+        else:
             return
-        cameras = load_ground_truth(self.model_dir)[1]
-        doc = {"format": CAMERAS_FORMAT, "version": 1, "cameras": [c.to_json() for c in cameras]}
-        atomic_write_bytes(self.out / CAMERAS, (json.dumps(doc, indent=1) + "\n").encode())
+        atomic_write_bytes(self.out / CAMERAS, data)
 
     def seconds_per_gop(self) -> float:
         return self.meta.shape.gop_size / self.meta.fps
