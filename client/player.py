@@ -39,6 +39,7 @@ from stgs.client.abr import (
     should_abandon,
 )
 from stgs.client.abr import throughput_kbps as estimate_kbps
+from stgs.client.clock import PlaybackClock
 from stgs.client.download import AbandonError, Downloader, DownloadSettings, FetchError
 from stgs.client.manifest import MAX_INIT_BYTES, Presentation
 from stgs.client.output import NullSink, open_sink
@@ -90,6 +91,8 @@ class PlayConfig:
     """Native deform + splat (None: when built)."""
     max_decoded: int = 2
     """Decoded GOP models held at once (the one playing + pre-decoded ones)."""
+    decode: bool = True
+    """Decode and render (False: network and buffer only, for emulation and load tests)."""
     abr_settings: AbrSettings = field(default_factory=AbrSettings)
     download: DownloadSettings = field(default_factory=DownloadSettings)
 
@@ -135,6 +138,13 @@ class GOPRecord:
     deform_ms: list[float] = field(default_factory=list)
     splat_ms: list[float] = field(default_factory=list)
     dropped: int = 0
+    presented: int = 0
+    """Frames whose time slot passed (rendered, dropped, or not decoded at all)."""
+    fetch_start_s: float = 0.0
+    """When the GOP's first request started (seconds since playback began)."""
+    fetch_end_s: float = 0.0
+    play_start_s: float | None = None
+    """When its first frame was due after any stall (seconds since playback began)."""
     abandoned_bytes: int = 0
     """Bytes of a feature download the ABR abandoned."""
     events: list[str] = field(default_factory=list)
@@ -157,7 +167,8 @@ class Downloaded:
 @dataclass
 class ReadyGOP:
     index: int
-    renderer: FrameRenderer
+    renderer: FrameRenderer | None
+    """None when the player does not decode (PlayConfig.decode False)."""
 
 
 def _stats_sizes(stats: object, k: int, rep_ids: list[str]) -> list[float] | None:
@@ -180,8 +191,7 @@ class Session:
         self.cfg, self.pres, self.dl, self.stats, self.cameras, self.on_gop = cfg, pres, dl, stats, cameras, on_gop
         self.T = pres.segment_seconds
         self.G = pres.shape.gop_size
-        self.capacity_s = cfg.buffer_s if cfg.buffer_s is not None else 3 * self.T
-        self.capacity_s = max(self.capacity_s, self.T)
+        self.capacity_s = max(cfg.buffer_s if cfg.buffer_s is not None else 3 * self.T, self.T)
         self.k0 = pres.gop_at(cfg.start_s)
         first_frame = self.k0 * self.G
         total = pres.num_gops * self.G - first_frame
@@ -194,12 +204,7 @@ class Session:
         self.samples: list[ThroughputSample] = []
         self.wasted_bytes = 0
         self.t_start = time.perf_counter()
-        self.t0: float | None = None
-        """Wall time of the first frame."""
-        self.stall_total = 0.0
-        self.playing = self.k0
-        self.fetched_end = self.k0
-        """One past the last GOP downloaded."""
+        self.clock = PlaybackClock(self.T, self.capacity_s, self.k0)
 
     def _rule(self) -> AbrRule:
         if self.cfg.qp is None:
@@ -210,18 +215,8 @@ class Session:
                                 f"{', '.join(str(r.qp) for r in self.pres.ladder)}")
         return FixedRule(rep)
 
-    # --- clock and buffer ---
-
-    def playhead_s(self) -> float:
-        """Media seconds played since the start, by the real-time schedule."""
-        if self.t0 is None:
-            return 0.0
-        clock = time.perf_counter() - self.t0 - self.stall_total
-        lo = (self.playing - self.k0) * self.T
-        return min(max(clock, lo), lo + self.T)
-
     def buffer_level(self) -> float:
-        return max(0.0, (self.fetched_end - self.k0) * self.T - self.playhead_s())
+        return self.clock.buffer_level(time.perf_counter())
 
     # --- fetching ---
 
@@ -234,7 +229,7 @@ class Session:
     async def fetch_loop(self, downloaded: dict[int, asyncio.Future]) -> None:
         current = None
         for k in self.gops:
-            while self.buffer_level() + self.T > self.capacity_s + 1e-6:
+            while not self.clock.has_room(time.perf_counter()):
                 await asyncio.sleep(min(0.05, self.T / 20))
             try:
                 item = await self.fetch_gop(k, current)
@@ -243,13 +238,14 @@ class Session:
                 return
             current = item.rung
             downloaded[k].set_result(item)
-            self.fetched_end = k + 1
+            self.clock.fetched_end = k + 1
 
     async def fetch_gop(self, k: int, current: int | None) -> Downloaded:
         """GOP k's keyframe (not adaptive, so first: its download is also a throughput sample), then the
         feature segment of the rung the ABR rule picks with that keyframe's exact size in its budget."""
         rec = self.records[k]
         start = time.perf_counter()
+        rec.fetch_start_s = start - self.t_start
         retries = self.dl.retries
         keyframe = await self._fetch(self.pres.keyframe_url(k), "keyframe", self.pres.max_keyframe_bytes())
         state = self.abr_state(k, current, len(keyframe) * 8)
@@ -260,6 +256,7 @@ class Session:
         rec.buffer_s, rec.estimate_kbps = state.buffer_s, estimate_kbps(state.samples, self.cfg.abr_settings)
         rung, init, media = await self.fetch_features(k, rung, state)
         rec.download_s = time.perf_counter() - start
+        rec.fetch_end_s = rec.fetch_start_s + rec.download_s
         rec.keyframe_bytes, rec.feature_bytes = len(keyframe), len(media)
         if self.dl.retries > retries:
             rec.events.append(f"{self.dl.retries - retries} retried request(s)")
@@ -333,6 +330,8 @@ class Session:
 
     async def decode_gop(self, item: Downloaded) -> ReadyGOP:
         rec = self.records[item.index]
+        if not self.cfg.decode:
+            return ReadyGOP(item.index, None)
         try:
             kf = await asyncio.to_thread(self.decode_keyframe, item)
         except KeyframeError as exc:  # one fresh download, in case it was damaged in transit
@@ -382,12 +381,13 @@ class Session:
 
     async def play_gop(self, ready: ReadyGOP, trajectory: Trajectory, sink) -> None:
         k, rec, fps = ready.index, self.records[ready.index], self.pres.fps
-        gop_start = self.t0 + self.stall_total + (k - self.k0) * self.T
+        gop_start = self.clock.due(k)
         for i in range(self.G):
             f = k * self.G + i
             j = f - self.first_frame
             if j >= self.frames:
                 break
+            rec.presented += 1
             if self.cfg.realtime:
                 due = gop_start + i / fps
                 now = time.perf_counter()
@@ -397,13 +397,15 @@ class Session:
                     continue
                 if now < due:
                     await asyncio.sleep(due - now)
+            if ready.renderer is None:
+                continue
             start = time.perf_counter()
             image, deform_s, splat_s = await asyncio.to_thread(self.render, ready, i, trajectory.camera(j))
             rec.render_ms.append((time.perf_counter() - start) * 1e3)
             rec.deform_ms.append(deform_s * 1e3)
             rec.splat_ms.append(splat_s * 1e3)
             await asyncio.to_thread(sink.write, f, image)
-        if self.on_gop is not None:
+        if self.on_gop is not None and ready.renderer is not None:
             await asyncio.to_thread(self.on_gop, k, ready.renderer)
 
     async def wait_ready(self, k: int, fut: asyncio.Future) -> ReadyGOP:
@@ -411,18 +413,10 @@ class Session:
         arrived = time.perf_counter()
         was_ready = fut.done()
         result = await fut
-        if k == self.k0:
-            self.t0 = time.perf_counter()
-            rec.boundary_wait_s = self.t0 - self.t_start
-            return result
-        if not was_ready:
-            now = time.perf_counter()
-            rec.boundary_wait_s = now - arrived
-            due = self.t0 + self.stall_total + (k - self.k0) * self.T
-            stall = now - max(due, arrived)
-            if stall > 1e-3:
-                rec.stall_s = stall
-                self.stall_total += stall
+        ready = arrived if was_ready else time.perf_counter()
+        rec.boundary_wait_s = ready - (self.t_start if k == self.k0 else arrived)
+        rec.stall_s = self.clock.start(k, ready, arrived)
+        rec.play_start_s = self.clock.due(k) - self.t_start
         return result
 
     async def run(self) -> dict:
@@ -436,11 +430,12 @@ class Session:
         try:
             for k in self.gops:
                 gop = await self.wait_ready(k, ready[k])
-                if k == self.k0:
+                if k == self.k0 and gop.renderer is not None:
                     trajectory = build_trajectory(self.cfg.view, self.cameras, gop.renderer.model,
                                                   self.turn_frames())
                     sink = open_sink(self.cfg.out, self.pres.fps, *self._frame_size(trajectory))
-                self.playing = k
+                elif k == self.k0:
+                    trajectory = None
                 await self.play_gop(gop, trajectory, sink)
                 del gop
                 slots.release()
@@ -474,18 +469,19 @@ class Session:
 
     def summary(self, error: BaseException | None) -> dict:
         recs = [self.records[k] for k in self.gops if self.records[k].rep]
-        played = [r for r in recs if r.render_ms or r.dropped]
+        played = [r for r in recs if r.presented]
         render = sorted(ms for r in played for ms in r.render_ms)
         reps = [r.rep for r in played]
-        frames = sum(len(r.render_ms) + r.dropped for r in played)
+        frames = sum(r.presented for r in played)
         total_bytes = sum(r.keyframe_bytes + r.feature_bytes + r.init_bytes for r in played)
         first = self.records[self.k0]
         return {
             "format": LOG_FORMAT, "version": 1, "url": self.cfg.url,
-            "abr": self.rule.name, "realtime": self.cfg.realtime, "buffer_capacity_s": self.capacity_s,
+            "abr": self.rule.name, "realtime": self.cfg.realtime, "decode": self.cfg.decode,
+            "segment_s": self.T, "buffer_capacity_s": self.capacity_s,
             "start_gop": self.k0, "gops_planned": len(self.gops), "gops_played": len(played),
-            "startup_delay_s": first.boundary_wait_s if self.t0 is not None else None,
-            "stalls": {"count": sum(1 for r in played if r.stall_s > 0), "total_s": self.stall_total},
+            "startup_delay_s": first.boundary_wait_s if self.clock.t0 is not None else None,
+            "stalls": {"count": sum(1 for r in played if r.stall_s > 0), "total_s": self.clock.stall_total},
             "switches": sum(1 for a, b in itertools.pairwise(reps) if a != b),
             "frames": frames, "rendered_frames": len(render),
             "dropped_frames": sum(r.dropped for r in played),
@@ -507,7 +503,9 @@ class Session:
                 "feature_bytes": r.feature_bytes, "init_bytes": r.init_bytes, "download_s": r.download_s,
                 "keyframe_decode_s": r.keyframe_decode_s, "feature_decode_s": r.feature_decode_s,
                 "dequantise_s": r.dequantise_s, "decode_s": r.decode_s, "boundary_wait_s": r.boundary_wait_s,
-                "stall_s": r.stall_s, "render_ms": r.render_ms, "deform_ms_mean": mean(r.deform_ms),
+                "stall_s": r.stall_s, "fetch_start_s": r.fetch_start_s, "fetch_end_s": r.fetch_end_s,
+                "play_start_s": r.play_start_s, "presented": r.presented, "render_ms": r.render_ms,
+                "deform_ms_mean": mean(r.deform_ms),
                 "splat_ms_mean": mean(r.splat_ms), "dropped": r.dropped, "abandoned_bytes": r.abandoned_bytes,
                 "events": r.events}
 
