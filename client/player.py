@@ -290,6 +290,7 @@ class Session:
             init = await self.init_segment(rep, rec)
             url = self.pres.media_url(rep, k)
             media = await self._fetch(url, "media", self.pres.max_media_bytes(rep), progress)
+            rec.ttfb_s = self.dl.samples[-1].ttfb
             return self._chosen(rec, rung, init, media)
         except AbandonError as exc:
             self.samples.append(ThroughputSample(exc.sample.bytes, exc.sample.seconds))
@@ -501,6 +502,7 @@ class Session:
         return {"index": r.index, "rep": r.rep, "qp": r.qp, "rule": r.rule, "buffer_s": r.buffer_s,
                 "estimate_kbps": r.estimate_kbps, "keyframe_bytes": r.keyframe_bytes,
                 "feature_bytes": r.feature_bytes, "init_bytes": r.init_bytes, "download_s": r.download_s,
+                "ttfb_s": r.ttfb_s,
                 "keyframe_decode_s": r.keyframe_decode_s, "feature_decode_s": r.feature_decode_s,
                 "dequantise_s": r.dequantise_s, "decode_s": r.decode_s, "boundary_wait_s": r.boundary_wait_s,
                 "stall_s": r.stall_s, "fetch_start_s": r.fetch_start_s, "fetch_end_s": r.fetch_end_s,

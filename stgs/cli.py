@@ -330,6 +330,47 @@ def run_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_sim(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("sim", help="throughput simulation: how a scene streams over a network with an ABR rule",
+                       description="Run a scenario (TOML: scene, ABR rules, buffer, effects such as bandwidth "
+                       "traces, latency, jitter, loss, outages, competing clients) on the discrete-event simulator "
+                       "and/or the emulator (the real player and server through a shaping proxy); write QoE "
+                       "reports, per-GOP timelines and plots.")
+    p.add_argument("scenario", type=Path, help="scenario file (TOML; see docs/HARNESS.md)")
+    p.add_argument("--engine", choices=["sim", "emulate", "both"], default="sim",
+                   help="sim: virtual clock (fast); emulate: real player + server in real time; both")
+    p.add_argument("--traces", type=Path, help="batch: run the scenario once per trace file in this folder")
+    p.add_argument("--load", help="load mode: comma-separated client counts against one real server")
+    p.add_argument("--decode", action="store_true", help="emulate: decode and render too (default: network only)")
+    p.add_argument("--export-sabre", type=Path, help="also write the scene's ladder as Sabre's manifest JSON")
+    p.add_argument("--out", type=Path, default=Path("sim-output"), help="output folder (default: ./sim-output)")
+    p.set_defaults(run=run_sim)
+
+
+def run_sim(args: argparse.Namespace) -> int:
+    from stgs.harness.ladder import load_ladder
+    from stgs.harness.report import sabre_manifest, summary_table, write_json
+    from stgs.harness.runner import run_batch, run_load, run_scenario
+    from stgs.harness.scenario import load_scenario
+
+    sc = load_scenario(args.scenario)
+    args.out.mkdir(parents=True, exist_ok=True)
+    if args.export_sabre:
+        write_json(args.export_sabre, sabre_manifest(load_ladder(sc.scene)))
+        print(f"wrote {args.export_sabre}")
+    engines = ["sim", "emulate"] if args.engine == "both" else [args.engine]
+    print(f"scenario {sc.name}: active effects {sc.effects.describe() or 'none'}")
+    if args.load:
+        rows = run_load(sc, _int_list(args.load, "--load"), args.out)
+        print((args.out / f"{sc.name}.load.md").read_text().rstrip())
+        return 0 if rows else 1
+    rows = run_batch(sc, args.traces, engines, args.out) if args.traces else run_scenario(
+        sc, engines, args.out, args.decode)
+    print(summary_table(rows))
+    print(f"wrote reports to {args.out}/")
+    return 0
+
+
 def add_demo(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="run the end-to-end demo on the embedded default scene",
                        description="Synthesise the default scene, render a free-viewpoint orbit "
@@ -427,7 +468,7 @@ def run_bench(args: argparse.Namespace) -> int:
 
 
 COMMANDS = {"synth": add_synth, "train": add_train, "eval": add_eval, "pack": add_pack, "serve": add_serve,
-            "play": add_play, "demo": add_demo, "bench": add_bench}
+            "play": add_play, "sim": add_sim, "demo": add_demo, "bench": add_bench}
 
 
 def build_parser(commands: tuple[str, ...] | None = None) -> argparse.ArgumentParser:

@@ -8,7 +8,7 @@ from stgs.cli import build_parser
 from stgs.model.store import load_model
 from tests.conftest import run_stgs as stgs
 
-SUBCOMMANDS = ["synth", "train", "eval", "pack", "serve", "play", "demo", "bench"]
+SUBCOMMANDS = ["synth", "train", "eval", "pack", "serve", "play", "sim", "demo", "bench"]
 
 
 def test_every_subcommand_has_help():

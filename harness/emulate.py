@@ -1,0 +1,105 @@
+"""The emulator: the real player (`stgs play`) against the real server (`stgs serve`) through a shaping proxy.
+
+The proxy (aiohttp, loopback) forwards every request to the server and
+delivers each segment's bytes on the schedule `stgs.harness.network.Network`
+computes for the scenario's effects, in real time: one round trip (latency,
+jitter) before the first byte, then the body paced by the bandwidth
+(outages, competing clients, loss). The manifest and stats.json, fetched
+before playback starts, pass unshaped; the network's clock starts at the first
+segment request, as the simulator's does at its first download.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import aiohttp
+from aiohttp import web
+from stgs.client import PlayConfig, play
+from stgs.client.view import ViewSpec
+from stgs.harness.network import Network
+from stgs.harness.scenario import Scenario
+from stgs.server.app import loopback
+
+CHUNK = 16 << 10
+SHAPED = (".stgk", ".mp4", ".m4s")
+
+
+@contextlib.asynccontextmanager
+async def shaping_proxy(upstream: str, network: Network) -> AsyncIterator[str]:
+    """A loopback proxy to `upstream` (base URL ending in /) applying `network`; yields its base URL."""
+    origin: list[float] = []
+    session = aiohttp.ClientSession()
+
+    async def forward(request: web.Request) -> web.StreamResponse:
+        async with session.get(upstream + request.path.lstrip("/")) as up:
+            body = await up.read()
+            status, ctype = up.status, up.headers.get("Content-Type", "application/octet-stream")
+        if not request.path.endswith(SHAPED) or status != 200:
+            return web.Response(status=status, body=body, content_type=None, headers={"Content-Type": ctype})
+        now = time.perf_counter()
+        if not origin:
+            origin.append(now)
+        t = now - origin[0]
+        body_start = t + network.round_trip()
+        await _sleep_until(origin[0] + body_start)
+        resp = web.StreamResponse(status=200, headers={"Content-Type": ctype, "Content-Length": str(len(body))})
+        await resp.prepare(request)
+        for sent in range(0, len(body), CHUNK):
+            chunk = body[sent:sent + CHUNK]
+            await _sleep_until(origin[0] + network.finish(body_start, (sent + len(chunk)) * 8))
+            await resp.write(chunk)
+        await resp.write_eof()
+        return resp
+
+    app = web.Application()
+    app.router.add_get("/{tail:.*}", forward)
+    runner = web.AppRunner(app, access_log=None)
+    await runner.setup()
+    try:
+        await web.TCPSite(runner, "127.0.0.1", 0).start()
+        host, port = runner.addresses[0][:2]
+        yield f"http://{host}:{port}/"
+    finally:
+        await runner.cleanup()
+        await session.close()
+
+
+async def _sleep_until(deadline: float) -> None:
+    delay = deadline - time.perf_counter()
+    if delay > 0:
+        await asyncio.sleep(delay)
+
+
+@contextlib.asynccontextmanager
+async def scene_url(scene: str) -> AsyncIterator[str]:
+    """Base URL of the scene: served from loopback when it is a folder."""
+    if scene.startswith(("http://", "https://")):
+        yield scene.rsplit("/", 1)[0] + "/"
+        return
+    folder = Path(scene)
+    async with loopback(folder if folder.is_dir() else folder.parent) as base:
+        yield base
+
+
+def play_config(url: str, scenario: Scenario, rule: str, decode: bool) -> PlayConfig:
+    return PlayConfig(url, abr=rule, qp=scenario.qp, buffer_s=scenario.buffer_s, start_s=scenario.start_s,
+                      duration_s=scenario.duration_s, realtime=True, decode=decode,
+                      view=ViewSpec(width=64, height=48))
+
+
+async def emulate_async(scenario: Scenario, rule: str, decode: bool = False) -> dict:
+    network = Network(scenario.effects, scenario.seed)
+    async with scene_url(scenario.scene) as base, shaping_proxy(base, network) as proxy:
+        log = await play(play_config(proxy + "manifest.mpd", scenario, rule, decode))
+    log["engine"] = "emulate"
+    return log
+
+
+def emulate(scenario: Scenario, rule: str, decode: bool = False) -> dict:
+    """One real playback through the shaping proxy (the player's log, `engine: emulate`)."""
+    return asyncio.run(emulate_async(scenario, rule, decode))

@@ -1,0 +1,94 @@
+"""What the simulator needs of a packaged scene: per GOP the keyframe size and per Representation the media
+segment size and quality, plus each init segment's size (from a local folder, or stats.json at a URL)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from urllib.parse import urlparse
+
+from stgs.client.download import Downloader, FetchError
+from stgs.client.manifest import MAX_INIT_BYTES, Presentation
+
+from stgs.errors import UserError
+from stgs.mpd import MAX_MPD_BYTES, MPDError
+from stgs.tree import MANIFEST, STATS
+
+
+@dataclass
+class Ladder:
+    pres: Presentation
+    keyframe_bytes: list[int]
+    """Per GOP."""
+    media_bytes: dict[str, list[int]]
+    """Representation id -> per GOP."""
+    init_bytes: dict[str, int]
+    psnr: dict[str, list[float | None]]
+    """Representation id -> per GOP rendered PSNR (stats.json), None where unknown."""
+    stats: dict | None
+
+    @property
+    def url(self) -> str:
+        return self.pres.url
+
+
+def _local_path(base: Path, url: str) -> Path:
+    return base / urlparse(url).path.lstrip("/")
+
+
+def load_ladder(scene: str) -> Ladder:
+    """The ladder of a packaged scene folder (sizes from the files) or MPD URL (sizes from stats.json)."""
+    if scene.startswith(("http://", "https://")):
+        return asyncio.run(_remote(scene))
+    folder = Path(scene)
+    mpd = folder / MANIFEST if folder.is_dir() else folder
+    folder = mpd.parent
+    try:
+        pres = Presentation.parse(mpd.read_bytes(), "file:///" + MANIFEST)
+    except OSError as exc:
+        raise UserError(f"{scene}: not a packaged scene ({exc.strerror or exc})") from None
+    except MPDError as exc:
+        raise UserError(f"{mpd}: {exc}") from None
+    stats = json.loads((folder / STATS).read_text()) if (folder / STATS).is_file() else None
+    try:
+        kf = [_local_path(folder, pres.keyframe_url(k)).stat().st_size for k in range(pres.num_gops)]
+        media = {r.rep_id: [_local_path(folder, pres.media_url(r.rep_id, k)).stat().st_size
+                            for k in range(pres.num_gops)] for r in pres.ladder}
+        init = {r.rep_id: _local_path(folder, pres.init_url(r.rep_id)).stat().st_size for r in pres.ladder}
+    except OSError as exc:
+        raise UserError(f"{scene}: segment missing ({exc.filename})") from None
+    return Ladder(pres, kf, media, init, _psnr(stats, pres), stats)
+
+
+def _psnr(stats: dict | None, pres: Presentation) -> dict[str, list[float | None]]:
+    out = {}
+    for r in pres.ladder:
+        values = []
+        for k in range(pres.num_gops):
+            try:
+                values.append(float(stats["gops"][k]["representations"][r.rep_id]["render_psnr"]))
+            except (KeyError, IndexError, TypeError, ValueError):
+                values.append(None)
+        out[r.rep_id] = values
+    return out
+
+
+async def _remote(url: str) -> Ladder:
+    async with Downloader() as dl:
+        try:
+            pres = Presentation.parse(await dl.fetch(url, "document", MAX_MPD_BYTES), url)
+            stats = json.loads(await dl.fetch(pres.sibling_url(STATS), "document", 16 << 20))
+            init = {r.rep_id: len(await dl.fetch(pres.init_url(r.rep_id), "init", MAX_INIT_BYTES))
+                    for r in pres.ladder}
+        except (FetchError, MPDError, json.JSONDecodeError) as exc:
+            raise UserError(f"{url}: cannot read the scene's manifest, stats.json or init segments ({exc})") from None
+    try:
+        kf = [int(g["keyframe_bytes"]) for g in stats["gops"]]
+        media = {r.rep_id: [int(g["representations"][r.rep_id]["bytes"]) for g in stats["gops"]] for r in pres.ladder}
+    except (KeyError, TypeError, ValueError) as exc:
+        raise UserError(f"{url}: stats.json lacks per-GOP sizes ({exc})") from None
+    if len(kf) != pres.num_gops:
+        raise UserError(f"{url}: stats.json lists {len(kf)} GOPs, the MPD {pres.num_gops}")
+    return Ladder(pres, kf, media, init, _psnr(stats, pres), stats)

@@ -1,0 +1,156 @@
+"""QoE reports of playback logs (simulated or emulated alike), timelines, plots and batch summaries.
+
+QoE is Pensieve's linear QoE (Mao et al., SIGCOMM 2017), per GOP:
+    QoE = (Σ_k q(R_k) − 4.3 · rebuffer_s − Σ_k |q(R_{k+1}) − q(R_k)|) / GOPs
+with R_k the bit rate of GOP k's download (keyframe + features over the
+GOP's duration) and q(R) = R in Mbit/s.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import itertools
+import json
+import math
+from pathlib import Path
+
+from stgs.harness.ladder import Ladder
+from stgs.harness.scenario import Effects, Trace
+
+from stgs.fsio import atomic_write_bytes
+
+REBUFFER_PENALTY = 4.3
+"""μ of the linear QoE (Pensieve's value for bit rates in Mbit/s)."""
+
+
+def metrics(log: dict, ladder: Ladder, effects: Effects) -> dict:
+    """One playback's report."""
+    gops = [g for g in log["gops"] if g["rep"]]
+    T = log["segment_s"]
+    rates = [(g["keyframe_bytes"] + g["feature_bytes"]) * 8 / T / 1e6 for g in gops]
+    quality = [ladder.psnr[g["rep"]][g["index"]] for g in gops]
+    stall = log["stalls"]["total_s"]
+    played = len(gops) * T
+    qoe = (sum(rates) - REBUFFER_PENALTY * stall - sum(abs(b - a) for a, b in itertools.pairwise(rates)))
+    return {
+        "engine": log.get("engine", "play"), "abr": log["abr"], "active_effects": effects.describe(),
+        "startup_delay_s": log["startup_delay_s"], "stall_count": log["stalls"]["count"], "stall_s": stall,
+        "rebuffer_ratio": stall / (played + stall) if played + stall else 0.0,
+        "mean_bitrate_kbps": sum(rates) / len(rates) * 1e3 if rates else 0.0,
+        "mean_quality_db": (sum(quality) / len(quality)) if quality and None not in quality else None,
+        "switches": log["switches"], "wasted_bytes": log["wasted_bytes"],
+        "qoe": qoe / len(gops) if gops else -math.inf, "qps": [g["qp"] for g in gops],
+        "error": log.get("error"),
+    }
+
+
+TIMELINE_COLUMNS = ("index", "rep", "qp", "rule", "buffer_s", "estimate_kbps", "keyframe_bytes", "feature_bytes",
+                    "init_bytes", "fetch_start_s", "fetch_end_s", "play_start_s", "stall_s", "abandoned_bytes")
+
+
+def timeline(log: dict, effects: Effects) -> list[dict]:
+    """Per-GOP rows, with the latency and loss the network applied (0 where the effect is not active)."""
+    rows = []
+    for g in log["gops"]:
+        row = {c: g.get(c) for c in TIMELINE_COLUMNS}
+        lat = g.get("latency_ms") or []
+        row["latency_ms"] = sum(lat) / len(lat) if lat else 0.0
+        row["loss"] = effects.loss or 0.0
+        rows.append(row)
+    return rows
+
+
+def write_timeline(path: Path, rows: list[dict]) -> None:
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(rows[0]) if rows else list(TIMELINE_COLUMNS))
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_bytes(path, buf.getvalue().encode())
+
+
+def write_json(path: Path, doc: object) -> None:
+    atomic_write_bytes(path, (json.dumps(doc, indent=1) + "\n").encode())
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_timeline(path: Path, log: dict, bandwidth: Trace | None, title: str) -> None:
+    """Throughput available vs chosen bit rate vs buffer level over time."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(8, 4))
+    gops = [g for g in log["gops"] if g["rep"]]
+    end = max([g["fetch_end_s"] for g in gops] + [g["play_start_s"] or 0 for g in gops]) + log["segment_s"]
+    if bandwidth is not None:
+        ts = [i * end / 400 for i in range(401)]
+        ax.step(ts, [bandwidth.segment(t)[0] for t in ts], where="post", label="bandwidth (kbit/s)", color="0.6")
+    T = log["segment_s"]
+    ax.step([g["fetch_start_s"] for g in gops], [(g["keyframe_bytes"] + g["feature_bytes"]) * 8 / T / 1e3
+                                                   for g in gops], where="post", label="chosen bit rate (kbit/s)")
+    ax.set_xlabel("seconds")
+    ax.set_ylabel("kbit/s")
+    ax2 = ax.twinx()
+    ax2.plot([g["fetch_start_s"] for g in gops], [g["buffer_s"] for g in gops], "o-", color="tab:green",
+             label="buffer at decision (s)")
+    ax2.set_ylabel("buffer (s)")
+    lines = ax.get_legend_handles_labels()[0] + ax2.get_legend_handles_labels()[0]
+    ax.legend(lines, [h.get_label() for h in lines], loc="upper right", fontsize=8)
+    ax.set_title(title)
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def plot_cdf(path: Path, values: dict[str, list[float]], xlabel: str) -> None:
+    """CDF per ABR rule of one metric across traces."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for name, vals in values.items():
+        xs = sorted(vals)
+        ax.step(xs, [(i + 1) / len(xs) for i in range(len(xs))], where="post", label=name)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("fraction of traces")
+    ax.legend()
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def _save(fig, path: Path) -> None:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    _plt().close(fig)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def summary_table(rows: list[dict]) -> str:
+    """Markdown: mean of each metric per ABR rule over the playbacks in `rows`."""
+    by_rule: dict[str, list[dict]] = {}
+    for r in rows:
+        by_rule.setdefault(f"{r['abr']} ({r['engine']})", []).append(r)
+    lines = ["| ABR (engine) | playbacks | QoE | mean bit rate (kbit/s) | mean quality (dB) | stalls | stall s | "
+             "rebuffer % | switches | startup s |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for rule, rs in by_rule.items():
+        def mean(key: str, rs=rs) -> float:
+            vals = [r[key] for r in rs if r[key] is not None]
+            return sum(vals) / len(vals) if vals else math.nan
+        lines.append(f"| {rule} | {len(rs)} | {mean('qoe'):.3f} | {mean('mean_bitrate_kbps'):.0f} | "
+                     f"{mean('mean_quality_db'):.2f} | {mean('stall_count'):.2f} | {mean('stall_s'):.2f} | "
+                     f"{100 * mean('rebuffer_ratio'):.1f} | {mean('switches'):.2f} | {mean('startup_delay_s'):.2f} |")
+    return "\n".join(lines)
+
+
+def sabre_manifest(ladder: Ladder) -> dict:
+    """The scene's ladder as Sabre's manifest JSON: per segment, every rung's whole-GOP bits (keyframe + features),
+    so Sabre budgets the fixed keyframe part as our player does."""
+    pres = ladder.pres
+    reps = [r.rep_id for r in pres.ladder]
+    sizes = [[(ladder.keyframe_bytes[k] + ladder.media_bytes[r][k]) * 8 for r in reps] for k in range(pres.num_gops)]
+    T = pres.segment_seconds
+    bitrates = [sum(s[i] for s in sizes) / len(sizes) / T / 1e3 for i in range(len(reps))]
+    return {"segment_duration_ms": round(T * 1e3, 3), "bitrates_kbps": bitrates, "segment_sizes_bits": sizes}

@@ -1,0 +1,114 @@
+"""`stgs sim`: run a scenario with one or both engines, over a folder of traces, or as a load test."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+from stgs.client import PlayConfig, play
+from stgs.harness.emulate import emulate, scene_url
+from stgs.harness.ladder import load_ladder
+from stgs.harness.report import metrics, plot_cdf, plot_timeline, summary_table, timeline, write_json, write_timeline
+from stgs.harness.scenario import TRACE_FORMATS, Scenario, load_trace
+from stgs.harness.sim import simulate
+
+from stgs.errors import UserError
+
+ENGINES = ("sim", "emulate")
+TRACE_SUFFIX = {".json": "sabre", ".csv": "csv", ".log": "mahimahi", ".txt": "mahimahi"}
+
+
+def rules(sc: Scenario) -> list[str]:
+    return sc.abr if sc.qp is None else sc.abr[:1]
+
+
+def run_once(sc: Scenario, engine: str, rule: str, ladder, decode: bool = False) -> dict:
+    if engine == "sim":
+        return simulate(ladder, sc, rule)
+    return emulate(sc, rule, decode)
+
+
+def run_scenario(sc: Scenario, engines: list[str], out: Path, decode: bool = False) -> list[dict]:
+    """Every (engine, rule) playback of one scenario; writes logs, timelines, plots and a summary under out."""
+    ladder = load_ladder(sc.scene)
+    results = []
+    for rule in rules(sc):
+        for engine in engines:
+            start = time.perf_counter()
+            log = run_once(sc, engine, rule, ladder, decode)
+            seconds = time.perf_counter() - start
+            m = metrics(log, ladder, sc.effects) | {"scenario": sc.name, "wall_s": seconds}
+            stem = f"{sc.name}-{engine}-{rule}"
+            write_json(out / f"{stem}.log.json", log)
+            write_timeline(out / f"{stem}.timeline.csv", timeline(log, sc.effects))
+            plot_timeline(out / f"{stem}.png", log, sc.effects.bandwidth, f"{sc.name}: {engine}, {rule}")
+            results.append(m)
+    write_json(out / f"{sc.name}.summary.json", results)
+    (out / f"{sc.name}.summary.md").write_text(summary_table(results) + "\n")
+    return results
+
+
+def run_batch(sc: Scenario, traces: Path, engines: list[str], out: Path) -> list[dict]:
+    """The scenario once per trace file in `traces` (its bandwidth replaced by the trace), per rule and engine."""
+    files = sorted(p for p in Path(traces).iterdir() if p.suffix in TRACE_SUFFIX)
+    if not files:
+        raise UserError(f"{traces}: no trace files ({', '.join(TRACE_SUFFIX)}; formats {', '.join(TRACE_FORMATS)})")
+    ladder = load_ladder(sc.scene)
+    rows = []
+    for f in files:
+        trace = load_trace(f, TRACE_SUFFIX[f.suffix])
+        variant = dataclasses.replace(sc, name=f"{sc.name}-{f.stem}",
+                                      effects=dataclasses.replace(sc.effects, bandwidth=trace))
+        for rule in rules(variant):
+            for engine in engines:
+                log = run_once(variant, engine, rule, ladder)
+                rows.append(metrics(log, ladder, variant.effects) | {"scenario": variant.name, "trace": f.name})
+    write_json(out / f"{sc.name}.batch.json", rows)
+    (out / f"{sc.name}.batch.md").write_text(summary_table(rows) + "\n")
+    qoe: dict[str, list[float]] = {}
+    for r in rows:
+        qoe.setdefault(f"{r['abr']} ({r['engine']})", []).append(r["qoe"])
+    plot_cdf(out / f"{sc.name}.qoe_cdf.png", qoe, "QoE per GOP (Pensieve linear)")
+    return rows
+
+
+async def _load(sc: Scenario, counts: list[int]) -> list[dict]:
+    ladder = load_ladder(sc.scene)
+    rows = []
+    async with scene_url(sc.scene) as base:
+        for n in counts:
+            cfg = PlayConfig(base + "manifest.mpd", abr=rules(sc)[0], qp=sc.qp, buffer_s=sc.buffer_s,
+                             start_s=sc.start_s, duration_s=sc.duration_s, realtime=True, decode=False)
+            start = time.perf_counter()
+            logs = await asyncio.gather(*(play(dataclasses.replace(cfg)) for _ in range(n)))
+            wall = time.perf_counter() - start
+            served = sum(log["bytes"] for log in logs)
+            downloads = sorted(g["download_s"] for log in logs for g in log["gops"])
+            ttfb = sorted(g["ttfb_s"] for log in logs for g in log["gops"])
+            qoe = [metrics(log, ladder, sc.effects)["qoe"] for log in logs]
+            rows.append({"clients": n, "wall_s": wall, "server_mb_s": served / 1e6 / wall,
+                         "gop_download_p50_s": _pct(downloads, 50), "gop_download_p99_s": _pct(downloads, 99),
+                         "ttfb_p50_ms": _pct(ttfb, 50) * 1e3, "ttfb_p99_ms": _pct(ttfb, 99) * 1e3,
+                         "mean_qoe": statistics.mean(qoe), "stalls": sum(log["stalls"]["count"] for log in logs)})
+    return rows
+
+
+def _pct(values: list[float], p: float) -> float:
+    return float(np.percentile(values, p)) if values else float("nan")
+
+
+def run_load(sc: Scenario, counts: list[int], out: Path) -> list[dict]:
+    """N real players (no decoding) against one real server on loopback, for each N."""
+    rows = asyncio.run(_load(sc, counts))
+    write_json(out / f"{sc.name}.load.json", rows)
+    lines = ["| clients | server MB/s | GOP download p50 / p99 (s) | TTFB p50 / p99 (ms) | mean QoE | stalls |",
+             "|---|---|---|---|---|---|"]
+    lines += [f"| {r['clients']} | {r['server_mb_s']:.2f} | {r['gop_download_p50_s']:.3f} / "
+              f"{r['gop_download_p99_s']:.3f} | {r['ttfb_p50_ms']:.1f} / {r['ttfb_p99_ms']:.1f} | "
+              f"{r['mean_qoe']:.3f} | {r['stalls']} |" for r in rows]
+    (out / f"{sc.name}.load.md").write_text("\n".join(lines) + "\n")
+    return rows

@@ -1,0 +1,259 @@
+"""Scenario files (TOML) and network traces for `stgs sim`.
+
+```toml
+scene = "dash/"              # a packaged scene folder, or its MPD URL
+abr = ["throughput", "bola", "dynamic"]
+buffer_s = 6.0               # optional (default: three GOPs)
+start_s = 0.0                # optional
+duration_s = 10.0            # optional (default: to the end)
+seed = 0                     # optional
+decode_s = 0.0               # optional: decode time per GOP the simulator assumes
+
+[effects]                    # only the effects named here are simulated
+bandwidth = { kbps = 5000 }                          # constant
+# bandwidth = { steps = [[0, 5000], [4, 800]] }      # (from second, kbit/s)
+# bandwidth = { trace = "traces/bus.log", format = "mahimahi" }   # sabre | mahimahi | csv
+latency_ms = 40              # round trip per request
+jitter_ms = 10               # uniform ± per request
+loss = 0.01                  # packet loss probability: its effect on transfer time
+outages = [[3.0, 4.5]]       # no bandwidth in these intervals (seconds)
+competing = 2                # K other clients share the bottleneck fairly
+```
+"""
+
+from __future__ import annotations
+
+import bisect
+import csv
+import io
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import tomllib
+from stgs.client.abr import RULES
+
+from stgs.errors import UserError
+
+EFFECTS = ("bandwidth", "latency_ms", "jitter_ms", "loss", "outages", "competing")
+TRACE_FORMATS = ("sabre", "mahimahi", "csv")
+MAX_TRACE_POINTS = 1_000_000
+
+
+@dataclass
+class Trace:
+    """Piecewise-constant bandwidth: `kbps[i]` from `times[i]` to the next time; loops after `period`."""
+
+    times: list[float]
+    kbps: list[float]
+    period: float
+    """Seconds after which the trace repeats (math.inf: the last value holds forever)."""
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        if not self.times:
+            raise UserError(f"{self.source or 'bandwidth'}: the trace is empty")
+        if any(not math.isfinite(v) or v < 0 for v in self.kbps):
+            raise UserError(f"{self.source or 'bandwidth'}: bandwidth must be finite and non-negative")
+        if any(b <= a for a, b in zip(self.times, self.times[1:], strict=False)) or self.times[0] != 0:
+            raise UserError(f"{self.source or 'bandwidth'}: times must start at 0 and increase")
+        ends = [*self.times[1:], self.period]
+        if math.isfinite(self.period) and sum(k * (e - s) for s, e, k in zip(self.times, ends, self.kbps,
+                                                                              strict=True)) == 0:
+            raise UserError(f"{self.source or 'bandwidth'}: the trace never delivers a byte")
+
+    def segment(self, t: float) -> tuple[float, float]:
+        """(kbit/s, seconds until the bandwidth next changes) at time t."""
+        if math.isfinite(self.period):
+            base = math.floor(t / self.period) * self.period
+            local = t - base
+        else:
+            base, local = 0.0, t
+        i = bisect.bisect_right(self.times, local) - 1
+        end = self.times[i + 1] if i + 1 < len(self.times) else self.period
+        return self.kbps[i], max(end - local, 1e-9) if math.isfinite(end) else math.inf
+
+
+def constant(kbps: float) -> Trace:
+    return Trace([0.0], [float(kbps)], math.inf, source="constant bandwidth")
+
+
+def steps(points: list) -> Trace:
+    try:
+        times, rates = zip(*[(float(t), float(k)) for t, k in points], strict=True)
+    except (TypeError, ValueError):
+        raise UserError("bandwidth steps must be a list of [second, kbit/s] pairs") from None
+    return Trace(list(times), list(rates), math.inf, source="bandwidth steps")
+
+
+def load_trace(path: Path, fmt: str) -> Trace:
+    """A trace file in Sabre JSON, Mahimahi/Pensieve two-column text (seconds, Mbit/s) or CSV with named columns
+    (time_s, bandwidth_kbps, optional latency_ms); it loops over its own length."""
+    if fmt not in TRACE_FORMATS:
+        raise UserError(f"{path}: unknown trace format {fmt!r}; known: {', '.join(TRACE_FORMATS)}")
+    try:
+        text = Path(path).read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UserError(f"{path}: cannot read trace ({exc})") from None
+    try:
+        if fmt == "sabre":
+            rows = json.loads(text)
+            if not isinstance(rows, list):
+                raise ValueError("a Sabre trace is a JSON list")
+            durations = [float(r["duration_ms"]) / 1e3 for r in rows]
+            rates = [float(r["bandwidth_kbps"]) for r in rows]
+            if any(d <= 0 for d in durations):
+                raise ValueError("duration_ms must be positive")
+            # latency_ms of a Sabre trace is not applied: only the scenario's own latency_ms effect is
+            times = [sum(durations[:i]) for i in range(len(durations))]
+            return Trace(times, rates, sum(durations), str(path))
+        if fmt == "mahimahi":
+            pts = [line.split() for line in text.splitlines() if line.strip() and not line.startswith("#")]
+            if any(len(p) != 2 for p in pts):
+                raise ValueError("every line must hold two numbers: seconds and Mbit/s")
+            times = [float(p[0]) for p in pts]
+            rates = [float(p[1]) * 1e3 for p in pts]
+        else:
+            reader = csv.DictReader(io.StringIO(text))
+            if not reader.fieldnames or not {"time_s", "bandwidth_kbps"} <= set(reader.fieldnames):
+                raise ValueError("columns time_s and bandwidth_kbps are required")
+            rows = list(reader)
+            times = [float(r["time_s"]) for r in rows]
+            rates = [float(r["bandwidth_kbps"]) for r in rows]
+    except (ValueError, KeyError, TypeError, json.JSONDecodeError) as exc:
+        raise UserError(f"{path}: malformed {fmt} trace ({exc})") from None
+    if len(times) > MAX_TRACE_POINTS:
+        raise UserError(f"{path}: more than {MAX_TRACE_POINTS} points")
+    if not times:
+        raise UserError(f"{path}: the trace is empty")
+    if times[0] != 0:
+        shift = times[0]
+        times = [t - shift for t in times]
+    step = times[-1] - times[-2] if len(times) > 1 else 1.0
+    return Trace(times, rates, times[-1] + step, source=str(path))
+
+
+@dataclass
+class Effects:
+    """The network effects a scenario names; anything left None is not simulated at all."""
+
+    bandwidth: Trace | None = None
+    latency_ms: float | None = None
+    jitter_ms: float | None = None
+    loss: float | None = None
+    outages: list[tuple[float, float]] | None = None
+    competing: int | None = None
+
+    def active(self) -> list[str]:
+        return [name for name in EFFECTS if getattr(self, name) is not None]
+
+    def describe(self) -> dict:
+        out = {}
+        for name in self.active():
+            value = getattr(self, name)
+            out[name] = value.source if isinstance(value, Trace) else value
+        return out
+
+
+@dataclass
+class Scenario:
+    name: str
+    scene: str
+    """Packaged scene folder or MPD URL."""
+    abr: list[str] = field(default_factory=lambda: ["dynamic"])
+    buffer_s: float | None = None
+    start_s: float = 0.0
+    duration_s: float | None = None
+    seed: int = 0
+    decode_s: float = 0.0
+    effects: Effects = field(default_factory=Effects)
+    qp: int | None = None
+    """Pin one QP instead of adapting (abr ignored)."""
+
+
+SCENARIO_KEYS = {"scene", "abr", "buffer_s", "start_s", "duration_s", "seed", "decode_s", "effects", "qp", "name"}
+
+
+def _number(doc: dict, key: str, where: str, lo: float = 0.0, integer: bool = False) -> float | None:
+    if key not in doc:
+        return None
+    value = doc[key]
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or (integer and not isinstance(value, int)):
+        raise UserError(f"{where}: '{key}' must be a{'n integer' if integer else ' number'}, got {value!r}")
+    if not math.isfinite(value) or value < lo:
+        raise UserError(f"{where}: '{key}' must be >= {lo}, got {value}")
+    return value
+
+
+def parse_effects(doc: object, where: str, base: Path) -> Effects:
+    if not isinstance(doc, dict):
+        raise UserError(f"{where}: [effects] must be a table")
+    unknown = sorted(set(doc) - set(EFFECTS))
+    if unknown:
+        raise UserError(f"{where}: unknown effect(s) {unknown}; known: {', '.join(EFFECTS)}")
+    fx = Effects()
+    if "bandwidth" in doc:
+        fx.bandwidth = parse_bandwidth(doc["bandwidth"], where, base)
+    fx.latency_ms = _number(doc, "latency_ms", where)
+    fx.jitter_ms = _number(doc, "jitter_ms", where)
+    fx.loss = _number(doc, "loss", where)
+    if fx.loss is not None and fx.loss >= 1:
+        raise UserError(f"{where}: 'loss' must be below 1, got {fx.loss}")
+    competing = _number(doc, "competing", where, integer=True)
+    fx.competing = int(competing) if competing is not None else None
+    if "outages" in doc:
+        try:
+            fx.outages = [(float(a), float(b)) for a, b in doc["outages"]]
+        except (TypeError, ValueError):
+            raise UserError(f"{where}: 'outages' must be a list of [start, end] seconds") from None
+        if any(not (0 <= a < b) for a, b in fx.outages):
+            raise UserError(f"{where}: every outage needs 0 <= start < end")
+    return fx
+
+
+def parse_bandwidth(spec: object, where: str, base: Path) -> Trace:
+    if not isinstance(spec, dict) or len({"kbps", "steps", "trace"} & set(spec)) != 1:
+        raise UserError(f"{where}: bandwidth is a table with one of kbps, steps or trace")
+    extra = sorted(set(spec) - {"kbps", "steps", "trace", "format"})
+    if extra:
+        raise UserError(f"{where}: unknown bandwidth key(s) {extra}")
+    if "kbps" in spec:
+        value = _number(spec, "kbps", where)
+        return constant(value)
+    if "steps" in spec:
+        return steps(spec["steps"])
+    path = base / str(spec["trace"])
+    fmt = str(spec.get("format") or {".json": "sabre", ".csv": "csv"}.get(path.suffix, "mahimahi"))
+    return load_trace(path, fmt)
+
+
+def load_scenario(path: Path) -> Scenario:
+    path = Path(path)
+    try:
+        doc = tomllib.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise UserError(f"{path}: cannot read scenario ({exc})") from None
+    return scenario_from_dict(doc, str(path), path.parent)
+
+
+def scenario_from_dict(doc: dict, where: str, base: Path) -> Scenario:
+    unknown = sorted(set(doc) - SCENARIO_KEYS)
+    if unknown:
+        raise UserError(f"{where}: unknown key(s) {unknown}; known: {', '.join(sorted(SCENARIO_KEYS))}")
+    if not isinstance(doc.get("scene"), str):
+        raise UserError(f"{where}: 'scene' (a packaged scene folder or MPD URL) is required")
+    scene = doc["scene"]
+    if not scene.startswith(("http://", "https://")):
+        scene = str((base / scene).resolve())
+    abr = doc.get("abr", ["dynamic"])
+    abr = [abr] if isinstance(abr, str) else abr
+    if not isinstance(abr, list) or not abr or any(a not in RULES for a in abr):
+        raise UserError(f"{where}: 'abr' must list rules from {', '.join(RULES)}, got {abr!r}")
+    qp = _number(doc, "qp", where, integer=True)
+    return Scenario(name=str(doc.get("name") or Path(where).stem), scene=scene, abr=list(abr),
+                    buffer_s=_number(doc, "buffer_s", where, 1e-3), start_s=_number(doc, "start_s", where) or 0.0,
+                    duration_s=_number(doc, "duration_s", where, 1e-3), seed=int(_number(doc, "seed", where,
+                                                                                         integer=True) or 0),
+                    decode_s=_number(doc, "decode_s", where) or 0.0,
+                    effects=parse_effects(doc.get("effects", {}), where, base), qp=None if qp is None else int(qp))

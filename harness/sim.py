@@ -1,0 +1,232 @@
+"""The discrete-event simulator: one playback on a virtual clock, with the player's own ABR rules and clock.
+
+It follows `stgs.client.player.Session` step for step: the fetcher polls for
+buffer room every min(50 ms, T/20), downloads GOP k's keyframe, asks the ABR
+rule with the same `AbrState` (the keyframe's exact size, the next segment's
+sizes from the ladder, the throughput history), downloads the init segment
+once per Representation and the media segment (abandoning it to the lowest
+rung exactly when the player would), and playback uses the same
+`PlaybackClock` (start-up, due times, stalls). Transfers take the time
+`stgs.harness.network.Network` computes; decoding takes `decode_s` per GOP,
+one at a time, with at most two decoded GOPs held (the playing one and the
+next), as in the player. The output has the player's log format.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field
+
+from stgs.client.abr import (
+    RULES,
+    AbrRule,
+    AbrSettings,
+    AbrState,
+    DynamicRule,
+    FixedRule,
+    ThroughputSample,
+    should_abandon,
+    throughput_kbps,
+)
+from stgs.client.clock import PlaybackClock
+from stgs.harness.ladder import Ladder
+from stgs.harness.network import Network
+from stgs.harness.scenario import Scenario
+
+from stgs.errors import UserError
+
+ABANDON_CHECK_S = 0.05
+"""How often the simulator checks a feature download for abandonment (the player checks per 64 KiB chunk)."""
+
+
+@dataclass
+class SimGOP:
+    index: int
+    rep: str = ""
+    qp: int | None = None
+    rule: str = ""
+    buffer_s: float = 0.0
+    estimate_kbps: float | None = None
+    keyframe_bytes: int = 0
+    feature_bytes: int = 0
+    init_bytes: int = 0
+    fetch_start_s: float = 0.0
+    fetch_end_s: float = 0.0
+    ready_s: float = 0.0
+    play_start_s: float | None = None
+    stall_s: float = 0.0
+    abandoned_bytes: int = 0
+    latency_s: list[float] = field(default_factory=list)
+    events: list[str] = field(default_factory=list)
+
+
+def make_rule(name: str, ladder: Ladder, qp: int | None, settings: AbrSettings) -> AbrRule:
+    if qp is None:
+        return RULES[name](settings)
+    index = next((i for i, r in enumerate(ladder.pres.ladder) if r.qp == qp), None)
+    if index is None:
+        raise UserError(f"qp {qp}: the scene offers QPs {', '.join(str(r.qp) for r in ladder.pres.ladder)}")
+    return FixedRule(index)
+
+
+class Simulation:
+    def __init__(self, ladder: Ladder, scenario: Scenario, rule_name: str, settings: AbrSettings | None = None):
+        self.ladder, self.sc = ladder, scenario
+        self.settings = settings or AbrSettings()
+        self.rule = make_rule(rule_name, ladder, scenario.qp, self.settings)
+        pres = ladder.pres
+        self.T = pres.segment_seconds
+        self.k0 = pres.gop_at(scenario.start_s)
+        total = pres.num_gops * pres.shape.gop_size - self.k0 * pres.shape.gop_size
+        frames = total if scenario.duration_s is None else max(1, min(total, round(scenario.duration_s * pres.fps)))
+        self.frames = frames
+        self.gops = list(range(self.k0, self.k0 + math.ceil(frames / pres.shape.gop_size)))
+        capacity = max(scenario.buffer_s if scenario.buffer_s is not None else 3 * self.T, self.T)
+        self.clock = PlaybackClock(self.T, capacity, self.k0)
+        self.net = Network(scenario.effects, scenario.seed)
+        self.poll = min(0.05, self.T / 20)
+        self.now = 0.0
+        self.samples: list[ThroughputSample] = []
+        self.records = {k: SimGOP(k) for k in self.gops}
+        self.inits: set[str] = set()
+        self.decoder_free = 0.0
+        self.wasted = 0
+
+    # --- playback timeline ---
+
+    def advance(self, until: float) -> None:
+        """Start every GOP whose start time has come by `until` (ready, decoded and due)."""
+        while True:
+            k = self.clock.playing if self.clock.t0 is None else self.clock.playing + 1
+            rec = self.records.get(k)
+            if rec is None or not rec.fetch_end_s or rec.play_start_s is not None:
+                return
+            # decoding needs a free slot: the GOP two before has finished (the one before has started)
+            slot = self.records[k - 1].play_start_s if k - 2 >= self.k0 else 0.0
+            ready = max(rec.fetch_end_s, self.decoder_free, slot) + self.sc.decode_s
+            start = ready if self.clock.t0 is None else max(ready, self.clock.due(k))
+            if start > until:
+                return
+            self.decoder_free = ready
+            rec.ready_s = ready
+            rec.stall_s = self.clock.start(k, ready, ready if self.clock.t0 is None else self.clock.due(k))
+            rec.play_start_s = self.clock.due(k)
+
+    def wait_for_room(self) -> None:
+        while True:
+            self.advance(self.now)
+            if self.clock.has_room(self.now):
+                return
+            self.now += self.poll
+
+    # --- transfers ---
+
+    def transfer(self, nbytes: int, rec: SimGOP, adaptive_check=None) -> tuple[float, int, bool]:
+        """Advance the clock over one request; returns (seconds, bytes received, abandoned)."""
+        start = self.now
+        rtt = self.net.round_trip()
+        rec.latency_s.append(rtt)
+        body_start = start + rtt
+        end = self.net.finish(body_start, nbytes * 8)
+        if adaptive_check is not None:
+            t = start + self.settings.abandon_min_s
+            t = math.ceil((t - start) / ABANDON_CHECK_S) * ABANDON_CHECK_S + start
+            while t < end:
+                received = int(min(nbytes, self.net.delivered(body_start, t) / 8)) if t > body_start else 0
+                self.advance(t)
+                if adaptive_check(received, nbytes, t - start, self.clock.buffer_level(t)):
+                    self.now = t
+                    return t - start, received, True
+                t += ABANDON_CHECK_S
+        self.now = end
+        return end - start, nbytes, False
+
+    def fetch(self, k: int, current: int | None) -> int:
+        rec = self.records[k]
+        rec.fetch_start_s = self.now
+        kf = self.ladder.keyframe_bytes[k]
+        seconds, _, _ = self.transfer(kf, rec)
+        self.samples.append(ThroughputSample(kf, seconds))
+        self.advance(self.now)
+        ladder = self.ladder.pres.ladder
+        sizes = [self.ladder.media_bytes[r.rep_id][k] * 8 for r in ladder]
+        state = AbrState([r.bandwidth for r in ladder], self.T, self.clock.buffer_level(self.now),
+                         self.clock.capacity_s, list(self.samples), kf * 8, sizes, current)
+        rung = self.rule.choose(state)
+        rec.rule = ("bola" if self.rule.using_bola else "throughput") if isinstance(self.rule, DynamicRule) \
+            else self.rule.name
+        rec.buffer_s, rec.estimate_kbps = state.buffer_s, throughput_kbps(state.samples, self.settings)
+        rec.keyframe_bytes = kf
+        rung = self.fetch_media(k, rung, rec, sizes[0] / 8)
+        rec.fetch_end_s = self.now
+        return rung
+
+    def fetch_media(self, k: int, rung: int, rec: SimGOP, lowest_bytes: float) -> int:
+        rep = self.ladder.pres.ladder[rung].rep_id
+        self.fetch_init(rep, rec)
+        size = self.ladder.media_bytes[rep][k]
+        check = None
+        if not isinstance(self.rule, FixedRule) and rung > 0:
+            def check(received: int, total: int, elapsed: float, buffer_s: float) -> bool:
+                return should_abandon(received, total, elapsed, buffer_s, lowest_bytes, self.settings)
+        seconds, received, abandoned = self.transfer(size, rec, check)
+        self.samples.append(ThroughputSample(received, seconds))
+        if not abandoned:
+            rec.rep, rec.qp, rec.feature_bytes = rep, self.ladder.pres.ladder[rung].qp, size
+            return rung
+        rec.abandoned_bytes += received
+        self.wasted += received
+        rec.events.append(f"abandoned {rep} after {received} bytes ({seconds:.2f} s)")
+        low = self.ladder.pres.ladder[0].rep_id
+        self.fetch_init(low, rec)
+        size = self.ladder.media_bytes[low][k]
+        seconds, _, _ = self.transfer(size, rec)
+        self.samples.append(ThroughputSample(size, seconds))
+        rec.rep, rec.qp, rec.feature_bytes = low, self.ladder.pres.ladder[0].qp, size
+        return 0
+
+    def fetch_init(self, rep: str, rec: SimGOP) -> None:
+        if rep in self.inits:
+            return
+        self.inits.add(rep)
+        rec.init_bytes += self.ladder.init_bytes[rep]
+        self.transfer(self.ladder.init_bytes[rep], rec)
+
+    def run(self) -> dict:
+        current = None
+        for k in self.gops:
+            self.wait_for_room()
+            current = self.fetch(k, current)
+            self.clock.fetched_end = k + 1
+        self.advance(math.inf)
+        return self.log()
+
+    def log(self) -> dict:
+        recs = [self.records[k] for k in self.gops]
+        reps = [r.rep for r in recs]
+        total = sum(r.keyframe_bytes + r.feature_bytes + r.init_bytes for r in recs)
+        g = self.ladder.pres.shape.gop_size
+        return {
+            "format": "streamstgs-playback", "version": 1, "engine": "sim", "url": self.ladder.url,
+            "abr": self.rule.name, "segment_s": self.T, "buffer_capacity_s": self.clock.capacity_s,
+            "start_gop": self.k0, "gops_planned": len(self.gops), "gops_played": len(recs),
+            "startup_delay_s": recs[0].play_start_s if recs else None,
+            "stalls": {"count": sum(1 for r in recs if r.stall_s > 0), "total_s": self.clock.stall_total},
+            "switches": sum(1 for a, b in itertools.pairwise(reps) if a != b),
+            "frames": self.frames, "bytes": total, "kb_per_frame": total / 1e3 / self.frames,
+            "wasted_bytes": self.wasted, "error": None,
+            "gops": [{"index": r.index, "rep": r.rep, "qp": r.qp, "rule": r.rule, "buffer_s": r.buffer_s,
+                      "estimate_kbps": r.estimate_kbps, "keyframe_bytes": r.keyframe_bytes,
+                      "feature_bytes": r.feature_bytes, "init_bytes": r.init_bytes,
+                      "download_s": r.fetch_end_s - r.fetch_start_s, "fetch_start_s": r.fetch_start_s,
+                      "fetch_end_s": r.fetch_end_s, "play_start_s": r.play_start_s, "stall_s": r.stall_s,
+                      "presented": min(g, self.frames - (r.index - self.k0) * g),
+                      "latency_ms": [x * 1e3 for x in r.latency_s], "abandoned_bytes": r.abandoned_bytes,
+                      "events": r.events} for r in recs],
+        }
+
+
+def simulate(ladder: Ladder, scenario: Scenario, rule: str, settings: AbrSettings | None = None) -> dict:
+    """One simulated playback (the player's log format, `engine: sim`)."""
+    return Simulation(ladder, scenario, rule, settings).run()
