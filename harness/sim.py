@@ -36,6 +36,8 @@ from stgs.harness.scenario import Scenario
 
 from stgs.errors import UserError
 
+MAX_POLLS = 10_000_000
+"""Bound on the fetcher's waits for buffer room (a playback that never drains its buffer is a bug)."""
 ABANDON_CHECK_S = 0.05
 """How often the simulator checks a feature download for abandonment (the player checks per 64 KiB chunk)."""
 
@@ -52,7 +54,8 @@ class SimGOP:
     feature_bytes: int = 0
     init_bytes: int = 0
     fetch_start_s: float = 0.0
-    fetch_end_s: float = 0.0
+    fetch_end_s: float | None = None
+    """None until the GOP is downloaded."""
     ready_s: float = 0.0
     play_start_s: float | None = None
     stall_s: float = 0.0
@@ -100,7 +103,7 @@ class Simulation:
         while True:
             k = self.clock.playing if self.clock.t0 is None else self.clock.playing + 1
             rec = self.records.get(k)
-            if rec is None or not rec.fetch_end_s or rec.play_start_s is not None:
+            if rec is None or rec.fetch_end_s is None or rec.play_start_s is not None:
                 return
             # decoding needs a free slot: the GOP two before has finished (the one before has started)
             slot = self.records[k - 1].play_start_s if k - 2 >= self.k0 else 0.0
@@ -114,11 +117,12 @@ class Simulation:
             rec.play_start_s = self.clock.due(k)
 
     def wait_for_room(self) -> None:
-        while True:
+        for _ in range(MAX_POLLS):
             self.advance(self.now)
             if self.clock.has_room(self.now):
                 return
             self.now += self.poll
+        raise RuntimeError(f"simulation made no progress by t = {self.now:.1f} s (buffer never drained)")
 
     # --- transfers ---
 

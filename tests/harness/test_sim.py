@@ -1,0 +1,220 @@
+"""The throughput simulation harness: hand-computable scenarios, traces, effects, sim vs emulation, bad input."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import pytest
+from stgs.client.manifest import Presentation
+from stgs.harness.ladder import Ladder, load_ladder
+from stgs.harness.network import Network
+from stgs.harness.report import metrics, sabre_manifest, timeline
+from stgs.harness.scenario import Effects, constant, load_trace, scenario_from_dict, steps
+from stgs.harness.sim import simulate
+from stgs.packager import PackConfig, pack
+
+from stgs.errors import UserError
+from stgs.synth import SynthConfig, synthesize
+from tests.conftest import run_stgs as stgs
+
+EXAMPLE = (Path(__file__).resolve().parents[2] / "manifests" / "example.mpd").read_bytes()
+
+
+def hand_ladder(gops: int = 5, keyframe: int = 125_000, media=(12_500, 25_000, 50_000, 100_000, 200_000),
+                init: int = 1_000) -> Ladder:
+    """The example MPD's 1-second GOPs and five QPs with sizes we choose (ascending rung order qp32 ... qp16)."""
+    mpd = EXAMPLE.replace(b'mediaPresentationDuration="PT2S"', f'mediaPresentationDuration="PT{gops}S"'.encode())
+    pres = Presentation.parse(mpd, "http://h/manifest.mpd")
+    reps = [r.rep_id for r in pres.ladder]
+    return Ladder(pres, [keyframe] * gops, {r: [m] * gops for r, m in zip(reps, media, strict=True)},
+                  dict.fromkeys(reps, init), {r: [40.0 + i] * gops for i, r in enumerate(reps)}, None)
+
+
+def scenario(effects: dict, **kw):
+    return scenario_from_dict({"scene": "unused", "effects": effects, **kw}, "test", Path("."))
+
+
+def test_bandwidth_far_above_the_top_rung_plays_the_top_qp_without_stalls():
+    ladder = hand_ladder()
+    log = simulate(ladder, scenario({"bandwidth": {"kbps": 100_000}}), "throughput")
+    # the first decision already has the keyframe's throughput sample: top rung from GOP 0
+    assert [g["qp"] for g in log["gops"]] == [16] * 5
+    assert log["stalls"] == {"count": 0, "total_s": 0.0}
+
+
+def test_bandwidth_below_the_keyframe_rate_stalls_exactly():
+    ladder = hand_ladder()
+    log = simulate(ladder, scenario({"bandwidth": {"kbps": 500}}, qp=32), "throughput")
+    # GOP 0: (1 Mbit keyframe + 8 kbit init + 0.1 Mbit features) / 0.5 Mbit/s = 2.216 s = start-up.
+    # every later GOP takes 1.1 / 0.5 = 2.2 s to download and is due 1 s after the previous one: 1.2 s stall each.
+    assert log["startup_delay_s"] == pytest.approx(2.216)
+    assert log["stalls"]["count"] == 4
+    assert log["stalls"]["total_s"] == pytest.approx(4 * 1.2)
+    assert [g["stall_s"] for g in log["gops"]] == pytest.approx([0, 1.2, 1.2, 1.2, 1.2])
+    report = metrics(log, ladder, scenario({"bandwidth": {"kbps": 500}}).effects)
+    assert report["rebuffer_ratio"] == pytest.approx(4.8 / (5 + 4.8))
+    assert report["mean_quality_db"] == 40.0 and report["switches"] == 0
+
+
+def test_a_step_down_moves_the_throughput_rule_down_on_the_next_gop():
+    ladder = hand_ladder(gops=6)
+    sc = scenario({"bandwidth": {"steps": [[0, 20_000], [2.0, 800]]}})
+    log = simulate(ladder, sc, "throughput")
+    qps = [g["qp"] for g in log["gops"]]
+    first_slow = next(i for i, g in enumerate(log["gops"]) if g["fetch_start_s"] >= 2.0)
+    assert qps[first_slow - 1] == 16  # plenty before the step
+    assert qps[first_slow] > qps[first_slow - 1]  # the next decision after the drop picks a lower rung
+
+
+def test_only_declared_effects_are_applied():
+    ladder = hand_ladder()
+    sc = scenario({"bandwidth": {"kbps": 2000}})
+    assert sc.effects.active() == ["bandwidth"]
+    rows = timeline(simulate(ladder, sc, "dynamic"), sc.effects)
+    assert all(r["latency_ms"] == 0.0 and r["loss"] == 0.0 for r in rows)
+    assert metrics(simulate(ladder, sc, "dynamic"), ladder, sc.effects)["active_effects"] == {
+        "bandwidth": "constant bandwidth"}
+    # and with nothing named at all, transfers are instant: start-up is zero
+    assert simulate(ladder, scenario({}), "dynamic")["startup_delay_s"] == 0.0
+
+
+def test_network_effects_by_hand():
+    fx = Effects(bandwidth=constant(1000), latency_ms=100.0, outages=[(1.0, 2.0)], competing=1)
+    net = Network(fx)
+    assert net.round_trip() == pytest.approx(0.1)
+    # 500 kbit/s fair share; 0.75 Mbit from t=0.5: 0.25 Mbit by 1.0, outage to 2.0, 0.5 Mbit more by 3.0
+    assert net.finish(0.5, 750_000) == pytest.approx(3.0)
+    lossy = Network(Effects(bandwidth=constant(1000), loss=0.2))
+    assert lossy.finish(0.0, 800_000) == pytest.approx(1.0)  # (1 - 0.2) of 1 Mbit/s
+    jitter = Network(Effects(latency_ms=50.0, jitter_ms=20.0), seed=3)
+    draws = [jitter.round_trip() for _ in range(200)]
+    assert min(draws) >= 0.03 - 1e-9 and max(draws) <= 0.07 + 1e-9
+    again = Network(Effects(latency_ms=50.0, jitter_ms=20.0), seed=3)
+    assert draws == [again.round_trip() for _ in range(200)]  # the scenario's seed fixes the jitter
+
+
+def test_trace_formats_and_looping(tmp_path):
+    (tmp_path / "t.json").write_text(json.dumps([{"duration_ms": 1000, "bandwidth_kbps": 300, "latency_ms": 20},
+                                                 {"duration_ms": 500, "bandwidth_kbps": 900, "latency_ms": 20}]))
+    (tmp_path / "t.log").write_text("0 1.5\n1 0.5\n")
+    (tmp_path / "t.csv").write_text("time_s,bandwidth_kbps\n0,2000\n2,400\n")
+    sabre = load_trace(tmp_path / "t.json", "sabre")
+    assert sabre.segment(0.2) == pytest.approx((300, 0.8)) and sabre.segment(1.2)[0] == 900
+    assert sabre.segment(1.6)[0] == 300  # looped: period 1.5 s
+    mm = load_trace(tmp_path / "t.log", "mahimahi")
+    assert mm.segment(0.5)[0] == 1500 and mm.segment(1.5)[0] == 500 and mm.segment(2.5)[0] == 1500
+    c = load_trace(tmp_path / "t.csv", "csv")
+    assert c.segment(1.0)[0] == 2000 and c.segment(3.0)[0] == 400 and c.segment(4.5)[0] == 2000
+    assert steps([[0, 5], [1, 7]]).segment(100)[0] == 7  # steps hold their last value
+
+
+def test_sabre_export():
+    ladder = hand_ladder(gops=3)
+    doc = sabre_manifest(ladder)
+    assert doc["segment_duration_ms"] == 1000
+    assert doc["segment_sizes_bits"][0] == [(125_000 + m) * 8 for m in (12_500, 25_000, 50_000, 100_000, 200_000)]
+    assert doc["bitrates_kbps"][0] == pytest.approx((125_000 + 12_500) * 8 / 1e3)
+
+
+@pytest.mark.parametrize("body,message", [
+    ('scene = "x"\n[effects]\nwind = 3\n', "unknown effect(s) ['wind']"),
+    ('scene = "x"\n[effects]\nbandwidth = { kbps = -5 }\n', "'kbps' must be >= 0"),
+    ('scene = "x"\n[effects]\nbandwidth = { trace = "bad.log" }\n', "malformed mahimahi trace"),
+    ('scene = "x"\n[effects]\nbandwidth = { trace = "empty.csv" }\n', "the trace is empty"),
+    ('scene = "x"\n[effects]\nbandwidth = { steps = [[0, 0]] }\n', None),
+    ('scene = "x"\nabr = ["magic"]\n', "'abr' must list rules"),
+    ('scene = "x"\n[effects]\nloss = 1.5\n', "'loss' must be below 1"),
+    ('scene = \n', "cannot read scenario"),
+])
+def test_bad_scenarios_are_one_line(tmp_path, body, message):
+    (tmp_path / "bad.log").write_text("0 1 2\n")
+    (tmp_path / "empty.csv").write_text("time_s,bandwidth_kbps\n")
+    (tmp_path / "s.toml").write_text(body)
+    result = stgs("sim", str(tmp_path / "s.toml"), "--out", str(tmp_path / "out"))
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2 and len(lines) == 1 and lines[0].startswith("stgs: "), result.stderr
+    if message:
+        assert message in lines[0]
+
+
+# fps = G: one-second GOPs
+SCENE = SynthConfig(grid_side=16, num_gops=3, gop_size=6, fps=6.0, width=48, height=36, num_cameras=2,
+                    fit_steps=40)
+
+
+@pytest.fixture(scope="module")
+def packed(tmp_path_factory) -> Path:
+    base = tmp_path_factory.mktemp("harness")
+    synthesize(SCENE, base / "model", progress=False)
+    pack(base / "model", base / "dash", PackConfig(qps=(16, 24, 32), jobs=2), progress=False)
+    return base / "dash"
+
+
+def rates(ladder: Ladder) -> tuple[float, float]:
+    """(keyframe kbit/s, top GOP kbit/s) of the scene."""
+    T = ladder.pres.segment_seconds
+    top = ladder.pres.ladder[-1].rep_id
+    kf = max(ladder.keyframe_bytes) * 8 / T / 1e3
+    return kf, kf + max(ladder.media_bytes[top]) * 8 / T / 1e3
+
+
+def test_simulation_and_emulation_agree(packed):
+    from stgs.harness.emulate import emulate
+
+    ladder = load_ladder(str(packed))
+    kf, top = rates(ladder)
+    cases = [
+        ({"bandwidth": {"kbps": 20 * top}}, "dynamic", None),
+        ({"bandwidth": {"kbps": 0.5 * kf}}, "throughput", 32),
+        ({"bandwidth": {"steps": [[0, 20 * top], [1.2, 0.6 * kf]]}, "latency_ms": 20}, "throughput", None),
+    ]
+    for effects, rule, qp in cases:
+        sc = scenario_from_dict({"scene": str(packed), "abr": [rule], "effects": effects,
+                                 **({"qp": qp} if qp else {})}, "agree", Path("."))
+        sim, emu = simulate(ladder, sc, rule), emulate(sc, rule)
+        assert [g["qp"] for g in sim["gops"]] == [g["qp"] for g in emu["gops"]], (effects, sim, emu)
+        s, e = sim["stalls"]["total_s"], emu["stalls"]["total_s"]
+        assert sim["stalls"]["count"] == emu["stalls"]["count"]
+        assert abs(s - e) <= max(0.1 * s, 0.05), (effects, s, e)
+
+
+def test_cli_batch_and_load(packed, tmp_path):
+    traces = tmp_path / "traces"
+    traces.mkdir()
+    (traces / "fast.log").write_text("0 50\n1 50\n")
+    (traces / "slow.csv").write_text("time_s,bandwidth_kbps\n0,100\n1,150\n")
+    (tmp_path / "s.toml").write_text(f'scene = "{packed}"\nabr = ["throughput", "bola"]\n'
+                                     '[effects]\nbandwidth = {{ kbps = 1000 }}\n'.replace("{{", "{").replace("}}", "}"))
+    out = tmp_path / "out"
+    result = stgs("sim", str(tmp_path / "s.toml"), "--traces", str(traces), "--out", str(out),
+                  "--export-sabre", str(tmp_path / "sabre.json"))
+    assert result.returncode == 0, result.stderr
+    rows = json.loads((out / "s.batch.json").read_text())
+    assert len(rows) == 4 and {r["trace"] for r in rows} == {"fast.log", "slow.csv"}
+    slow = [r for r in rows if r["trace"] == "slow.csv"]
+    fast = [r for r in rows if r["trace"] == "fast.log"]
+    assert min(r["stall_s"] for r in slow) > max(r["stall_s"] for r in fast)
+    assert (out / "s.qoe_cdf.png").stat().st_size > 5000
+    assert "| throughput (sim) | 2 |" in result.stdout
+    assert len(json.loads((tmp_path / "sabre.json").read_text())["segment_sizes_bits"]) == 3
+    result = stgs("sim", str(tmp_path / "s.toml"), "--load", "1,4", "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    load = json.loads((out / "s.load.json").read_text())
+    assert [r["clients"] for r in load] == [1, 4] and all(r["server_mb_s"] > 0 for r in load)
+
+
+def test_single_scenario_writes_timeline_plot_and_summary(packed, tmp_path):
+    (tmp_path / "s.toml").write_text(f'scene = "{packed}"\nabr = "dynamic"\n[effects]\nlatency_ms = 30\n')
+    out = tmp_path / "out"
+    result = stgs("sim", str(tmp_path / "s.toml"), "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    assert "active effects {'latency_ms': 30}" in result.stdout
+    assert (out / "s-sim-dynamic.png").stat().st_size > 5000
+    csv_text = (out / "s-sim-dynamic.timeline.csv").read_text().splitlines()
+    assert csv_text[0].startswith("index,rep,qp") and len(csv_text) == 4
+    assert all(line.split(",")[-2] == "30.0" for line in csv_text[1:])  # latency_ms column
+    assert dataclasses.is_dataclass(Effects())
+    with pytest.raises(UserError):
+        load_ladder(str(tmp_path / "nothing"))
