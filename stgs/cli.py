@@ -390,11 +390,12 @@ def run_demo(args: argparse.Namespace) -> int:
 def add_bench(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmarks (accuracy vs time), printed as a Markdown table",
                        description="Run a benchmark suite and print Markdown for docs/BENCHMARKS.md.")
-    p.add_argument("suite", choices=["render", "synth", "pack", "serve", "play"],
+    p.add_argument("suite", choices=["render", "synth", "pack", "serve", "play", "sim"],
                    help="render: splatter and deform per backend and Gaussian count; "
                    "synth: fit fidelity vs fit iterations; pack: rate, distortion and codec time per "
                    "QP and x265 preset, PLAS vs no sort, PLAS time; serve: stgs serve vs nginx with wrk; "
-                   "play: the player's per-GOP download and pre-decode, per-frame deform and splat")
+                   "play: the player's per-GOP download and pre-decode, per-frame deform and splat; "
+                   "sim: simulated vs emulated QoE and playbacks per second")
     p.add_argument("--sizes", default="16384,65536,147456",
                    help="comma-separated Gaussian counts (default: 16384,65536,147456)")
     p.add_argument("--width", type=_positive_int, default=640)
@@ -411,7 +412,7 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sides", default="128,256,384", help="pack: PLAS grid sides S (default: 128,256,384)")
     p.add_argument("--scene", help="pack, play: synthetic scene preset to pack (default: demo for pack, "
                    "large (65,536 Gaussians, 2-second GOPs) for play)")
-    p.add_argument("--dash", type=Path, help="serve, play: a packaged scene (default: synthesise and pack one)")
+    p.add_argument("--dash", type=Path, help="serve, play, sim: a packaged scene (default: synthesise and pack one)")
     p.add_argument("--clients", default="1,16,64,256", help="serve: concurrent clients (default: 1,16,64,256)")
     p.add_argument("--seconds", type=_positive_int, default=8, help="serve: seconds per measurement (default: 8)")
     p.add_argument("--plot", type=Path, default=Path("docs/rate_distortion.png"),
@@ -430,6 +431,12 @@ def _int_list(text: str, option: str) -> list[int]:
 
 
 def run_bench(args: argparse.Namespace) -> int:
+    if args.dash is not None and not (args.dash / "manifest.mpd").is_file():
+        raise UserError(f"--dash {args.dash}: no manifest.mpd there")
+    if args.suite == "sim":
+        from stgs.benchmarks.sim import main as bench_sim
+
+        return bench_sim(args.dash)
     if args.suite == "serve":
         from stgs.benchmarks.serve import main as bench_serve
 
@@ -442,8 +449,6 @@ def run_bench(args: argparse.Namespace) -> int:
     if args.suite == "play":
         from stgs.benchmarks.play import main as bench_play
 
-        if args.dash is not None and not (args.dash / "manifest.mpd").is_file():
-            raise UserError(f"--dash {args.dash}: no manifest.mpd there")
         return bench_play(args.dash, PRESETS[scene], _int_list(args.qps, "--qps"), args.width, args.height)
     if args.suite == "pack":
         from stgs.benchmarks.pack import main as bench_pack
