@@ -19,7 +19,6 @@ as they can (never dropped).
 from __future__ import annotations
 
 import asyncio
-import itertools
 import json
 import math
 import time
@@ -43,6 +42,7 @@ from stgs.client.clock import PlaybackClock
 from stgs.client.download import AbandonError, Downloader, DownloadSettings, FetchError
 from stgs.client.manifest import MAX_INIT_BYTES, Presentation
 from stgs.client.output import NullSink, open_sink
+from stgs.client.playlog import GOPRecord, playback_log
 from stgs.client.view import Trajectory, ViewSpec, build_trajectory, parse_scene_cameras
 
 from stgs.codec.features import features_from_frames
@@ -56,7 +56,6 @@ from stgs.tree import CAMERAS, STATS
 
 MAX_DOC_BYTES = 16 << 20
 """Cap on stats.json and cameras.json."""
-LOG_FORMAT = "streamstgs-playback"
 
 
 class PlaybackError(UserError):
@@ -107,52 +106,6 @@ class PlayConfig:
             raise UserError("--duration must be a positive number of seconds")
         if self.max_decoded < 2:
             raise UserError("max_decoded must be >= 2 (the GOP playing and the next)")
-
-
-@dataclass
-class GOPRecord:
-    """What happened to one GOP (one row of the playback log)."""
-
-    index: int
-    rep: str = ""
-    qp: int | None = None
-    rule: str = ""
-    """Rule that chose the Representation (dynamic: which of its two)."""
-    buffer_s: float = 0.0
-    """Buffer level when the choice was made."""
-    estimate_kbps: float | None = None
-    """Throughput estimate when the choice was made."""
-    keyframe_bytes: int = 0
-    feature_bytes: int = 0
-    init_bytes: int = 0
-    download_s: float = 0.0
-    ttfb_s: float = 0.0
-    """Time to first byte of the feature segment."""
-    keyframe_decode_s: float = 0.0
-    feature_decode_s: float = 0.0
-    dequantise_s: float = 0.0
-    boundary_wait_s: float = 0.0
-    """Time the player waited at this GOP's start for it to be decoded (startup for the first)."""
-    stall_s: float = 0.0
-    render_ms: list[float] = field(default_factory=list)
-    deform_ms: list[float] = field(default_factory=list)
-    splat_ms: list[float] = field(default_factory=list)
-    dropped: int = 0
-    presented: int = 0
-    """Frames whose time slot passed (rendered, dropped, or not decoded at all)."""
-    fetch_start_s: float = 0.0
-    """When the GOP's first request started (seconds since playback began)."""
-    fetch_end_s: float = 0.0
-    play_start_s: float | None = None
-    """When its first frame was due after any stall (seconds since playback began)."""
-    abandoned_bytes: int = 0
-    """Bytes of a feature download the ABR abandoned."""
-    events: list[str] = field(default_factory=list)
-    """Retries, fallbacks and abandonments, in words."""
-
-    @property
-    def decode_s(self) -> float:
-        return self.keyframe_decode_s + self.feature_decode_s + self.dequantise_s
 
 
 @dataclass
@@ -469,47 +422,10 @@ class Session:
         return next(iter(sizes))
 
     def summary(self, error: BaseException | None) -> dict:
-        recs = [self.records[k] for k in self.gops if self.records[k].rep]
-        played = [r for r in recs if r.presented]
-        render = sorted(ms for r in played for ms in r.render_ms)
-        reps = [r.rep for r in played]
-        frames = sum(r.presented for r in played)
-        total_bytes = sum(r.keyframe_bytes + r.feature_bytes + r.init_bytes for r in played)
-        first = self.records[self.k0]
-        return {
-            "format": LOG_FORMAT, "version": 1, "url": self.cfg.url,
-            "abr": self.rule.name, "realtime": self.cfg.realtime, "decode": self.cfg.decode,
-            "segment_s": self.T, "buffer_capacity_s": self.capacity_s,
-            "start_gop": self.k0, "gops_planned": len(self.gops), "gops_played": len(played),
-            "startup_delay_s": first.boundary_wait_s if self.clock.t0 is not None else None,
-            "stalls": {"count": sum(1 for r in played if r.stall_s > 0), "total_s": self.clock.stall_total},
-            "switches": sum(1 for a, b in itertools.pairwise(reps) if a != b),
-            "frames": frames, "rendered_frames": len(render),
-            "dropped_frames": sum(r.dropped for r in played),
-            "render_ms_median": render[len(render) // 2] if render else None,
-            "render_fps": 1e3 / render[len(render) // 2] if render else None,
-            "bytes": total_bytes, "kb_per_frame": total_bytes / 1e3 / frames if frames else None,
-            "wasted_bytes": self.wasted_bytes, "retries": self.dl.retries,
-            "error": None if error is None else str(error) or type(error).__name__,
-            "gops": [self._gop_row(r) for r in recs],
-        }
-
-    @staticmethod
-    def _gop_row(r: GOPRecord) -> dict:
-        def mean(xs: list[float]) -> float | None:
-            return sum(xs) / len(xs) if xs else None
-
-        return {"index": r.index, "rep": r.rep, "qp": r.qp, "rule": r.rule, "buffer_s": r.buffer_s,
-                "estimate_kbps": r.estimate_kbps, "keyframe_bytes": r.keyframe_bytes,
-                "feature_bytes": r.feature_bytes, "init_bytes": r.init_bytes, "download_s": r.download_s,
-                "ttfb_s": r.ttfb_s,
-                "keyframe_decode_s": r.keyframe_decode_s, "feature_decode_s": r.feature_decode_s,
-                "dequantise_s": r.dequantise_s, "decode_s": r.decode_s, "boundary_wait_s": r.boundary_wait_s,
-                "stall_s": r.stall_s, "fetch_start_s": r.fetch_start_s, "fetch_end_s": r.fetch_end_s,
-                "play_start_s": r.play_start_s, "presented": r.presented, "render_ms": r.render_ms,
-                "deform_ms_mean": mean(r.deform_ms),
-                "splat_ms_mean": mean(r.splat_ms), "dropped": r.dropped, "abandoned_bytes": r.abandoned_bytes,
-                "events": r.events}
+        return playback_log([self.records[k] for k in self.gops], self.clock, url=self.cfg.url,
+                            abr=self.rule.name, wasted_bytes=self.wasted_bytes, retries=self.dl.retries,
+                            error=error, gops_planned=len(self.gops),
+                            extra={"realtime": self.cfg.realtime, "decode": self.cfg.decode})
 
 
 async def _optional_json(dl: Downloader, url: str) -> object | None:

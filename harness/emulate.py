@@ -1,4 +1,5 @@
-"""The emulator: the real player (`stgs play`) against the real server (`stgs serve`) through a shaping proxy.
+"""The emulator: the real player (`stgs play`) against the real server (`stgs serve`, a subprocess as a user
+runs it) through a shaping proxy.
 
 The proxy (aiohttp, loopback) forwards every request to the server and
 delivers each segment's bytes on the schedule `stgs.harness.network.Network`
@@ -13,6 +14,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import re
+import sys
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -23,9 +26,12 @@ from stgs.client import PlayConfig, play
 from stgs.client.view import ViewSpec
 from stgs.harness.network import Network
 from stgs.harness.scenario import Scenario
-from stgs.server.app import loopback
+
+from stgs.errors import UserError
+from stgs.loopback import on_loopback
 
 CHUNK = 16 << 10
+SERVER_START_S = 30.0
 SHAPED = (".stgk", ".mp4", ".m4s")
 
 
@@ -58,14 +64,10 @@ async def shaping_proxy(upstream: str, network: Network) -> AsyncIterator[str]:
 
     app = web.Application()
     app.router.add_get("/{tail:.*}", forward)
-    runner = web.AppRunner(app, access_log=None)
-    await runner.setup()
     try:
-        await web.TCPSite(runner, "127.0.0.1", 0).start()
-        host, port = runner.addresses[0][:2]
-        yield f"http://{host}:{port}/"
+        async with on_loopback(app) as base:
+            yield base
     finally:
-        await runner.cleanup()
         await session.close()
 
 
@@ -76,13 +78,36 @@ async def _sleep_until(deadline: float) -> None:
 
 
 @contextlib.asynccontextmanager
+async def real_server(root: Path) -> AsyncIterator[str]:
+    """`stgs serve ROOT` as a user runs it, on a free loopback port; yields its base URL."""
+    proc = await asyncio.create_subprocess_exec(sys.executable, "-m", "stgs.cli", "serve", str(root), "--port", "0",
+                                                "--quiet", stdout=asyncio.subprocess.PIPE,
+                                                stderr=asyncio.subprocess.DEVNULL)
+    try:
+        base = await asyncio.wait_for(_announced_url(proc), SERVER_START_S)
+        yield base
+    finally:
+        if proc.returncode is None:
+            proc.terminate()
+            await proc.wait()
+
+
+async def _announced_url(proc: asyncio.subprocess.Process) -> str:
+    while line := await proc.stdout.readline():
+        match = re.search(rb"http://127\.0\.0\.1:\d+", line)
+        if match:
+            return match.group().decode() + "/"
+    raise UserError("stgs serve exited before it listened")
+
+
+@contextlib.asynccontextmanager
 async def scene_url(scene: str) -> AsyncIterator[str]:
-    """Base URL of the scene: served from loopback when it is a folder."""
+    """Base URL of the scene: a real server on loopback when it is a folder."""
     if scene.startswith(("http://", "https://")):
         yield scene.rsplit("/", 1)[0] + "/"
         return
     folder = Path(scene)
-    async with loopback(folder if folder.is_dir() else folder.parent) as base:
+    async with real_server(folder if folder.is_dir() else folder.parent) as base:
         yield base
 
 

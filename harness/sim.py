@@ -14,9 +14,7 @@ next), as in the player. The output has the player's log format.
 
 from __future__ import annotations
 
-import itertools
 import math
-from dataclasses import dataclass, field
 
 from stgs.client.abr import (
     RULES,
@@ -30,6 +28,7 @@ from stgs.client.abr import (
     throughput_kbps,
 )
 from stgs.client.clock import PlaybackClock
+from stgs.client.playlog import GOPRecord, playback_log
 from stgs.harness.ladder import Ladder
 from stgs.harness.network import Network
 from stgs.harness.scenario import Scenario
@@ -40,28 +39,6 @@ MAX_POLLS = 10_000_000
 """Bound on the fetcher's waits for buffer room (a playback that never drains its buffer is a bug)."""
 ABANDON_CHECK_S = 0.05
 """How often the simulator checks a feature download for abandonment (the player checks per 64 KiB chunk)."""
-
-
-@dataclass
-class SimGOP:
-    index: int
-    rep: str = ""
-    qp: int | None = None
-    rule: str = ""
-    buffer_s: float = 0.0
-    estimate_kbps: float | None = None
-    keyframe_bytes: int = 0
-    feature_bytes: int = 0
-    init_bytes: int = 0
-    fetch_start_s: float = 0.0
-    fetch_end_s: float | None = None
-    """None until the GOP is downloaded."""
-    ready_s: float = 0.0
-    play_start_s: float | None = None
-    stall_s: float = 0.0
-    abandoned_bytes: int = 0
-    latency_s: list[float] = field(default_factory=list)
-    events: list[str] = field(default_factory=list)
 
 
 def make_rule(name: str, ladder: Ladder, qp: int | None, settings: AbrSettings) -> AbrRule:
@@ -91,7 +68,10 @@ class Simulation:
         self.poll = min(0.05, self.T / 20)
         self.now = 0.0
         self.samples: list[ThroughputSample] = []
-        self.records = {k: SimGOP(k) for k in self.gops}
+        self.records = {k: GOPRecord(k) for k in self.gops}
+        g = pres.shape.gop_size
+        for k, rec in self.records.items():
+            rec.presented = min(g, frames - (k - self.k0) * g)
         self.inits: set[str] = set()
         self.decoder_free = 0.0
         self.wasted = 0
@@ -112,7 +92,7 @@ class Simulation:
             if start > until:
                 return
             self.decoder_free = ready
-            rec.ready_s = ready
+            rec.boundary_wait_s = ready if self.clock.t0 is None else 0.0
             rec.stall_s = self.clock.start(k, ready, ready if self.clock.t0 is None else self.clock.due(k))
             rec.play_start_s = self.clock.due(k)
 
@@ -126,11 +106,11 @@ class Simulation:
 
     # --- transfers ---
 
-    def transfer(self, nbytes: int, rec: SimGOP, adaptive_check=None) -> tuple[float, int, bool]:
+    def transfer(self, nbytes: int, rec: GOPRecord, adaptive_check=None) -> tuple[float, int, bool]:
         """Advance the clock over one request; returns (seconds, bytes received, abandoned)."""
         start = self.now
         rtt = self.net.round_trip()
-        rec.latency_s.append(rtt)
+        rec.latency_ms.append(rtt * 1e3)
         body_start = start + rtt
         end = self.net.finish(body_start, nbytes * 8)
         if adaptive_check is not None:
@@ -164,9 +144,10 @@ class Simulation:
         rec.keyframe_bytes = kf
         rung = self.fetch_media(k, rung, rec, sizes[0] / 8)
         rec.fetch_end_s = self.now
+        rec.download_s = rec.fetch_end_s - rec.fetch_start_s
         return rung
 
-    def fetch_media(self, k: int, rung: int, rec: SimGOP, lowest_bytes: float) -> int:
+    def fetch_media(self, k: int, rung: int, rec: GOPRecord, lowest_bytes: float) -> int:
         rep = self.ladder.pres.ladder[rung].rep_id
         self.fetch_init(rep, rec)
         size = self.ladder.media_bytes[rep][k]
@@ -190,7 +171,7 @@ class Simulation:
         rec.rep, rec.qp, rec.feature_bytes = low, self.ladder.pres.ladder[0].qp, size
         return 0
 
-    def fetch_init(self, rep: str, rec: SimGOP) -> None:
+    def fetch_init(self, rep: str, rec: GOPRecord) -> None:
         if rep in self.inits:
             return
         self.inits.add(rep)
@@ -207,28 +188,9 @@ class Simulation:
         return self.log()
 
     def log(self) -> dict:
-        recs = [self.records[k] for k in self.gops]
-        reps = [r.rep for r in recs]
-        total = sum(r.keyframe_bytes + r.feature_bytes + r.init_bytes for r in recs)
-        g = self.ladder.pres.shape.gop_size
-        return {
-            "format": "streamstgs-playback", "version": 1, "engine": "sim", "url": self.ladder.url,
-            "abr": self.rule.name, "segment_s": self.T, "buffer_capacity_s": self.clock.capacity_s,
-            "start_gop": self.k0, "gops_planned": len(self.gops), "gops_played": len(recs),
-            "startup_delay_s": recs[0].play_start_s if recs else None,
-            "stalls": {"count": sum(1 for r in recs if r.stall_s > 0), "total_s": self.clock.stall_total},
-            "switches": sum(1 for a, b in itertools.pairwise(reps) if a != b),
-            "frames": self.frames, "bytes": total, "kb_per_frame": total / 1e3 / self.frames,
-            "wasted_bytes": self.wasted, "error": None,
-            "gops": [{"index": r.index, "rep": r.rep, "qp": r.qp, "rule": r.rule, "buffer_s": r.buffer_s,
-                      "estimate_kbps": r.estimate_kbps, "keyframe_bytes": r.keyframe_bytes,
-                      "feature_bytes": r.feature_bytes, "init_bytes": r.init_bytes,
-                      "download_s": r.fetch_end_s - r.fetch_start_s, "fetch_start_s": r.fetch_start_s,
-                      "fetch_end_s": r.fetch_end_s, "play_start_s": r.play_start_s, "stall_s": r.stall_s,
-                      "presented": min(g, self.frames - (r.index - self.k0) * g),
-                      "latency_ms": [x * 1e3 for x in r.latency_s], "abandoned_bytes": r.abandoned_bytes,
-                      "events": r.events} for r in recs],
-        }
+        return playback_log([self.records[k] for k in self.gops], self.clock, url=self.ladder.url,
+                            abr=self.rule.name, wasted_bytes=self.wasted, retries=0, error=None,
+                            gops_planned=len(self.gops), extra={"engine": "sim"})
 
 
 def simulate(ladder: Ladder, scenario: Scenario, rule: str, settings: AbrSettings | None = None) -> dict:

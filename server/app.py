@@ -23,6 +23,7 @@ from aiohttp.abc import AbstractAccessLogger
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 
+from stgs.loopback import on_loopback
 from stgs.mpd import (
     FEATURE_SCHEME,
     KEYFRAME_EXTENSION,
@@ -256,14 +257,8 @@ async def loopback(root: Path, middlewares: tuple = ()) -> AsyncIterator[str]:
     app = build_app(ServeConfig(root=root, port=0, access_log=False))
     for i, middleware in enumerate(middlewares):
         app.middlewares.insert(i, middleware)
-    runner = web.AppRunner(app, access_log=None)
-    await runner.setup()
-    try:
-        await web.TCPSite(runner, "127.0.0.1", 0).start()
-        host, port = runner.addresses[0][:2]
-        yield f"http://{host}:{port}/"
-    finally:
-        await runner.cleanup()
+    async with on_loopback(app) as base:
+        yield base
 
 
 def run(cfg: ServeConfig) -> None:

@@ -1,0 +1,100 @@
+"""The playback log: one record per GOP and the document `stgs play` and `stgs sim` both write (docs/CLIENT.md)."""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+
+from stgs.client.clock import PlaybackClock
+
+LOG_FORMAT = "streamstgs-playback"
+
+
+@dataclass
+class GOPRecord:
+    """What happened to one GOP (one row of the playback log)."""
+
+    index: int
+    rep: str = ""
+    qp: int | None = None
+    rule: str = ""
+    """Rule that chose the Representation (dynamic: which of its two)."""
+    buffer_s: float = 0.0
+    """Buffer level when the choice was made."""
+    estimate_kbps: float | None = None
+    """Throughput estimate when the choice was made."""
+    keyframe_bytes: int = 0
+    feature_bytes: int = 0
+    init_bytes: int = 0
+    download_s: float = 0.0
+    ttfb_s: float = 0.0
+    """Time to first byte of the feature segment."""
+    keyframe_decode_s: float = 0.0
+    feature_decode_s: float = 0.0
+    dequantise_s: float = 0.0
+    boundary_wait_s: float = 0.0
+    """Time the player waited at this GOP's start for it to be decoded (startup for the first)."""
+    stall_s: float = 0.0
+    render_ms: list[float] = field(default_factory=list)
+    deform_ms: list[float] = field(default_factory=list)
+    splat_ms: list[float] = field(default_factory=list)
+    dropped: int = 0
+    presented: int = 0
+    """Frames whose time slot passed (rendered, dropped, or not decoded at all)."""
+    fetch_start_s: float = 0.0
+    """When the GOP's first request started (seconds since playback began)."""
+    fetch_end_s: float | None = None
+    """None until the GOP is downloaded."""
+    play_start_s: float | None = None
+    """When its first frame was due after any stall (seconds since playback began)."""
+    latency_ms: list[float] = field(default_factory=list)
+    """Round trips the network model applied to this GOP's requests (harness simulator only)."""
+    abandoned_bytes: int = 0
+    """Bytes of a feature download the ABR abandoned."""
+    events: list[str] = field(default_factory=list)
+    """Retries, fallbacks and abandonments, in words."""
+
+    @property
+    def decode_s(self) -> float:
+        return self.keyframe_decode_s + self.feature_decode_s + self.dequantise_s
+
+
+def gop_row(r: GOPRecord) -> dict:
+    def mean(xs: list[float]) -> float | None:
+        return sum(xs) / len(xs) if xs else None
+
+    return {"index": r.index, "rep": r.rep, "qp": r.qp, "rule": r.rule, "buffer_s": r.buffer_s,
+            "estimate_kbps": r.estimate_kbps, "keyframe_bytes": r.keyframe_bytes, "feature_bytes": r.feature_bytes,
+            "init_bytes": r.init_bytes, "download_s": r.download_s, "ttfb_s": r.ttfb_s,
+            "keyframe_decode_s": r.keyframe_decode_s, "feature_decode_s": r.feature_decode_s,
+            "dequantise_s": r.dequantise_s, "decode_s": r.decode_s, "boundary_wait_s": r.boundary_wait_s,
+            "stall_s": r.stall_s, "fetch_start_s": r.fetch_start_s, "fetch_end_s": r.fetch_end_s,
+            "play_start_s": r.play_start_s, "presented": r.presented, "render_ms": r.render_ms,
+            "deform_ms_mean": mean(r.deform_ms), "splat_ms_mean": mean(r.splat_ms), "dropped": r.dropped,
+            "latency_ms": r.latency_ms, "abandoned_bytes": r.abandoned_bytes, "events": r.events}
+
+
+def playback_log(records: list[GOPRecord], clock: PlaybackClock, *, url: str, abr: str, wasted_bytes: int,
+                 retries: int, error: BaseException | None, gops_planned: int, extra: dict | None = None) -> dict:
+    """The log document of one playback (records of every planned GOP, in order)."""
+    recs = [r for r in records if r.rep]
+    played = [r for r in recs if r.presented]
+    render = sorted(ms for r in played for ms in r.render_ms)
+    reps = [r.rep for r in played]
+    frames = sum(r.presented for r in played)
+    total_bytes = sum(r.keyframe_bytes + r.feature_bytes + r.init_bytes for r in played)
+    return {
+        "format": LOG_FORMAT, "version": 1, "url": url, "abr": abr, **(extra or {}),
+        "segment_s": clock.segment_s, "buffer_capacity_s": clock.capacity_s, "start_gop": clock.first_gop,
+        "gops_planned": gops_planned, "gops_played": len(played),
+        "startup_delay_s": records[0].boundary_wait_s if clock.t0 is not None else None,
+        "stalls": {"count": sum(1 for r in played if r.stall_s > 0), "total_s": clock.stall_total},
+        "switches": sum(1 for a, b in itertools.pairwise(reps) if a != b),
+        "frames": frames, "rendered_frames": len(render), "dropped_frames": sum(r.dropped for r in played),
+        "render_ms_median": render[len(render) // 2] if render else None,
+        "render_fps": 1e3 / render[len(render) // 2] if render else None,
+        "bytes": total_bytes, "kb_per_frame": total_bytes / 1e3 / frames if frames else None,
+        "wasted_bytes": wasted_bytes, "retries": retries,
+        "error": None if error is None else str(error) or type(error).__name__,
+        "gops": [gop_row(r) for r in recs],
+    }
