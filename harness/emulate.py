@@ -24,13 +24,12 @@ import aiohttp
 from aiohttp import web
 from stgs.client import PlayConfig, play
 from stgs.client.view import ViewSpec
-from stgs.harness.network import Network
+from stgs.harness.network import DELIVERY_CHUNK, Network
 from stgs.harness.scenario import Scenario
 
 from stgs.errors import UserError
 from stgs.loopback import on_loopback
 
-CHUNK = 16 << 10
 SERVER_START_S = 30.0
 SHAPED = (".stgk", ".mp4", ".m4s")
 
@@ -55,11 +54,14 @@ async def shaping_proxy(upstream: str, network: Network) -> AsyncIterator[str]:
         await _sleep_until(origin[0] + body_start)
         resp = web.StreamResponse(status=200, headers={"Content-Type": ctype, "Content-Length": str(len(body))})
         await resp.prepare(request)
-        for sent in range(0, len(body), CHUNK):
-            chunk = body[sent:sent + CHUNK]
-            await _sleep_until(origin[0] + network.finish(body_start, (sent + len(chunk)) * 8))
-            await resp.write(chunk)
-        await resp.write_eof()
+        try:
+            for sent in range(0, len(body), DELIVERY_CHUNK):
+                chunk = body[sent:sent + DELIVERY_CHUNK]
+                await _sleep_until(origin[0] + network.finish(body_start, (sent + len(chunk)) * 8))
+                await resp.write(chunk)
+            await resp.write_eof()
+        except (ConnectionError, aiohttp.ClientConnectionResetError):
+            pass  # the player abandoned this download
         return resp
 
     app = web.Application()

@@ -18,6 +18,8 @@ import random
 from stgs.harness.scenario import Effects
 
 MSS_BITS = 1460 * 8
+DELIVERY_CHUNK = 16 << 10
+"""Bytes that arrive at once: the emulator's proxy writes them, the player reacts to each (abandonment)."""
 
 
 class Network:

@@ -30,15 +30,13 @@ from stgs.client.abr import (
 from stgs.client.clock import PlaybackClock
 from stgs.client.playlog import GOPRecord, playback_log
 from stgs.harness.ladder import Ladder
-from stgs.harness.network import Network
+from stgs.harness.network import DELIVERY_CHUNK, Network
 from stgs.harness.scenario import Scenario
 
 from stgs.errors import UserError
 
 MAX_POLLS = 10_000_000
 """Bound on the fetcher's waits for buffer room (a playback that never drains its buffer is a bug)."""
-ABANDON_CHECK_S = 0.05
-"""How often the simulator checks a feature download for abandonment (the player checks per 64 KiB chunk)."""
 
 
 def make_rule(name: str, ladder: Ladder, qp: int | None, settings: AbrSettings) -> AbrRule:
@@ -114,15 +112,13 @@ class Simulation:
         body_start = start + rtt
         end = self.net.finish(body_start, nbytes * 8)
         if adaptive_check is not None:
-            t = start + self.settings.abandon_min_s
-            t = math.ceil((t - start) / ABANDON_CHECK_S) * ABANDON_CHECK_S + start
-            while t < end:
-                received = int(min(nbytes, self.net.delivered(body_start, t) / 8)) if t > body_start else 0
+            # the player judges a download each time a chunk arrives (none arrive during an outage)
+            for received in range(DELIVERY_CHUNK, nbytes, DELIVERY_CHUNK):
+                t = self.net.finish(body_start, received * 8)
                 self.advance(t)
                 if adaptive_check(received, nbytes, t - start, self.clock.buffer_level(t)):
                     self.now = t
                     return t - start, received, True
-                t += ABANDON_CHECK_S
         self.now = end
         return end - start, nbytes, False
 
