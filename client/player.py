@@ -359,6 +359,10 @@ class Session:
             rec.deform_ms.append(deform_s * 1e3)
             rec.splat_ms.append(splat_s * 1e3)
             await asyncio.to_thread(sink.write, f, image)
+        if self.cfg.realtime:  # the last frame stays on screen for its whole interval: GOP k ends at its due + T
+            end = gop_start + rec.presented / fps
+            if (delay := end - time.perf_counter()) > 0:
+                await asyncio.sleep(delay)
         if self.on_gop is not None and ready.renderer is not None:
             await asyncio.to_thread(self.on_gop, k, ready.renderer)
 
