@@ -59,7 +59,7 @@ class DivergedError(UserError):
 
 @dataclass
 class Views:
-    """Training images of some frames (uint8 to halve... quarter the memory) and their cameras."""
+    """Training images of some frames (kept as uint8: a quarter of float32) and their cameras."""
 
     cameras: list[Camera]
     frames: list[int]
@@ -322,8 +322,8 @@ class Trainer:
     def _step(self, opt: Optimizer, loss: torch.Tensor, stage: str, it: int, model: GOPModel) -> None:
         if not torch.isfinite(loss):
             raise DivergedError(f"the {stage} loss became {loss.item()} at iteration {it}; the last good "
-                                   f"checkpoint is in {self.state} (--resume continues from it; lower the "
-                                   "learning rates or the feature noise)")
+                                f"checkpoint is in {self.state} (--resume continues from it; lower the "
+                                "learning rates or the feature noise)")
         opt.opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.opt.step()
