@@ -92,6 +92,8 @@ class PlayConfig:
     """Decoded GOP models held at once (the one playing + pre-decoded ones)."""
     decode: bool = True
     """Decode and render (False: network and buffer only, for emulation and load tests)."""
+    speed: float = 1.0
+    """Media seconds per wall second of the playback clock (> 1: scaled-time emulation; decode off only)."""
     abr_settings: AbrSettings = field(default_factory=AbrSettings)
     download: DownloadSettings = field(default_factory=DownloadSettings)
 
@@ -106,6 +108,8 @@ class PlayConfig:
             raise UserError("--duration must be a positive number of seconds")
         if self.max_decoded < 2:
             raise UserError("max_decoded must be >= 2 (the GOP playing and the next)")
+        if not (math.isfinite(self.speed) and self.speed > 0) or (self.speed != 1 and self.decode):
+            raise UserError("speed must be positive, and other than 1 only without decoding")
 
 
 @dataclass
@@ -156,7 +160,8 @@ class Session:
         self.inits: dict[str, bytes] = {}
         self.samples: list[ThroughputSample] = []
         self.wasted_bytes = 0
-        self.t_start = time.perf_counter()
+        self.speed = cfg.speed
+        self.t_start = self.now()
         self.clock = PlaybackClock(self.T, self.capacity_s, self.k0)
 
     def _rule(self) -> AbrRule:
@@ -168,8 +173,15 @@ class Session:
                                 f"{', '.join(str(r.qp) for r in self.pres.ladder)}")
         return FixedRule(rep)
 
+    def now(self) -> float:
+        """The playback clock: wall seconds scaled by PlayConfig.speed (media seconds)."""
+        return time.perf_counter() * self.speed
+
+    async def sleep(self, media_s: float) -> None:
+        await asyncio.sleep(media_s / self.speed)
+
     def buffer_level(self) -> float:
-        return self.clock.buffer_level(time.perf_counter())
+        return self.clock.buffer_level(self.now())
 
     # --- fetching ---
 
@@ -182,8 +194,8 @@ class Session:
     async def fetch_loop(self, downloaded: dict[int, asyncio.Future]) -> None:
         current = None
         for k in self.gops:
-            while not self.clock.has_room(time.perf_counter()):
-                await asyncio.sleep(min(0.05, self.T / 20))
+            while not self.clock.has_room(self.now()):
+                await self.sleep(min(0.05, self.T / 20))
             try:
                 item = await self.fetch_gop(k, current)
             except (FetchError, MPDError) as exc:
@@ -197,7 +209,7 @@ class Session:
         """GOP k's keyframe (not adaptive, so first: its download is also a throughput sample), then the
         feature segment of the rung the ABR rule picks with that keyframe's exact size in its budget."""
         rec = self.records[k]
-        start = time.perf_counter()
+        start = self.now()
         rec.fetch_start_s = start - self.t_start
         retries = self.dl.retries
         keyframe = await self._fetch(self.pres.keyframe_url(k), "keyframe", self.pres.max_keyframe_bytes())
@@ -208,7 +220,7 @@ class Session:
             rec.rule = "bola" if self.rule.using_bola else "throughput"
         rec.buffer_s, rec.estimate_kbps = state.buffer_s, estimate_kbps(state.samples, self.cfg.abr_settings)
         rung, init, media = await self.fetch_features(k, rung, state)
-        rec.download_s = time.perf_counter() - start
+        rec.download_s = self.now() - start
         rec.fetch_end_s = rec.fetch_start_s + rec.download_s
         rec.keyframe_bytes, rec.feature_bytes = len(keyframe), len(media)
         if self.dl.retries > retries:
@@ -219,7 +231,7 @@ class Session:
         data = await self.dl.fetch(url, kind, max_bytes, progress)
         sample = self.dl.samples[-1]
         if kind in ("keyframe", "media"):
-            self.samples.append(ThroughputSample(sample.bytes, sample.seconds))
+            self.samples.append(ThroughputSample(sample.bytes, sample.seconds * self.speed))
         return data
 
     async def init_segment(self, rep: str, rec: GOPRecord) -> bytes:
@@ -236,8 +248,8 @@ class Session:
         adaptive = not isinstance(self.rule, FixedRule)
 
         def progress(received: int, total: int | None, elapsed: float) -> bool:
-            return adaptive and rung > 0 and should_abandon(received, total, elapsed, self.buffer_level(),
-                                                            lowest_bytes, self.cfg.abr_settings)
+            return adaptive and rung > 0 and should_abandon(received, total, elapsed * self.speed,
+                                                            self.buffer_level(), lowest_bytes, self.cfg.abr_settings)
         rep = self.pres.ladder[rung].rep_id
         try:
             init = await self.init_segment(rep, rec)
@@ -246,10 +258,11 @@ class Session:
             rec.ttfb_s = self.dl.samples[-1].ttfb
             return self._chosen(rec, rung, init, media)
         except AbandonError as exc:
-            self.samples.append(ThroughputSample(exc.sample.bytes, exc.sample.seconds))
+            self.samples.append(ThroughputSample(exc.sample.bytes, exc.sample.seconds * self.speed))
             rec.abandoned_bytes += exc.sample.bytes
             self.wasted_bytes += exc.sample.bytes
-            rec.events.append(f"abandoned {rep} after {exc.sample.bytes} bytes ({exc.sample.seconds:.2f} s)")
+            rec.events.append(f"abandoned {rep} after {exc.sample.bytes} bytes "
+                              f"({exc.sample.seconds * self.speed:.2f} s)")
         except FetchError as exc:
             if rung == 0:
                 raise
@@ -344,13 +357,13 @@ class Session:
             rec.presented += 1
             if self.cfg.realtime:
                 due = gop_start + i / fps
-                now = time.perf_counter()
+                now = self.now()
                 if now >= due + 1 / fps:
                     rec.dropped += 1
                     sink.repeat(f)
                     continue
                 if now < due:
-                    await asyncio.sleep(due - now)
+                    await self.sleep(due - now)
             if ready.renderer is None:
                 continue
             start = time.perf_counter()
@@ -361,17 +374,17 @@ class Session:
             await asyncio.to_thread(sink.write, f, image)
         if self.cfg.realtime:  # the last frame stays on screen for its whole interval: GOP k ends at its due + T
             end = gop_start + rec.presented / fps
-            if (delay := end - time.perf_counter()) > 0:
-                await asyncio.sleep(delay)
+            if (delay := end - self.now()) > 0:
+                await self.sleep(delay)
         if self.on_gop is not None and ready.renderer is not None:
             await asyncio.to_thread(self.on_gop, k, ready.renderer)
 
     async def wait_ready(self, k: int, fut: asyncio.Future) -> ReadyGOP:
         rec = self.records[k]
-        arrived = time.perf_counter()
+        arrived = self.now()
         was_ready = fut.done()
         result = await fut
-        ready = arrived if was_ready else time.perf_counter()
+        ready = arrived if was_ready else self.now()
         rec.boundary_wait_s = ready - (self.t_start if k == self.k0 else arrived)
         rec.stall_s = self.clock.start(k, ready, arrived)
         rec.play_start_s = self.clock.due(k) - self.t_start

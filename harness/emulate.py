@@ -3,7 +3,8 @@ runs it) through a shaping proxy.
 
 The proxy (aiohttp, loopback) forwards every request to the server and
 delivers each segment's bytes on the schedule `stgs.harness.network.Network`
-computes for the scenario's effects, in real time: one round trip (latency,
+computes for the scenario's effects, in real time or scaled time (`speed`: the
+player's clock and the network both run that many times faster): one round trip (latency,
 jitter) before the first byte, then the body paced by the bandwidth
 (outages, competing clients, loss). The manifest and stats.json, fetched
 before playback starts, pass unshaped; the network's clock starts at the first
@@ -35,8 +36,9 @@ SHAPED = (".stgk", ".mp4", ".m4s")
 
 
 @contextlib.asynccontextmanager
-async def shaping_proxy(upstream: str, network: Network) -> AsyncIterator[str]:
-    """A loopback proxy to `upstream` (base URL ending in /) applying `network`; yields its base URL."""
+async def shaping_proxy(upstream: str, network: Network, speed: float = 1.0) -> AsyncIterator[str]:
+    """A loopback proxy to `upstream` (base URL ending in /) applying `network` with its clock running `speed`
+    times faster than the wall clock; yields its base URL."""
     origin: list[float] = []
     session = aiohttp.ClientSession()
 
@@ -49,15 +51,15 @@ async def shaping_proxy(upstream: str, network: Network) -> AsyncIterator[str]:
         now = time.perf_counter()
         if not origin:
             origin.append(now)
-        t = now - origin[0]
+        t = (now - origin[0]) * speed
         body_start = t + network.round_trip()
-        await _sleep_until(origin[0] + body_start)
+        await _sleep_until(origin[0] + body_start / speed)
         resp = web.StreamResponse(status=200, headers={"Content-Type": ctype, "Content-Length": str(len(body))})
         await resp.prepare(request)
         try:
             for sent in range(0, len(body), DELIVERY_CHUNK):
                 chunk = body[sent:sent + DELIVERY_CHUNK]
-                await _sleep_until(origin[0] + network.finish(body_start, (sent + len(chunk)) * 8))
+                await _sleep_until(origin[0] + network.finish(body_start, (sent + len(chunk)) * 8) / speed)
                 await resp.write(chunk)
             await resp.write_eof()
         except (ConnectionError, aiohttp.ClientConnectionResetError):
@@ -113,20 +115,21 @@ async def scene_url(scene: str) -> AsyncIterator[str]:
         yield base
 
 
-def play_config(url: str, scenario: Scenario, rule: str, decode: bool) -> PlayConfig:
+def play_config(url: str, scenario: Scenario, rule: str, decode: bool, speed: float = 1.0) -> PlayConfig:
     return PlayConfig(url, abr=rule, qp=scenario.qp, buffer_s=scenario.buffer_s, start_s=scenario.start_s,
-                      duration_s=scenario.duration_s, realtime=True, decode=decode,
+                      duration_s=scenario.duration_s, realtime=True, decode=decode, speed=speed,
                       view=ViewSpec(width=64, height=48))
 
 
-async def emulate_async(scenario: Scenario, rule: str, decode: bool = False) -> dict:
+async def emulate_async(scenario: Scenario, rule: str, decode: bool = False, speed: float = 1.0) -> dict:
     network = Network(scenario.effects, scenario.seed)
-    async with scene_url(scenario.scene) as base, shaping_proxy(base, network) as proxy:
-        log = await play(play_config(proxy + "manifest.mpd", scenario, rule, decode))
-    log["engine"] = "emulate"
+    async with scene_url(scenario.scene) as base, shaping_proxy(base, network, speed) as proxy:
+        log = await play(play_config(proxy + "manifest.mpd", scenario, rule, decode, speed))
+    log["engine"] = "emulate" if speed == 1 else f"emulate x{speed:g}"
     return log
 
 
-def emulate(scenario: Scenario, rule: str, decode: bool = False) -> dict:
-    """One real playback through the shaping proxy (the player's log, `engine: emulate`)."""
-    return asyncio.run(emulate_async(scenario, rule, decode))
+def emulate(scenario: Scenario, rule: str, decode: bool = False, speed: float = 1.0) -> dict:
+    """One real playback through the shaping proxy (the player's log, `engine: emulate`); `speed` > 1 runs the
+    player's clock and the network that many times faster than real time (decoding off)."""
+    return asyncio.run(emulate_async(scenario, rule, decode, speed))

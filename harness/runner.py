@@ -26,20 +26,20 @@ def rules(sc: Scenario) -> list[str]:
     return sc.abr if sc.qp is None else sc.abr[:1]
 
 
-def run_once(sc: Scenario, engine: str, rule: str, ladder, decode: bool = False) -> dict:
+def run_once(sc: Scenario, engine: str, rule: str, ladder, decode: bool = False, speed: float = 1.0) -> dict:
     if engine == "sim":
         return simulate(ladder, sc, rule)
-    return emulate(sc, rule, decode)
+    return emulate(sc, rule, decode, speed)
 
 
-def run_scenario(sc: Scenario, engines: list[str], out: Path, decode: bool = False) -> list[dict]:
+def run_scenario(sc: Scenario, engines: list[str], out: Path, decode: bool = False, speed: float = 1.0) -> list[dict]:
     """Every (engine, rule) playback of one scenario; writes logs, timelines, plots and a summary under out."""
     ladder = load_ladder(sc.scene)
     results = []
     for rule in rules(sc):
         for engine in engines:
             start = time.perf_counter()
-            log = run_once(sc, engine, rule, ladder, decode)
+            log = run_once(sc, engine, rule, ladder, decode, speed)
             seconds = time.perf_counter() - start
             m = metrics(log, ladder, sc.effects) | {"scenario": sc.name, "wall_s": seconds}
             stem = f"{sc.name}-{engine}-{rule}"
@@ -52,7 +52,7 @@ def run_scenario(sc: Scenario, engines: list[str], out: Path, decode: bool = Fal
     return results
 
 
-def run_batch(sc: Scenario, traces: Path, engines: list[str], out: Path) -> list[dict]:
+def run_batch(sc: Scenario, traces: Path, engines: list[str], out: Path, speed: float = 1.0) -> list[dict]:
     """The scenario once per trace file in `traces` (its bandwidth replaced by the trace), per rule and engine."""
     files = sorted(p for p in Path(traces).iterdir() if p.suffix in TRACE_SUFFIX)
     if not files:
@@ -65,7 +65,7 @@ def run_batch(sc: Scenario, traces: Path, engines: list[str], out: Path) -> list
                                       effects=dataclasses.replace(sc.effects, bandwidth=trace))
         for rule in rules(variant):
             for engine in engines:
-                log = run_once(variant, engine, rule, ladder)
+                log = run_once(variant, engine, rule, ladder, speed=speed)
                 rows.append(metrics(log, ladder, variant.effects) | {"scenario": variant.name, "trace": f.name})
     write_json(out / f"{sc.name}.batch.json", rows)
     (out / f"{sc.name}.batch.md").write_text(summary_table(rows) + "\n")

@@ -342,6 +342,9 @@ def add_sim(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--traces", type=Path, help="batch: run the scenario once per trace file in this folder")
     p.add_argument("--load", help="load mode: comma-separated client counts against one real server")
     p.add_argument("--decode", action="store_true", help="emulate: decode and render too (default: network only)")
+    p.add_argument("--speed", type=float, default=1.0,
+                   help="emulate: run the player's clock and the network this many times faster than real time "
+                   "(without --decode; default 1)")
     p.add_argument("--export-sabre", type=Path, help="also write the scene's ladder as Sabre's manifest JSON")
     p.add_argument("--out", type=Path, default=Path("sim-output"), help="output folder (default: ./sim-output)")
     p.set_defaults(run=run_sim)
@@ -364,8 +367,10 @@ def run_sim(args: argparse.Namespace) -> int:
         rows = run_load(sc, _int_list(args.load, "--load"), args.out)
         print((args.out / f"{sc.name}.load.md").read_text().rstrip())
         return 0 if rows else 1
-    rows = run_batch(sc, args.traces, engines, args.out) if args.traces else run_scenario(
-        sc, engines, args.out, args.decode)
+    if not (args.speed > 0 and math.isfinite(args.speed)) or (args.speed != 1 and args.decode):
+        raise UserError("--speed must be positive, and other than 1 only without --decode")
+    rows = run_batch(sc, args.traces, engines, args.out, args.speed) if args.traces else run_scenario(
+        sc, engines, args.out, args.decode, args.speed)
     print(summary_table(rows))
     print(f"wrote reports to {args.out}/")
     return 0

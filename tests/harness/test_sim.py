@@ -180,6 +180,22 @@ def test_simulation_and_emulation_agree(packed):
         assert abs(s - e) <= max(0.1 * s, 0.05), (effects, s, e)
 
 
+def test_scaled_time_emulation_agrees_too(packed):
+    from stgs.harness.emulate import emulate
+
+    ladder = load_ladder(str(packed))
+    kf, _ = rates(ladder)
+    sc = scenario_from_dict({"scene": str(packed), "abr": ["throughput"], "qp": 32,
+                             "effects": {"bandwidth": {"kbps": 0.5 * kf}, "latency_ms": 40}}, "x4", Path("."))
+    sim = simulate(ladder, sc, "throughput")
+    emu = emulate(sc, "throughput", speed=4.0)  # a player clock at 1x against a 4x network would stall far less
+    assert emu["engine"] == "emulate x4"
+    assert [g["qp"] for g in sim["gops"]] == [g["qp"] for g in emu["gops"]]
+    s, e = sim["stalls"]["total_s"], emu["stalls"]["total_s"]
+    assert sim["stalls"]["count"] == emu["stalls"]["count"] >= 1
+    assert abs(s - e) <= max(0.1 * s, 0.05), (s, e)
+
+
 def test_cli_batch_and_load(packed, tmp_path):
     traces = tmp_path / "traces"
     traces.mkdir()
