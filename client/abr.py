@@ -23,6 +23,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
+from stgs.errors import UserError
+
 
 @dataclass
 class AbrSettings:
@@ -172,6 +174,23 @@ class FixedRule:
 
 RULES = {"throughput": ThroughputRule, "bola": BolaRule, "dynamic": DynamicRule}
 """`--abr` names."""
+
+
+def make_rule(name: str, ladder_qps: Sequence[int | None], qp: int | None, settings: AbrSettings,
+              option: str = "--qp") -> AbrRule:
+    """The rule `name`, or a FixedRule on the rung of `qp` when one is pinned (`option` names it in errors)."""
+    if qp is None:
+        return RULES[name](settings)
+    if qp not in ladder_qps:
+        raise UserError(f"{option} {qp}: the scene offers QPs {', '.join(str(q) for q in ladder_qps)}")
+    return FixedRule(list(ladder_qps).index(qp))
+
+
+def deciding_rule(rule: AbrRule) -> str:
+    """Name of the rule that made `rule`'s last decision (DYNAMIC: the one of its two it used)."""
+    if isinstance(rule, DynamicRule):
+        return "bola" if rule.using_bola else "throughput"
+    return rule.name
 
 
 def should_abandon(received: int, total: int | None, elapsed_s: float, buffer_s: float, lowest_bytes: float,

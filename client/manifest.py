@@ -40,6 +40,20 @@ DURATION_PRECISION_S = 1e-3
 
 
 @dataclass(frozen=True)
+class PlaybackSpan:
+    """Which part of a presentation one playback covers."""
+
+    first_gop: int
+    """k0: the GOP holding the start time."""
+    frames: int
+    """Frames to present from k0's first frame."""
+    gops: list[int]
+    """GOPs the playback needs, in order."""
+    buffer_s: float
+    """Download buffer capacity (at least one GOP)."""
+
+
+@dataclass(frozen=True)
 class Rung:
     """One feature Representation of the ladder."""
 
@@ -48,15 +62,6 @@ class Rung:
     """@bandwidth, bit/s."""
     qp: int | None
     """QP parsed from the id (`qp<N>`), if it has that form."""
-
-
-def _descriptor_fields(value: str | None) -> dict[str, str]:
-    fields = {}
-    for item in (value or "").split(";"):
-        if "=" in item:
-            key, _, val = item.partition("=")
-            fields[key.strip()] = val.strip()
-    return fields
 
 
 def _bounded_int(fields: dict[str, str], key: str, lo: int, hi: int) -> int:
@@ -93,8 +98,7 @@ class Presentation:
             raise MPDError("the feature AdaptationSet has no Representation")
         if self.features.segment_template.initialization is None:
             raise MPDError("the feature SegmentTemplate has no initialization")
-        desc = next(d for d in self.keyframes.supplemental if d.scheme_id_uri == KEYFRAME_SCHEME)
-        fields = _descriptor_fields(desc.value)
+        fields = self.keyframes.descriptor(KEYFRAME_SCHEME).fields()
         capacity = _bounded_int(fields, "capacity", 1, MAX_CAPACITY)
         self.shape = GOPShape(capacity, _bounded_int(fields, "gop_size", 2, MAX_GOP_SIZE),
                               _bounded_int(fields, "window", 1, MAX_WINDOW),
@@ -137,6 +141,16 @@ class Presentation:
         if not math.isfinite(seconds) or seconds < 0:
             raise MPDError(f"start time must be a non-negative number of seconds, got {seconds}")
         return min(self.num_gops - 1, int(seconds / self.segment_seconds + 1e-9))
+
+    def span(self, start_s: float, duration_s: float | None, buffer_s: float | None) -> PlaybackSpan:
+        """The GOPs and frames a playback from `start_s` (at its GOP's first frame) for `duration_s` (None: to
+        the end) needs, and its buffer capacity (None: three GOPs)."""
+        k0 = self.gop_at(start_s)
+        g = self.shape.gop_size
+        total = (self.num_gops - k0) * g
+        frames = total if duration_s is None else max(1, min(total, round(duration_s * self.fps)))
+        capacity = max(buffer_s if buffer_s is not None else 3 * self.segment_seconds, self.segment_seconds)
+        return PlaybackSpan(k0, frames, list(range(k0, k0 + math.ceil(frames / g))), capacity)
 
     def _number(self, gop: int, template_start: int) -> int:
         if not 0 <= gop < self.num_gops:

@@ -29,12 +29,12 @@ from pathlib import Path
 import torch
 from stgs.client.abr import (
     RULES,
-    AbrRule,
     AbrSettings,
     AbrState,
-    DynamicRule,
     FixedRule,
     ThroughputSample,
+    deciding_rule,
+    make_rule,
     should_abandon,
 )
 from stgs.client.abr import throughput_kbps as estimate_kbps
@@ -148,14 +148,10 @@ class Session:
         self.cfg, self.pres, self.dl, self.stats, self.cameras, self.on_gop = cfg, pres, dl, stats, cameras, on_gop
         self.T = pres.segment_seconds
         self.G = pres.shape.gop_size
-        self.capacity_s = max(cfg.buffer_s if cfg.buffer_s is not None else 3 * self.T, self.T)
-        self.k0 = pres.gop_at(cfg.start_s)
-        first_frame = self.k0 * self.G
-        total = pres.num_gops * self.G - first_frame
-        self.frames = total if cfg.duration_s is None else max(1, min(total, round(cfg.duration_s * pres.fps)))
-        self.first_frame = first_frame
-        self.gops = list(range(self.k0, self.k0 + math.ceil(self.frames / self.G)))
-        self.rule = self._rule()
+        span = pres.span(cfg.start_s, cfg.duration_s, cfg.buffer_s)
+        self.k0, self.frames, self.gops, self.capacity_s = span.first_gop, span.frames, span.gops, span.buffer_s
+        self.first_frame = self.k0 * self.G
+        self.rule = make_rule(cfg.abr, [r.qp for r in pres.ladder], cfg.qp, cfg.abr_settings)
         self.records = {k: GOPRecord(k) for k in self.gops}
         self.inits: dict[str, bytes] = {}
         self.samples: list[ThroughputSample] = []
@@ -163,15 +159,6 @@ class Session:
         self.speed = cfg.speed
         self.t_start = self.now()
         self.clock = PlaybackClock(self.T, self.capacity_s, self.k0)
-
-    def _rule(self) -> AbrRule:
-        if self.cfg.qp is None:
-            return RULES[self.cfg.abr](self.cfg.abr_settings)
-        rep = next((i for i, r in enumerate(self.pres.ladder) if r.qp == self.cfg.qp), None)
-        if rep is None:
-            raise PlaybackError(f"--qp {self.cfg.qp}: the scene offers QPs "
-                                f"{', '.join(str(r.qp) for r in self.pres.ladder)}")
-        return FixedRule(rep)
 
     def now(self) -> float:
         """The playback clock: wall seconds scaled by PlayConfig.speed (media seconds)."""
@@ -215,9 +202,7 @@ class Session:
         keyframe = await self._fetch(self.pres.keyframe_url(k), "keyframe", self.pres.max_keyframe_bytes())
         state = self.abr_state(k, current, len(keyframe) * 8)
         rung = self.rule.choose(state)
-        rec.rule = self.rule.name
-        if isinstance(self.rule, DynamicRule):
-            rec.rule = "bola" if self.rule.using_bola else "throughput"
+        rec.rule = deciding_rule(self.rule)
         rec.buffer_s, rec.estimate_kbps = state.buffer_s, estimate_kbps(state.samples, self.cfg.abr_settings)
         rung, init, media = await self.fetch_features(k, rung, state)
         rec.download_s = self.now() - start
@@ -267,6 +252,10 @@ class Session:
             if rung == 0:
                 raise
             rec.events.append(f"fallback from {rep}: {exc}")
+        return await self.fetch_lowest(k, rec)
+
+    async def fetch_lowest(self, k: int, rec: GOPRecord) -> tuple[int, bytes, bytes]:
+        """(0, init, media) of GOP k at the lowest rung: the fallback after an abandoned or failed download."""
         low = self.pres.ladder[0].rep_id
         init = await self.init_segment(low, rec)
         media = await self._fetch(self.pres.media_url(low, k), "media", self.pres.max_media_bytes(low))
@@ -315,11 +304,7 @@ class Session:
             if item.rung == 0:
                 raise PlaybackError(f"feature segment of GOP {item.index}: {exc}") from None
             rec.events.append(f"fallback from {rec.rep}: feature segment does not decode ({exc})")
-        low = self.pres.ladder[0].rep_id
-        item.init = await self.init_segment(low, rec)
-        item.media = await self._fetch(self.pres.media_url(low, item.index), "media", self.pres.max_media_bytes(low))
-        item.rung = 0
-        self._chosen(rec, 0, item.init, item.media)
+        item.rung, item.init, item.media = await self.fetch_lowest(item.index, rec)
         rec.feature_bytes += len(item.media)
         try:
             return await asyncio.to_thread(self.decode_features, item, kf)

@@ -17,13 +17,12 @@ from __future__ import annotations
 import math
 
 from stgs.client.abr import (
-    RULES,
-    AbrRule,
     AbrSettings,
     AbrState,
-    DynamicRule,
     FixedRule,
     ThroughputSample,
+    deciding_rule,
+    make_rule,
     should_abandon,
     throughput_kbps,
 )
@@ -33,35 +32,20 @@ from stgs.harness.ladder import Ladder
 from stgs.harness.network import DELIVERY_CHUNK, Network
 from stgs.harness.scenario import Scenario
 
-from stgs.errors import UserError
-
 MAX_POLLS = 10_000_000
 """Bound on the fetcher's waits for buffer room (a playback that never drains its buffer is a bug)."""
-
-
-def make_rule(name: str, ladder: Ladder, qp: int | None, settings: AbrSettings) -> AbrRule:
-    if qp is None:
-        return RULES[name](settings)
-    index = next((i for i, r in enumerate(ladder.pres.ladder) if r.qp == qp), None)
-    if index is None:
-        raise UserError(f"qp {qp}: the scene offers QPs {', '.join(str(r.qp) for r in ladder.pres.ladder)}")
-    return FixedRule(index)
 
 
 class Simulation:
     def __init__(self, ladder: Ladder, scenario: Scenario, rule_name: str, settings: AbrSettings | None = None):
         self.ladder, self.sc = ladder, scenario
         self.settings = settings or AbrSettings()
-        self.rule = make_rule(rule_name, ladder, scenario.qp, self.settings)
         pres = ladder.pres
+        self.rule = make_rule(rule_name, [r.qp for r in pres.ladder], scenario.qp, self.settings, option="qp")
         self.T = pres.segment_seconds
-        self.k0 = pres.gop_at(scenario.start_s)
-        total = pres.num_gops * pres.shape.gop_size - self.k0 * pres.shape.gop_size
-        frames = total if scenario.duration_s is None else max(1, min(total, round(scenario.duration_s * pres.fps)))
-        self.frames = frames
-        self.gops = list(range(self.k0, self.k0 + math.ceil(frames / pres.shape.gop_size)))
-        capacity = max(scenario.buffer_s if scenario.buffer_s is not None else 3 * self.T, self.T)
-        self.clock = PlaybackClock(self.T, capacity, self.k0)
+        span = pres.span(scenario.start_s, scenario.duration_s, scenario.buffer_s)
+        self.k0, frames, self.gops = span.first_gop, span.frames, span.gops
+        self.clock = PlaybackClock(self.T, span.buffer_s, self.k0)
         self.net = Network(scenario.effects, scenario.seed)
         self.poll = min(0.05, self.T / 20)
         self.now = 0.0
@@ -134,8 +118,7 @@ class Simulation:
         state = AbrState([r.bandwidth for r in ladder], self.T, self.clock.buffer_level(self.now),
                          self.clock.capacity_s, list(self.samples), kf * 8, sizes, current)
         rung = self.rule.choose(state)
-        rec.rule = ("bola" if self.rule.using_bola else "throughput") if isinstance(self.rule, DynamicRule) \
-            else self.rule.name
+        rec.rule = deciding_rule(self.rule)
         rec.buffer_s, rec.estimate_kbps = state.buffer_s, throughput_kbps(state.samples, self.settings)
         rec.keyframe_bytes = kf
         rung = self.fetch_media(k, rung, rec, sizes[0] / 8)

@@ -26,8 +26,13 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _names(text: str) -> list[str]:
+    """A comma-separated list of names (blank entries dropped)."""
+    return [n.strip() for n in text.split(",") if n.strip()]
+
+
 def _effects(text: str) -> tuple[str, ...]:
-    return tuple(e.strip() for e in text.split(",") if e.strip())
+    return tuple(_names(text))
 
 
 def add_synth(sub: argparse._SubParsersAction) -> None:
@@ -244,10 +249,6 @@ def print_playback(s: dict) -> None:
           f"QPs {qps}, {s['switches']} switch(es)")
     print(f"stalls {s['stalls']['count']} ({s['stalls']['total_s']:.2f} s), dropped frames {s['dropped_frames']}, "
           f"{s['kb_per_frame']:.1f} KB/frame, render {s['render_ms_median'] or 0:.1f} ms/frame median")
-
-
-def _names(text: str) -> list[str]:
-    return [n.strip() for n in text.split(",") if n.strip()]
 
 
 def add_train(sub: argparse._SubParsersAction) -> None:

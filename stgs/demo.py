@@ -20,11 +20,11 @@ import cv2
 import torch
 
 from stgs.camera import Camera, intrinsics, look_at
-from stgs.fsio import atomic_write_bytes, image_grid, load_png, save_png
+from stgs.fsio import atomic_write_bytes, image_grid, save_png
 from stgs.metrics import psnr
 from stgs.model.view import FrameRenderer
 from stgs.native.build import available
-from stgs.synth import GROUND_TRUTH_DIR, PRESETS, SCENE_TARGET, load_ground_truth, synthesize
+from stgs.synth import PRESETS, SCENE_TARGET, synthesize
 
 SHEET_COLUMNS = 6
 SHEET_ROWS = 2
@@ -57,11 +57,12 @@ class TruthProbe:
     """Compares every streamed GOP with the ground truth and the uncompressed model at a scene camera."""
 
     def __init__(self, model_dir: Path, gop_size: int):
+        from stgs.data.synth import SynthReader
         from stgs.model.store import load_model
 
-        self.model_dir, self.gop_size = model_dir, gop_size
-        self.doc, cameras = load_ground_truth(model_dir)
-        self.camera = cameras[0]
+        self.gop_size = gop_size
+        self.truth = SynthReader(model_dir)
+        self.camera = self.truth.cameras(0)[0]
         self.local = load_model(model_dir)[1]
         self.rows: list[tuple[float, float]] = []
         """(PSNR vs truth, PSNR vs uncompressed model) per compared frame."""
@@ -72,8 +73,7 @@ class TruthProbe:
         local = FrameRenderer(self.local[k])
         for i in (0, self.gop_size // 2):
             f = k * self.gop_size + i
-            truth = load_png(self.model_dir / GROUND_TRUTH_DIR /
-                             self.doc["pattern"].format(camera=self.camera.name, frame=f))
+            truth = self.truth.image(f, self.camera.name)
             streamed = renderer.render(i, self.camera).clamp(0, 1)
             reference = local.render(i, self.camera).clamp(0, 1)
             with self.lock:

@@ -25,7 +25,7 @@ from stgs.data import open_dataset
 from stgs.errors import UserError
 from stgs.fsio import atomic_write_bytes, image_grid, save_png
 from stgs.metrics import psnr, ssim
-from stgs.model.gop import GOPModel
+from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.store import load_gop, read_meta
 from stgs.model.view import FrameRenderer
 from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, MPDError, expand_template, parse_mpd
@@ -42,10 +42,12 @@ def packaged_gops(dash: Path) -> dict[str, Callable[[int], GOPModel]]:
         kf_set, video = mpd.adaptation_set(KEYFRAME_SCHEME), mpd.adaptation_set(FEATURE_SCHEME)
     except (OSError, MPDError) as exc:
         raise UserError(f"{dash}: not a packaged scene ({exc})") from None
-    fields = dict(item.split("=", 1) for item in kf_set.supplemental[0].value.split(";") if "=" in item)
-    from stgs.model.gop import GOPShape
-
-    shape = GOPShape(int(fields["capacity"]), int(fields["gop_size"]), int(fields["window"]), int(fields["pe_freqs"]))
+    try:
+        fields = kf_set.descriptor(KEYFRAME_SCHEME).fields()
+        shape = GOPShape(int(fields["capacity"]), int(fields["gop_size"]), int(fields["window"]),
+                         int(fields["pe_freqs"]))
+    except (KeyError, ValueError) as exc:
+        raise UserError(f"{dash}: keyframe descriptor lacks or garbles {exc}") from None
     side = shape.grid_side
 
     def loader(rep: str) -> Callable[[int], GOPModel]:

@@ -86,6 +86,15 @@ class Descriptor:
     def from_element(cls, el: etree._Element) -> Descriptor:
         return cls(_required(el, "schemeIdUri"), el.get("value"))
 
+    def fields(self) -> dict[str, str]:
+        """@value read as `key=value;key=value` (this profile's descriptors), stripped."""
+        out = {}
+        for item in (self.value or "").split(";"):
+            if "=" in item:
+                key, _, val = item.partition("=")
+                out[key.strip()] = val.strip()
+        return out
+
 
 @dataclass
 class SegmentTemplate:
@@ -201,6 +210,13 @@ class AdaptationSet:
 
     def has_scheme(self, scheme: str) -> bool:
         return any(d.scheme_id_uri == scheme for d in self.supplemental)
+
+    def descriptor(self, scheme: str) -> Descriptor:
+        """The first SupplementalProperty with `scheme`."""
+        for d in self.supplemental:
+            if d.scheme_id_uri == scheme:
+                return d
+        raise MPDError(f"AdaptationSet {self.id} has no SupplementalProperty {scheme}")
 
 
 @dataclass
