@@ -18,7 +18,7 @@ from pathlib import Path
 from stgs.harness.ladder import Ladder
 from stgs.harness.scenario import Effects, Trace
 
-from stgs.fsio import atomic_write_bytes
+from stgs.fsio import atomic_write_bytes, save_figure
 
 REBUFFER_PENALTY = 4.3
 """μ of the linear QoE (Pensieve's value for bit rates in Mbit/s)."""
@@ -104,7 +104,7 @@ def plot_timeline(path: Path, log: dict, bandwidth: Trace | None, title: str) ->
     ax.legend(lines, [h.get_label() for h in lines], loc="upper right", fontsize=8)
     ax.set_title(title)
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_cdf(path: Path, values: dict[str, list[float]], xlabel: str) -> None:
@@ -118,14 +118,7 @@ def plot_cdf(path: Path, values: dict[str, list[float]], xlabel: str) -> None:
     ax.set_ylabel("fraction of traces")
     ax.legend()
     fig.tight_layout()
-    _save(fig, path)
-
-
-def _save(fig, path: Path) -> None:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    _plt().close(fig)
-    atomic_write_bytes(path, buf.getvalue())
+    save_figure(fig, path)
 
 
 def summary_table(rows: list[dict]) -> str:

@@ -43,6 +43,18 @@ def encode_png(image: torch.Tensor) -> bytes:
     return buf.tobytes()
 
 
+def save_figure(fig, path: Path) -> None:
+    """A matplotlib figure as a PNG (110 dpi), written atomically; the figure is closed."""
+    import io
+
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())
+
+
 def save_png(path: Path, image: torch.Tensor) -> None:
     """Write an (H, W, 3) float RGB image in [0, 1] as an 8-bit PNG, atomically."""
     atomic_write_bytes(Path(path), encode_png(image))

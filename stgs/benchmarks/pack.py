@@ -21,6 +21,7 @@ import torch
 from stgs.codec.mp4 import split_fragmented
 from stgs.codec.plas import PLASConfig, neighbour_distance, plas_order
 from stgs.codec.video import decode_segment, encode_gop
+from stgs.fsio import save_figure
 from stgs.metrics import psnr
 from stgs.packager.packer import PackConfig, Packer
 from stgs.synth import PRESETS, SynthConfig, synthesize
@@ -99,8 +100,7 @@ def plot(rows: list[dict], path: Path) -> None:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def plas_rows(sides: list[int]) -> list[dict]:

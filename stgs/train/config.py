@@ -107,8 +107,8 @@ class TrainConfig:
 BUDGETS = {
     "quick": TrainConfig(coarse_iterations=1000, iterations=600,
                          lr=LearningRates(position=8e-4, position_final=8e-6)),
-    "cpu": TrainConfig(budget="cpu", grid_side=128, scale=1.0, coarse_iterations=1500, iterations=6000,
-                       sort_every=2000, checkpoint_every=500),
+    "cpu": TrainConfig(budget="cpu", grid_side=128, scale=1.0, coarse_iterations=1500, iterations=3000,
+                       sort_every=1000, checkpoint_every=500),
     "paper": TrainConfig(budget="paper", grid_side=388, coarse_iterations=3000, iterations=12000,
                          sort_every=3000, checkpoint_every=1000),
 }

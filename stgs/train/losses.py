@@ -8,8 +8,9 @@ from stgs.metrics import ssim
 
 
 def photometric(image: torch.Tensor, target: torch.Tensor, lambda_ssim: float = 0.2,
-                mask: torch.Tensor | None = None) -> torch.Tensor:
-    """(1 − λ)·L1 + λ·(1 − SSIM), over the pixels of `mask` ((H, W) bool) when given."""
+                mask: torch.Tensor | None = None, ssim_values: torch.Tensor | None = None) -> torch.Tensor:
+    """(1 − λ)·L1 + λ·(1 − SSIM), over the pixels of `mask` ((H, W) bool) when given; `ssim_values` is
+    ssim_map(image, target) when the caller already has it (the full and the masked term share it)."""
     diff = (image - target).abs()
     if mask is not None:
         if not mask.any():
@@ -17,7 +18,7 @@ def photometric(image: torch.Tensor, target: torch.Tensor, lambda_ssim: float = 
         l1 = diff[mask].mean()
     else:
         l1 = diff.mean()
-    return (1 - lambda_ssim) * l1 + lambda_ssim * (1 - ssim(image, target, mask))
+    return (1 - lambda_ssim) * l1 + lambda_ssim * (1 - ssim(image, target, mask, ssim_values))
 
 
 def temporal_huber(features: torch.Tensor, delta: float = 0.01) -> torch.Tensor:

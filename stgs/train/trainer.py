@@ -36,7 +36,8 @@ from stgs.codec.plas import PLASConfig, plas_order, sort_key
 from stgs.data import Dataset, open_dataset, split
 from stgs.errors import UserError
 from stgs.fsio import atomic_write_bytes
-from stgs.metrics import psnr
+from stgs.memory import reuse_large_allocations
+from stgs.metrics import psnr, ssim, ssim_map
 from stgs.model.gop import GOPModel, GOPShape, frame_time
 from stgs.model.store import gop_file_name, save_gop, save_model
 from stgs.render import rasterize
@@ -206,10 +207,11 @@ class GOPReport:
     final_loss: float = 0.0
     train_psnr: float = 0.0
     val_psnr: float | None = None
+    val_ssim: float | None = None
     relocated: int = 0
     pruned: int = 0
     curve: list[dict] = field(default_factory=list)
-    """(iteration, seconds, loss, validation PSNR) samples: accuracy vs time."""
+    """(iteration, seconds, loss, validation PSNR and SSIM) samples: accuracy vs time."""
 
 
 class Trainer:
@@ -218,6 +220,7 @@ class Trainer:
         cfg.validate()
         if cfg.threads:
             torch.set_num_threads(cfg.threads)
+        reuse_large_allocations()
         self.ds = open_dataset(dataset, kind)
         self.out, self.cfg, self.progress, self.resume = Path(out), cfg, progress, resume
         self.train_names, self.val_names = split(self.ds, cfg.holdout)
@@ -363,9 +366,12 @@ class Trainer:
             if cfg.smooth_weight and (it + 1) % cfg.sort_every == 0 and it + 1 < cfg.iterations:
                 self.sort(model, opt, accum)
             if (it + 1) % max(1, cfg.iterations // 10) == 0 or it + 1 == cfg.iterations:
-                vp = self.validate(model, val) if val is not None else None
-                report.curve.append({"iteration": it + 1, "seconds": time.perf_counter() - clock,
-                                     "loss": loss_value, "val_psnr": vp})
+                paused = time.perf_counter()
+                seconds = paused - clock
+                vp, vs = self.validate(model, val) if val is not None else (None, None)
+                clock += time.perf_counter() - paused  # validation does not count as training time
+                report.curve.append({"iteration": it + 1, "seconds": seconds, "loss": loss_value,
+                                     "val_psnr": vp, "val_ssim": vs})
                 bar.set_postfix(loss=f"{loss_value:.4f}", psnr=f"{psnr(img.detach().clamp(0, 1), target):.1f}")
             if (it + 1) % cfg.checkpoint_every == 0 and it + 1 < cfg.iterations:
                 report.seconds = time.perf_counter() - clock
@@ -375,8 +381,9 @@ class Trainer:
         report.seconds = time.perf_counter() - clock
         report.iterations = cfg.iterations
         report.final_loss = loss_value
-        report.train_psnr = self.validate(model, views, limit=8)
-        report.val_psnr = self.validate(model, val) if val is not None else None
+        report.train_psnr = self.validate(model, views, limit=8)[0]
+        if val is not None:
+            report.val_psnr, report.val_ssim = self.validate(model, val)
         return model, report
 
     def gop_loss(self, model: GOPModel, aux: AuxTransformer | None, views: Views):
@@ -391,9 +398,11 @@ class Trainer:
         h = model.field.hidden(window, t)
         g = model.apply_offsets(model.field.decode(h, model.xyz, center))
         img = render(g, cam)
-        loss = losses.photometric(img, target, cfg.lambda_ssim)
+        ssim_values = ssim_map(img, target)
+        loss = losses.photometric(img, target, cfg.lambda_ssim, ssim_values=ssim_values)
         if cfg.dynamic and views.dynamic is not None:
-            loss = loss + cfg.dynamic_weight * losses.photometric(img, target, cfg.lambda_ssim, views.dynamic[c])
+            loss = loss + cfg.dynamic_weight * losses.photometric(img, target, cfg.lambda_ssim, views.dynamic[c],
+                                                                  ssim_values)
         if aux is not None:
             h_aux = aux(aux.tokens(model, i, window))  # the same noisy window the MLP sees
             g_aux = model.apply_offsets(model.field.decode(h_aux, model.xyz, center))
@@ -452,16 +461,19 @@ class Trainer:
         return int(dead.sum())
 
     @torch.no_grad()
-    def validate(self, model: GOPModel, views: Views, limit: int = 6) -> float:
+    def validate(self, model: GOPModel, views: Views, limit: int = 6) -> tuple[float, float]:
+        """Mean PSNR and SSIM of `limit` (frame, camera) pairs spread over the views."""
         from stgs.model.view import FrameRenderer
 
         renderer = FrameRenderer(model)
-        values = []
+        psnrs, ssims = [], []
         pairs = [(f, c) for f in range(len(views.frames)) for c in range(len(views.cameras))]
         step = max(1, len(pairs) // limit)
         for f, c in pairs[::step][:limit]:
-            values.append(psnr(renderer.render(f, views.cameras[c]).clamp(0, 1), views.target(f, c)))
-        return float(sum(values) / len(values))
+            image, target = renderer.render(f, views.cameras[c]).clamp(0, 1), views.target(f, c)
+            psnrs.append(psnr(image, target))
+            ssims.append(float(ssim(image, target)))
+        return float(sum(psnrs) / len(psnrs)), float(sum(ssims) / len(ssims))
 
     # --- the run ---
 

@@ -57,6 +57,9 @@ def test_quick_training_learns_the_scene(scene, trained):
     assert curve[-1]["loss"] < curve[0]["loss"]  # the loss falls
     baseline = mean_colour_psnr(scene)
     assert gop["val_psnr"] > baseline + 6.0, (gop["val_psnr"], baseline)  # measured: 27.4 vs 15.6 dB
+    assert 0 < curve[0]["val_ssim"] < gop["val_ssim"] <= 1  # SSIM on the held-out camera improves too
+    seconds = [point["seconds"] for point in curve]
+    assert seconds == sorted(seconds) and seconds[-1] <= gop["seconds"]
     meta, gops = load_model(out)
     assert meta.shape.capacity == 256 and meta.num_gops == 1 and meta.extra["validation_cameras"] == ["cam07"]
     assert all(torch.isfinite(p).all() for p in gops[0].parameters())
@@ -132,6 +135,20 @@ def test_eval_uncompressed_and_packaged(scene, trained, tmp_path):
     assert streams["uncompressed"]["psnr"] >= streams["qp16"]["psnr"] - 0.5 >= streams["qp32"]["psnr"] - 1.0
     assert 0 < streams["qp32"]["ssim"] <= 1 and doc["lpips"] is None
     assert (tmp_path / "ev" / "eval_grid.png").stat().st_size > 1000
+
+
+def test_bench_train_tables_and_plot(trained, tmp_path):
+    model, report = trained
+    result = stgs("bench", "train", "--runs", str(model), "--plot", str(tmp_path / "curves.png"))
+    assert result.returncode == 0, result.stderr
+    rows = [line for line in result.stdout.splitlines() if line.startswith("| quick: all components | 0 |")]
+    curve = report["gops"][0]["curve"]
+    assert len(rows) == len(curve) + 1  # one row per curve point, then the GOP's final numbers
+    assert rows[-1].split("|")[6].strip() == f"{report['gops'][0]['val_psnr']:.2f}"
+    assert (tmp_path / "curves.png").stat().st_size > 1000
+    for args, message in [((), "needs --runs"), (("--runs", str(tmp_path)), "no train_report.json")]:
+        bad = stgs("bench", "train", *args)
+        assert bad.returncode == 2 and message in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
 
 
 def test_bad_training_input_is_one_line(scene, tmp_path):
