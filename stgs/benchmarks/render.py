@@ -16,6 +16,7 @@ from collections.abc import Callable
 import torch
 
 from stgs.camera import Camera, intrinsics, look_at
+from stgs.metrics import psnr
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.native.build import available
 from stgs.render import rasterize
@@ -109,19 +110,33 @@ def bench_size(n: int, width: int, height: int, repeats: int, reference_max: int
         if ref64 is None and precision == "fp64":
             ref64 = img
         rows.append(f"| {n} | {backend} {precision} | {fwd_ms:.1f} | {bwd_ms:.1f} | {error_cells(img, ref64)} |")
+    return rows
+
+
+def deform_rows(n: int, width: int, height: int, repeats: int) -> list[str]:
+    """Deformation alone and deformation + splat per precision; accuracy against the fp32 deformation's image."""
+    from stgs.model.native_deform import bf16_available
+    from stgs.model.view import FrameRenderer
+
+    cam = bench_camera(width, height)
     model = random_model(n)
     center = cam.center.float()
+    rows = []
     with torch.no_grad():
         torch_ms, _ = timed(lambda: model.deform(30, center), repeats)
-        rows.append(f"| {n} | deform torch fp32 | {torch_ms:.1f} | | | |")
-        if available():
-            from stgs.model.view import FrameRenderer
-
-            renderer = FrameRenderer(model)
-            native_ms, _ = timed(lambda: renderer.gaussians(30, cam), repeats)
-            rows.append(f"| {n} | deform native fp32 | {native_ms:.1f} | | | |")
-            total_ms, _ = timed(lambda: renderer.render(30, cam), repeats)
-            rows.append(f"| {n} | **native deform + splat** | {total_ms:.1f} | | | |")
+        rows.append(f"| {n} | torch fp32 | {torch_ms:.1f} | | | |")
+        if not available():
+            return rows
+        precisions = ["fp32"] + (["bf16"] if bf16_available() else [])
+        fp32_image = None
+        for precision in precisions:
+            renderer = FrameRenderer(model, precision=precision)
+            deform_ms, _ = timed(lambda r=renderer: r.gaussians(30, cam), repeats)
+            total_ms, image = timed(lambda r=renderer: r.render(30, cam), repeats)
+            fp32_image = image if fp32_image is None else fp32_image
+            accuracy = "(itself) | 0" if precision == "fp32" else \
+                f"{psnr(image.clamp(0, 1), fp32_image.clamp(0, 1)):.1f} | {(image - fp32_image).abs().max().item():.1e}"
+            rows.append(f"| {n} | native {precision} | {deform_ms:.1f} | **{total_ms:.1f}** | {accuracy} |")
     return rows
 
 
@@ -133,5 +148,12 @@ def main(sizes: list[int], width: int, height: int, repeats: int, reference_max:
     print("|---|---|---|---|---|---|")
     for n in sizes:
         for row in bench_size(n, width, height, repeats, reference_max):
+            print(row, flush=True)
+    print()
+    print("| N | deformation | deform ms | deform + splat ms | image PSNR vs fp32 deformation (dB) "
+          "| max abs pixel error |")
+    print("|---|---|---|---|---|---|")
+    for n in sizes:
+        for row in deform_rows(n, width, height, repeats):
             print(row, flush=True)
     return 0

@@ -1,8 +1,11 @@
 """Native (C++) evaluation of GOPModel.deform for inference.
 
 The torch `GOPModel.deform` is the oracle; this path evaluates every MLP layer
-per block of 32 Gaussians while the block sits in cache, and (given a camera)
+per block of Gaussians while the block sits in cache, and (given a camera)
 skips the view-dependent decoders of Gaussians that cannot reach the image.
+Two precisions: float32 (AVX-512 or portable), and bf16 inputs and weights
+with float32 accumulation on AMX tiles where the CPU and kernel allow it
+(an accuracy knob: docs/BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -20,10 +23,12 @@ from stgs.model.gop import (
     frame_time,
     positional_encoding,
 )
-from stgs.native.build import load
+from stgs.native.build import NativeUnavailableError, available, load
 
 MAX_WINDOW = 8
 """Largest sliding window the native kernel accepts."""
+PRECISIONS = ("fp32", "bf16")
+"""Arithmetic of the native deformation: float32, or bf16 inputs/weights with float32 accumulation."""
 
 _CONFIGURED: set[int] = set()
 
@@ -34,8 +39,27 @@ def _library() -> ctypes.CDLL:
         lib.stgs_deform.argtypes = ([c_int64, c_int, c_int] + [c_void_p] * 15
                                     + [c_int, c_int] + [c_void_p] * 5 + [c_int])
         lib.stgs_deform.restype = None
+        lib.stgs_deform_bf16.argtypes = ([c_int64, c_int, c_int] + [c_void_p] * 7 + [c_int] + [c_void_p] * 8
+                                         + [c_int, c_int] + [c_void_p] * 5 + [c_int])
+        lib.stgs_deform_bf16.restype = c_int
+        lib.stgs_deform_bf16_available.argtypes = []
+        lib.stgs_deform_bf16_available.restype = c_int
         _CONFIGURED.add(id(lib))
     return lib
+
+
+def bf16_available() -> bool:
+    """True when the native bf16 deformation can run here (AMX-BF16 CPU, kernel grants AMX state)."""
+    return available() and _library().stgs_deform_bf16_available() == 1
+
+
+def check_precision(precision: str) -> None:
+    """Raise ValueError for an unknown precision, NativeUnavailableError for bf16 where it cannot run."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"unknown deform precision {precision!r}; choose from {', '.join(PRECISIONS)}")
+    if precision == "bf16" and not bf16_available():
+        raise NativeUnavailableError("bf16 deformation needs the native build on a CPU with AMX-BF16 "
+                                     "(e.g. Intel Sapphire Rapids); use fp32")
 
 
 def _c(t: torch.Tensor) -> torch.Tensor:
@@ -44,6 +68,21 @@ def _c(t: torch.Tensor) -> torch.Tensor:
 
 OUT_WIDTH = 16
 """Padded output width of the packed second layers."""
+
+
+TILE_K = 32
+"""bf16 values of K per AMX tile row."""
+
+
+def _amx_tiles(weight: torch.Tensor) -> torch.Tensor:
+    """(K, M) in x out float32 weights as AMX B tiles: K zero-padded to a multiple of 32, then for each
+    K chunk and each 16-column tile, 16 rows of (column, pair of consecutive K) bf16 values."""
+    k, m = weight.shape
+    chunks = -(-k // TILE_K)
+    padded = torch.zeros(chunks * TILE_K, m)
+    padded[:k] = weight
+    tiles = padded.reshape(chunks, TILE_K // 2, 2, m // 16, 16).permute(0, 3, 1, 4, 2)
+    return tiles.contiguous().to(torch.bfloat16)
 
 
 def _pack_second(first: torch.Tensor, second: torch.Tensor, col0: int,
@@ -70,6 +109,14 @@ class PackedWeights:
                               0).T.contiguous()
         self.app2 = _pack_second(_c(field.d_opacity[2].weight), _c(field.d_color[2].weight), 1, 4)
 
+        self._amx: list[torch.Tensor] | None = None
+
+    def amx(self) -> list[torch.Tensor]:
+        """temporal, geo1, geo2, app1, app2 as AMX bf16 tiles (packed on first use)."""
+        if self._amx is None:
+            self._amx = [_amx_tiles(w) for w in (self.temporal_feat, self.geo1, self.geo2, self.app1, self.app2)]
+        return self._amx
+
     def pe_bias(self, frame: int, model: GOPModel) -> torch.Tensor:
         """The γ(t) part of D_t's input, folded into a per-frame bias."""
         pe = positional_encoding(frame_time(frame, model.shape.gop_size), model.shape.pe_freqs)
@@ -78,13 +125,15 @@ class PackedWeights:
 
 def deform_native(model: GOPModel, frame: int, camera_center: torch.Tensor,
                   weights: PackedWeights | None = None, viewmat: torch.Tensor | None = None,
-                  K: torch.Tensor | None = None, width: int = 0, height: int = 0) -> Gaussians:
-    """GOPModel.deform in C++ (float32, no autograd).
+                  K: torch.Tensor | None = None, width: int = 0, height: int = 0,
+                  precision: str = "fp32") -> Gaussians:
+    """GOPModel.deform in C++ (no autograd), in float32 or bf16 (`precision`, see PRECISIONS).
 
     With viewmat/K/width/height, Gaussians that cannot put alpha >= 1/255 on
     the image get opacity 0 (the splatter would skip them anyway).
     """
     model.check_frame(frame)
+    check_precision(precision)
     if model.shape.window > MAX_WINDOW:
         raise ValueError(f"native deform supports windows up to {MAX_WINDOW}")
     weights = weights or PackedWeights(model)
@@ -101,11 +150,44 @@ def deform_native(model: GOPModel, frame: int, camera_center: torch.Tensor,
         view = viewmat.detach().to(torch.float64).contiguous()
         intr = K.detach().to(torch.float64).contiguous()
         view_ptr, k_ptr = view.data_ptr(), intr.data_ptr()
-    _library().stgs_deform(
-        n, model.shape.window, frame, feats.data_ptr(), *(t.data_ptr() for t in canon),
-        weights.temporal_feat.data_ptr(), pe_bias.data_ptr(), weights.geo1.data_ptr(),
-        weights.geo2.data_ptr(), weights.app1.data_ptr(), weights.app2.data_ptr(),
-        center.data_ptr(), view_ptr, k_ptr,
-        width, height, out.means.data_ptr(), out.quats.data_ptr(), out.scales.data_ptr(),
-        out.opacities.data_ptr(), out.colors.data_ptr(), torch.get_num_threads())
+    outputs = [out.means.data_ptr(), out.quats.data_ptr(), out.scales.data_ptr(), out.opacities.data_ptr(),
+               out.colors.data_ptr(), torch.get_num_threads()]
+    inputs = [n, model.shape.window, frame, feats.data_ptr(), *(t.data_ptr() for t in canon)]
+    lib = _library()
+    if precision == "fp32":
+        lib.stgs_deform(*inputs, weights.temporal_feat.data_ptr(), pe_bias.data_ptr(), weights.geo1.data_ptr(),
+                        weights.geo2.data_ptr(), weights.app1.data_ptr(), weights.app2.data_ptr(),
+                        center.data_ptr(), view_ptr, k_ptr, width, height, *outputs)
+        return out
+    temporal, geo1, geo2, app1, app2 = weights.amx()
+    status = lib.stgs_deform_bf16(*inputs, temporal.data_ptr(), temporal.shape[0], pe_bias.data_ptr(),
+                                  geo1.data_ptr(), geo2.data_ptr(), app1.data_ptr(), app2.data_ptr(),
+                                  center.data_ptr(), view_ptr, k_ptr, width, height, *outputs)
+    if status != 0:
+        raise NativeUnavailableError("the bf16 deformation kernel refused to run (no AMX state for this process)")
     return out
+
+
+def _bf16(t: torch.Tensor) -> torch.Tensor:
+    return t.detach().to(torch.bfloat16).to(torch.float32)
+
+
+def deform_bf16_reference(model: GOPModel, frame: int, camera_center: torch.Tensor) -> Gaussians:
+    """Pure-torch oracle of the bf16 kernel: every layer input and weight rounded to bf16, products and
+    sums in float32, γ(t)'s share of D_t in float32 (the kernel folds it into a bias)."""
+    field, shape = model.field, model.shape
+    in_feat = shape.window * FEATURE_DIM
+    temporal = field.temporal.weight.detach()
+    pe = positional_encoding(frame_time(frame, shape.gop_size), shape.pe_freqs)
+    h = _bf16(torch.tanh(_bf16(model.window_features(frame)) @ _bf16(temporal[:, :in_feat]).T
+                         + temporal[:, in_feat:] @ pe))
+
+    def decoder(layers: torch.nn.Sequential, x: torch.Tensor) -> torch.Tensor:
+        return _bf16(torch.relu(x @ _bf16(layers[0].weight).T)) @ _bf16(layers[2].weight).T
+
+    d_x, cov = decoder(field.d_pos, h), decoder(field.d_cov, h)
+    view = model.xyz.detach() + d_x - camera_center.reshape(1, 3).float()
+    view = view / torch.linalg.vector_norm(view, dim=1, keepdim=True).clamp_min(1e-12)
+    hv = torch.cat([h, _bf16(view)], dim=1)
+    d_o = torch.tanh(decoder(field.d_opacity, hv)).squeeze(1)
+    return model.apply_offsets((d_x, cov[:, :3], cov[:, 3:], d_o, decoder(field.d_color, hv)))

@@ -13,14 +13,19 @@ from stgs.render import rasterize
 class FrameRenderer:
     """Renders frames of one GOP, using the native deform and splat when they are built."""
 
-    def __init__(self, model: GOPModel, native: bool | None = None):
+    def __init__(self, model: GOPModel, native: bool | None = None, precision: str = "fp32"):
+        """precision: arithmetic of the native deformation ("fp32" or "bf16", an accuracy knob)."""
         self.model = model
         self.native = available() if native is None else native
+        self.precision = precision
         self._weights = None
         if self.native:
-            from stgs.model.native_deform import PackedWeights
+            from stgs.model.native_deform import PackedWeights, check_precision
 
+            check_precision(precision)
             self._weights = PackedWeights(model)
+        elif precision != "fp32":
+            raise ValueError(f"deform precision {precision!r} needs the native build")
 
     @torch.no_grad()
     def gaussians(self, frame: int, camera: Camera) -> Gaussians:
@@ -30,7 +35,7 @@ class FrameRenderer:
         from stgs.model.native_deform import deform_native
 
         return deform_native(self.model, frame, camera.center.float(), self._weights,
-                             camera.viewmat, camera.K, camera.width, camera.height)
+                             camera.viewmat, camera.K, camera.width, camera.height, self.precision)
 
     @torch.no_grad()
     def render(self, frame: int, camera: Camera, background: torch.Tensor | None = None) -> torch.Tensor:

@@ -19,8 +19,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-SOURCES = ("splat.cpp", "deform.cpp")
-HEADERS = ("fastmath.h",)
+SOURCES = ("splat.cpp", "deform.cpp", "deform_amx.cpp")
+HEADERS = ("fastmath.h", "deform.h")
 CSRC = Path(__file__).with_name("csrc")
 ARCH = os.environ.get("STGS_NATIVE_ARCH", "native")
 """-march target; e.g. STGS_NATIVE_ARCH=x86-64-v3 builds the portable (no AVX-512) kernels."""

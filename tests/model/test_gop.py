@@ -8,8 +8,15 @@ from torch import nn
 
 from stgs.camera import Camera, intrinsics, look_at
 from stgs.model.gop import FEATURE_DIM, HIDDEN, GOPModel, GOPShape, frame_time, positional_encoding
-from stgs.model.native_deform import PackedWeights, deform_native
+from stgs.model.native_deform import (
+    PackedWeights,
+    bf16_available,
+    check_precision,
+    deform_bf16_reference,
+    deform_native,
+)
 from stgs.model.view import FrameRenderer
+from stgs.native.build import NativeUnavailableError
 
 
 def random_model(n=300, gop_size=10, window=3, seed=0) -> GOPModel:
@@ -121,3 +128,51 @@ def test_native_culling_does_not_change_the_image():
     assert torch.equal(a, b)
     slow = FrameRenderer(model, native=False).render(4, cam)
     assert (slow.double() - a.double()).abs().max() < 1e-4
+
+
+needs_amx = pytest.mark.skipif(not bf16_available(), reason="the bf16 deformation needs a CPU with AMX-BF16")
+
+
+@needs_amx
+@pytest.mark.parametrize("window, n", [(3, 1000), (8, 333), (1, 17)])
+def test_bf16_deform_matches_its_torch_oracle(window, n):
+    model = random_model(n=n, window=window)
+    center = torch.tensor([0.3, -0.2, -4.0])
+    with torch.no_grad():
+        got = deform_native(model, 5, center, precision="bf16")
+        want = deform_bf16_reference(model, 5, center)
+        full = model.deform(5, center)
+    for name in ("means", "quats", "opacities", "colors", "scales"):
+        g, w, f = (getattr(x, name) for x in (got, want, full))
+        if name == "scales":
+            g, w, f = g.log(), w.log(), f.log()
+        peak = f.abs().max()
+        # Summation order differs from torch's, so a value can round to the neighbouring bf16 now and then.
+        assert (g - w).abs().max() <= 2e-2 * peak, name
+        assert (g - w).abs().mean() <= 1e-4 * peak, name
+        # ... and bf16 is not float32: the oracle is a different function from the float32 deformation.
+        assert (w - f).abs().max() > 1e-5 * peak, name
+        assert (g - f).abs().max() <= 1e-1 * peak, name  # bf16's 8-bit mantissa, large random weights
+
+
+@needs_amx
+def test_bf16_renders_close_to_fp32():
+    model = random_model(n=3000)
+    with torch.no_grad():
+        for p in model.field.parameters():
+            p.mul_(0.25)  # offsets of a realistic size (fitted fields), not saturated
+    cam = Camera("c", intrinsics(96, 72, 50.0), look_at((0.0, 0.0, -3.0), (0.0, 0.0, 0.0)), 96, 72)
+    a = FrameRenderer(model, native=True).render(4, cam)
+    b = FrameRenderer(model, native=True, precision="bf16").render(4, cam)
+    mse = (a.double() - b.double()).square().mean().item()
+    assert 0 < mse < 1e-4  # PSNR above 40 dB, and not the float32 image
+
+
+def test_precision_errors_are_clear():
+    with pytest.raises(ValueError, match="unknown deform precision"):
+        check_precision("fp16")
+    with pytest.raises(ValueError, match="needs the native build"):
+        FrameRenderer(random_model(n=10), native=False, precision="bf16")
+    if not bf16_available():
+        with pytest.raises(NativeUnavailableError, match="AMX"):
+            check_precision("bf16")

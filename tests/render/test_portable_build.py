@@ -40,6 +40,8 @@ CHECK = textwrap.dedent("""
         got = deform_native(model, 2, torch.zeros(3))
     assert torch.allclose(want.means, got.means, rtol=1e-4, atol=1e-5)
     assert torch.allclose(want.colors, got.colors, rtol=1e-4, atol=1e-5)
+    from stgs.model.native_deform import bf16_available
+    assert not bf16_available()  # no AMX tiles in an AVX2 build: bf16 reports itself unavailable
     print("portable ok")
 """)
 

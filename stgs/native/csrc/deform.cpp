@@ -11,6 +11,7 @@
 #include <cstdint>
 #include <cstring>
 
+#include "deform.h"
 #include "fastmath.h"
 
 #if defined(__AVX512F__)
@@ -19,11 +20,12 @@
 
 namespace {
 
-constexpr int kFeat = 16;
-constexpr int kHidden = 64;
+using stgs::kFeat;
+using stgs::kHidden;
+using stgs::kMaxWindow;
+using stgs::kOut;
+
 constexpr int kBlock = 32;
-constexpr int kMaxWindow = 8;
-constexpr double kNearZ = 0.01;
 
 #if defined(__AVX512F__)
 // y[b, :M] = x[b, :K] @ wt (K x M, row-major): register tiles of 4 rows x 64
@@ -77,26 +79,6 @@ void matmul_rows(const float* x, int rows, int K, int ldx, const float* wt, floa
 
 inline float relu(float v) { return v > 0.0f ? v : 0.0f; }
 
-constexpr int kOut = 16;  // padded width of the packed second layers
-
-// Conservative visibility from the camera's frustum: false only when the
-// Gaussian cannot put alpha >= 1/255 on any pixel whatever its opacity.
-bool maybe_visible(const float* mean, const float* log_scale_out, const double* viewmat,
-                   const double* K, int width, int height) {
-  const double x = viewmat[0] * mean[0] + viewmat[1] * mean[1] + viewmat[2] * mean[2] + viewmat[3];
-  const double y = viewmat[4] * mean[0] + viewmat[5] * mean[1] + viewmat[6] * mean[2] + viewmat[7];
-  const double z = viewmat[8] * mean[0] + viewmat[9] * mean[1] + viewmat[10] * mean[2] + viewmat[11];
-  if (!(z >= kNearZ)) return false;
-  const double s = std::exp(double(std::max(log_scale_out[0], std::max(log_scale_out[1], log_scale_out[2]))));
-  const double xn = x / z, yn = y / z;
-  // The Frobenius norm of the projection Jacobian bounds its spectral norm.
-  const double j00 = K[0] / z, j01 = K[1] / z, j02 = -(K[0] * xn + K[1] * yn) / z;
-  const double j11 = K[4] / z, j12 = -K[4] * yn / z;
-  const double jf2 = j00 * j00 + j01 * j01 + j02 * j02 + j11 * j11 + j12 * j12;
-  const double radius = std::sqrt(2.0 * std::log(255.0) * (jf2 * s * s + 0.3)) * 1.01 + 1.0;
-  const double u = K[0] * xn + K[1] * yn + K[2], v = K[4] * yn + K[5];
-  return u + radius >= 0.0 && u - radius <= width && v + radius >= 0.0 && v - radius <= height;
-}
 
 void relu_inplace(float* x, int count) {
 #pragma omp simd
@@ -117,6 +99,8 @@ void stgs_deform(int64_t n, int window, int frame, const float* feats, const flo
                  const float* app2_t, const float* camera_center, const double* viewmat,
                  const double* K, int width, int height, float* out_means, float* out_quats,
                  float* out_scales, float* out_opac, float* out_colors, int nthreads) {
+  const stgs::DeformIO io{xyz, log_scale, rotation, opacity_logit, color, camera_center, viewmat, K, width,
+                          height, out_means, out_quats, out_scales, out_opac, out_colors};
   const int in_t = window * kFeat;
   const int64_t blocks = (n + kBlock - 1) / kBlock;
 #pragma omp parallel for num_threads(nthreads) schedule(dynamic, 8)
@@ -146,32 +130,12 @@ void stgs_deform(int64_t n, int window, int frame, const float* feats, const flo
     int slot[kBlock];
     int kept = 0;
     for (int b = 0; b < rows; ++b) {
-      const int64_t g = first + b;
-      const float* d = &out2[b * kOut];
-      float* mean = &out_means[3 * g];
-      float dls[3];
-      for (int c = 0; c < 3; ++c) {
-        mean[c] = xyz[3 * g + c] + d[c];
-        dls[c] = log_scale[3 * g + c] + d[3 + c];
-        out_scales[3 * g + c] = std::exp(dls[c]);
-      }
-      for (int c = 0; c < 4; ++c) out_quats[4 * g + c] = rotation[4 * g + c] + d[6 + c];
-      keep[b] = viewmat == nullptr || maybe_visible(mean, dls, viewmat, K, width, height);
-      if (!keep[b]) {
-        out_opac[g] = 0.0f;
-        for (int c = 0; c < 3; ++c) out_colors[3 * g + c] = 0.0f;
-        continue;
-      }
-      double norm2 = 0.0;
       float dir[3];
-      for (int c = 0; c < 3; ++c) {
-        dir[c] = mean[c] - camera_center[c];
-        norm2 += double(dir[c]) * dir[c];
-      }
-      const float inv = float(1.0 / std::max(std::sqrt(norm2), 1e-12));
+      keep[b] = stgs::deformed_geometry(io, first + b, &out2[b * kOut], dir);
+      if (!keep[b]) continue;
       float* row = &app_in[kept * (kHidden + 3)];
       std::memcpy(row, &h[b * kHidden], kHidden * sizeof(float));
-      for (int c = 0; c < 3; ++c) row[kHidden + c] = dir[c] * inv;
+      std::memcpy(row + kHidden, dir, sizeof(dir));
       slot[b] = kept++;
     }
     if (kept == 0) continue;
@@ -179,14 +143,9 @@ void stgs_deform(int64_t n, int window, int frame, const float* feats, const flo
     matmul_rows<2 * kHidden>(app_in, kept, kHidden + 3, kHidden + 3, app1_t, hidden2);
     relu_inplace(hidden2, kept * 2 * kHidden);
     matmul_rows<kOut>(hidden2, kept, 2 * kHidden, 2 * kHidden, app2_t, out2);
-    for (int b = 0; b < rows; ++b) {
-      if (!keep[b]) continue;
-      const int64_t g = first + b;
-      const float* d = &out2[slot[b] * kOut];
-      const float base = 1.0f / (1.0f + std::exp(-opacity_logit[g]));
-      out_opac[g] = std::min(1.0f, std::max(0.0f, base + std::tanh(d[0])));
-      for (int c = 0; c < 3; ++c) out_colors[3 * g + c] = relu(color[3 * g + c]) + d[1 + c];
-    }
+    for (int b = 0; b < rows; ++b)
+      if (keep[b])
+        stgs::deformed_appearance(io, first + b, &out2[slot[b] * kOut]);
   }
 }
 

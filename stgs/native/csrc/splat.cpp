@@ -86,25 +86,79 @@ inline float raw_power(const Splat& s, float dx, float dy) {
   return -0.5f * (s.a * dx * dx + 2.0f * s.b * dx * dy + s.c * dy * dy);
 }
 
+// Which tiles of its rect a Gaussian reaches. The rect (the ellipse's bounding
+// box) overestimates rotated and anisotropic ellipses, and every extra tile
+// costs the compositor a pass over its rows, so each row of tiles gets the
+// columns holding a pixel centre where the power can reach s.min_power (the
+// compositor's own row test), i.e. the ellipse q(d) <= level = -2 min_power.
+// Margins keep this a superset of what the compositor's float arithmetic
+// touches; degenerate conics keep the whole rect.
+struct EllipseReach {
+  double a, inv_a, b, det, level, y_reach, dy_left;
+  bool exact;  // false: use the rect's columns
+};
+
+EllipseReach ellipse_reach(const Splat& s) {
+  EllipseReach e{s.a, 1.0 / double(s.a), s.b, 0.0, 0.0, 0.0, 0.0, false};
+  const double c = s.c;
+  e.det = e.a * c - e.b * e.b;
+  e.level = -2.0 * double(s.min_power) * (1.0 + 1e-3) + 1e-3;
+  const bool narrow = s.rect.u0 / kTile == s.rect.u1 / kTile;  // one column: nothing to cull
+  if (narrow || !(e.det > 0.0 && e.a > 0.0 && c > 0.0 && e.level > 0.0)) return e;
+  e.y_reach = std::sqrt(e.level * e.a / e.det);
+  // Over a band of rows the ellipse's left edge is convex in dy with its minimum at the
+  // leftmost point, dy = b x_reach / c; the right edge mirrors it.
+  e.dy_left = e.b * std::sqrt(e.level * c / e.det) / c;
+  e.exact = true;
+  return e;
+}
+
+// Tile columns of tile row ty, packed as tx0 | tx1 << 16 (tx0 > tx1: none).
+uint32_t tile_columns(const Splat& s, const EllipseReach& e, int ty) {
+  const Rect& r = s.rect;
+  const auto pack = [](int tx0, int tx1) { return uint32_t(tx0) | (uint32_t(tx1) << 16); };
+  if (!e.exact) return pack(r.u0 / kTile, r.u1 / kTile);
+  const double y0 = std::max(double(std::max(ty * kTile, r.v0)) + 0.5 - double(s.my), -e.y_reach);
+  const double y1 = std::min(double(std::min(ty * kTile + kTile - 1, r.v1)) + 0.5 - double(s.my), e.y_reach);
+  if (y0 > y1) return pack(1, 0);
+  const auto edge = [&](double dy, double side) {
+    return (-e.b * dy + side * std::sqrt(std::max(0.0, e.a * e.level - e.det * dy * dy))) * e.inv_a;
+  };
+  const double first = std::ceil(double(s.mx) + edge(std::clamp(e.dy_left, y0, y1), -1.0) - 0.5 - 1e-2);
+  const double last = std::floor(double(s.mx) + edge(std::clamp(-e.dy_left, y0, y1), 1.0) - 0.5 + 1e-2);
+  const int u0 = int(std::max(double(r.u0), first)), u1 = int(std::min(double(r.u1), last));
+  return u0 > u1 ? pack(1, 0) : pack(u0 / kTile, u1 / kTile);
+}
+
 // Fills ctx.tile_start / ctx.ids from Gaussians in depth order. Each thread bins
 // a contiguous run of the depth order, and its entries go after those of the
-// threads before it, so every tile's list stays front to back.
+// threads before it, so every tile's list stays front to back. The counting
+// pass records each Gaussian's tile rows and each row's columns, so the
+// filling pass reads them in order instead of the scattered Splat records.
 void bin_by_tile(RasterCtx& ctx, const std::vector<int32_t>& ordered, int nthreads) {
   const int tiles = ctx.tiles_x * ctx.tiles_y;
   const int64_t n = int64_t(ordered.size());
   nthreads = int(std::max<int64_t>(1, std::min<int64_t>(nthreads, n / 4096 + 1)));
   std::vector<int64_t> counts(size_t(nthreads) * tiles, 0);
-  auto for_tiles = [&](int32_t g, auto&& fn) {
-    const Rect& r = ctx.splats[g].rect;
-    for (int ty = r.v0 / kTile; ty <= r.v1 / kTile; ++ty)
-      for (int tx = r.u0 / kTile; tx <= r.u1 / kTile; ++tx) fn(ty * ctx.tiles_x + tx);
-  };
+  std::vector<std::vector<uint32_t>> columns(nthreads);
 #pragma omp parallel num_threads(nthreads)
   {
     const int t = omp_get_thread_num();
     int64_t* mine = &counts[size_t(t) * tiles];
-    for (int64_t i = n * t / nthreads; i < n * (t + 1) / nthreads; ++i)
-      for_tiles(ordered[i], [&](int tile) { ++mine[tile]; });
+    std::vector<uint32_t>& spans = columns[t];
+    spans.reserve(size_t(2 * (n / nthreads + 1)));
+    const int64_t end = n * (t + 1) / nthreads;
+    for (int64_t i = n * t / nthreads; i < end; ++i) {
+      if (i + 8 < end) __builtin_prefetch(&ctx.splats[ordered[i + 8]]);
+      const Splat& s = ctx.splats[ordered[i]];
+      const EllipseReach e = ellipse_reach(s);
+      spans.push_back(uint32_t(s.rect.v0 / kTile) | (uint32_t(s.rect.v1 / kTile) << 16));
+      for (int ty = s.rect.v0 / kTile; ty <= s.rect.v1 / kTile; ++ty) {
+        const uint32_t span = tile_columns(s, e, ty);
+        spans.push_back(span);
+        for (int tx = int(span & 0xffffu); tx <= int(span >> 16); ++tx) ++mine[ty * ctx.tiles_x + tx];
+      }
+    }
   }
   ctx.tile_start.assign(tiles + 1, 0);
   std::vector<int64_t> offsets(size_t(nthreads) * tiles);
@@ -122,9 +176,13 @@ void bin_by_tile(RasterCtx& ctx, const std::vector<int32_t>& ordered, int nthrea
   {
     const int t = omp_get_thread_num();
     int64_t* next = &offsets[size_t(t) * tiles];
+    const uint32_t* span = columns[t].data();
     for (int64_t i = n * t / nthreads; i < n * (t + 1) / nthreads; ++i) {
       const int32_t g = ordered[i];
-      for_tiles(g, [&](int tile) { ctx.ids[next[tile]++] = g; });
+      const int ty0 = int(*span & 0xffffu), ty1 = int(*span >> 16);
+      ++span;
+      for (int ty = ty0; ty <= ty1; ++ty, ++span)
+        for (int tx = int(*span & 0xffffu); tx <= int(*span >> 16); ++tx) ctx.ids[next[ty * ctx.tiles_x + tx]++] = g;
     }
   }
 }
@@ -342,6 +400,14 @@ constexpr int kGradStride = 9;
 // one register, live pixels are a 16-bit mask per row. Same numerics as the
 // portable versions above (which stay the build for CPUs without AVX-512).
 
+// Tile-list entries ahead whose Splat is prefetched: the list visits Gaussians in
+// depth order, so their records are scattered through memory.
+constexpr int kPrefetch = 8;
+
+inline void prefetch_splat(const RasterCtx& ctx, int64_t entry) {
+  __builtin_prefetch(&ctx.splats[ctx.ids[entry]]);
+}
+
 struct SplatVec {
   __m512 mx, a, b2, c, o, r, g, bl, amin, amax, tmin, one, half;
   explicit SplatVec(const Splat& s)
@@ -424,6 +490,7 @@ void render_tile_avx512(const RasterCtx& ctx, int tile, const float* bg, float* 
   const int64_t begin = ctx.tile_start[tile], end = ctx.tile_start[tile + 1];
   for (int64_t k = begin; k < end; ++k) {
     if ((k - begin) % kScanEvery == 0 && live_rows == 0) break;
+    if (k + kPrefetch < end) prefetch_splat(ctx, k + kPrefetch);
     const int32_t g = ctx.ids[k];
     const Splat& s = ctx.splats[g];
     const Rect& r = s.rect;
@@ -515,6 +582,7 @@ void backward_tile_avx512(const RasterCtx& ctx, int tile, const float* bg, const
   const __m512 px = pixel_centres(box.x0);
   const int64_t begin = ctx.tile_start[tile];
   for (int32_t k = max_last - 1; k >= 0; --k) {
+    if (k >= kPrefetch) prefetch_splat(ctx, begin + k - kPrefetch);
     const int32_t g = ctx.ids[begin + k];
     const Splat& s = ctx.splats[g];
     const Rect& r = s.rect;
