@@ -50,8 +50,10 @@ from stgs.codec.keyframe import Keyframe, KeyframeError, decode_keyframe
 from stgs.codec.video import decode_segment
 from stgs.errors import UserError
 from stgs.fsio import atomic_write_bytes
+from stgs.model.native_deform import check_precision
 from stgs.model.view import FrameRenderer
 from stgs.mpd import MAX_MPD_BYTES, MPDError
+from stgs.native.build import NativeUnavailableError
 from stgs.tree import CAMERAS, STATS
 
 MAX_DOC_BYTES = 16 << 20
@@ -88,6 +90,8 @@ class PlayConfig:
     """Where to write the JSON playback log."""
     native: bool | None = None
     """Native deform + splat (None: when built)."""
+    precision: str = "fp32"
+    """Arithmetic of the native deformation: fp32, or bf16 (faster where the CPU has AMX; costs accuracy)."""
     max_decoded: int = 2
     """Decoded GOP models held at once (the one playing + pre-decoded ones)."""
     decode: bool = True
@@ -110,6 +114,13 @@ class PlayConfig:
             raise UserError("max_decoded must be >= 2 (the GOP playing and the next)")
         if not (math.isfinite(self.speed) and self.speed > 0) or (self.speed != 1 and self.decode):
             raise UserError("speed must be positive, and other than 1 only without decoding")
+        if self.decode:
+            try:
+                check_precision(self.precision)
+            except (ValueError, NativeUnavailableError) as err:
+                raise UserError(f"--precision: {err}") from None
+            if self.precision != "fp32" and self.native is False:
+                raise UserError("--precision other than fp32 needs the native renderer")
 
 
 @dataclass
@@ -280,7 +291,7 @@ class Session:
         frames = decode_segment(item.init, item.media, self.pres.shape.num_features, 4 * side, 4 * side)
         mid = time.perf_counter()
         model = kf.to_model(features_from_frames(frames, side, kf.feature_ranges))
-        renderer = FrameRenderer(model, self.cfg.native)
+        renderer = FrameRenderer(model, self.cfg.native, self.cfg.precision)
         rec.feature_decode_s, rec.dequantise_s = mid - start, time.perf_counter() - mid
         return ReadyGOP(item.index, renderer)
 

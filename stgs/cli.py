@@ -207,6 +207,9 @@ def add_play(sub: argparse._SubParsersAction) -> None:
     view.add_argument("--target", type=_vector, default=(0.0, 0.0, 0.0), help="point the --eye camera looks at")
     view.add_argument("--fov", type=float, default=60.0, help="horizontal field of view, degrees (default: 60)")
     view.add_argument("--size", type=_size, help="image size WIDTHxHEIGHT (default: the camera's, else 640x360)")
+    p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
+                   help="arithmetic of the deformation network: bf16 is faster on CPUs with AMX and costs "
+                   "accuracy (docs/BENCHMARKS.md; default: fp32)")
     p.add_argument("--out", type=Path, help="write frames: a folder of PNGs, or a .mp4 file")
     p.add_argument("--log", type=Path, help="JSON playback log (default: playback.json beside --out, else none)")
     p.add_argument("--timeout", type=_seconds, default=10.0, help="seconds without data before a request fails")
@@ -235,6 +238,7 @@ def run_play(args: argparse.Namespace) -> int:
         log = (args.out.parent if args.out.suffix.lower() == ".mp4" else args.out) / "playback.json"
     cfg = PlayConfig(url=args.url, abr=args.abr, qp=args.qp, buffer_s=args.buffer, start_s=args.start,
                      duration_s=args.duration, realtime=args.realtime, view=view, out=args.out, log=log,
+                     precision=args.precision,
                      download=DownloadSettings(read_timeout_s=args.timeout, retries=args.retries))
     summary = asyncio.run(play(cfg))
     print_playback(summary)
@@ -396,12 +400,13 @@ def run_demo(args: argparse.Namespace) -> int:
 def add_bench(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmarks (accuracy vs time), printed as a Markdown table",
                        description="Run a benchmark suite and print Markdown for docs/BENCHMARKS.md.")
-    p.add_argument("suite", choices=["render", "synth", "pack", "serve", "play", "sim"],
+    p.add_argument("suite", choices=["render", "synth", "pack", "serve", "play", "sim", "train"],
                    help="render: splatter and deform per backend and Gaussian count; "
                    "synth: fit fidelity vs fit iterations; pack: rate, distortion and codec time per "
                    "QP and x265 preset, PLAS vs no sort, PLAS time; serve: stgs serve vs nginx with wrk; "
                    "play: the player's per-GOP download and pre-decode, per-frame deform and splat; "
-                   "sim: simulated vs emulated QoE and playbacks per second")
+                   "sim: simulated vs emulated QoE and playbacks per second; train: held-out quality vs "
+                   "training time of finished stgs train runs (--runs)")
     p.add_argument("--sizes", default="16384,65536,147456",
                    help="comma-separated Gaussian counts (default: 16384,65536,147456)")
     p.add_argument("--width", type=_positive_int, default=640)
@@ -421,8 +426,9 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dash", type=Path, help="serve, play, sim: a packaged scene (default: synthesise and pack one)")
     p.add_argument("--clients", default="1,16,64,256", help="serve: concurrent clients (default: 1,16,64,256)")
     p.add_argument("--seconds", type=_positive_int, default=8, help="serve: seconds per measurement (default: 8)")
-    p.add_argument("--plot", type=Path, default=Path("docs/rate_distortion.png"),
-                   help="pack: where to write the rate-distortion plot (default: docs/rate_distortion.png)")
+    p.add_argument("--runs", help="train: comma-separated model dirs written by stgs train (and stgs eval)")
+    p.add_argument("--plot", type=Path, help="pack, train: where to write the plot (default: "
+                   "docs/rate_distortion.png, docs/train_curves.png)")
     p.set_defaults(run=run_bench)
 
 
@@ -439,6 +445,12 @@ def _int_list(text: str, option: str) -> list[int]:
 def run_bench(args: argparse.Namespace) -> int:
     if args.dash is not None and not (args.dash / "manifest.mpd").is_file():
         raise UserError(f"--dash {args.dash}: no manifest.mpd there")
+    if args.suite == "train":
+        from stgs.benchmarks.train import main as bench_train
+
+        if not args.runs:
+            raise UserError("bench train needs --runs DIR[,DIR...] (model dirs of finished stgs train runs)")
+        return bench_train([Path(d) for d in args.runs.split(",") if d], args.plot or Path("docs/train_curves.png"))
     if args.suite == "sim":
         from stgs.benchmarks.sim import main as bench_sim
 
@@ -464,7 +476,8 @@ def run_bench(args: argparse.Namespace) -> int:
         unknown = sorted(set(presets) - set(X265_PRESETS))
         if unknown:
             raise UserError(f"--presets: unknown x265 preset(s) {unknown}")
-        return bench_pack(_int_list(args.qps, "--qps"), presets, _int_list(args.sides, "--sides"), args.plot,
+        return bench_pack(_int_list(args.qps, "--qps"), presets, _int_list(args.sides, "--sides"),
+                          args.plot or Path("docs/rate_distortion.png"),
                           PRESETS[scene])
     if args.suite == "synth":
         from stgs.benchmarks.synth import main as bench_synth

@@ -62,12 +62,19 @@ class Keyframe:
     """(2, 16) range of the feature codes."""
 
     def to_model(self, features: torch.Tensor) -> GOPModel:
-        """The GOP model with these canonical attributes and the given (E, N, 16) features."""
-        model = GOPModel(self.shape)
+        """The GOP model with these canonical attributes and the given (E, N, 16) features (used as they
+        are, not copied, when already float32 and contiguous)."""
+        if features.shape != (self.shape.num_features, self.shape.capacity, FEATURE_DIM):
+            raise ValueError(f"features must be {(self.shape.num_features, self.shape.capacity, FEATURE_DIM)}, "
+                             f"got {tuple(features.shape)}")
+        # Every tensor is overwritten below, so allocate without initialising: the features alone are
+        # E·N·16 floats (260 MB at N = 65,536), and filling them first cost the player's pre-decode time.
+        with torch.device("meta"):
+            model = GOPModel(self.shape)
+        model.to_empty(device="cpu")
         model.field.load_state_dict(self.field)
         apply_attributes(model, self.attributes)
-        with torch.no_grad():
-            model.features.copy_(features)
+        model.features.data = features.to(torch.float32).contiguous()
         return model
 
 

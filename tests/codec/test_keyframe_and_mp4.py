@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from stgs.codec.attributes import SPECS
 from stgs.codec.features import feature_ranges
 from stgs.codec.keyframe import KeyframeError, decode_keyframe, encode_keyframe
 from stgs.codec.mp4 import MP4Error, find_path, hevc_codecs, iter_boxes, set_timeline, split_fragmented
@@ -31,6 +32,20 @@ def test_keyframe_round_trip(keyframe):
         assert torch.equal(kf.field[name], weight)
     decoded = kf.to_model(model.features.detach())
     assert (decoded.xyz - model.xyz).abs().max() < 1e-3
+    # to_model allocates without initialising: every parameter must have been written.
+    original = dict(model.named_parameters())
+    for name, param in decoded.named_parameters():
+        assert torch.isfinite(param).all(), name
+        if name.startswith("field.") or name == "features":
+            assert torch.equal(param, original[name]), name
+    for spec in SPECS:
+        want = getattr(model, spec.param).detach()
+        want = want.clamp(*spec.clip) if spec.clip else want
+        lo, hi = spec.clip or (float(want.min()), float(want.max()))
+        step = (hi - lo) / (spec.levels - 1)  # half a step off at most; a whole step allows for rounding
+        assert (getattr(decoded, spec.param) - want).abs().max() <= step, spec.name
+    with pytest.raises(ValueError, match="features must be"):
+        kf.to_model(model.features.detach()[:-1])
 
 
 def test_keyframe_checks(keyframe):
