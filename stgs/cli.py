@@ -277,6 +277,9 @@ def add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--coarse-iterations", type=int, help="iterations of the coarse canonical stage")
     p.add_argument("--scale", type=float, help="training image scale (0.5 = half size)")
     p.add_argument("--window", type=_positive_int, help="sliding window W (default 3)")
+    p.add_argument("--background-share", type=float,
+                   help="share of the Gaussians first placed on a shell around the camera rig, for the walls and "
+                   "floor an inward-facing rig sees (default: 0.5 for the cpu and paper budgets, else 0)")
     p.add_argument("--no-aux", dest="aux", action="store_false", default=None,
                    help="no transformer-guided auxiliary pass")
     p.add_argument("--no-dynamic-density", dest="dynamic", action="store_false", default=None,
@@ -293,7 +296,8 @@ def add_train(sub: argparse._SubParsersAction) -> None:
 
 
 TRAIN_OVERRIDES = ("max_gops", "gop_size", "start_frame", "grid_side", "iterations", "coarse_iterations", "scale",
-                   "window", "aux", "dynamic", "temporal_weight", "relocate", "seed", "threads", "holdout")
+                   "window", "aux", "dynamic", "temporal_weight", "relocate", "seed", "threads", "holdout",
+                   "background_share")
 
 
 def run_train(args: argparse.Namespace) -> int:

@@ -88,6 +88,9 @@ class TrainConfig:
     """Iterations between checkpoints (for --resume)."""
     init_points: int = 0
     """Use at most this many triangulated points (0: all)."""
+    background_share: float = 0.0
+    """Share of the capacity first placed on a shell around the rig, for the background an inward-facing
+    rig sees behind the action (walls, floor; 0: none)."""
     threads: int | None = None
     """torch threads (None: torch's default)."""
 
@@ -98,7 +101,8 @@ class TrainConfig:
                   (self.feature_noise >= 0, "feature_noise must be >= 0"),
                   (self.relocate_every >= 1 and self.checkpoint_every >= 1 and self.sort_every >= 1,
                    "every-N settings must be >= 1"),
-                  (self.max_gops is None or self.max_gops >= 1, "max_gops must be >= 1")]
+                  (self.max_gops is None or self.max_gops >= 1, "max_gops must be >= 1"),
+                  (0 <= self.background_share < 1, "background_share must be in [0, 1)")]
         for ok, message in checks:
             if not ok:
                 raise UserError(f"train config: {message}")
@@ -108,9 +112,9 @@ BUDGETS = {
     "quick": TrainConfig(coarse_iterations=1000, iterations=600,
                          lr=LearningRates(position=8e-4, position_final=8e-6)),
     "cpu": TrainConfig(budget="cpu", grid_side=128, scale=1.0, coarse_iterations=1500, iterations=3000,
-                       sort_every=1000, checkpoint_every=500),
+                       sort_every=1000, checkpoint_every=500, background_share=0.5),
     "paper": TrainConfig(budget="paper", grid_side=388, coarse_iterations=3000, iterations=12000,
-                         sort_every=3000, checkpoint_every=1000),
+                         sort_every=3000, checkpoint_every=1000, background_share=0.5),
 }
 """quick: CI (tiny, minutes); cpu: a 60-frame Panoptic GOP at 640x360 in about an hour on 2 cores;
 paper: 12k iterations, ~150k Gaussians, for a bigger machine."""

@@ -9,7 +9,10 @@
 3. multi-view consistency: a point must land inside the image (and the
    foreground mask) of at least `min_views` cameras with a colour close to
    its own in at least `min_consistent` cameras besides the pair.
-If that leaves too few points, `random_frustum_points` fills in.
+If that leaves too few points, `random_frustum_points` fills in. The
+background an inward-facing rig sees behind the action (walls, floor, dome)
+rarely triangulates (repetitive, textureless); `background_shell_points`
+seeds it on a shell around the rig, coloured from the images.
 """
 
 from __future__ import annotations
@@ -146,15 +149,49 @@ def consistent(points: np.ndarray, colors: np.ndarray, cameras: list[Camera], im
     return (views >= cfg.min_views) & (agree >= cfg.min_consistent + 2)
 
 
-def random_frustum_points(cameras: list[Camera], count: int, gen: torch.Generator) -> torch.Tensor:
-    """`count` random points in the region most cameras see: around the point nearest every optical axis."""
+def rig_focus(cameras: list[Camera]) -> tuple[torch.Tensor, float]:
+    """The point nearest every optical axis, and the cameras' mean distance from it."""
     centres = torch.stack([c.center for c in cameras])
     axes = torch.stack([c.viewmat[2, :3] for c in cameras])  # viewing directions (world)
     eye = torch.eye(3, dtype=torch.float64)
     A = sum(eye - a[:, None] @ a[None] for a in axes)
     b = sum((eye - a[:, None] @ a[None]) @ c for a, c in zip(axes, centres, strict=True))
     focus = torch.linalg.lstsq(A, b[:, None]).solution[:, 0]
-    radius = float((centres - focus).norm(dim=1).mean()) * 0.35
+    return focus, float((centres - focus).norm(dim=1).mean())
+
+
+def background_shell_points(cameras: list[Camera], images: list[torch.Tensor], count: int,
+                            gen: torch.Generator, inner: float = 1.05, outer: float = 1.4
+                            ) -> tuple[torch.Tensor, torch.Tensor]:
+    """`count` points on a shell around the rig (inner..outer × the cameras' distance from the focus) that
+    some camera sees, each coloured with the median of the pixels it lands on."""
+    focus, rig = rig_focus(cameras)
+    points, colors = [], []
+    for _ in range(20):
+        if sum(len(p) for p in points) >= count:
+            break
+        direction = torch.randn(4 * count, 3, generator=gen, dtype=torch.float64)
+        direction /= direction.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        radius = rig * (inner + (outer - inner) * torch.rand(4 * count, 1, generator=gen, dtype=torch.float64))
+        cand = (focus + direction * radius).numpy()
+        samples = np.full((len(cand), len(cameras), 3), np.nan)
+        for k, (cam, img) in enumerate(zip(cameras, images, strict=True)):
+            uv, z = project(cam, cand)
+            seen = (z > 0.01) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+            samples[seen, k] = _sample(img.numpy(), uv[seen])
+        seen_any = ~np.isnan(samples[:, :, 0]).all(axis=1)
+        points.append(cand[seen_any])
+        colors.append(np.nanmedian(samples[seen_any], axis=1))
+    if not points or sum(len(p) for p in points) == 0:
+        return torch.empty(0, 3), torch.empty(0, 3)
+    pts, col = np.concatenate(points)[:count], np.concatenate(colors)[:count]
+    return torch.from_numpy(pts).float(), torch.from_numpy(col).float()
+
+
+def random_frustum_points(cameras: list[Camera], count: int, gen: torch.Generator) -> torch.Tensor:
+    """`count` random points in the region most cameras see: around the point nearest every optical axis."""
+    focus, rig = rig_focus(cameras)
+    radius = rig * 0.35
     out, tries = [], 0
     while sum(len(o) for o in out) < count and tries < 50:
         tries += 1

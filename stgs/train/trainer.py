@@ -45,7 +45,7 @@ from stgs.train import losses
 from stgs.train.aux import AuxTransformer
 from stgs.train.config import TrainConfig
 from stgs.train.dynamic import dynamic_mask
-from stgs.train.init import random_frustum_points, triangulate
+from stgs.train.init import background_shell_points, random_frustum_points, triangulate
 from stgs.tree import CAMERAS, CAMERAS_FORMAT
 
 STATE_DIR = ".train"
@@ -95,10 +95,19 @@ def load_views(ds: Dataset, names: list[str], frames: list[int], scale: float, p
 
 
 def initial_points(ds: Dataset, names: list[str], frame: int, count: int, gen: torch.Generator,
-                   limit: int = 0) -> tuple[torch.Tensor, torch.Tensor, int]:
-    """(count, 3) points, (count, 3) colours and how many were triangulated."""
+                   limit: int = 0, background_share: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """(count, 3) points, (count, 3) colours and how many were triangulated; `background_share` of the
+    count goes on a shell around the rig for the background (background_shell_points)."""
     cams = [c for c in ds.cameras(frame) if c.name in names]
-    pts, col = triangulate(cams, [ds.image(frame, c.name) for c in cams], [ds.mask(frame, c.name) for c in cams])
+    images = [ds.image(frame, c.name) for c in cams]
+    parts, colors = [], []
+    n_background = int(count * background_share)
+    if n_background:
+        pts, col = background_shell_points(cams, images, n_background, gen)
+        parts.append(pts)
+        colors.append(col)
+        count -= len(pts)
+    pts, col = triangulate(cams, images, [ds.mask(frame, c.name) for c in cams])
     if limit and len(pts) > limit:
         keep = torch.randperm(len(pts), generator=gen)[:limit]
         pts, col = pts[keep], col[keep]
@@ -107,10 +116,11 @@ def initial_points(ds: Dataset, names: list[str], frame: int, count: int, gen: t
     found = len(pts)
     if found >= count:
         keep = torch.randperm(found, generator=gen)[:count]
-        return pts[keep], col[keep], found
+        return torch.cat([*parts, pts[keep]]), torch.cat([*colors, col[keep]]), found
     extra_random = (count - found) // 2 if found else count - found
     jitter_n = count - found - extra_random
-    parts, colors = [pts], [col]
+    parts.append(pts)
+    colors.append(col)
     if jitter_n:
         src = torch.randint(found, (jitter_n,), generator=gen)
         spread = (pts.std(0) * 0.02).clamp_min(1e-3)
@@ -303,7 +313,7 @@ class Trainer:
         start = resumed[0]["iteration"] if resumed else 0
         if not resumed:
             pts, col, found = initial_points(self.ds, self.train_names, views.frames[0], self.shape.capacity,
-                                             self.gen, cfg.init_points)
+                                             self.gen, cfg.init_points, cfg.background_share)
             self.triangulated = found
             init_canonical(model, pts, col)
         bar = tqdm(range(start, cfg.coarse_iterations), desc="coarse canonical", unit="it", disable=not self.progress)

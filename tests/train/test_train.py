@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from stgs.data import open_dataset, split
+from stgs.errors import UserError
 from stgs.metrics import psnr
 from stgs.model.store import load_model
 from stgs.synth import SynthConfig, synthesize
@@ -185,3 +186,43 @@ def test_triangulated_points_land_in_the_foreground():
         inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
         fractions.append(float((mask.numpy()[y, x] & inside).mean()))
     assert np.median(fractions) > 0.7 and sum(f > 0.5 for f in fractions) >= 0.75 * len(cams), fractions
+
+
+@pytest.mark.skipif(not PANOPTIC.is_dir(), reason="../shared/data/panoptic-basketball is absent")
+def test_background_shell_points_cover_the_walls_in_the_image_colours():
+    from stgs.train.init import background_shell_points, project, rig_focus
+
+    ds = open_dataset(PANOPTIC)
+    train_cams, _ = split(ds, ["1", "14", "27"])
+    cams = [c for c in ds.cameras(0) if c.name in train_cams]
+    images = [ds.image(0, c.name) for c in cams]
+    pts, colors = background_shell_points(cams, images, 500, torch.Generator().manual_seed(0))
+    assert pts.shape == colors.shape == (500, 3)
+    focus, rig = rig_focus(cams)
+    radius = (pts.double() - focus).norm(dim=1) / rig
+    assert radius.min() >= 1.05 - 1e-5 and radius.max() <= 1.4 + 1e-5  # on the shell, behind the cameras
+    seen_by = np.zeros(len(pts), dtype=int)
+    for cam in cams:
+        uv, z = project(cam, pts.double().numpy())
+        seen_by += (z > 0.01) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    assert (seen_by >= 1).all()
+    # Coloured from the pictures: the dome's grey walls, not random colours.
+    wall = torch.stack([img.reshape(-1, 3).median(0).values for img in images]).median(0).values
+    assert (colors.median(0).values - wall).abs().max() < 0.15, (colors.median(0).values, wall)
+    assert colors.std(0).max() < 0.2
+
+
+def test_background_share_is_validated_and_splits_the_capacity(scene):
+    from stgs.train.trainer import initial_points
+
+    with pytest.raises(UserError, match="background_share"):
+        budget("quick", background_share=1.0)
+    ds = open_dataset(scene)
+    names, _ = split(ds)
+    pts, colors, _ = initial_points(ds, names, 0, 256, torch.Generator().manual_seed(0), background_share=0.25)
+    assert pts.shape == colors.shape == (256, 3) and torch.isfinite(pts).all()
+    from stgs.train.init import rig_focus
+
+    focus, rig = rig_focus([c for c in ds.cameras(0) if c.name in names])
+    on_shell = (pts.double() - focus).norm(dim=1) >= 1.05 * rig - 1e-5
+    assert int(on_shell.sum()) == 64  # a quarter of the capacity; the rest inside the rig as before
