@@ -60,6 +60,12 @@ def project(cam: Camera, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return uv[:, :2] / np.where(np.abs(uv[:, 2:]) < 1e-12, 1e-12, uv[:, 2:]), z
 
 
+def in_view(cam: Camera, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates (P, 2) of world points and whether each lands in the image in front of the camera."""
+    uv, z = project(cam, points)
+    return uv, (z > 0.01) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+
+
 def fundamental(a: Camera, b: Camera) -> np.ndarray:
     """F with x_b^T F x_a = 0 from the known calibration."""
     ra, ta = a.viewmat[:3, :3].numpy(), a.viewmat[:3, 3].numpy()
@@ -139,8 +145,7 @@ def consistent(points: np.ndarray, colors: np.ndarray, cameras: list[Camera], im
     views = np.zeros(len(points), dtype=int)
     agree = np.zeros(len(points), dtype=int)
     for cam, img, mask in zip(cameras, images, masks, strict=True):
-        uv, z = project(cam, points)
-        inside = (z > 0.01) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        uv, inside = in_view(cam, points)
         if mask is not None:
             inside &= _sample(mask.numpy(), uv)
         views += inside
@@ -176,8 +181,7 @@ def background_shell_points(cameras: list[Camera], images: list[torch.Tensor], c
         cand = (focus + direction * radius).numpy()
         samples = np.full((len(cand), len(cameras), 3), np.nan)
         for k, (cam, img) in enumerate(zip(cameras, images, strict=True)):
-            uv, z = project(cam, cand)
-            seen = (z > 0.01) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+            uv, seen = in_view(cam, cand)
             samples[seen, k] = _sample(img.numpy(), uv[seen])
         seen_any = ~np.isnan(samples[:, :, 0]).all(axis=1)
         points.append(cand[seen_any])
@@ -198,9 +202,7 @@ def random_frustum_points(cameras: list[Camera], count: int, gen: torch.Generato
         cand = focus + (torch.rand(4 * count, 3, generator=gen, dtype=torch.float64) * 2 - 1) * radius
         seen = torch.zeros(len(cand), dtype=torch.long)
         for cam in cameras:
-            uv, z = project(cam, cand.numpy())
-            seen += torch.from_numpy((z > 0.01) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width)
-                                     & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height))
+            seen += torch.from_numpy(in_view(cam, cand.numpy())[1])
         out.append(cand[seen >= max(1, len(cameras) // 2)])
     pts = torch.cat(out) if out else torch.empty(0, 3, dtype=torch.float64)
     if len(pts) < count:  # nothing is seen by half the cameras: fall back to the ball itself

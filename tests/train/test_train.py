@@ -170,7 +170,7 @@ PANOPTIC = SHARED / "data" / "panoptic-basketball"
 
 @pytest.mark.skipif(not PANOPTIC.is_dir(), reason="../shared/data/panoptic-basketball is absent")
 def test_triangulated_points_land_in_the_foreground():
-    from stgs.train.init import project, triangulate
+    from stgs.train.init import in_view, triangulate
 
     ds = open_dataset(PANOPTIC)
     train_cams, _ = split(ds, ["1", "14", "27"])
@@ -180,17 +180,16 @@ def test_triangulated_points_land_in_the_foreground():
     assert len(pts) >= 100 and colors.shape == pts.shape
     fractions = []
     for cam, mask in zip(cams, masks, strict=True):
-        uv, z = project(cam, pts.double().numpy())
+        uv, inside = in_view(cam, pts.double().numpy())
         x = np.clip(uv[:, 0].astype(int), 0, cam.width - 1)
         y = np.clip(uv[:, 1].astype(int), 0, cam.height - 1)
-        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
         fractions.append(float((mask.numpy()[y, x] & inside).mean()))
     assert np.median(fractions) > 0.7 and sum(f > 0.5 for f in fractions) >= 0.75 * len(cams), fractions
 
 
 @pytest.mark.skipif(not PANOPTIC.is_dir(), reason="../shared/data/panoptic-basketball is absent")
 def test_background_shell_points_cover_the_walls_in_the_image_colours():
-    from stgs.train.init import background_shell_points, project, rig_focus
+    from stgs.train.init import background_shell_points, in_view, rig_focus
 
     ds = open_dataset(PANOPTIC)
     train_cams, _ = split(ds, ["1", "14", "27"])
@@ -201,10 +200,7 @@ def test_background_shell_points_cover_the_walls_in_the_image_colours():
     focus, rig = rig_focus(cams)
     radius = (pts.double() - focus).norm(dim=1) / rig
     assert radius.min() >= 1.05 - 1e-5 and radius.max() <= 1.4 + 1e-5  # on the shell, behind the cameras
-    seen_by = np.zeros(len(pts), dtype=int)
-    for cam in cams:
-        uv, z = project(cam, pts.double().numpy())
-        seen_by += (z > 0.01) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    seen_by = sum(in_view(cam, pts.double().numpy())[1].astype(int) for cam in cams)
     assert (seen_by >= 1).all()
     # Coloured from the pictures: the dome's grey walls, not random colours.
     wall = torch.stack([img.reshape(-1, 3).median(0).values for img in images]).median(0).values
