@@ -279,7 +279,7 @@ def add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--window", type=_positive_int, help="sliding window W (default 3)")
     p.add_argument("--background-share", type=float,
                    help="share of the Gaussians first placed on a shell around the camera rig, for the walls and "
-                   "floor an inward-facing rig sees (default: 0.5 for the cpu and paper budgets, else 0)")
+                   "floor an inward-facing rig sees (default: 0; docs/BENCHMARKS.md measures it)")
     p.add_argument("--no-aux", dest="aux", action="store_false", default=None,
                    help="no transformer-guided auxiliary pass")
     p.add_argument("--no-dynamic-density", dest="dynamic", action="store_false", default=None,

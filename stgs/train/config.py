@@ -112,9 +112,9 @@ BUDGETS = {
     "quick": TrainConfig(coarse_iterations=1000, iterations=600,
                          lr=LearningRates(position=8e-4, position_final=8e-6)),
     "cpu": TrainConfig(budget="cpu", grid_side=128, scale=1.0, coarse_iterations=1500, iterations=3000,
-                       sort_every=1000, checkpoint_every=500, background_share=0.5),
+                       sort_every=1000, checkpoint_every=500),
     "paper": TrainConfig(budget="paper", grid_side=388, coarse_iterations=3000, iterations=12000,
-                         sort_every=3000, checkpoint_every=1000, background_share=0.5),
+                         sort_every=3000, checkpoint_every=1000),
 }
 """quick: CI (tiny, minutes); cpu: a 60-frame Panoptic GOP at 640x360 in about an hour on 2 cores;
 paper: 12k iterations, ~150k Gaussians, for a bigger machine."""
