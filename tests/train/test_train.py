@@ -168,13 +168,20 @@ def test_bad_training_input_is_one_line(scene, tmp_path):
 PANOPTIC = SHARED / "data" / "panoptic-basketball"
 
 
-@pytest.mark.skipif(not PANOPTIC.is_dir(), reason="../shared/data/panoptic-basketball is absent")
-def test_triangulated_points_land_in_the_foreground():
-    from stgs.train.init import in_view, triangulate
-
+@pytest.fixture(scope="module")
+def panoptic_frame0():
+    """The Panoptic dataset and its training cameras (1, 14, 27 held out) at frame 0."""
+    if not PANOPTIC.is_dir():
+        pytest.skip("../shared/data/panoptic-basketball is absent")
     ds = open_dataset(PANOPTIC)
     train_cams, _ = split(ds, ["1", "14", "27"])
-    cams = [c for c in ds.cameras(0) if c.name in train_cams]
+    return ds, [c for c in ds.cameras(0) if c.name in train_cams]
+
+
+def test_triangulated_points_land_in_the_foreground(panoptic_frame0):
+    from stgs.train.init import in_view, triangulate
+
+    ds, cams = panoptic_frame0
     masks = [ds.mask(0, c.name) for c in cams]
     pts, colors = triangulate(cams, [ds.image(0, c.name) for c in cams], masks)
     assert len(pts) >= 100 and colors.shape == pts.shape
@@ -187,13 +194,10 @@ def test_triangulated_points_land_in_the_foreground():
     assert np.median(fractions) > 0.7 and sum(f > 0.5 for f in fractions) >= 0.75 * len(cams), fractions
 
 
-@pytest.mark.skipif(not PANOPTIC.is_dir(), reason="../shared/data/panoptic-basketball is absent")
-def test_background_shell_points_cover_the_walls_in_the_image_colours():
+def test_background_shell_points_cover_the_walls_in_the_image_colours(panoptic_frame0):
     from stgs.train.init import background_shell_points, in_view, rig_focus
 
-    ds = open_dataset(PANOPTIC)
-    train_cams, _ = split(ds, ["1", "14", "27"])
-    cams = [c for c in ds.cameras(0) if c.name in train_cams]
+    ds, cams = panoptic_frame0
     images = [ds.image(0, c.name) for c in cams]
     pts, colors = background_shell_points(cams, images, 500, torch.Generator().manual_seed(0))
     assert pts.shape == colors.shape == (500, 3)
