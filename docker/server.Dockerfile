@@ -24,4 +24,5 @@ HEALTHCHECK --interval=15s --timeout=3s --start-period=5s --retries=3 \
     CMD python -c "import urllib.request,sys; sys.exit(urllib.request.urlopen('http://127.0.0.1:8080/healthz', timeout=2).status != 200)"
 STOPSIGNAL SIGTERM
 ENTRYPOINT ["python", "-m", "stgs.server.main"]
+# Given more than one core, add "--workers", "N" (processes sharing the port; /metrics sums them).
 CMD ["/data", "--host", "0.0.0.0", "--port", "8080"]

@@ -11,16 +11,26 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import ctypes
+import dataclasses
 import json
 import logging
+import multiprocessing
+import multiprocessing.synchronize
+import os
+import signal
+import socket
+import stat
+import tempfile
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 from aiohttp import web
 from aiohttp.abc import AbstractAccessLogger
-from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest, multiprocess
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 
 from stgs.loopback import on_loopback
@@ -80,6 +90,29 @@ class ServeConfig:
     """Cache-Control max-age of segments (they never change under one URL)."""
     access_log: bool = True
     """Write one JSON line per request to stderr."""
+    workers: int = 1
+    """Server processes sharing the port (SO_REUSEPORT: the kernel spreads connections); /metrics sums them all."""
+    io_threads: int | None = 0
+    """Threads for each file's stat/open/close: 0 does them on the event loop (microseconds on a local disk,
+    far less than a hop to a thread), N uses N threads (slow network storage), None leaves the loop's
+    default executor alone (a server sharing its loop with other code, like the demo's player)."""
+
+
+class InlineExecutor(ThreadPoolExecutor):
+    """Runs each call at once on the calling thread (asyncio wants its default executor to be a thread pool)."""
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        future: Future = Future()
+        try:
+            future.set_result(fn(*args, **kwargs))
+        except BaseException as exc:  # handed to the awaiting coroutine, as a pool would
+            future.set_exception(exc)
+        return future
+
+
+MULTIPROCESS_ENV = "PROMETHEUS_MULTIPROC_DIR"
+"""Set (to a folder shared by the workers) when several processes serve: prometheus_client then keeps every
+value in a file there, and /metrics reads them all."""
 
 
 class Metrics:
@@ -90,14 +123,27 @@ class Metrics:
         self.requests = Counter("stgs_http_requests", "HTTP requests", ["method", "status"],
                                 registry=self.registry)
         self.bytes = Counter("stgs_http_sent_bytes", "Body bytes sent", registry=self.registry)
-        self.in_flight = Gauge("stgs_http_in_flight", "Requests being handled", registry=self.registry)
+        self.in_flight = Gauge("stgs_http_in_flight", "Requests being handled", registry=self.registry,
+                               multiprocess_mode="livesum")
         self.latency = Histogram("stgs_http_request_seconds", "Request handling time including the transfer",
                                  buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10),
                                  registry=self.registry)
 
+    def exposition(self) -> bytes:
+        """The text format: this process's values, or with several workers the sum over all of them."""
+        if MULTIPROCESS_ENV not in os.environ:
+            return generate_latest(self.registry)
+        registry = CollectorRegistry()
+        multiprocess.MultiProcessCollector(registry)
+        return generate_latest(registry)
+
 
 class JsonAccessLogger(AbstractAccessLogger):
     """One JSON object per request: time, client, method, path, status, bytes, seconds."""
+
+    @property
+    def enabled(self) -> bool:
+        return self.logger.isEnabledFor(logging.INFO)
 
     def log(self, request: web.BaseRequest, response: web.StreamResponse, time_s: float) -> None:
         self.logger.info(json.dumps({
@@ -107,15 +153,31 @@ class JsonAccessLogger(AbstractAccessLogger):
 
 
 def resolve_path(root: Path, url_path: str) -> Path | None:
-    """The file under root that url_path names, or None (outside root, hidden, unknown type, missing)."""
+    """The file under root that url_path names, or None (outside root, hidden, unknown type, missing).
+
+    `root` must already be resolved. Without symlinks below root, one lstat per component decides; a symlink
+    anywhere sends the path through realpath and a containment check.
+    """
     if "\x00" in url_path or "\\" in url_path:
         return None
     parts = [p for p in url_path.split("/") if p]
     if any(p in (".", "..") or p.startswith(".") for p in parts):
         return None
-    if not parts or Path(parts[-1]).suffix not in CONTENT_TYPES:
+    if not parts or os.path.splitext(parts[-1])[1] not in CONTENT_TYPES:
         return None
-    candidate = root.joinpath(*parts)
+    current = str(root).rstrip("/")
+    for part in parts:
+        current = f"{current}/{part}"
+        try:
+            mode = os.lstat(current).st_mode
+        except OSError:
+            return None
+        if stat.S_ISLNK(mode):
+            return resolve_symlinked(root, root.joinpath(*parts))
+    return Path(current) if stat.S_ISREG(mode) else None
+
+
+def resolve_symlinked(root: Path, candidate: Path) -> Path | None:
     try:
         real = candidate.resolve(strict=True)
     except (OSError, RuntimeError):
@@ -200,7 +262,7 @@ async def healthz(request: web.Request) -> web.Response:
 
 
 async def metrics(request: web.Request) -> web.Response:
-    body = generate_latest(request.app[METRICS_KEY].registry)
+    body = request.app[METRICS_KEY].exposition()
     return web.Response(body=body, headers={"Content-Type": CONTENT_TYPE_LATEST, "Cache-Control": "no-store"})
 
 
@@ -228,6 +290,18 @@ async def observe(request: web.Request, handler) -> web.StreamResponse:
             m.bytes.inc(len(body) if isinstance(body, bytes) else 0)
 
 
+def file_io_executor(threads: int):
+    """Cleanup context that makes the loop's default executor (aiohttp's file stat/open) inline or a pool."""
+
+    async def context(app: web.Application) -> AsyncIterator[None]:
+        executor = InlineExecutor() if threads == 0 else ThreadPoolExecutor(threads, "stgs-file-io")
+        asyncio.get_running_loop().set_default_executor(executor)
+        yield
+        executor.shutdown(wait=False)
+
+    return context
+
+
 def build_app(cfg: ServeConfig) -> web.Application:
     root = Path(cfg.root).resolve()
     app = web.Application(middlewares=[observe], client_max_size=1024)
@@ -239,6 +313,8 @@ def build_app(cfg: ServeConfig) -> web.Application:
         app[SLOTS_KEY] = asyncio.Semaphore(cfg.max_transfers)
 
     app.on_startup.append(make_slots)
+    if cfg.io_threads is not None:
+        app.cleanup_ctx.append(file_io_executor(cfg.io_threads))
     app.router.add_get("/healthz", healthz)
     app.router.add_get("/metrics", metrics)
     app.router.add_get("/scenes", scenes)
@@ -254,7 +330,7 @@ async def loopback(root: Path, middlewares: tuple = ()) -> AsyncIterator[str]:
 
     For the demo, benchmarks and tests; `middlewares` run before the server's own (e.g. a test-only delay).
     """
-    app = build_app(ServeConfig(root=root, port=0, access_log=False))
+    app = build_app(ServeConfig(root=root, port=0, access_log=False, io_threads=None))
     for i, middleware in enumerate(middlewares):
         app.middlewares.insert(i, middleware)
     async with on_loopback(app) as base:
@@ -263,10 +339,81 @@ async def loopback(root: Path, middlewares: tuple = ()) -> AsyncIterator[str]:
 
 def run(cfg: ServeConfig) -> None:
     """Serve until SIGINT/SIGTERM; in-flight transfers get cfg.shutdown_timeout seconds to finish."""
+    if cfg.workers == 1:
+        serve_process(cfg)
+    else:
+        run_workers(cfg)
+
+
+@contextlib.contextmanager
+def reserved_port(host: str, port: int) -> Iterator[int]:
+    """Hold (host, port) with SO_REUSEPORT so that port 0 becomes one port every worker then binds too."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+        sock.bind((host, port))
+        yield sock.getsockname()[1]  # bound but never listening: the kernel hands it no connections
+
+
+def run_workers(cfg: ServeConfig) -> None:
+    """cfg.workers processes on one port; SIGTERM/SIGINT reach each, which shuts down as a single server does."""
+    with tempfile.TemporaryDirectory(prefix="stgs-metrics-") as metrics_dir, \
+            reserved_port(cfg.host, cfg.port) as port:
+        os.environ[MULTIPROCESS_ENV] = metrics_dir  # inherited by the workers, which import prometheus afresh
+        spawn = multiprocessing.get_context("spawn")
+        listening = [spawn.Event() for _ in range(cfg.workers)]
+        procs = [spawn.Process(target=serve_process, args=(dataclasses.replace(cfg, port=port), event),
+                               name=f"stgs-serve-{i}") for i, event in enumerate(listening)]
+        stopping = []
+
+        def stop(signum: int, frame: object) -> None:
+            stopping.append(signum)
+            for proc in procs:
+                if proc.pid is not None and proc.is_alive():
+                    os.kill(proc.pid, signal.SIGTERM)
+
+        signal.signal(signal.SIGTERM, stop)
+        signal.signal(signal.SIGINT, stop)
+        for proc in procs:
+            if not stopping:
+                proc.start()
+        procs = [proc for proc in procs if proc.pid is not None]
+        for proc, event in zip(procs, listening, strict=False):
+            while not event.wait(0.1) and proc.is_alive():
+                pass
+        if all(event.is_set() for event in listening):  # announced once every worker takes connections
+            print(f"stgs serve: ======== Running on http://{cfg.host}:{port} ({cfg.workers} workers) ========\n"
+                  "(Press CTRL+C to quit)", flush=True)
+        for proc in procs:
+            proc.join()
+            multiprocess.mark_process_dead(proc.pid)
+        failed = [proc.exitcode for proc in procs if proc.exitcode]
+        if failed:
+            raise SystemExit(f"stgs serve: {len(failed)} of {len(procs)} workers failed (exit {failed[0]})")
+
+
+def leave_signals_to_parent() -> None:
+    """A worker takes signals from the parent only: its own process group (a terminal's Ctrl-C or a group kill
+    would otherwise arrive twice, and a second SIGTERM cuts the graceful shutdown), and SIGTERM if the parent dies."""
+    os.setpgid(0, 0)
+    libc = ctypes.CDLL(None, use_errno=True)
+    pr_set_pdeathsig = 1
+    libc.prctl(pr_set_pdeathsig, signal.SIGTERM)
+    if os.getppid() != multiprocessing.parent_process().pid:  # the parent died before prctl took effect
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
+def serve_process(cfg: ServeConfig, listening: multiprocessing.synchronize.Event | None = None) -> None:
+    """One server process; a worker of several sets `listening` instead of printing where it listens."""
+    if listening is not None:
+        leave_signals_to_parent()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     access = logging.getLogger("stgs.access")
     access.setLevel(logging.INFO if cfg.access_log else logging.WARNING)
     web.run_app(build_app(cfg), host=cfg.host, port=cfg.port, shutdown_timeout=cfg.shutdown_timeout,
                 keepalive_timeout=cfg.keepalive_timeout, access_log_class=JsonAccessLogger,
                 access_log=access, max_line_size=cfg.max_header_bytes, max_field_size=cfg.max_header_bytes,
-                max_headers=cfg.max_headers, print=lambda msg: print(f"stgs serve: {msg}", flush=True))
+                max_headers=cfg.max_headers, reuse_port=cfg.workers > 1 or None,
+                print=(lambda msg: print(f"stgs serve: {msg}", flush=True)) if listening is None
+                else lambda msg: listening.set())  # run_app prints once its sites listen

@@ -16,14 +16,21 @@ from pathlib import Path
 from stgs.errors import UserError
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"must be positive: {value}")
-    return value
+def _int_at_least(lowest: int, words: str):
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+        if value < lowest:
+            raise argparse.ArgumentTypeError(f"must be {words}: {value}")
+        return value
+
+    return parse
+
+
+_positive_int = _int_at_least(1, "positive")
+_non_negative_int = _int_at_least(0, "0 or more")
 
 
 def _names(text: str) -> list[str]:
@@ -138,6 +145,10 @@ def add_serve(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--port", type=int, default=8080, help="listen port (default: 8080; 0 picks one)")
     p.add_argument("--max-transfers", type=_positive_int, default=512,
                    help="file transfers in flight at once (default: 512)")
+    p.add_argument("--workers", type=_positive_int, default=1,
+                   help="server processes sharing the port (default: 1; up to one per core)")
+    p.add_argument("--io-threads", type=_non_negative_int, default=0,
+                   help="threads for file stat/open (default: 0, on the event loop; more for network storage)")
     p.add_argument("--quiet", action="store_true", help="no access log")
     p.set_defaults(run=run_serve)
 
@@ -150,7 +161,7 @@ def run_serve(args: argparse.Namespace) -> int:
     if not 0 <= args.port <= 65535:
         raise UserError(f"--port must be in 0..65535, got {args.port}")
     run(ServeConfig(root=args.root, host=args.host, port=args.port, max_transfers=args.max_transfers,
-                    access_log=not args.quiet))
+                    workers=args.workers, io_threads=args.io_threads, access_log=not args.quiet))
     return 0
 
 

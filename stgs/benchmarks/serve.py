@@ -9,6 +9,7 @@ same run. Only loopback addresses are used; every run is bounded in time.
 from __future__ import annotations
 
 import dataclasses
+import os
 import re
 import shutil
 import socket
@@ -30,7 +31,7 @@ end
 """
 
 NGINX_CONF = """
-worker_processes 2;
+worker_processes {workers};
 pid {tmp}/nginx.pid;
 error_log {tmp}/error.log;
 events {{ worker_connections 4096; }}
@@ -129,10 +130,11 @@ def main(scene_dir: Path | None, clients: list[int], seconds: int) -> int:
         script.write_text(WRK_SCRIPT.format(paths=", ".join(f'"/{p}"' for p in paths)))
         stgs_port, nginx_port = free_port(), free_port()
         conf = tmp / "nginx.conf"
-        conf.write_text(NGINX_CONF.format(tmp=tmp, port=nginx_port, root=scene_dir))
+        workers = os.cpu_count() or 1
+        conf.write_text(NGINX_CONF.format(tmp=tmp, port=nginx_port, root=scene_dir, workers=workers))
         nginx_bin = shutil.which("nginx") or "/usr/sbin/nginx"
         servers = [subprocess.Popen([sys.executable, "-m", "stgs.server.main", str(scene_dir), "--port",
-                                     str(stgs_port), "--quiet"], stdout=subprocess.DEVNULL,
+                                     str(stgs_port), "--workers", str(workers), "--quiet"], stdout=subprocess.DEVNULL,
                                     stderr=subprocess.DEVNULL),
                    subprocess.Popen([nginx_bin, "-c", str(conf), "-g", "daemon off;"], stdout=subprocess.DEVNULL,
                                     stderr=subprocess.DEVNULL)]
@@ -142,7 +144,8 @@ def main(scene_dir: Path | None, clients: list[int], seconds: int) -> int:
             for port in (stgs_port, nginx_port):
                 check_serves(port, paths[0])
             print(f"<!-- stgs bench serve: {len(paths)} segments, mean {sum(sizes) / len(sizes) / 1024:.0f} KB, "
-                  f"wrk -t1 -d{seconds}s per cell, stgs serve and nginx (2 workers) on one 2-core machine -->")
+                  f"wrk -t1 -d{seconds}s per cell, stgs serve and nginx with {workers} workers each on one "
+                  f"{os.cpu_count()}-core machine -->")
             print("| clients | stgs MB/s | nginx MB/s | throughput ratio | stgs p50 ms | nginx p50 ms "
                   "| stgs p99 ms | nginx p99 ms | p99 ratio | errors (stgs/nginx) |")
             print("|---|---|---|---|---|---|---|---|---|---|")

@@ -29,6 +29,10 @@ def root(tmp_path_factory):
     pack(base / "model", root / "scene1", PackConfig(qps=(20, 32), jobs=2), progress=False)
     (base / "secret.mpd").write_text("secret")
     (root / "scene1" / "escape.mpd").symlink_to(base / "secret.mpd")
+    (base / "outside").mkdir()
+    (base / "outside" / "x.mpd").write_text("outside")
+    (root / "scene1" / "outdir").symlink_to(base / "outside", target_is_directory=True)
+    (root / "scene1" / "alias.mpd").symlink_to("manifest.mpd")  # stays inside ROOT: served
     (root / "scene1" / "notes.txt").write_text("not a media file")
     return root
 
@@ -120,12 +124,27 @@ async def raw_get(client, target: str) -> int:
 
 @pytest.mark.parametrize("target", [
     "/scene1/../../secret.mpd", "/scene1/%2e%2e/%2e%2e/secret.mpd", "/%2E%2E/secret.mpd",
-    "/scene1/escape.mpd",  # a symlink pointing out of ROOT
+    "/scene1/escape.mpd", "/scene1/outdir/x.mpd",  # symlinks (file, folder) pointing out of ROOT
+    "/scene1/manifest.mpd/x.mpd", "/scene1",  # a file used as a folder; a folder
     "//etc/passwd", "/etc/passwd", "/scene1/notes.txt", "/scene1/.pack-state.json",
     "/scene1/manifest.mpd%00.txt", "/scene1/..%2fmanifest.mpd", "/nope.mpd",
 ])
 async def test_never_leaves_root(client, target):
     assert await raw_get(client, target) == 404
+
+
+@pytest.mark.parametrize("io_threads", [2, None])
+async def test_file_io_on_threads_serves_the_same_bytes(aiohttp_client, root, io_threads):
+    """io_threads > 0 (network storage) and None (a loop shared with other code) take aiohttp's thread pool."""
+    client = await aiohttp_client(build_app(ServeConfig(root=root, io_threads=io_threads)))
+    rel = scene_files(root)[2]
+    resp = await client.get(f"/scene1/{rel}", headers={"Range": "bytes=10-"})
+    assert resp.status == 206 and await resp.read() == (root / "scene1" / rel).read_bytes()[10:]
+
+
+async def test_a_symlink_inside_root_is_served(client, root):
+    resp = await client.get("/scene1/alias.mpd")
+    assert resp.status == 200 and await resp.read() == (root / "scene1" / "manifest.mpd").read_bytes()
 
 
 async def test_catalogue_health_and_metrics(client):
@@ -219,20 +238,75 @@ def test_serve_cli_rejects_a_missing_root(tmp_path):
     assert result.returncode == 2 and "not a folder" in result.stderr
 
 
+def start_server(root: Path, *args: str) -> tuple[subprocess.Popen, int]:
+    """A real `stgs serve` process on a free loopback port."""
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", "stgs.server.main", str(root), "--port", "0", "--quiet", *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    line = proc.stdout.readline()
+    return proc, int(line.rsplit(":", 1)[1].split()[0].rstrip("/"))
+
+
+def worker_pids(pid: int) -> list[int]:
+    children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    return [int(c) for c in children if b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes()]
+
+
+def sockets_of(pid: int) -> int:
+    fds = Path(f"/proc/{pid}/fd")
+    return sum(1 for fd in fds.iterdir() if os.readlink(fd).startswith("socket:"))
+
+
+def test_workers_share_the_port_and_their_metrics(root):
+    """--workers 2: the kernel spreads connections over both processes, /metrics counts every request once,
+    SIGTERM ends the parent with status 0 and takes the workers with it."""
+    import signal
+    import socket
+    import urllib.request
+
+    proc, port = start_server(root, "--workers", "2")
+    try:
+        workers = worker_pids(proc.pid)
+        assert len(workers) == 2
+        idle = {pid: sockets_of(pid) for pid in workers}
+        held = []
+        for _ in range(20):  # keep-alive connections, each answered once and left open
+            sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+            sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
+            assert sock.recv(4096).startswith(b"HTTP/1.1 200")
+            held.append(sock)
+        assert all(sockets_of(pid) > idle[pid] for pid in workers), "a worker got no connection"
+        for sock in held:
+            sock.close()
+        files = scene_files(root)
+        for rel in files * 3:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/scene1/{rel}", timeout=10) as resp:
+                assert resp.status == 200 and resp.read() == (root / "scene1" / rel).read_bytes()
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10) as resp:
+            text = resp.read().decode()
+        [ok] = [line for line in text.splitlines()
+                if line.startswith('stgs_http_requests_total{method="GET",status="200"}')]
+        assert float(ok.split()[1]) == 20 + 3 * len(files)  # /metrics itself is counted after it answers
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) == 0
+        for pid in workers:
+            assert not Path(f"/proc/{pid}").exists(), "a worker outlived the server"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
 def test_sigterm_shuts_down_cleanly_during_a_transfer(root):
     """A real `stgs serve` process: SIGTERM mid-download ends it with status 0, the transfer finishes or is cut."""
     import signal
     import socket
-    import sys
     import time
 
     big = root / "scene1" / "sigterm_test_segment.m4s"
     big.write_bytes(os.urandom(64 << 20))
-    proc = subprocess.Popen([sys.executable, "-m", "stgs.server.main", str(root), "--port", "0", "--quiet"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc, port = start_server(root)
     try:
-        line = proc.stdout.readline()
-        port = int(line.rsplit(":", 1)[1].split()[0].rstrip("/"))
         sock = socket.create_connection(("127.0.0.1", port), timeout=10)
         sock.sendall(b"GET /scene1/sigterm_test_segment.m4s HTTP/1.1\r\nHost: x\r\n\r\n")
         sock.recv(65536)  # the transfer is under way; read no more for now
