@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 from stgs.client import PlayConfig, play
-from stgs.client.view import ViewSpec
+from stgs.client.view import ViewSpec, parse_scene_cameras
 from stgs.native.build import available
 from stgs.packager import PackConfig, pack
 from stgs.server.app import loopback
@@ -62,7 +62,9 @@ def row(label: str, log: dict, stats: dict, width: int, height: int) -> str:
 
 async def measure(dash: Path, qps: list[int], width: int, height: int) -> list[str]:
     stats = json.loads((dash / STATS).read_text())
-    camera = "cam00" if (dash / CAMERAS).is_file() else None
+    camera = None
+    if (dash / CAMERAS).is_file():  # the scene's first camera (cam00 for synthetic scenes)
+        camera = parse_scene_cameras(json.loads((dash / CAMERAS).read_text()))[0].name
     view = ViewSpec(camera=camera, width=width, height=height)
     rows = []
     async with loopback(dash) as base:
