@@ -5,6 +5,11 @@ Files are sent with aiohttp's FileResponse (sendfile, zero-copy; Range with
 lifetimes (segments immutable, manifests short), CORS for browser players and
 Prometheus metrics. Only files with a known extension, inside ROOT after
 resolving symlinks, and not hidden are served; anything else is 404.
+
+Per request the Python work is what limits throughput (docs/BENCHMARKS.md), so
+the file's stat/open run on the event loop rather than through a thread hop,
+and `workers` processes can share the port (SO_REUSEPORT), their metrics
+summed through prometheus_client's multiprocess mode.
 """
 
 from __future__ import annotations
