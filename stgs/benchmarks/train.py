@@ -19,7 +19,7 @@ import matplotlib.pyplot as plt
 
 from stgs.errors import UserError
 from stgs.fsio import save_figure
-from stgs.train.config import SWITCHES
+from stgs.train.config import BUDGETS, SWITCHES
 
 
 def _read_json(path: Path) -> dict:
@@ -30,10 +30,15 @@ def _read_json(path: Path) -> dict:
 
 
 def run_label(model_dir: Path) -> str:
-    """'all components' or the ablation switches the run was trained with."""
+    """'all components' or the ablation switches the run was trained with, and its capacity when that is
+    not the budget's."""
     config = _read_json(model_dir / "model.json").get("extra", {}).get("config", {})
     off = [flag for key, flag in SWITCHES.items() if key in config and not config[key]]
-    return f"{config.get('budget', '?')}: " + (" ".join(off) if off else "all components")
+    label = f"{config.get('budget', '?')}: " + (" ".join(off) if off else "all components")
+    default, side = BUDGETS.get(config.get("budget")), config.get("grid_side")
+    if default is not None and isinstance(side, int) and side != default.grid_side:
+        label += f", {side * side:,} Gaussians"
+    return label
 
 
 def curve_rows(label: str, report: dict) -> list[str]:

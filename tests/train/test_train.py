@@ -142,7 +142,8 @@ def test_bench_train_tables_and_plot(trained, tmp_path):
     model, report = trained
     result = stgs("bench", "train", "--runs", str(model), "--plot", str(tmp_path / "curves.png"))
     assert result.returncode == 0, result.stderr
-    rows = [line for line in result.stdout.splitlines() if line.startswith("| quick: all components | 0 |")]
+    label = "quick: all components, 256 Gaussians"  # TINY's grid_side 16 is not the quick budget's 24
+    rows = [line for line in result.stdout.splitlines() if line.startswith(f"| {label} | 0 |")]
     curve = report["gops"][0]["curve"]
     assert len(rows) == len(curve) + 1  # one row per curve point, then the GOP's final numbers
     assert rows[-1].split("|")[6].strip() == f"{report['gops'][0]['val_psnr']:.2f}"
