@@ -286,6 +286,9 @@ def add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--grid-side", type=_positive_int, help="S: capacity N = S² Gaussians")
     p.add_argument("--iterations", type=_positive_int, help="iterations per GOP")
     p.add_argument("--coarse-iterations", type=int, help="iterations of the coarse canonical stage")
+    p.add_argument("--position-lr", type=float,
+                   help="initial position learning rate × the scene extent (decays 100× over a stage; "
+                   "default: the budget's)")
     p.add_argument("--scale", type=float, help="training image scale (0.5 = half size)")
     p.add_argument("--window", type=_positive_int, help="sliding window W (default 3)")
     p.add_argument("--background-share", type=float,
@@ -311,11 +314,25 @@ TRAIN_OVERRIDES = ("max_gops", "gop_size", "start_frame", "grid_side", "iteratio
                    "background_share")
 
 
+def train_overrides(args: argparse.Namespace) -> dict:
+    """TrainConfig fields the command line sets (the rest come from the budget)."""
+    from dataclasses import replace
+
+    from stgs.train.config import BUDGETS
+
+    overrides = {k: getattr(args, k) for k in TRAIN_OVERRIDES if getattr(args, k) is not None}
+    if args.position_lr is not None:
+        if not args.position_lr > 0:
+            raise UserError(f"--position-lr must be positive, got {args.position_lr}")
+        overrides["lr"] = replace(BUDGETS[args.budget].lr, position=args.position_lr,
+                                  position_final=args.position_lr / 100)
+    return overrides
+
+
 def run_train(args: argparse.Namespace) -> int:
     from stgs.train import budget, train
 
-    overrides = {k: getattr(args, k) for k in TRAIN_OVERRIDES if getattr(args, k) is not None}
-    cfg = budget(args.budget, **overrides)
+    cfg = budget(args.budget, **train_overrides(args))
     report = train(args.dataset, args.out, cfg, progress=not args.quiet, resume=args.resume, kind=args.kind)
     for g in report["gops"]:
         val = f", validation {g['val_psnr']:.2f} dB" if g["val_psnr"] is not None else ""

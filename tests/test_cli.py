@@ -25,6 +25,7 @@ def test_every_subcommand_has_help():
     (["synth", "OUT", "--config", "missing.toml"], "cannot read synth config"),
     (["synth", "OUT", "--grid-side", "2"], "grid_side must be >= 4"),
     (["bench", "render", "--sizes", "12,abc"], "--sizes must be comma-separated integers"),
+    (["train", "DATA", "OUT", "--position-lr", "0"], "--position-lr must be positive"),
 ])
 def test_user_errors_are_one_line(tmp_path, args, message):
     result = stgs(*args, cwd=tmp_path)
@@ -33,6 +34,19 @@ def test_user_errors_are_one_line(tmp_path, args, message):
     assert len(lines) == 1 and lines[0].startswith("stgs: ") and message in lines[0]
     assert "Traceback" not in result.stderr
     assert not (tmp_path / "OUT").exists()
+
+
+def test_train_overrides_from_the_command_line():
+    from stgs.cli import train_overrides
+    from stgs.train.config import BUDGETS
+
+    args = build_parser().parse_args(["train", "DATA", "OUT", "--budget", "cpu", "--grid-side", "64", "--no-aux",
+                                      "--position-lr", "8e-4"])
+    overrides = train_overrides(args)
+    assert overrides["grid_side"] == 64 and overrides["aux"] is False
+    assert overrides["lr"].position == 8e-4 and overrides["lr"].position_final == pytest.approx(8e-6)
+    assert overrides["lr"].features == BUDGETS["cpu"].lr.features  # the rest stays the budget's
+    assert "lr" not in train_overrides(build_parser().parse_args(["train", "DATA", "OUT"]))
 
 
 @pytest.mark.parametrize("where", ["file-as-parent", "read-only-fs"])

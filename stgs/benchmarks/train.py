@@ -30,14 +30,17 @@ def _read_json(path: Path) -> dict:
 
 
 def run_label(model_dir: Path) -> str:
-    """'all components' or the ablation switches the run was trained with, and its capacity when that is
-    not the budget's."""
+    """'all components' or the ablation switches the run was trained with, and its capacity and position
+    learning rate when they are not the budget's."""
     config = _read_json(model_dir / "model.json").get("extra", {}).get("config", {})
     off = [flag for key, flag in SWITCHES.items() if key in config and not config[key]]
     label = f"{config.get('budget', '?')}: " + (" ".join(off) if off else "all components")
     default, side = BUDGETS.get(config.get("budget")), config.get("grid_side")
     if default is not None and isinstance(side, int) and side != default.grid_side:
         label += f", {side * side:,} Gaussians"
+    position_lr = config.get("lr", {}).get("position") if isinstance(config.get("lr"), dict) else None
+    if default is not None and isinstance(position_lr, float) and position_lr != default.lr.position:
+        label += f", position lr {position_lr:g}"
     return label
 
 

@@ -153,6 +153,17 @@ def test_bench_train_tables_and_plot(trained, tmp_path):
         assert bad.returncode == 2 and message in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
 
 
+def test_bench_train_labels_name_what_differs_from_the_budget(tmp_path):
+    from stgs.benchmarks.train import run_label
+
+    config = {"budget": "cpu", "grid_side": 192, "aux": False, "lr": {"position": 8e-4}}
+    (tmp_path / "model.json").write_text(json.dumps({"extra": {"config": config}}))
+    assert run_label(tmp_path) == "cpu: --no-aux, 36,864 Gaussians, position lr 0.0008"
+    config.update(grid_side=128, aux=True, lr={"position": 1.6e-4})
+    (tmp_path / "model.json").write_text(json.dumps({"extra": {"config": config}}))
+    assert run_label(tmp_path) == "cpu: all components"
+
+
 def test_bad_training_input_is_one_line(scene, tmp_path):
     for args, message in [(("--holdout", "cam09"), "no camera(s) ['cam09']"),
                           (("--gop-size", "50"), "do not fill one GOP of 50"),
