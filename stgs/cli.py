@@ -316,16 +316,14 @@ TRAIN_OVERRIDES = ("max_gops", "gop_size", "start_frame", "grid_side", "iteratio
 
 def train_overrides(args: argparse.Namespace) -> dict:
     """TrainConfig fields the command line sets (the rest come from the budget)."""
-    from dataclasses import replace
-
     from stgs.train.config import BUDGETS
 
     overrides = {k: getattr(args, k) for k in TRAIN_OVERRIDES if getattr(args, k) is not None}
     if args.position_lr is not None:
-        if not args.position_lr > 0:
-            raise UserError(f"--position-lr must be positive, got {args.position_lr}")
-        overrides["lr"] = replace(BUDGETS[args.budget].lr, position=args.position_lr,
-                                  position_final=args.position_lr / 100)
+        if not (math.isfinite(args.position_lr) and args.position_lr > 0):
+            raise UserError(f"--position-lr must be a positive number, got {args.position_lr}")
+        overrides["lr"] = dataclasses.replace(BUDGETS[args.budget].lr, position=args.position_lr,
+                                              position_final=args.position_lr / 100)
     return overrides
 
 
