@@ -319,9 +319,7 @@ def train_overrides(args: argparse.Namespace) -> dict:
     from stgs.train.config import BUDGETS
 
     overrides = {k: getattr(args, k) for k in TRAIN_OVERRIDES if getattr(args, k) is not None}
-    if args.position_lr is not None:
-        if not (math.isfinite(args.position_lr) and args.position_lr > 0):
-            raise UserError(f"--position-lr must be a positive number, got {args.position_lr}")
+    if args.position_lr is not None:  # TrainConfig.validate checks the rates
         overrides["lr"] = dataclasses.replace(BUDGETS[args.budget].lr, position=args.position_lr,
                                               position_final=args.position_lr / 100)
     return overrides

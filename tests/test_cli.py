@@ -25,8 +25,8 @@ def test_every_subcommand_has_help():
     (["synth", "OUT", "--config", "missing.toml"], "cannot read synth config"),
     (["synth", "OUT", "--grid-side", "2"], "grid_side must be >= 4"),
     (["bench", "render", "--sizes", "12,abc"], "--sizes must be comma-separated integers"),
-    (["train", "DATA", "OUT", "--position-lr", "0"], "--position-lr must be a positive number"),
-    (["train", "DATA", "OUT", "--position-lr", "inf"], "--position-lr must be a positive number"),
+    (["train", "DATA", "OUT", "--position-lr", "0"], "lr.position must be a positive number"),
+    (["train", "DATA", "OUT", "--position-lr", "inf"], "lr.position must be a positive number"),
 ])
 def test_user_errors_are_one_line(tmp_path, args, message):
     result = stgs(*args, cwd=tmp_path)

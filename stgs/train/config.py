@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 
 from stgs.errors import UserError
@@ -103,6 +104,8 @@ class TrainConfig:
                    "every-N settings must be >= 1"),
                   (self.max_gops is None or self.max_gops >= 1, "max_gops must be >= 1"),
                   (0 <= self.background_share < 1, "background_share must be in [0, 1)")]
+        checks += [(math.isfinite(rate) and rate > 0, f"lr.{name} must be a positive number, got {rate}")
+                   for name, rate in dataclasses.asdict(self.lr).items()]
         for ok, message in checks:
             if not ok:
                 raise UserError(f"train config: {message}")
