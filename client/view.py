@@ -6,7 +6,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from stgs.camera import Camera, intrinsics, look_at, resize
+from stgs.camera import Camera, intrinsics, look_at, resize, rig_orbit, surrounds
 from stgs.errors import UserError
 from stgs.model.gop import GOPModel
 from stgs.model.view import framing_orbit
@@ -27,7 +27,8 @@ class ViewSpec:
     target: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Point an explicit camera looks at."""
     path: str = "orbit"
-    """'orbit' (a circle framing the scene) or a JSON file: a list of cameras (Camera.to_json) played in turn."""
+    """'orbit' (a circle inside a surrounding capture rig, else framing the scene) or a JSON file: a list of
+    cameras (Camera.to_json) played in turn."""
     orbit_seconds: float | None = None
     """Seconds per orbit turn (None: the whole playback)."""
     width: int | None = None
@@ -91,7 +92,8 @@ def load_path_file(path: Path) -> list[Camera]:
 
 def build_trajectory(spec: ViewSpec, scene_cameras: list[Camera] | None, first_gop: GOPModel,
                      frames_per_turn: int) -> Trajectory:
-    """The trajectory `spec` asks for; orbits frame the first GOP's Gaussians."""
+    """The trajectory `spec` asks for. The orbit circles inside the capture rig when the scene's cameras
+    surround it (a trained capture has walls around the action), else frames the first GOP's Gaussians."""
     if spec.camera is not None:
         if not scene_cameras:
             raise UserError("--camera needs the scene's cameras.json beside the MPD, and this scene has none")
@@ -110,4 +112,6 @@ def build_trajectory(spec: ViewSpec, scene_cameras: list[Camera] | None, first_g
     if spec.path != "orbit":
         return Trajectory(load_path_file(Path(spec.path)))
     w, h = spec.size()
+    if scene_cameras and len(scene_cameras) >= 3 and surrounds(scene_cameras):
+        return Trajectory(rig_orbit(scene_cameras, max(1, frames_per_turn), w, h, spec.fov_deg))
     return Trajectory(framing_orbit(first_gop, max(1, frames_per_turn), w, h, spec.fov_deg))

@@ -88,3 +88,48 @@ def orbit(count: int, radius: float, height: float, target=(0.0, 0.0, 0.0), widt
         eye = (target[0] + radius * math.sin(angle), height, target[2] + radius * math.cos(angle))
         cams.append(Camera(f"{prefix}{i:02d}", K.clone(), look_at(eye, target), width, height_px))
     return cams
+
+
+def rig_focus(cameras: list[Camera]) -> tuple[torch.Tensor, float]:
+    """The point nearest every optical axis, and the cameras' mean distance from it."""
+    centres = torch.stack([c.center for c in cameras])
+    axes = torch.stack([c.viewmat[2, :3] for c in cameras])  # viewing directions (world)
+    eye = torch.eye(3, dtype=torch.float64)
+    A = sum(eye - a[:, None] @ a[None] for a in axes)
+    b = sum((eye - a[:, None] @ a[None]) @ c for a, c in zip(axes, centres, strict=True))
+    focus = torch.linalg.lstsq(A, b[:, None]).solution[:, 0]
+    return focus, float((centres - focus).norm(dim=1).mean())
+
+
+def surrounds(cameras: list[Camera]) -> bool:
+    """Whether the cameras stand around the scene looking in (a dome or ring), not side by side looking out
+    at it (a forward-facing rig)."""
+    focus, _ = rig_focus(cameras)
+    directions = torch.stack([c.center for c in cameras]).double() - focus
+    directions /= directions.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    return float(directions.mean(0).norm()) < 0.8
+
+
+def rig_orbit(cameras: list[Camera], count: int, width: int, height: int, fov_x_deg: float = 60.0,
+              shrink: float = 0.8) -> list[Camera]:
+    """`count` cameras on a circle inside a rig that surrounds the scene: around the axis through the rig focus
+    along the cameras' mean image-up direction, at their mean height, `shrink` x their mean distance from
+    that axis, all looking at the focus (inside whatever walls the rig captured)."""
+    focus, _ = rig_focus(cameras)
+    up = -torch.stack([c.viewmat[1, :3] for c in cameras]).double().mean(0)
+    up = up / up.norm().clamp_min(1e-12)
+    offsets = torch.stack([c.center for c in cameras]).double() - focus
+    along = offsets @ up
+    radial = offsets - along[:, None] * up
+    radius = shrink * float(radial.norm(dim=1).mean())
+    first = radial[0] / radial[0].norm().clamp_min(1e-12)
+    second = torch.linalg.cross(up, first)
+    lift = float(along.mean()) * up
+    K = intrinsics(width, height, fov_x_deg)
+    out = []
+    for i in range(count):
+        angle = 2 * math.pi * i / count
+        eye = focus + lift + radius * (math.cos(angle) * first + math.sin(angle) * second)
+        out.append(Camera(f"orbit{i:02d}", K.clone(), look_at(eye.tolist(), focus.tolist(), up.tolist()),
+                          width, height))
+    return out

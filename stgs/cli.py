@@ -209,7 +209,7 @@ def add_play(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--realtime", action="store_true",
                    help="pace frames to the clock and drop the ones rendering cannot make "
                    "(default: render every frame as fast as possible)")
-    view = p.add_argument_group("viewpoint (default: an orbit framing the scene)")
+    view = p.add_argument_group("viewpoint (default: an orbit inside the capture rig, or framing the scene)")
     view.add_argument("--camera", help="a camera of the scene by name (from cameras.json beside the MPD)")
     view.add_argument("--path", default="orbit",
                       help="'orbit' or a JSON file listing cameras (Camera.to_json) played in turn")
@@ -292,8 +292,8 @@ def add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scale", type=float, help="training image scale (0.5 = half size)")
     p.add_argument("--window", type=_positive_int, help="sliding window W (default 3)")
     p.add_argument("--background-share", type=float,
-                   help="share of the Gaussians first placed on a shell around the camera rig, for the walls and "
-                   "floor an inward-facing rig sees (default: 0; docs/BENCHMARKS.md measures it)")
+                   help="share of the Gaussians first placed on the walls and floor of a rig that surrounds the "
+                   "scene (default: the budget's, 0.5 for cpu and paper, 0 for quick; 0 turns it off)")
     p.add_argument("--no-aux", dest="aux", action="store_false", default=None,
                    help="no transformer-guided auxiliary pass")
     p.add_argument("--no-dynamic-density", dest="dynamic", action="store_false", default=None,

@@ -1,4 +1,17 @@
-"""Render one frame of a GOP model from a camera: deform, then splat."""
+"""Render one frame of a GOP model from a camera: deform, then splat.
+
+Every model render (training, evaluation, playback) goes through `splat`, which
+leaves out Gaussians outside the camera's guard band before rasterising: the
+view frustum widened sideways by GUARD_BAND and starting NEAR_CLIP in front of
+the camera. A Gaussian whose mean projects far outside the image, seen at a
+grazing angle, gets a screen footprint from the EWA linearisation that can
+cover the whole image (a wall Gaussian beside a camera of a dome rig becomes a
+flat veil); one just in front of the lens fills it (in a dome, the other
+cameras' housings are part of the scene, and a held-out camera sits inside
+its own). The splatter itself follows DESIGN.md to the letter; the guard band
+is the model's drawing rule, as frustum culling is in other 3DGS renderers
+(the reference 3DGS rasteriser also drops means nearer than 0.2).
+"""
 
 from __future__ import annotations
 
@@ -7,7 +20,36 @@ import torch
 from stgs.camera import Camera, orbit
 from stgs.model.gop import Gaussians, GOPModel
 from stgs.native.build import available
-from stgs.render import rasterize
+from stgs.render import Backend, rasterize
+
+GUARD_BAND = 1.3
+"""A Gaussian is drawn only when its mean projects within this many times the image's half-extent
+(measured from the principal point, in each axis)..."""
+NEAR_CLIP = 0.2
+"""... and lies more than this far in front of the camera (scene units)."""
+
+
+def in_guard_band(means: torch.Tensor, camera: Camera, margin: float = GUARD_BAND,
+                  near: float = NEAR_CLIP) -> torch.Tensor:
+    """(N,) bool: whether each mean lies deeper than `near` and projects inside `margin` x the image's
+    half-extent."""
+    view = camera.viewmat.to(means.dtype)
+    cam = means.detach() @ view[:3, :3].T + view[:3, 3]
+    z = cam[:, 2]
+    K = camera.K.double()
+    fx, fy, cx, cy = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+    limit_x = margin * max(cx, camera.width - cx) / fx
+    limit_y = margin * max(cy, camera.height - cy) / fy
+    return (z > near) & (cam[:, 0].abs() <= limit_x * z) & (cam[:, 1].abs() <= limit_y * z)
+
+
+def splat(g: Gaussians, camera: Camera, background: torch.Tensor | None = None,
+          backend: Backend = "auto") -> torch.Tensor:
+    """(H, W, 3) image of deformed Gaussians from `camera` (differentiable; guard band applied)."""
+    opacities = g.opacities * in_guard_band(g.means, camera).to(g.opacities.dtype)
+    dtype = g.means.dtype
+    return rasterize(g.means, g.quats, g.scales, opacities, g.colors, camera.viewmat.to(dtype),
+                     camera.K.to(dtype), camera.width, camera.height, background, backend=backend)
 
 
 class FrameRenderer:
@@ -46,9 +88,7 @@ class FrameRenderer:
     def splat(self, g: Gaussians, camera: Camera, background: torch.Tensor | None = None) -> torch.Tensor:
         """(H, W, 3) float32 image of deformed Gaussians from `camera`."""
         bg = background.float() if background is not None else None
-        return rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, camera.viewmat.float(),
-                         camera.K.float(), camera.width, camera.height, bg,
-                         backend="auto" if self.native else "reference")
+        return splat(g, camera, bg, "auto" if self.native else "reference")
 
 
 def framing_orbit(model: GOPModel, count: int, width: int, height: int, fov_x_deg: float = 60.0) -> list[Camera]:

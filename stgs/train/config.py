@@ -90,8 +90,8 @@ class TrainConfig:
     init_points: int = 0
     """Use at most this many triangulated points (0: all)."""
     background_share: float = 0.0
-    """Share of the capacity first placed on a shell around the rig, for the background an inward-facing
-    rig sees behind the action (walls, floor; 0: none)."""
+    """Share of the capacity first placed on the rig's walls and floor, for the background a rig that
+    surrounds the action sees behind it (0: none; ignored for forward-facing rigs)."""
     threads: int | None = None
     """torch threads (None: torch's default)."""
 
@@ -115,9 +115,9 @@ BUDGETS = {
     "quick": TrainConfig(coarse_iterations=1000, iterations=600,
                          lr=LearningRates(position=8e-4, position_final=8e-6)),
     "cpu": TrainConfig(budget="cpu", grid_side=128, scale=1.0, coarse_iterations=1500, iterations=3000,
-                       sort_every=1000, checkpoint_every=500),
+                       sort_every=1000, checkpoint_every=500, background_share=0.5),
     "paper": TrainConfig(budget="paper", grid_side=388, coarse_iterations=3000, iterations=12000,
-                         sort_every=3000, checkpoint_every=1000),
+                         sort_every=3000, checkpoint_every=1000, background_share=0.5),
 }
 """quick: CI (tiny, minutes); cpu: a 60-frame Panoptic GOP at 640x360 in about an hour on 2 cores;
 paper: 12k iterations, ~150k Gaussians, for a bigger machine."""

@@ -12,7 +12,8 @@
 If that leaves too few points, `random_frustum_points` fills in. The
 background an inward-facing rig sees behind the action (walls, floor, dome)
 rarely triangulates (repetitive, textureless); `background_shell_points`
-seeds it on a shell around the rig, coloured from the images.
+seeds it on the walls the cameras hang on (the sphere through them) and on
+the floor the triangulated people stand on, coloured from the images.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ import cv2
 import numpy as np
 import torch
 
-from stgs.camera import Camera
+from stgs.camera import Camera, rig_focus
 
 
 @dataclass
@@ -154,31 +155,58 @@ def consistent(points: np.ndarray, colors: np.ndarray, cameras: list[Camera], im
     return (views >= cfg.min_views) & (agree >= cfg.min_consistent + 2)
 
 
-def rig_focus(cameras: list[Camera]) -> tuple[torch.Tensor, float]:
-    """The point nearest every optical axis, and the cameras' mean distance from it."""
-    centres = torch.stack([c.center for c in cameras])
-    axes = torch.stack([c.viewmat[2, :3] for c in cameras])  # viewing directions (world)
-    eye = torch.eye(3, dtype=torch.float64)
-    A = sum(eye - a[:, None] @ a[None] for a in axes)
-    b = sum((eye - a[:, None] @ a[None]) @ c for a, c in zip(axes, centres, strict=True))
-    focus = torch.linalg.lstsq(A, b[:, None]).solution[:, 0]
-    return focus, float((centres - focus).norm(dim=1).mean())
+def rig_sphere(cameras: list[Camera]) -> tuple[torch.Tensor, float]:
+    """Centre and radius of the sphere through the camera centres (least squares); an inward-facing dome rig
+    mounts its cameras on its walls, so this is where the walls are. Where the centres do not pin a sphere
+    down (a flat ring, a line) or do not lie on one: the rig focus and the cameras' mean distance from it."""
+    centres = torch.stack([c.center for c in cameras]).double()
+    A = torch.cat([2 * centres, torch.ones(len(centres), 1, dtype=torch.float64)], 1)
+    b = (centres ** 2).sum(1, keepdim=True)
+    if len(centres) >= 4 and torch.linalg.matrix_rank(A, rtol=1e-6) == 4:
+        solution = torch.linalg.lstsq(A, b).solution[:, 0]
+        centre = solution[:3]
+        radius = float(torch.sqrt((solution[3] + centre @ centre).clamp_min(0)))
+        spread = ((centres - centre).norm(dim=1) - radius).abs().max()
+        if radius > 0 and spread < 0.1 * radius:
+            return centre, radius
+    return rig_focus(cameras)
 
 
-def background_shell_points(cameras: list[Camera], images: list[torch.Tensor], count: int,
-                            gen: torch.Generator, inner: float = 1.05, outer: float = 1.4
-                            ) -> tuple[torch.Tensor, torch.Tensor]:
-    """`count` points on a shell around the rig (inner..outer × the cameras' distance from the focus) that
-    some camera sees, each coloured with the median of the pixels it lands on."""
-    focus, rig = rig_focus(cameras)
-    points, colors = [], []
+def ground_height(cameras: list[Camera], points: torch.Tensor) -> tuple[torch.Tensor, float] | None:
+    """The rig's down direction (the cameras' mean image-down axis) and the floor's height along it: where the
+    lowest triangulated points are (people stand on it); None without enough points."""
+    if len(points) < 32:
+        return None
+    down = torch.stack([c.viewmat[1, :3] for c in cameras]).double().mean(0)
+    down = down / down.norm().clamp_min(1e-12)
+    return down, float(torch.quantile(points.double() @ down, 0.995))
+
+
+def background_shell_points(cameras: list[Camera], images: list[torch.Tensor], count: int, gen: torch.Generator,
+                            ground: tuple[torch.Tensor, float] | None = None, outer: float = 1.08,
+                            keep_away: float = 0.3) -> tuple[torch.Tensor, torch.Tensor]:
+    """`count` points on the rig's walls (the sphere through the cameras, 1..`outer` × its radius) and, with
+    `ground`, its floor (wall points below the floor move onto it along the ray from the centre), that some
+    camera sees, none within `keep_away` × the radius of a camera (they would fill its image), each coloured
+    with the median of the pixels it lands on."""
+    centre, radius = rig_sphere(cameras)
+    cam_centres = torch.stack([c.center for c in cameras]).double()
+    points, colors, found = [], [], 0
     for _ in range(20):
-        if sum(len(p) for p in points) >= count:
+        if found >= count:
             break
         direction = torch.randn(4 * count, 3, generator=gen, dtype=torch.float64)
         direction /= direction.norm(dim=1, keepdim=True).clamp_min(1e-12)
-        radius = rig * (inner + (outer - inner) * torch.rand(4 * count, 1, generator=gen, dtype=torch.float64))
-        cand = (focus + direction * radius).numpy()
+        shell = radius * (1 + (outer - 1) * torch.rand(4 * count, 1, generator=gen, dtype=torch.float64))
+        cand = centre + direction * shell
+        if ground is not None:
+            down, floor = ground
+            height, centre_height = cand @ down, float(centre @ down)
+            below = height > floor
+            if floor > centre_height:
+                t = (floor - centre_height) / (height[below] - centre_height)
+                cand[below] = centre + (cand[below] - centre) * t[:, None]
+        cand = cand[torch.cdist(cand, cam_centres).min(1).values > keep_away * radius].numpy()
         samples = np.full((len(cand), len(cameras), 3), np.nan)
         for k, (cam, img) in enumerate(zip(cameras, images, strict=True)):
             uv, seen = in_view(cam, cand)
@@ -186,7 +214,8 @@ def background_shell_points(cameras: list[Camera], images: list[torch.Tensor], c
         seen_any = ~np.isnan(samples[:, :, 0]).all(axis=1)
         points.append(cand[seen_any])
         colors.append(np.nanmedian(samples[seen_any], axis=1))
-    if not points or sum(len(p) for p in points) == 0:
+        found += int(seen_any.sum())
+    if found == 0:
         return torch.empty(0, 3), torch.empty(0, 3)
     pts, col = np.concatenate(points)[:count], np.concatenate(colors)[:count]
     return torch.from_numpy(pts).float(), torch.from_numpy(col).float()

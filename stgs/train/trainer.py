@@ -31,7 +31,7 @@ import torch
 from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
-from stgs.camera import Camera, resize
+from stgs.camera import Camera, resize, surrounds
 from stgs.codec.plas import PLASConfig, plas_order, sort_key
 from stgs.data import Dataset, open_dataset, split
 from stgs.errors import UserError
@@ -40,12 +40,12 @@ from stgs.memory import reuse_large_allocations
 from stgs.metrics import psnr, ssim, ssim_map
 from stgs.model.gop import GOPModel, GOPShape, frame_time
 from stgs.model.store import gop_file_name, save_gop, save_model
-from stgs.render import rasterize
+from stgs.model.view import splat
 from stgs.train import losses
 from stgs.train.aux import AuxTransformer
 from stgs.train.config import TrainConfig
 from stgs.train.dynamic import dynamic_mask
-from stgs.train.init import background_shell_points, random_frustum_points, triangulate
+from stgs.train.init import background_shell_points, ground_height, random_frustum_points, triangulate
 from stgs.tree import CAMERAS, CAMERAS_FORMAT
 
 STATE_DIR = ".train"
@@ -94,19 +94,29 @@ def load_views(ds: Dataset, names: list[str], frames: list[int], scale: float, p
     return Views(cams, frames, images)
 
 
+@dataclass
+class InitialPoints:
+    """Where the Gaussians start."""
+
+    points: torch.Tensor
+    """(N, 3) positions."""
+    colors: torch.Tensor
+    """(N, 3) colours."""
+    anchored: torch.Tensor
+    """(N,) bool: seen in the images (triangulated or on the rig's walls and floor) rather than filler
+    (jittered copies, random points), which starts fainter so it cannot veil the scene."""
+    triangulated: int
+    """How many points triangulated."""
+    background: int = 0
+    """How many points went on the rig's walls and floor."""
+
+
 def initial_points(ds: Dataset, names: list[str], frame: int, count: int, gen: torch.Generator,
-                   limit: int = 0, background_share: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, int]:
-    """(count, 3) points, (count, 3) colours and how many were triangulated; `background_share` of the
-    count goes on a shell around the rig for the background (background_shell_points)."""
+                   limit: int = 0, background_share: float = 0.0) -> InitialPoints:
+    """`count` starting points; `background_share` of them on the rig's walls and floor
+    (background_shell_points) when the cameras surround the scene."""
     cams = [c for c in ds.cameras(frame) if c.name in names]
     images = [ds.image(frame, c.name) for c in cams]
-    parts, colors = [], []
-    n_background = int(count * background_share)
-    if n_background:
-        pts, col = background_shell_points(cams, images, n_background, gen)
-        parts.append(pts)
-        colors.append(col)
-        count -= len(pts)
     pts, col = triangulate(cams, images, [ds.mask(frame, c.name) for c in cams])
     if limit and len(pts) > limit:
         keep = torch.randperm(len(pts), generator=gen)[:limit]
@@ -114,13 +124,22 @@ def initial_points(ds: Dataset, names: list[str], frame: int, count: int, gen: t
     if len(pts) < MIN_TRIANGULATED:  # too few to describe the scene (tiny images, no texture): random points
         pts, col = pts[:0], col[:0]
     found = len(pts)
+    parts, colors, background = [], [], 0
+    if background_share and surrounds(cams):
+        shell, shell_col = background_shell_points(cams, images, int(count * background_share), gen,
+                                                   ground_height(cams, pts))
+        parts.append(shell)
+        colors.append(shell_col)
+        count -= len(shell)
+        background = len(shell)
     if found >= count:
         keep = torch.randperm(found, generator=gen)[:count]
-        return torch.cat([*parts, pts[keep]]), torch.cat([*colors, col[keep]]), found
-    extra_random = (count - found) // 2 if found else count - found
-    jitter_n = count - found - extra_random
+        pts, col = pts[keep], col[keep]
     parts.append(pts)
     colors.append(col)
+    anchored = sum(len(p) for p in parts)
+    extra_random = (count - len(pts)) // 2 if found else count - len(pts)
+    jitter_n = count - len(pts) - extra_random
     if jitter_n:
         src = torch.randint(found, (jitter_n,), generator=gen)
         spread = (pts.std(0) * 0.02).clamp_min(1e-3)
@@ -129,11 +148,14 @@ def initial_points(ds: Dataset, names: list[str], frame: int, count: int, gen: t
     if extra_random:
         parts.append(random_frustum_points(cams, extra_random, gen))
         colors.append(torch.rand(extra_random, 3, generator=gen))
-    return torch.cat(parts), torch.cat(colors), found
+    points = torch.cat(parts)
+    flags = torch.arange(len(points)) < anchored
+    return InitialPoints(points, torch.cat(colors), flags, found, background)
 
 
-def init_canonical(model: GOPModel, points: torch.Tensor, colors: torch.Tensor) -> None:
+def init_canonical(model: GOPModel, init: InitialPoints, opacity: float = 0.1, filler_opacity: float = 0.02) -> None:
     """3DGS-style initial attributes: scale from the mean distance to the 3 nearest points."""
+    points = init.points
     with torch.no_grad():
         model.xyz.copy_(points)
         d = torch.cdist(points, points)
@@ -141,19 +163,15 @@ def init_canonical(model: GOPModel, points: torch.Tensor, colors: torch.Tensor) 
         nn3 = d.topk(min(3, len(points) - 1), largest=False).values.mean(1) if len(points) > 1 else torch.ones(1)
         model.log_scale.copy_(torch.log(nn3.clamp(1e-4, 1e2))[:, None].expand(-1, 3))
         model.rotation.copy_(torch.tensor([1.0, 0.0, 0.0, 0.0]))
-        model.opacity_logit.fill_(math.log(0.1 / 0.9))
-        model.color.copy_(colors.clamp(0, 1))
+        start = torch.where(init.anchored, opacity, filler_opacity)
+        model.opacity_logit.copy_(torch.log(start / (1 - start)))
+        model.color.copy_(init.colors.clamp(0, 1))
         model.features.zero_()
 
 
 def scene_extent(cams: list[Camera]) -> float:
     centres = torch.stack([c.center for c in cams])
     return float((centres - centres.mean(0)).norm(dim=1).max()) * 1.1 + 1e-6
-
-
-def render(g, cam: Camera) -> torch.Tensor:
-    return rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, cam.viewmat.float(), cam.K.float(),
-                     cam.width, cam.height)
 
 
 class Optimizer:
@@ -312,16 +330,16 @@ class Trainer:
         resumed = self.load_checkpoint("coarse", model, opt)
         start = resumed[0]["iteration"] if resumed else 0
         if not resumed:
-            pts, col, found = initial_points(self.ds, self.train_names, views.frames[0], self.shape.capacity,
-                                             self.gen, cfg.init_points, cfg.background_share)
-            self.triangulated = found
-            init_canonical(model, pts, col)
+            init = initial_points(self.ds, self.train_names, views.frames[0], self.shape.capacity, self.gen,
+                                  cfg.init_points, cfg.background_share)
+            self.triangulated, self.background_points = init.triangulated, init.background
+            init_canonical(model, init)
         bar = tqdm(range(start, cfg.coarse_iterations), desc="coarse canonical", unit="it", disable=not self.progress)
         for it in bar:
             opt.set_progress(it / max(1, cfg.coarse_iterations))
             f = int(torch.randint(len(views.frames), (1,), generator=self.gen))
             c = int(torch.randint(len(views.cameras), (1,), generator=self.gen))
-            img = render(model.canonical(), views.cameras[c])
+            img = splat(model.canonical(), views.cameras[c])
             loss = losses.photometric(img, views.target(f, c), cfg.lambda_ssim)
             self._step(opt, loss, "coarse", it, model)
             if cfg.relocate and (it + 1) % cfg.relocate_every == 0 and it < cfg.relocate_until * cfg.coarse_iterations:
@@ -407,7 +425,7 @@ class Trainer:
         center = cam.center.float()
         h = model.field.hidden(window, t)
         g = model.apply_offsets(model.field.decode(h, model.xyz, center))
-        img = render(g, cam)
+        img = splat(g, cam)
         ssim_values = ssim_map(img, target)
         loss = losses.photometric(img, target, cfg.lambda_ssim, ssim_values=ssim_values)
         if cfg.dynamic and views.dynamic is not None:
@@ -416,7 +434,7 @@ class Trainer:
         if aux is not None:
             h_aux = aux(aux.tokens(model, i, window))  # the same noisy window the MLP sees
             g_aux = model.apply_offsets(model.field.decode(h_aux, model.xyz, center))
-            img_aux = render(g_aux, cam)
+            img_aux = splat(g_aux, cam)
             loss = loss + cfg.aux_ssim_weight * (1 - losses.ssim(img_aux, target))
             loss = loss + cfg.distill_weight * losses.self_distillation(h, h_aux)
         if cfg.temporal_weight:
@@ -491,7 +509,7 @@ class Trainer:
         cfg = self.cfg
         all_frames = [f for k in range(self.num_gops) for f in self.gop_frames(k)]
         step = max(1, len(all_frames) // max(1, min(len(all_frames), 2 * cfg.gop_size)))
-        self.triangulated = None
+        self.triangulated = self.background_points = None
         coarse_views = load_views(self.ds, self.train_names, all_frames[::step], cfg.scale, self.progress)
         start = time.perf_counter()
         coarse = self.coarse(coarse_views)
@@ -534,7 +552,8 @@ class Trainer:
         doc = {"format": CAMERAS_FORMAT, "version": 1, "cameras": [c.to_json() for c in cams]}
         atomic_write_bytes(self.out / CAMERAS, (json.dumps(doc, indent=1) + "\n").encode())
         report = {"dataset": self.ds.name, "budget": cfg.budget, "gops": reports, "coarse_seconds": coarse_s,
-                  "triangulated_points": self.triangulated, "capacity": self.shape.capacity,
+                  "triangulated_points": self.triangulated,
+                  "background_points": self.background_points, "capacity": self.shape.capacity,
                   "train_cameras": self.train_names, "validation_cameras": self.val_names}
         atomic_write_bytes(self.out / "train_report.json", (json.dumps(report, indent=1) + "\n").encode())
         return report

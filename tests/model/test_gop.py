@@ -15,7 +15,7 @@ from stgs.model.native_deform import (
     deform_bf16_reference,
     deform_native,
 )
-from stgs.model.view import FrameRenderer
+from stgs.model.view import FrameRenderer, splat
 from stgs.native.build import NativeUnavailableError
 
 
@@ -126,8 +126,9 @@ def test_native_culling_does_not_change_the_image():
     a = rasterize(culled.means, culled.quats, culled.scales, culled.opacities, culled.colors, *args)
     b = rasterize(full.means, full.quats, full.scales, full.opacities, full.colors, *args)
     assert torch.equal(a, b)
-    slow = FrameRenderer(model, native=False).render(4, cam)
-    assert (slow.double() - a.double()).abs().max() < 1e-4
+    slow = FrameRenderer(model, native=False).render(4, cam)  # the frame path: the guard band applies
+    fast = splat(culled, cam).double()
+    assert (slow.double() - fast).abs().max() < 1e-4 * fast.abs().max()  # this random field's colours reach ~6
 
 
 needs_amx = pytest.mark.skipif(not bf16_available(), reason="the bf16 deformation needs a CPU with AMX-BF16")

@@ -206,35 +206,76 @@ def test_triangulated_points_land_in_the_foreground(panoptic_frame0):
     assert np.median(fractions) > 0.7 and sum(f > 0.5 for f in fractions) >= 0.75 * len(cams), fractions
 
 
-def test_background_shell_points_cover_the_walls_in_the_image_colours(panoptic_frame0):
-    from stgs.train.init import background_shell_points, in_view, rig_focus
+def test_background_shell_points_cover_the_walls_and_floor_in_the_image_colours(panoptic_frame0):
+    from stgs.train.init import background_shell_points, ground_height, in_view, rig_sphere, triangulate
 
     ds, cams = panoptic_frame0
     images = [ds.image(0, c.name) for c in cams]
-    pts, colors = background_shell_points(cams, images, 500, torch.Generator().manual_seed(0))
+    centre, radius = rig_sphere(cams)
+    assert 2.5 < radius < 3.0  # the dome's cameras sit on a sphere of about 2.75 units
+    tri, _ = triangulate(cams, images, [ds.mask(0, c.name) for c in cams])
+    down, floor = ground_height(cams, tri)
+    pts, colors = background_shell_points(cams, images, 500, torch.Generator().manual_seed(0), (down, floor))
     assert pts.shape == colors.shape == (500, 3)
-    focus, rig = rig_focus(cams)
-    radius = (pts.double() - focus).norm(dim=1) / rig
-    assert radius.min() >= 1.05 - 1e-5 and radius.max() <= 1.4 + 1e-5  # on the shell, behind the cameras
+    p = pts.double()
+    on_wall = ((p - centre).norm(dim=1) / radius - 1.04).abs() <= 0.04 + 1e-5
+    on_floor = ((p @ down) - floor).abs() < 1e-4
+    assert (on_wall | on_floor).all() and on_floor.sum() > 50 and on_wall.sum() > 50
+    assert (p @ down <= floor + 1e-4).all()  # nothing below the floor
+    cam_centres = torch.stack([c.center for c in cams])
+    assert torch.cdist(p, cam_centres).min() > 0.3 * radius - 1e-5  # none beside a camera
     seen_by = sum(in_view(cam, pts.double().numpy())[1].astype(int) for cam in cams)
     assert (seen_by >= 1).all()
-    # Coloured from the pictures: the dome's grey walls, not random colours.
+    # Coloured from the pictures: the dome's grey walls and floor, not random colours.
     wall = torch.stack([img.reshape(-1, 3).median(0).values for img in images]).median(0).values
     assert (colors.median(0).values - wall).abs().max() < 0.15, (colors.median(0).values, wall)
-    assert colors.std(0).max() < 0.2
+    assert colors.std(0).max() < 0.25
+
+
+def _cameras_at(eyes, target) -> list:
+    from stgs.camera import Camera, intrinsics, look_at
+
+    return [Camera(str(i), intrinsics(64, 48, 60.0), look_at(tuple(e), target), 64, 48) for i, e in enumerate(eyes)]
+
+
+def test_rig_sphere_fits_a_dome_and_falls_back_for_a_ring():
+    from stgs.camera import rig_focus, surrounds
+    from stgs.train.init import rig_sphere
+
+    gen = torch.Generator().manual_seed(1)
+    centre = torch.tensor([0.5, -1.0, 2.0], dtype=torch.float64)
+    d = torch.randn(12, 3, generator=gen, dtype=torch.float64)
+    d[:, 1] = -d[:, 1].abs()  # the upper half, like a dome
+    eyes = centre + 3.0 * d / d.norm(dim=1, keepdim=True)
+    dome = _cameras_at(eyes.tolist(), (0.5, -0.5, 2.0))
+    got_centre, got_radius = rig_sphere(dome)
+    assert torch.allclose(got_centre, centre, atol=1e-9) and abs(got_radius - 3.0) < 1e-9
+    assert surrounds(dome)
+    angles = torch.linspace(0, 2 * math.pi, 9)[:-1]
+    ring = _cameras_at([(2 * math.cos(a), 0.5, 2 * math.sin(a)) for a in angles], (0.0, 0.0, 0.0))
+    focus, rig = rig_focus(ring)
+    ring_centre, ring_radius = rig_sphere(ring)  # a flat ring fits no one sphere
+    assert torch.equal(ring_centre, focus) and ring_radius == rig
+    assert surrounds(ring)
+    forward = _cameras_at([(x, 0.0, -4.0) for x in (-1.0, -0.5, 0.0, 0.5, 1.0)], (0.0, 0.0, 0.0))
+    assert not surrounds(forward)  # side by side, looking the same way: no walls around them
 
 
 def test_background_share_is_validated_and_splits_the_capacity(scene):
-    from stgs.train.trainer import initial_points
+    from stgs.model.gop import GOPModel, GOPShape
+    from stgs.train.trainer import init_canonical, initial_points
 
     with pytest.raises(UserError, match="background_share"):
         budget("quick", background_share=1.0)
     ds = open_dataset(scene)
     names, _ = split(ds)
-    pts, colors, _ = initial_points(ds, names, 0, 256, torch.Generator().manual_seed(0), background_share=0.25)
-    assert pts.shape == colors.shape == (256, 3) and torch.isfinite(pts).all()
-    from stgs.train.init import rig_focus
-
-    focus, rig = rig_focus([c for c in ds.cameras(0) if c.name in names])
-    on_shell = (pts.double() - focus).norm(dim=1) >= 1.05 * rig - 1e-5
-    assert int(on_shell.sum()) == 64  # a quarter of the capacity; the rest inside the rig as before
+    init = initial_points(ds, names, 0, 256, torch.Generator().manual_seed(0), background_share=0.25)
+    assert init.points.shape == init.colors.shape == (256, 3) and torch.isfinite(init.points).all()
+    assert init.background == 64  # a quarter of the capacity; the rest inside the rig as before
+    assert init.anchored[:64].all()
+    assert int(init.anchored.sum()) == 64 + min(init.triangulated, 192)
+    model = GOPModel(GOPShape(256))
+    init_canonical(model, init)
+    opacity = torch.sigmoid(model.opacity_logit.detach())
+    assert torch.allclose(opacity[init.anchored], torch.tensor(0.1)) and torch.allclose(
+        opacity[~init.anchored], torch.tensor(0.02))  # filler starts faint
