@@ -460,7 +460,8 @@ async def play(cfg: PlayConfig, on_gop: Callable[[int, FrameRenderer], None] | N
             raise PlaybackError(f"{cfg.url}: {exc}") from None
         stats = await _optional_json(dl, pres.sibling_url(STATS))
         cameras = None
-        if cfg.view.camera is not None:
+        default_orbit = cfg.view.eye is None and cfg.view.path == "orbit"  # circles inside the rig when it can
+        if cfg.view.camera is not None or default_orbit:
             doc = await _optional_json(dl, pres.sibling_url(CAMERAS))
             cameras = parse_scene_cameras(doc) if doc is not None else None
         return await Session(cfg, pres, dl, stats, cameras, on_gop).run()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import math
 import shutil
 import struct
 import sys
@@ -209,6 +210,28 @@ async def test_scene_camera_and_explicit_pose(scene, tmp_path):
                                                                  height=30), out=tmp_path / "pose"))
     first = cv2.imread(str(sorted((tmp_path / "pose").glob("*.png"))[0]))
     assert first.shape == (30, 40, 3) and first.std() > 3
+
+
+async def test_the_default_orbit_circles_inside_a_surrounding_rig(scene, tmp_path):
+    """With cameras.json describing a rig around the scene (a capture dome), the default orbit is the rig
+    orbit, rendered exactly as a local render from its first camera."""
+    from stgs.camera import intrinsics, look_at, rig_orbit
+    from stgs.tree import CAMERAS, CAMERAS_FORMAT
+
+    root = copy_tree(scene, tmp_path)
+    rig = [Camera(f"r{i}", intrinsics(64, 48, 50.0),
+                  look_at((3 * math.cos(a), 1.5, 3 * math.sin(a)), (0.0, 0.0, 0.0)), 64, 48)
+           for i, a in enumerate(2 * math.pi * k / 5 for k in range(5))]
+    doc = {"format": CAMERAS_FORMAT, "version": 1, "cameras": [c.to_json() for c in rig]}
+    (root / CAMERAS).write_text(json.dumps(doc))
+    async with serving(root) as url:
+        await play(PlayConfig(url, qp=16, duration_s=0.5, view=ViewSpec(width=40, height=30),
+                              out=tmp_path / "orbit", download=QUICK))
+    first = cv2.cvtColor(cv2.imread(str(sorted((tmp_path / "orbit").glob("*.png"))[0])), cv2.COLOR_BGR2RGB)
+    _, gops = load_model(scene / "model")
+    expected = FrameRenderer(gops[0]).render(0, rig_orbit(rig, 3, 40, 30)[0]).clamp(0, 1)
+    assert first.std() > 3
+    assert psnr(torch.from_numpy(first).float() / 255, expected) >= 40.0
 
 
 async def _stgs(*args: str) -> tuple[int, str, str]:
