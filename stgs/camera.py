@@ -101,6 +101,12 @@ def rig_focus(cameras: list[Camera]) -> tuple[torch.Tensor, float]:
     return focus, float((centres - focus).norm(dim=1).mean())
 
 
+def rig_down(cameras: list[Camera]) -> torch.Tensor:
+    """The rig's down direction: the unit mean of the cameras' image-down axes (world, float64)."""
+    down = torch.stack([c.viewmat[1, :3] for c in cameras]).double().mean(0)
+    return down / down.norm().clamp_min(1e-12)
+
+
 def surrounds(cameras: list[Camera]) -> bool:
     """Whether the cameras stand around the scene looking in (a dome or ring), not side by side looking out
     at it (a forward-facing rig)."""
@@ -116,8 +122,7 @@ def rig_orbit(cameras: list[Camera], count: int, width: int, height: int, fov_x_
     along the cameras' mean image-up direction, at their mean height, `shrink` x their mean distance from
     that axis, all looking at the focus (inside whatever walls the rig captured)."""
     focus, _ = rig_focus(cameras)
-    up = -torch.stack([c.viewmat[1, :3] for c in cameras]).double().mean(0)
-    up = up / up.norm().clamp_min(1e-12)
+    up = -rig_down(cameras)
     offsets = torch.stack([c.center for c in cameras]).double() - focus
     along = offsets @ up
     radial = offsets - along[:, None] * up

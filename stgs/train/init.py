@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 import torch
 
-from stgs.camera import Camera, rig_focus
+from stgs.camera import Camera, rig_down, rig_focus
 
 
 @dataclass
@@ -177,8 +177,7 @@ def ground_height(cameras: list[Camera], points: torch.Tensor) -> tuple[torch.Te
     lowest triangulated points are (people stand on it); None without enough points."""
     if len(points) < 32:
         return None
-    down = torch.stack([c.viewmat[1, :3] for c in cameras]).double().mean(0)
-    down = down / down.norm().clamp_min(1e-12)
+    down = rig_down(cameras)
     return down, float(torch.quantile(points.double() @ down, 0.995))
 
 
