@@ -381,11 +381,13 @@ class Trainer:
         clock = time.perf_counter() - report.seconds
         bar = tqdm(range(start, cfg.iterations), desc=f"GOP {k}", unit="it", disable=not self.progress)
         loss_value = math.nan
+        window = []  # losses since the last curve point: one view's loss is too noisy to show a trend
         for it in bar:
             opt.set_progress(it / cfg.iterations)
             loss, img, target, opac = self.gop_loss(model, aux, views)
             self._step(opt, loss, f"GOP {k}", it, model)
             loss_value = loss.item()
+            window.append(loss_value)
             accum[0] += opac
             accum[1] += 1
             if cfg.relocate and (it + 1) % cfg.relocate_every == 0 and it < cfg.relocate_until * cfg.iterations:
@@ -398,9 +400,11 @@ class Trainer:
                 seconds = paused - clock
                 vp, vs = self.validate(model, val) if val is not None else (None, None)
                 clock += time.perf_counter() - paused  # validation does not count as training time
-                report.curve.append({"iteration": it + 1, "seconds": seconds, "loss": loss_value,
+                report.curve.append({"iteration": it + 1, "seconds": seconds, "loss": sum(window) / len(window),
                                      "val_psnr": vp, "val_ssim": vs})
-                bar.set_postfix(loss=f"{loss_value:.4f}", psnr=f"{psnr(img.detach().clamp(0, 1), target):.1f}")
+                window.clear()
+                bar.set_postfix(loss=f"{report.curve[-1]['loss']:.4f}",
+                                psnr=f"{psnr(img.detach().clamp(0, 1), target):.1f}")
             if (it + 1) % cfg.checkpoint_every == 0 and it + 1 < cfg.iterations:
                 report.seconds = time.perf_counter() - clock
                 self.save_checkpoint(f"gop_{k:04d}", model, opt, {"iteration": it + 1,

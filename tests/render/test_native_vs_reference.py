@@ -160,3 +160,21 @@ def test_needles_bin_to_fewer_tiles_than_their_boxes_and_render_the_same():
     (nat * g.float()).sum().backward()
     for a, b in zip(ref_in, nat_in, strict=True):
         assert (a.grad - b.grad.double()).abs().max() <= 1e-3 * a.grad.abs().max()
+
+
+def test_native_gradients_are_the_same_bytes_on_every_run():
+    """Per-thread partial sums must not depend on which thread took which tile (training is seeded)."""
+    args = [a.float() for a in random_scene(3000, 7, log_scale=-3.0)]
+    view, K = pinhole(128, 96, 100.0)
+    grad_out = torch.randn(96, 128, 3, generator=torch.Generator().manual_seed(3))
+    threads = torch.get_num_threads()
+    torch.set_num_threads(4)  # more threads than this machine's cores: scheduling varies between runs
+    try:
+        runs = []
+        for _ in range(12):
+            inputs = [a.clone().requires_grad_() for a in args]
+            (rasterize(*inputs, view.float(), K.float(), 128, 96, backend="native") * grad_out).sum().backward()
+            runs.append(torch.cat([x.grad.flatten() for x in inputs]))
+    finally:
+        torch.set_num_threads(threads)
+    assert all(torch.equal(runs[0], r) for r in runs[1:])

@@ -81,7 +81,7 @@ def test_every_component_switch_runs(scene, tmp_path, switch):
 
 
 def test_same_seed_same_model_and_resume_matches(scene, tmp_path, monkeypatch):
-    cfg = budget("quick", **TINY, coarse_iterations=10, iterations=30, checkpoint_every=10, threads=1)
+    cfg = budget("quick", **TINY, coarse_iterations=10, iterations=30, checkpoint_every=10, threads=2)
     train(scene, tmp_path / "a", cfg, progress=False)
     train(scene, tmp_path / "b", cfg, progress=False)
     a = (tmp_path / "a" / "gop_0000.safetensors").read_bytes()

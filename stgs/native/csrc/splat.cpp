@@ -766,7 +766,8 @@ void stgs_raster_backward(void* handle, int64_t n, const float* bg, const float*
   {
     const int tid = omp_get_thread_num();
     float* mine = partial.data() + size_t(tid) * n * kGradStride;
-#pragma omp for schedule(dynamic, 1)
+    // static: which thread sums which tile must not vary between runs, or seeded training is not reproducible
+#pragma omp for schedule(static, 1)
     for (int t = 0; t < tiles; ++t)
       kBackwardTile(*ctx, t, bg, grad_out, mine, &partial_bg[3 * tid]);
   }
