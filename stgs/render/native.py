@@ -18,7 +18,7 @@ def library() -> ctypes.CDLL:
     if id(lib) not in _CONFIGURED:
         lib.stgs_project.argtypes = [c_int64] + [c_void_p] * 10 + [c_int]
         lib.stgs_project.restype = None
-        lib.stgs_raster_forward.argtypes = [c_int64] + [c_void_p] * 7 + [c_int, c_int, c_void_p, c_int]
+        lib.stgs_raster_forward.argtypes = [c_int64] + [c_void_p] * 7 + [c_int, c_int, c_void_p, c_int, c_int]
         lib.stgs_raster_forward.restype = c_void_p
         lib.stgs_raster_backward.argtypes = [c_void_p, c_int64] + [c_void_p] * 7 + [c_int]
         lib.stgs_raster_backward.restype = None
@@ -69,13 +69,14 @@ class RasterHandle:
 
 def raster_forward(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor,
                    colors: torch.Tensor, background: torch.Tensor, depths: torch.Tensor,
-                   extents: torch.Tensor, width: int, height: int
+                   extents: torch.Tensor, width: int, height: int, for_backward: bool = False
                    ) -> tuple[torch.Tensor, RasterHandle]:
-    """Native compositing of float32 contiguous inputs; returns the image and its handle."""
+    """Native compositing of float32 contiguous inputs; returns the image and its handle (which the
+    backward pass can use only when `for_backward`)."""
     out = torch.empty(height, width, 3)
     handle = library().stgs_raster_forward(
         means2d.shape[0], ptr(means2d), ptr(conics), ptr(opacities), ptr(colors), ptr(depths),
-        ptr(extents), ptr(background), width, height, ptr(out), torch.get_num_threads())
+        ptr(extents), ptr(background), width, height, ptr(out), int(for_backward), torch.get_num_threads())
     return out, RasterHandle(handle)
 
 
@@ -86,7 +87,7 @@ class NativeComposite(torch.autograd.Function):
     def forward(ctx, means2d, conics, opacities, colors, background, depths, extents, width,
                 height):
         inputs = [f32(t) for t in (means2d, conics, opacities, colors, background)]
-        out, handle = raster_forward(*inputs, f32(depths), f32(extents), width, height)
+        out, handle = raster_forward(*inputs, f32(depths), f32(extents), width, height, for_backward=True)
         ctx.handle = handle  # holds its own copy of every Gaussian input the backward reads
         ctx.num_gaussians = means2d.shape[0]
         ctx.save_for_backward(inputs[4])

@@ -178,3 +178,28 @@ def test_native_gradients_are_the_same_bytes_on_every_run():
     finally:
         torch.set_num_threads(threads)
     assert all(torch.equal(runs[0], r) for r in runs[1:])
+
+
+def test_reused_buffers_never_leak_between_frames():
+    """The library keeps a freed context's buffers for the next frame: sizes and Gaussian counts that
+    change between calls, and a forward whose backward is still pending, give the same bytes as before."""
+    big = [a.float() for a in random_scene(2000, 11, log_scale=-3.0)]
+    small = [a.float() for a in random_scene(40, 12, log_scale=-2.0)]
+    view, K = pinhole(96, 64, 80.0)
+    view_s, K_s = pinhole(33, 47, 30.0)
+
+    def frame(args, v, k, w, h):
+        return rasterize(*args, v.float(), k.float(), w, h, backend="native")
+
+    def grads():
+        inputs = [a.clone().requires_grad_() for a in big]
+        image = frame(inputs, view, K, 96, 64)
+        frame(small, view_s, K_s, 33, 47)  # a forward between this forward and its backward
+        image.sum().backward()
+        return torch.cat([x.grad.flatten() for x in inputs])
+
+    first_big, first_small, first_grads = frame(big, view, K, 96, 64), frame(small, view_s, K_s, 33, 47), grads()
+    for _ in range(3):
+        assert torch.equal(frame(small, view_s, K_s, 33, 47), first_small)
+        assert torch.equal(frame(big, view, K, 96, 64), first_big)
+        assert torch.equal(grads(), first_grads)

@@ -11,6 +11,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <mutex>
 #include <vector>
 
 #include "fastmath.h"
@@ -43,6 +44,15 @@ struct alignas(64) Splat {
   Rect rect;        // inclusive pixel bounds of the opacity-aware extent
 };
 
+// Scratch space of one forward pass (sorting and binning), kept with the context so that
+// a reused context reuses it too.
+struct Scratch {
+  std::vector<int32_t> visible, ids_tmp;          // on-screen Gaussians, depth order
+  std::vector<uint32_t> keys, keys_tmp;           // radix sort keys
+  std::vector<int64_t> counts, offsets;           // per thread and tile
+  std::vector<std::vector<uint32_t>> columns;     // per thread: tile spans of its Gaussians
+};
+
 struct RasterCtx {
   int width = 0, height = 0, tiles_x = 0, tiles_y = 0;
   std::vector<int64_t> tile_start;  // (tiles + 1) offsets into ids
@@ -50,13 +60,53 @@ struct RasterCtx {
   std::vector<Splat> splats;        // per Gaussian (rect u0 > u1 when off screen)
   std::vector<float> trans_final;   // per pixel
   std::vector<int32_t> n_contrib;   // per pixel: list entries up to the last one added
+  bool for_backward = false;        // trans_final and n_contrib were kept
+  Scratch scratch;
+
+  size_t bytes() const {
+    size_t total = tile_start.capacity() * 8 + ids.capacity() * 4 + splats.capacity() * sizeof(Splat) +
+                   trans_final.capacity() * 4 + n_contrib.capacity() * 4 +
+                   (scratch.visible.capacity() + scratch.ids_tmp.capacity() + scratch.keys.capacity() +
+                    scratch.keys_tmp.capacity()) * 4 + (scratch.counts.capacity() + scratch.offsets.capacity()) * 8;
+    for (const auto& c : scratch.columns) total += c.capacity() * 4;
+    return total;
+  }
 };
 
+// One freed context is kept for the next forward pass. A frame at 640x360 with
+// 65k Gaussians needs ~15 MB of buffers; fresh ones are mapped and page-faulted
+// in on every call (measured: 3-4 ms of a 40 ms frame), reused ones are not.
+constexpr size_t kSpareMaxBytes = size_t(256) << 20;
+std::mutex spare_mutex;
+RasterCtx* spare_ctx = nullptr;
+
+RasterCtx* acquire_ctx() {
+  std::lock_guard<std::mutex> lock(spare_mutex);
+  RasterCtx* ctx = spare_ctx;
+  spare_ctx = nullptr;
+  return ctx != nullptr ? ctx : new RasterCtx();
+}
+
+void release_ctx(RasterCtx* ctx) {
+  if (ctx->bytes() <= kSpareMaxBytes) {
+    std::lock_guard<std::mutex> lock(spare_mutex);
+    if (spare_ctx == nullptr) {
+      spare_ctx = ctx;
+      return;
+    }
+  }
+  delete ctx;
+}
+
 // Stable LSD radix sort of ids by non-negative float keys (bit patterns are monotone).
-void radix_sort_by_depth(std::vector<int32_t>& ids, const float* depth) {
+void radix_sort_by_depth(std::vector<int32_t>& ids, const float* depth, Scratch& scratch) {
   const size_t n = ids.size();
-  std::vector<int32_t> tmp(n);
-  std::vector<uint32_t> keys(n), keys_tmp(n);
+  std::vector<int32_t>& tmp = scratch.ids_tmp;
+  std::vector<uint32_t>& keys = scratch.keys;
+  std::vector<uint32_t>& keys_tmp = scratch.keys_tmp;
+  tmp.resize(n);
+  keys.resize(n);
+  keys_tmp.resize(n);
   for (size_t i = 0; i < n; ++i) std::memcpy(&keys[i], &depth[ids[i]], 4);
   for (int shift = 0; shift < 32; shift += 8) {
     size_t count[257] = {0};
@@ -139,13 +189,16 @@ void bin_by_tile(RasterCtx& ctx, const std::vector<int32_t>& ordered, int nthrea
   const int tiles = ctx.tiles_x * ctx.tiles_y;
   const int64_t n = int64_t(ordered.size());
   nthreads = int(std::max<int64_t>(1, std::min<int64_t>(nthreads, n / 4096 + 1)));
-  std::vector<int64_t> counts(size_t(nthreads) * tiles, 0);
-  std::vector<std::vector<uint32_t>> columns(nthreads);
+  std::vector<int64_t>& counts = ctx.scratch.counts;
+  counts.assign(size_t(nthreads) * tiles, 0);
+  std::vector<std::vector<uint32_t>>& columns = ctx.scratch.columns;
+  columns.resize(nthreads);
 #pragma omp parallel num_threads(nthreads)
   {
     const int t = omp_get_thread_num();
     int64_t* mine = &counts[size_t(t) * tiles];
     std::vector<uint32_t>& spans = columns[t];
+    spans.clear();
     spans.reserve(size_t(2 * (n / nthreads + 1)));
     const int64_t end = n * (t + 1) / nthreads;
     for (int64_t i = n * t / nthreads; i < end; ++i) {
@@ -161,7 +214,8 @@ void bin_by_tile(RasterCtx& ctx, const std::vector<int32_t>& ordered, int nthrea
     }
   }
   ctx.tile_start.assign(tiles + 1, 0);
-  std::vector<int64_t> offsets(size_t(nthreads) * tiles);
+  std::vector<int64_t>& offsets = ctx.scratch.offsets;
+  offsets.resize(size_t(nthreads) * tiles);
   int64_t total = 0;
   for (int tile = 0; tile < tiles; ++tile) {
     ctx.tile_start[tile] = total;
@@ -303,8 +357,10 @@ bool refresh_live_rows(const TileState& st, bool* row_live) {
       out[3 * pix] = st.acc_r[p] + st.trans[p] * bg[0];
       out[3 * pix + 1] = st.acc_g[p] + st.trans[p] * bg[1];
       out[3 * pix + 2] = st.acc_b[p] + st.trans[p] * bg[2];
-      trans_final[pix] = st.trans[p];
-      n_contrib[pix] = st.last[p];
+      if (trans_final != nullptr) {
+        trans_final[pix] = st.trans[p];
+        n_contrib[pix] = st.last[p];
+      }
     }
   }
 }
@@ -471,6 +527,8 @@ inline __m512 pixel_centres(int x0) {
                        _mm512_setr_ps(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15));
 }
 
+// kTrack: keep each pixel's final transmittance and last contributor for the backward pass.
+template <bool kTrack>
 void render_tile_avx512(const RasterCtx& ctx, int tile, const float* bg, float* out,
                         float* trans_final, int32_t* n_contrib) {
   const TileBox box = tile_box(ctx, tile);
@@ -517,7 +575,7 @@ void render_tile_avx512(const RasterCtx& ctx, int tile, const float* bg, float* 
       ag[row] = _mm512_fmadd_ps(sv.g, w, ag[row]);
       ab[row] = _mm512_fmadd_ps(sv.bl, w, ab[row]);
       trans[row] = _mm512_mask_mov_ps(trans[row], add, next);
-      last[row] = _mm512_mask_mov_epi32(last[row], add, rank);
+      if constexpr (kTrack) last[row] = _mm512_mask_mov_epi32(last[row], add, rank);
       live[row] &= ~stop;
     }
     if ((k - begin) % kScanEvery == kScanEvery - 1) {
@@ -538,10 +596,20 @@ void render_tile_avx512(const RasterCtx& ctx, int tile, const float* bg, float* 
       out[3 * pix] = rr[u] + tr[u] * bg[0];
       out[3 * pix + 1] = gg[u] + tr[u] * bg[1];
       out[3 * pix + 2] = bb[u] + tr[u] * bg[2];
-      trans_final[pix] = tr[u];
-      n_contrib[pix] = ll[u];
+      if constexpr (kTrack) {
+        trans_final[pix] = tr[u];
+        n_contrib[pix] = ll[u];
+      }
     }
   }
+}
+
+void render_tile_fast(const RasterCtx& ctx, int tile, const float* bg, float* out, float* trans_final,
+                      int32_t* n_contrib) {
+  if (trans_final != nullptr)
+    render_tile_avx512<true>(ctx, tile, bg, out, trans_final, n_contrib);
+  else
+    render_tile_avx512<false>(ctx, tile, bg, out, nullptr, nullptr);
 }
 
 inline float hsum(__m512 v) { return _mm512_reduce_add_ps(v); }
@@ -635,7 +703,7 @@ void backward_tile_avx512(const RasterCtx& ctx, int tile, const float* bg, const
     o[6] += hsum(gr); o[7] += hsum(gg); o[8] += hsum(gbl);
   }
 }
-constexpr auto kRenderTile = render_tile_avx512;
+constexpr auto kRenderTile = render_tile_fast;
 constexpr auto kBackwardTile = backward_tile_avx512;
 #else
 constexpr auto kRenderTile = render_tile;
@@ -715,11 +783,14 @@ void stgs_project(int64_t n, const float* means, const float* quats, const float
 }
 
 // Bins, sorts and composites. Returns a context for the backward pass (free it
-// with stgs_raster_free) and writes the (H, W, 3) image to out.
+// with stgs_raster_free) and writes the (H, W, 3) image to out. Without
+// for_backward the per-pixel bookkeeping the backward pass reads is skipped
+// and the context only serves stgs_raster_pairs.
 void* stgs_raster_forward(int64_t n, const float* xy, const float* conic, const float* opac,
                           const float* color, const float* depth, const float* extent,
-                          const float* bg, int width, int height, float* out, int nthreads) {
-  auto* ctx = new RasterCtx();
+                          const float* bg, int width, int height, float* out, int for_backward,
+                          int nthreads) {
+  RasterCtx* ctx = acquire_ctx();
   ctx->width = width;
   ctx->height = height;
   ctx->tiles_x = (width + kTile - 1) / kTile;
@@ -736,20 +807,24 @@ void* stgs_raster_forward(int64_t n, const float* xy, const float* conic, const 
     pixel_range(xy[2 * i], extent[2 * i], width, s.rect.u0, s.rect.u1);
     pixel_range(xy[2 * i + 1], extent[2 * i + 1], height, s.rect.v0, s.rect.v1);
   }
-  std::vector<int32_t> visible;
+  std::vector<int32_t>& visible = ctx->scratch.visible;
+  visible.clear();
   visible.reserve(n);
   for (int64_t i = 0; i < n; ++i) {
     const Rect& r = ctx->splats[i].rect;
     if (r.u0 <= r.u1 && r.v0 <= r.v1) visible.push_back(int32_t(i));
   }
-  radix_sort_by_depth(visible, depth);
+  radix_sort_by_depth(visible, depth, ctx->scratch);
   bin_by_tile(*ctx, visible, nthreads);
-  ctx->trans_final.resize(int64_t(width) * height);
-  ctx->n_contrib.resize(int64_t(width) * height);
+  ctx->for_backward = for_backward != 0;
+  if (ctx->for_backward) {
+    ctx->trans_final.resize(int64_t(width) * height);
+    ctx->n_contrib.resize(int64_t(width) * height);
+  }
+  float* trans_final = ctx->for_backward ? ctx->trans_final.data() : nullptr;
+  int32_t* n_contrib = ctx->for_backward ? ctx->n_contrib.data() : nullptr;
 #pragma omp parallel for num_threads(nthreads) schedule(dynamic, 1)
-  for (int t = 0; t < tiles; ++t)
-    kRenderTile(*ctx, t, bg, out, ctx->trans_final.data(),
-                ctx->n_contrib.data());
+  for (int t = 0; t < tiles; ++t) kRenderTile(*ctx, t, bg, out, trans_final, n_contrib);
   return ctx;
 }
 
@@ -759,6 +834,7 @@ void stgs_raster_backward(void* handle, int64_t n, const float* bg, const float*
                           float* grad_xy, float* grad_conic, float* grad_opac, float* grad_color,
                           float* grad_bg, int nthreads) {
   const auto* ctx = static_cast<const RasterCtx*>(handle);
+  if (!ctx->for_backward) return;  // the forward kept nothing to differentiate (bindings never ask)
   const int tiles = ctx->tiles_x * ctx->tiles_y;
   std::vector<float> partial(size_t(nthreads) * n * kGradStride, 0.0f);
   std::vector<double> partial_bg(size_t(nthreads) * 3, 0.0);
@@ -793,6 +869,6 @@ int64_t stgs_raster_pairs(void* handle) {
   return int64_t(static_cast<RasterCtx*>(handle)->ids.size());
 }
 
-void stgs_raster_free(void* handle) { delete static_cast<RasterCtx*>(handle); }
+void stgs_raster_free(void* handle) { release_ctx(static_cast<RasterCtx*>(handle)); }
 
 }  // extern "C"
