@@ -339,7 +339,7 @@ class Session:
         start = time.perf_counter()
         g = ready.renderer.gaussians(i, camera)
         mid = time.perf_counter()
-        image = ready.renderer.splat(g, camera).clamp_(0, 1)
+        image = ready.renderer.splat(g, camera, guarded=ready.renderer.guarded).clamp_(0, 1)
         return image, mid - start, time.perf_counter() - mid
 
     async def play_gop(self, ready: ReadyGOP, trajectory: Trajectory, sink) -> None:

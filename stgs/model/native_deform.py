@@ -37,10 +37,10 @@ def _library() -> ctypes.CDLL:
     lib = load()
     if id(lib) not in _CONFIGURED:
         lib.stgs_deform.argtypes = ([c_int64, c_int, c_int] + [c_void_p] * 15
-                                    + [c_int, c_int] + [c_void_p] * 5 + [c_int])
+                                    + [c_int, c_int] + [c_void_p] * 6 + [c_int])
         lib.stgs_deform.restype = None
         lib.stgs_deform_bf16.argtypes = ([c_int64, c_int, c_int] + [c_void_p] * 7 + [c_int] + [c_void_p] * 8
-                                         + [c_int, c_int] + [c_void_p] * 5 + [c_int])
+                                         + [c_int, c_int] + [c_void_p] * 6 + [c_int])
         lib.stgs_deform_bf16.restype = c_int
         lib.stgs_deform_bf16_available.argtypes = []
         lib.stgs_deform_bf16_available.restype = c_int
@@ -126,11 +126,13 @@ class PackedWeights:
 def deform_native(model: GOPModel, frame: int, camera_center: torch.Tensor,
                   weights: PackedWeights | None = None, viewmat: torch.Tensor | None = None,
                   K: torch.Tensor | None = None, width: int = 0, height: int = 0,
-                  precision: str = "fp32") -> Gaussians:
+                  precision: str = "fp32", guard: tuple[float, float, float] | None = None) -> Gaussians:
     """GOPModel.deform in C++ (no autograd), in float32 or bf16 (`precision`, see PRECISIONS).
 
     With viewmat/K/width/height, Gaussians that cannot put alpha >= 1/255 on
-    the image get opacity 0 (the splatter would skip them anyway).
+    the image get opacity 0 (the splatter would skip them anyway), and so do
+    those outside `guard` = (near, x limit, y limit), the guard band of
+    stgs.model.view.guard_limits.
     """
     model.check_frame(frame)
     check_precision(precision)
@@ -145,13 +147,16 @@ def deform_native(model: GOPModel, frame: int, camera_center: torch.Tensor,
     pe_bias = weights.pe_bias(frame, model)
     out = Gaussians(torch.empty(n, 3), torch.empty(n, 4), torch.empty(n, 3), torch.empty(n),
                     torch.empty(n, 3))
-    view_ptr = k_ptr = None
+    view_ptr = k_ptr = guard_ptr = None
     if viewmat is not None:
         view = viewmat.detach().to(torch.float64).contiguous()
         intr = K.detach().to(torch.float64).contiguous()
         view_ptr, k_ptr = view.data_ptr(), intr.data_ptr()
+        if guard is not None:
+            limits = torch.tensor(guard, dtype=torch.float64)
+            guard_ptr = limits.data_ptr()
     outputs = [out.means.data_ptr(), out.quats.data_ptr(), out.scales.data_ptr(), out.opacities.data_ptr(),
-               out.colors.data_ptr(), torch.get_num_threads()]
+               out.colors.data_ptr(), guard_ptr, torch.get_num_threads()]
     inputs = [n, model.shape.window, frame, feats.data_ptr(), *(t.data_ptr() for t in canon)]
     lib = _library()
     if precision == "fp32":

@@ -29,6 +29,14 @@ NEAR_CLIP = 0.2
 """... and lies more than this far in front of the camera (scene units)."""
 
 
+def guard_limits(camera: Camera, margin: float = GUARD_BAND, near: float = NEAR_CLIP) -> tuple[float, float, float]:
+    """(near, x limit, y limit): a camera-space point is in the guard band when z > near,
+    |x| <= x limit * z and |y| <= y limit * z."""
+    K = camera.K.double()
+    fx, fy, cx, cy = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+    return near, margin * max(cx, camera.width - cx) / fx, margin * max(cy, camera.height - cy) / fy
+
+
 def in_guard_band(means: torch.Tensor, camera: Camera, margin: float = GUARD_BAND,
                   near: float = NEAR_CLIP) -> torch.Tensor:
     """(N,) bool: whether each mean lies deeper than `near` and projects inside `margin` x the image's
@@ -36,10 +44,7 @@ def in_guard_band(means: torch.Tensor, camera: Camera, margin: float = GUARD_BAN
     view = camera.viewmat.to(means.dtype)
     cam = means.detach() @ view[:3, :3].T + view[:3, 3]
     z = cam[:, 2]
-    K = camera.K.double()
-    fx, fy, cx, cy = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
-    limit_x = margin * max(cx, camera.width - cx) / fx
-    limit_y = margin * max(cy, camera.height - cy) / fy
+    near, limit_x, limit_y = guard_limits(camera, margin, near)
     return (z > near) & (cam[:, 0].abs() <= limit_x * z) & (cam[:, 1].abs() <= limit_y * z)
 
 
@@ -71,24 +76,37 @@ class FrameRenderer:
 
     @torch.no_grad()
     def gaussians(self, frame: int, camera: Camera) -> Gaussians:
-        """The deformed Gaussians of `frame` seen from `camera` (culled to its view when native)."""
+        """The deformed Gaussians of `frame` seen from `camera`; when native, those off its view or
+        outside its guard band have opacity 0 (`guarded` below)."""
         if not self.native:
             return self.model.deform(frame, camera.center.float())
         from stgs.model.native_deform import deform_native
 
         return deform_native(self.model, frame, camera.center.float(), self._weights,
-                             camera.viewmat, camera.K, camera.width, camera.height, self.precision)
+                             camera.viewmat, camera.K, camera.width, camera.height, self.precision,
+                             guard=guard_limits(camera))
+
+    @property
+    def guarded(self) -> bool:
+        """Whether `gaussians` already applies the guard band (so `splat` need not)."""
+        return self.native
 
     @torch.no_grad()
     def render(self, frame: int, camera: Camera, background: torch.Tensor | None = None) -> torch.Tensor:
         """(H, W, 3) float32 image of `frame` from `camera`."""
-        return self.splat(self.gaussians(frame, camera), camera, background)
+        return self.splat(self.gaussians(frame, camera), camera, background, guarded=self.guarded)
 
     @torch.no_grad()
-    def splat(self, g: Gaussians, camera: Camera, background: torch.Tensor | None = None) -> torch.Tensor:
-        """(H, W, 3) float32 image of deformed Gaussians from `camera`."""
+    def splat(self, g: Gaussians, camera: Camera, background: torch.Tensor | None = None,
+              guarded: bool = False) -> torch.Tensor:
+        """(H, W, 3) float32 image of deformed Gaussians from `camera`; `guarded`: g came from
+        `gaussians(frame, camera)` of a guarded renderer, so the guard band is not applied again."""
         bg = background.float() if background is not None else None
-        return splat(g, camera, bg, "auto" if self.native else "reference")
+        backend = "auto" if self.native else "reference"
+        if not guarded:
+            return splat(g, camera, bg, backend)
+        return rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, camera.viewmat.float(),
+                         camera.K.float(), camera.width, camera.height, bg, backend=backend)
 
 
 def framing_orbit(model: GOPModel, count: int, width: int, height: int, fov_x_deg: float = 60.0) -> list[Camera]:

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from stgs.camera import Camera, intrinsics, look_at
-from stgs.model.gop import Gaussians
-from stgs.model.view import GUARD_BAND, NEAR_CLIP, in_guard_band, splat
+from stgs.model.gop import Gaussians, GOPModel, GOPShape
+from stgs.model.view import GUARD_BAND, NEAR_CLIP, FrameRenderer, in_guard_band, splat
+from stgs.native.build import available
 from stgs.render import rasterize
 
 W, H = 64, 48
@@ -80,3 +82,29 @@ def test_splat_gradients_reach_kept_gaussians_only():
     assert torch.isfinite(means.grad).all() and torch.isfinite(opacities.grad).all()
     assert opacities.grad[0] == 0 and colors.grad[0].abs().max() == 0
     assert opacities.grad[1] != 0 and colors.grad[1].abs().min() > 0
+
+
+@pytest.mark.skipif(not available(), reason="needs the native build")
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_the_native_deformation_applies_the_same_guard_band(precision):
+    from stgs.model.native_deform import bf16_available
+
+    if precision == "bf16" and not bf16_available():
+        pytest.skip("the bf16 deformation needs a CPU with AMX-BF16")
+    half_w, half_h = W / 2, H / 2
+    points = [point_at_pixel(W / 2 + (GUARD_BAND - 0.01) * half_w, H / 2, 2.0),
+              point_at_pixel(W / 2 + (GUARD_BAND + 0.01) * half_w, H / 2, 2.0),
+              point_at_pixel(W / 2, H / 2 - (GUARD_BAND - 0.01) * half_h, 5.0),
+              point_at_pixel(W / 2, H / 2 - (GUARD_BAND + 0.01) * half_h, 5.0),
+              point_at_pixel(W / 2, H / 2, NEAR_CLIP * 0.9), point_at_pixel(W / 2, H / 2, NEAR_CLIP * 1.1)]
+    model = GOPModel(GOPShape(capacity=len(points), gop_size=4))
+    with torch.no_grad():
+        for p in model.field.parameters():
+            p.zero_()  # deformed = canonical
+        model.xyz.copy_(torch.stack(points).float())
+        model.log_scale.fill_(-1.0)  # large enough to reach the image from anywhere here
+        model.opacity_logit.fill_(4.0)
+    renderer = FrameRenderer(model, native=True, precision=precision)
+    drawn = renderer.gaussians(1, CAM).opacities > 0
+    assert renderer.guarded and drawn.tolist() == in_guard_band(model.xyz, CAM).tolist() == [
+        True, False, True, False, False, True]

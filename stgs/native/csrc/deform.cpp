@@ -91,16 +91,17 @@ extern "C" {
 
 // Deformed Gaussians of one frame (see stgs/model/native_deform.py for the
 // weight packing). If viewmat is non-null, Gaussians that cannot reach the
-// image get opacity 0 and skip the view-dependent decoders.
+// image (or, with guard non-null, lie outside the guard band) get opacity 0
+// and skip the view-dependent decoders.
 void stgs_deform(int64_t n, int window, int frame, const float* feats, const float* xyz,
                  const float* log_scale, const float* rotation, const float* opacity_logit,
                  const float* color, const float* temporal_t, const float* pe_bias,
                  const float* geo1_t, const float* geo2_t, const float* app1_t,
                  const float* app2_t, const float* camera_center, const double* viewmat,
                  const double* K, int width, int height, float* out_means, float* out_quats,
-                 float* out_scales, float* out_opac, float* out_colors, int nthreads) {
+                 float* out_scales, float* out_opac, float* out_colors, const double* guard, int nthreads) {
   const stgs::DeformIO io{xyz, log_scale, rotation, opacity_logit, color, camera_center, viewmat, K, width,
-                          height, out_means, out_quats, out_scales, out_opac, out_colors};
+                          height, out_means, out_quats, out_scales, out_opac, out_colors, guard};
   const int in_t = window * kFeat;
   const int64_t blocks = (n + kBlock - 1) / kBlock;
 #pragma omp parallel for num_threads(nthreads) schedule(dynamic, 8)

@@ -15,13 +15,17 @@ constexpr int kOut = 16;         // padded width of the packed second layers
 constexpr double kNearZ = 0.01;  // the splatter's near plane (DESIGN.md)
 
 // Conservative visibility from the camera's frustum: false only when the
-// Gaussian cannot put alpha >= 1/255 on any pixel whatever its opacity.
+// Gaussian cannot put alpha >= 1/255 on any pixel whatever its opacity, or,
+// with a guard band (near, x limit, y limit: stgs.model.view), when its mean
+// lies outside it (z <= near, |x| > x limit * z or |y| > y limit * z).
 inline bool maybe_visible(const float* mean, const float* log_scale_out, const double* viewmat,
-                   const double* K, int width, int height) {
+                          const double* K, int width, int height, const double* guard) {
   const double x = viewmat[0] * mean[0] + viewmat[1] * mean[1] + viewmat[2] * mean[2] + viewmat[3];
   const double y = viewmat[4] * mean[0] + viewmat[5] * mean[1] + viewmat[6] * mean[2] + viewmat[7];
   const double z = viewmat[8] * mean[0] + viewmat[9] * mean[1] + viewmat[10] * mean[2] + viewmat[11];
   if (!(z >= kNearZ)) return false;
+  if (guard != nullptr && !(z > guard[0] && std::fabs(x) <= guard[1] * z && std::fabs(y) <= guard[2] * z))
+    return false;
   const double s = std::exp(double(std::max(log_scale_out[0], std::max(log_scale_out[1], log_scale_out[2]))));
   const double xn = x / z, yn = y / z;
   // The Frobenius norm of the projection Jacobian bounds its spectral norm.
@@ -39,6 +43,7 @@ struct DeformIO {
   const double *viewmat, *K;  // viewmat null: no culling
   int width, height;
   float *means, *quats, *scales, *opacities, *colors;
+  const double* guard;  // guard band (see maybe_visible); null: none
 };
 
 // Deformed geometry of Gaussian g from the geometry decoders' outputs d = [dx(3) ds(3) dq(4)].
@@ -53,7 +58,7 @@ inline bool deformed_geometry(const DeformIO& io, int64_t g, const float* d, flo
     io.scales[3 * g + c] = std::exp(dls[c]);
   }
   for (int c = 0; c < 4; ++c) io.quats[4 * g + c] = io.rotation[4 * g + c] + d[6 + c];
-  if (io.viewmat != nullptr && !maybe_visible(mean, dls, io.viewmat, io.K, io.width, io.height)) {
+  if (io.viewmat != nullptr && !maybe_visible(mean, dls, io.viewmat, io.K, io.width, io.height, io.guard)) {
     io.opacities[g] = 0.0f;
     for (int c = 0; c < 3; ++c) io.colors[3 * g + c] = 0.0f;
     return false;

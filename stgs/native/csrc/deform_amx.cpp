@@ -143,7 +143,7 @@ int stgs_deform_bf16(int64_t n, int window, int frame, const float* feats, const
                      const void* geo1_w, const void* geo2_w, const void* app1_w, const void* app2_w,
                      const float* camera_center, const double* viewmat, const double* K, int width,
                      int height, float* out_means, float* out_quats, float* out_scales, float* out_opac,
-                     float* out_colors, int nthreads) {
+                     float* out_colors, const double* guard, int nthreads) {
 #if STGS_HAVE_AMX
   if (!amx_permitted() || t_chunks < 1 || t_chunks * kChunk > kMaxIn || window * kFeat > t_chunks * kChunk)
     return -1;
@@ -153,7 +153,7 @@ int stgs_deform_bf16(int64_t n, int window, int frame, const float* feats, const
   const auto* w_app1 = static_cast<const bf16*>(app1_w);
   const auto* w_app2 = static_cast<const bf16*>(app2_w);
   const stgs::DeformIO io{xyz, log_scale, rotation, opacity_logit, color, camera_center, viewmat, K, width,
-                          height, out_means, out_quats, out_scales, out_opac, out_colors};
+                          height, out_means, out_quats, out_scales, out_opac, out_colors, guard};
   const int lt = t_chunks * kChunk;
   const int64_t blocks = (n + kRows - 1) / kRows;
 #pragma omp parallel num_threads(nthreads)
@@ -213,7 +213,7 @@ int stgs_deform_bf16(int64_t n, int window, int frame, const float* feats, const
   (void)opacity_logit, (void)color, (void)temporal_w, (void)t_chunks, (void)pe_bias, (void)geo1_w;
   (void)geo2_w, (void)app1_w, (void)app2_w, (void)camera_center, (void)viewmat, (void)K, (void)width;
   (void)height, (void)out_means, (void)out_quats, (void)out_scales, (void)out_opac, (void)out_colors;
-  (void)nthreads;
+  (void)guard, (void)nthreads;
   return -1;
 #endif
 }
