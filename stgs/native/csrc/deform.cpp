@@ -127,6 +127,7 @@ void stgs_deform(int64_t n, int window, int frame, const float* feats, const flo
     matmul_rows<2 * kHidden>(h, rows, kHidden, kHidden, geo1_t, hidden2);
     relu_inplace(hidden2, rows * 2 * kHidden);
     matmul_rows<kOut>(hidden2, rows, 2 * kHidden, 2 * kHidden, geo2_t, out2);
+    stgs::deformed_scales(io, first, rows, out2, kOut);
     bool keep[kBlock];
     int slot[kBlock];
     int kept = 0;

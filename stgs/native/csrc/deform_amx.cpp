@@ -185,6 +185,7 @@ int stgs_deform_bf16(int64_t n, int window, int frame, const float* feats, const
       matmul_16x64(a_h, kHidden, 2, w_geo1, 8, 4, c + 64, kWide);
       relu_to_bf16(c, a_wide);
       matmul_16x16(a_wide, kWide, 4, w_geo2, out2);
+      stgs::deformed_scales(io, first, rows, out2, kOut);
       bool keep[kRows];
       int kept = 0;
       for (int b = 0; b < rows; ++b) {

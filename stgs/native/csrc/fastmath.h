@@ -29,6 +29,9 @@ inline float fast_exp(float x) {
   return p * scale;
 }
 
+// fast_exp with IEEE overflow: +inf above the largest finite exp (fast_exp alone clamps there).
+inline float exp_or_inf(float x) { return x > 88.72283f ? __builtin_inff() : fast_exp(x); }
+
 inline float fast_tanh(float x) {
   const float ax = x < 0.0f ? -x : x;
   const float e = fast_exp(-2.0f * ax);  // in (0, 1]: no overflow
