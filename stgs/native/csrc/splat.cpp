@@ -231,12 +231,19 @@ void bin_by_tile(RasterCtx& ctx, const std::vector<int32_t>& ordered, int nthrea
     const int t = omp_get_thread_num();
     int64_t* next = &offsets[size_t(t) * tiles];
     const uint32_t* span = columns[t].data();
+    // Locals, so that the stores into ids (which may alias them as far as the compiler knows) do
+    // not force a reload of the span and the list pointer on every entry.
+    int32_t* const ids = ctx.ids.data();
+    const int tiles_x = ctx.tiles_x;
     for (int64_t i = n * t / nthreads; i < n * (t + 1) / nthreads; ++i) {
       const int32_t g = ordered[i];
-      const int ty0 = int(*span & 0xffffu), ty1 = int(*span >> 16);
-      ++span;
-      for (int ty = ty0; ty <= ty1; ++ty, ++span)
-        for (int tx = int(*span & 0xffffu); tx <= int(*span >> 16); ++tx) ctx.ids[next[ty * ctx.tiles_x + tx]++] = g;
+      const uint32_t rows = *span++;
+      const int ty0 = int(rows & 0xffffu), ty1 = int(rows >> 16);
+      for (int ty = ty0; ty <= ty1; ++ty) {
+        const uint32_t cols = *span++;
+        int64_t* const row_next = next + ty * tiles_x;
+        for (int tx = int(cols & 0xffffu), tx1 = int(cols >> 16); tx <= tx1; ++tx) ids[row_next[tx]++] = g;
+      }
     }
   }
 }
