@@ -1,7 +1,8 @@
 """`stgs serve ROOT`: an aiohttp service for the DASH trees `stgs pack` writes.
 
-Files are sent with aiohttp's FileResponse (sendfile, zero-copy; Range with
-206/416, ETag and Last-Modified with 304), with the DASH content types, cache
+Files are sent zero-copy (sendfile): plain GETs by our WholeFileResponse,
+anything with Range or conditions by aiohttp's FileResponse (206/416, ETag and
+Last-Modified with 304), with the DASH content types, cache
 lifetimes (segments immutable, manifests short), CORS for browser players and
 Prometheus metrics. Only files with a known extension, inside ROOT after
 resolving symlinks, and not hidden are served; anything else is 404.
@@ -67,6 +68,7 @@ ROOT_KEY = web.AppKey("root", Path)
 CONFIG_KEY = web.AppKey("config", object)
 METRICS_KEY = web.AppKey("metrics", object)
 SLOTS_KEY = web.AppKey("slots", asyncio.Semaphore)
+HEADERS_KEY = web.AppKey("headers", dict)
 
 
 @dataclass
@@ -157,45 +159,52 @@ class JsonAccessLogger(AbstractAccessLogger):
             "bytes": response.body_length, "seconds": round(time_s, 6)}))
 
 
-def resolve_path(root: Path, url_path: str) -> Path | None:
+def resolve_path(root: Path, url_path: str) -> str | None:
     """The file under root that url_path names, or None (outside root, hidden, unknown type, missing).
 
     `root` must already be resolved. Without symlinks below root, one lstat per component decides; a symlink
-    anywhere sends the path through realpath and a containment check.
+    anywhere sends the path through realpath and a containment check. Plain strings, not pathlib: this
+    runs for every request, and its Python is a measurable share of one.
     """
     if "\x00" in url_path or "\\" in url_path:
         return None
     parts = [p for p in url_path.split("/") if p]
-    if any(p in (".", "..") or p.startswith(".") for p in parts):
+    if not parts or any(p[0] == "." for p in parts):  # ".", ".." and hidden names
         return None
-    if not parts or os.path.splitext(parts[-1])[1] not in CONTENT_TYPES:
+    if os.path.splitext(parts[-1])[1] not in CONTENT_TYPES:
         return None
     current = str(root).rstrip("/")
     for part in parts:
-        current = f"{current}/{part}"
+        current += "/" + part
         try:
             mode = os.lstat(current).st_mode
         except OSError:
             return None
         if stat.S_ISLNK(mode):
             return resolve_symlinked(root, root.joinpath(*parts))
-    return Path(current) if stat.S_ISREG(mode) else None
+    return current if stat.S_ISREG(mode) else None
 
 
-def resolve_symlinked(root: Path, candidate: Path) -> Path | None:
+def resolve_symlinked(root: Path, candidate: Path) -> str | None:
     try:
         real = candidate.resolve(strict=True)
     except (OSError, RuntimeError):
         return None
-    if not real.is_relative_to(root) or not real.is_file():
-        return None
-    return real
+    if not real.is_relative_to(root) or not real.is_file() or real.suffix not in CONTENT_TYPES:
+        return None  # a link may only lead to a servable file inside root
+    return str(real)
 
 
-def cache_control(path: Path, cfg: ServeConfig) -> str:
-    if path.suffix in MUTABLE_SUFFIXES:
+def cache_control(suffix: str, cfg: ServeConfig) -> str:
+    if suffix in MUTABLE_SUFFIXES:
         return f"public, max-age={cfg.manifest_max_age}, must-revalidate"
     return f"public, max-age={cfg.segment_max_age}, immutable"
+
+
+def response_headers(cfg: ServeConfig) -> dict[str, dict[str, str]]:
+    """Per served extension, the headers every response for such a file carries."""
+    return {suffix: {"Content-Type": content_type, "Cache-Control": cache_control(suffix, cfg), **CORS_HEADERS}
+            for suffix, content_type in CONTENT_TYPES.items()}
 
 
 class SlottedFileResponse(web.FileResponse):
@@ -206,21 +215,91 @@ class SlottedFileResponse(web.FileResponse):
         start = time.perf_counter()
         async with app[SLOTS_KEY]:
             writer = await super().prepare(request)
-        m: Metrics = app[METRICS_KEY]
-        m.latency.observe(time.perf_counter() - start)
-        if request.method == "GET" and self.status in (200, 206):
-            m.bytes.inc(self.content_length or 0)
+        report_transfer(app, request, self, start)
         return writer
 
 
+def report_transfer(app: web.Application, request: web.BaseRequest, response: web.StreamResponse,
+                    start: float) -> None:
+    m: Metrics = app[METRICS_KEY]
+    m.latency.observe(time.perf_counter() - start)
+    if request.method == "GET" and response.status in (200, 206):
+        m.bytes.inc(response.content_length or 0)
+
+
+CONDITIONAL_HEADERS = ("Range", "If-Range", "If-None-Match", "If-Modified-Since", "If-Match",
+                       "If-Unmodified-Since")
+"""Requests with any of these go through aiohttp's FileResponse (206/416, 304, 412)."""
+
+
+class WholeFileResponse(web.StreamResponse):
+    """200 with a whole file, for GET/HEAD without Range or conditions: what a player sends for every segment.
+
+    The same answer FileResponse gives such a request (same ETag, Last-Modified, Accept-Ranges), with less
+    Python per request, which is what limits this server (docs/BENCHMARKS.md): the file is opened and stat'ed
+    once, and the body goes out by os.sendfile straight on the socket, in one call when the socket's buffer
+    takes it; asyncio's loop.sendfile sends whatever is left.
+    """
+
+    def __init__(self, path: str, headers: dict[str, str]):
+        super().__init__(headers=headers)
+        self._path = path
+
+    async def prepare(self, request: web.BaseRequest):
+        app = request.match_info.current_app
+        start = time.perf_counter()
+        async with app[SLOTS_KEY]:
+            try:
+                fd = os.open(self._path, os.O_RDONLY | os.O_CLOEXEC)
+            except OSError:  # gone or unreadable since resolve_path looked
+                self.set_status(404)
+                return await super().prepare(request)
+            try:
+                st = os.fstat(fd)
+                self.content_length = st.st_size
+                self.etag = f"{st.st_mtime_ns:x}-{st.st_size:x}"
+                self.last_modified = st.st_mtime
+                self.headers["Accept-Ranges"] = "bytes"
+                writer = await super().prepare(request)
+                if request.method != "HEAD" and st.st_size:
+                    await send_file_body(request, fd, st.st_size)
+                    await super().write_eof()
+            finally:
+                os.close(fd)
+        report_transfer(app, request, self, start)
+        return writer
+
+
+async def send_file_body(request: web.BaseRequest, fd: int, size: int) -> None:
+    transport = request.transport
+    if transport is None or transport.is_closing():
+        raise ConnectionResetError("connection lost")
+    sent = 0
+    if transport.get_write_buffer_size() == 0:  # the headers are out: the socket is ours until the body is
+        sock = transport.get_extra_info("socket")
+        try:
+            while sent < size:
+                n = os.sendfile(sock.fileno(), fd, sent, size - sent)
+                if n == 0:
+                    break
+                sent += n
+        except BlockingIOError:
+            pass
+        except OSError as exc:  # peer gone (EPIPE, ECONNRESET)
+            raise ConnectionResetError(str(exc)) from exc
+    if sent < size:
+        with open(fd, "rb", closefd=False) as f:
+            await asyncio.get_running_loop().sendfile(transport, f, sent, size - sent)
+
+
 async def serve_file(request: web.Request) -> web.StreamResponse:
-    root, cfg = request.app[ROOT_KEY], request.app[CONFIG_KEY]
-    path = resolve_path(root, request.path)
+    path = resolve_path(request.app[ROOT_KEY], request.path)
     if path is None:
         raise web.HTTPNotFound()
-    headers = {"Content-Type": CONTENT_TYPES[path.suffix], "Cache-Control": cache_control(path, cfg),
-               **CORS_HEADERS}
-    return SlottedFileResponse(path, headers=headers)
+    headers = request.app[HEADERS_KEY][os.path.splitext(path)[1]]
+    if any(name in request.headers for name in CONDITIONAL_HEADERS):
+        return SlottedFileResponse(path, headers=headers)
+    return WholeFileResponse(path, headers)
 
 
 async def preflight(request: web.Request) -> web.Response:
@@ -289,7 +368,7 @@ async def observe(request: web.Request, handler) -> web.StreamResponse:
     finally:
         m.in_flight.dec()
         m.requests.labels(request.method, str(status)).inc()
-        if not isinstance(response, SlottedFileResponse):
+        if not isinstance(response, (SlottedFileResponse, WholeFileResponse)):
             m.latency.observe(time.perf_counter() - start)
             body = getattr(response, "body", None)
             m.bytes.inc(len(body) if isinstance(body, bytes) else 0)
@@ -313,6 +392,7 @@ def build_app(cfg: ServeConfig) -> web.Application:
     app[ROOT_KEY] = root
     app[CONFIG_KEY] = cfg
     app[METRICS_KEY] = Metrics()
+    app[HEADERS_KEY] = response_headers(cfg)
 
     async def make_slots(app: web.Application) -> None:
         app[SLOTS_KEY] = asyncio.Semaphore(cfg.max_transfers)

@@ -34,6 +34,7 @@ def root(tmp_path_factory):
     (root / "scene1" / "outdir").symlink_to(base / "outside", target_is_directory=True)
     (root / "scene1" / "alias.mpd").symlink_to("manifest.mpd")  # stays inside ROOT: served
     (root / "scene1" / "notes.txt").write_text("not a media file")
+    (root / "scene1" / "notes.mpd").symlink_to("notes.txt")  # inside ROOT, but to a file never served
     return root
 
 
@@ -127,7 +128,7 @@ async def raw_get(client, target: str) -> int:
     "/scene1/escape.mpd", "/scene1/outdir/x.mpd",  # symlinks (file, folder) pointing out of ROOT
     "/scene1/manifest.mpd/x.mpd", "/scene1",  # a file used as a folder; a folder
     "//etc/passwd", "/etc/passwd", "/scene1/notes.txt", "/scene1/.pack-state.json",
-    "/scene1/manifest.mpd%00.txt", "/scene1/..%2fmanifest.mpd", "/nope.mpd",
+    "/scene1/manifest.mpd%00.txt", "/scene1/..%2fmanifest.mpd", "/nope.mpd", "/scene1/notes.mpd",
 ])
 async def test_never_leaves_root(client, target):
     assert await raw_get(client, target) == 404
