@@ -232,6 +232,35 @@ async def test_a_client_that_disconnects_mid_segment_does_not_disturb_others(aio
         big.unlink()
 
 
+async def test_a_slow_reader_gets_the_rest_of_a_big_segment_after_the_direct_sendfile(aiohttp_server, root,
+                                                                                       monkeypatch):
+    """A whole-file GET starts with os.sendfile on the socket; what the socket cannot take at once goes out
+    through asyncio's loop.sendfile once the client reads on."""
+    big = root / "scene1" / "big_slow_segment.m4s"
+    big.write_bytes(os.urandom(24 << 20))  # more than any loopback socket buffer takes at once
+    calls = []
+    real = asyncio.BaseEventLoop.sendfile
+
+    async def spy(self, transport, file, offset=0, count=None, *, fallback=True):
+        calls.append((offset, count))
+        return await real(self, transport, file, offset, count, fallback=fallback)
+
+    monkeypatch.setattr(asyncio.BaseEventLoop, "sendfile", spy)
+    try:
+        server = await aiohttp_server(build_app(ServeConfig(root=root)))
+        async with aiohttp.ClientSession() as session, \
+                session.get(f"http://{server.host}:{server.port}/scene1/big_slow_segment.m4s") as resp:
+            chunks = []
+            while chunk := await resp.content.read(1 << 20):
+                chunks.append(chunk)
+                await asyncio.sleep(0.002)
+        assert resp.status == 200 and b"".join(chunks) == big.read_bytes()
+        assert len(calls) == 1 and 0 < calls[0][0] < big.stat().st_size  # the direct send took a first part
+        assert calls[0][0] + calls[0][1] == big.stat().st_size
+    finally:
+        big.unlink()
+
+
 def test_serve_cli_rejects_a_missing_root(tmp_path):
     from tests.conftest import run_stgs
 
