@@ -146,7 +146,7 @@ class Metrics:
 
 
 class JsonAccessLogger(AbstractAccessLogger):
-    """One JSON object per request: time, client, method, path, status, bytes, seconds."""
+    """One JSON object per request: time, client, method, path, range, status, body bytes, seconds."""
 
     @property
     def enabled(self) -> bool:
@@ -156,7 +156,17 @@ class JsonAccessLogger(AbstractAccessLogger):
         self.logger.info(json.dumps({
             "ts": round(time.time(), 3), "remote": request.remote, "method": request.method,
             "path": request.path, "range": request.headers.get("Range"), "status": response.status,
-            "bytes": response.body_length, "seconds": round(time_s, 6)}))
+            "bytes": body_bytes(request, response), "seconds": round(time_s, 6)}))
+
+
+def body_bytes(request: web.BaseRequest, response: web.StreamResponse) -> int:
+    """Body bytes a response carries (a file's go out by sendfile, past the writer's own count)."""
+    if request.method == "HEAD":
+        return 0
+    if isinstance(response, (SlottedFileResponse, WholeFileResponse)):
+        return (response.content_length or 0) if response.status in (200, 206) else 0
+    body = getattr(response, "body", None)
+    return len(body) if isinstance(body, bytes) else 0
 
 
 def resolve_path(root: Path, url_path: str) -> str | None:
@@ -223,8 +233,7 @@ def report_transfer(app: web.Application, request: web.BaseRequest, response: we
                     start: float) -> None:
     m: Metrics = app[METRICS_KEY]
     m.latency.observe(time.perf_counter() - start)
-    if request.method == "GET" and response.status in (200, 206):
-        m.bytes.inc(response.content_length or 0)
+    m.bytes.inc(body_bytes(request, response))
 
 
 CONDITIONAL_HEADERS = ("Range", "If-Range", "If-None-Match", "If-Modified-Since", "If-Match",
@@ -370,8 +379,7 @@ async def observe(request: web.Request, handler) -> web.StreamResponse:
         m.requests.labels(request.method, str(status)).inc()
         if not isinstance(response, (SlottedFileResponse, WholeFileResponse)):
             m.latency.observe(time.perf_counter() - start)
-            body = getattr(response, "body", None)
-            m.bytes.inc(len(body) if isinstance(body, bytes) else 0)
+            m.bytes.inc(body_bytes(request, response) if response is not None else 0)
 
 
 def file_io_executor(threads: int):

@@ -261,6 +261,32 @@ async def test_a_slow_reader_gets_the_rest_of_a_big_segment_after_the_direct_sen
         big.unlink()
 
 
+async def test_access_log_has_one_json_line_per_request_with_body_bytes(aiohttp_server, root, caplog):
+    import json
+    import logging
+
+    from stgs.server.app import JsonAccessLogger
+
+    logger = logging.getLogger("stgs.test.access")
+    server = await aiohttp_server(build_app(ServeConfig(root=root)), access_log_class=JsonAccessLogger,
+                                  access_log=logger)
+    rel = scene_files(root)[2]
+    size = (root / "scene1" / rel).stat().st_size
+    base = f"http://{server.host}:{server.port}/scene1/"
+    with caplog.at_level(logging.INFO, logger="stgs.test.access"):
+        async with aiohttp.ClientSession() as session:
+            for method, path, headers in [("GET", rel, {}), ("GET", rel, {"Range": "bytes=10-"}),
+                                          ("HEAD", rel, {}), ("GET", "nope.m4s", {})]:
+                async with session.request(method, base + path, headers=headers) as resp:
+                    await resp.read()
+    lines = [json.loads(r.getMessage()) for r in caplog.records if r.name == "stgs.test.access"]
+    assert [(x["method"], x["status"], x["bytes"], x["range"]) for x in lines] == [
+        ("GET", 200, size, None), ("GET", 206, size - 10, "bytes=10-"), ("HEAD", 200, 0, None),
+        ("GET", 404, lines[3]["bytes"], None)]
+    assert all(x["path"].startswith("/scene1/") and x["seconds"] >= 0 and x["remote"] == "127.0.0.1"
+               for x in lines)
+
+
 def test_serve_cli_rejects_a_missing_root(tmp_path):
     from tests.conftest import run_stgs
 
