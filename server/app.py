@@ -259,12 +259,14 @@ class WholeFileResponse(web.StreamResponse):
         start = time.perf_counter()
         async with app[SLOTS_KEY]:
             try:
-                fd = os.open(self._path, os.O_RDONLY | os.O_CLOEXEC)
+                if app[CONFIG_KEY].io_threads == 0:
+                    fd, st = open_and_stat(self._path)
+                else:  # slow storage: keep the syscalls off the event loop, as FileResponse does
+                    fd, st = await asyncio.get_running_loop().run_in_executor(None, open_and_stat, self._path)
             except OSError:  # gone or unreadable since resolve_path looked
                 self.set_status(404)
                 return await super().prepare(request)
             try:
-                st = os.fstat(fd)
                 self.content_length = st.st_size
                 self.etag = f"{st.st_mtime_ns:x}-{st.st_size:x}"
                 self.last_modified = st.st_mtime
@@ -277,6 +279,15 @@ class WholeFileResponse(web.StreamResponse):
                 os.close(fd)
         report_transfer(app, request, self, start)
         return writer
+
+
+def open_and_stat(path: str) -> tuple[int, os.stat_result]:
+    fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    try:
+        return fd, os.fstat(fd)
+    except OSError:
+        os.close(fd)
+        raise
 
 
 async def send_file_body(request: web.BaseRequest, fd: int, size: int) -> None:

@@ -139,8 +139,11 @@ async def test_file_io_on_threads_serves_the_same_bytes(aiohttp_client, root, io
     """io_threads > 0 (network storage) and None (a loop shared with other code) take aiohttp's thread pool."""
     client = await aiohttp_client(build_app(ServeConfig(root=root, io_threads=io_threads)))
     rel = scene_files(root)[2]
+    data = (root / "scene1" / rel).read_bytes()
     resp = await client.get(f"/scene1/{rel}", headers={"Range": "bytes=10-"})
-    assert resp.status == 206 and await resp.read() == (root / "scene1" / rel).read_bytes()[10:]
+    assert resp.status == 206 and await resp.read() == data[10:]
+    resp = await client.get(f"/scene1/{rel}")
+    assert resp.status == 200 and await resp.read() == data
 
 
 async def test_a_symlink_inside_root_is_served(client, root):
