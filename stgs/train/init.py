@@ -26,6 +26,9 @@ import torch
 
 from stgs.camera import Camera, rig_down, rig_focus
 
+MIN_TRIANGULATED = 32
+"""Fewer triangulated points than this do not describe a scene (tiny images, no texture)."""
+
 
 @dataclass
 class InitConfig:
@@ -175,7 +178,7 @@ def rig_sphere(cameras: list[Camera]) -> tuple[torch.Tensor, float]:
 def ground_height(cameras: list[Camera], points: torch.Tensor) -> tuple[torch.Tensor, float] | None:
     """The rig's down direction (the cameras' mean image-down axis) and the floor's height along it: where the
     lowest triangulated points are (people stand on it); None without enough points."""
-    if len(points) < 32:
+    if len(points) < MIN_TRIANGULATED:
         return None
     down = rig_down(cameras)
     return down, float(torch.quantile(points.double() @ down, 0.995))

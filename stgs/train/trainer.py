@@ -45,11 +45,16 @@ from stgs.train import losses
 from stgs.train.aux import AuxTransformer
 from stgs.train.config import TrainConfig
 from stgs.train.dynamic import dynamic_mask
-from stgs.train.init import background_shell_points, ground_height, random_frustum_points, triangulate
+from stgs.train.init import (
+    MIN_TRIANGULATED,
+    background_shell_points,
+    ground_height,
+    random_frustum_points,
+    triangulate,
+)
 from stgs.tree import CAMERAS, CAMERAS_FORMAT
 
 STATE_DIR = ".train"
-MIN_TRIANGULATED = 32
 GAUSSIAN_AXIS = {"xyz": 0, "log_scale": 0, "rotation": 0, "opacity_logit": 0, "color": 0, "features": 1}
 """Which axis of each per-Gaussian parameter indexes the Gaussians."""
 
