@@ -49,9 +49,10 @@ def in_guard_band(means: torch.Tensor, camera: Camera, margin: float = GUARD_BAN
 
 
 def splat(g: Gaussians, camera: Camera, background: torch.Tensor | None = None,
-          backend: Backend = "auto") -> torch.Tensor:
-    """(H, W, 3) image of deformed Gaussians from `camera` (differentiable; guard band applied)."""
-    opacities = g.opacities * in_guard_band(g.means, camera).to(g.opacities.dtype)
+          backend: Backend = "auto", guarded: bool = False) -> torch.Tensor:
+    """(H, W, 3) image of deformed Gaussians from `camera` (differentiable); the guard band is applied unless
+    `guarded` says g already had it (FrameRenderer.gaussians of a native renderer)."""
+    opacities = g.opacities if guarded else g.opacities * in_guard_band(g.means, camera).to(g.opacities.dtype)
     dtype = g.means.dtype
     return rasterize(g.means, g.quats, g.scales, opacities, g.colors, camera.viewmat.to(dtype),
                      camera.K.to(dtype), camera.width, camera.height, background, backend=backend)
@@ -102,11 +103,7 @@ class FrameRenderer:
         """(H, W, 3) float32 image of deformed Gaussians from `camera`; `guarded`: g came from
         `gaussians(frame, camera)` of a guarded renderer, so the guard band is not applied again."""
         bg = background.float() if background is not None else None
-        backend = "auto" if self.native else "reference"
-        if not guarded:
-            return splat(g, camera, bg, backend)
-        return rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, camera.viewmat.float(),
-                         camera.K.float(), camera.width, camera.height, bg, backend=backend)
+        return splat(g, camera, bg, "auto" if self.native else "reference", guarded)
 
 
 def framing_orbit(model: GOPModel, count: int, width: int, height: int, fov_x_deg: float = 60.0) -> list[Camera]:

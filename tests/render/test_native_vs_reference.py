@@ -162,6 +162,10 @@ def test_needles_bin_to_fewer_tiles_than_their_boxes_and_render_the_same():
         assert (a.grad - b.grad.double()).abs().max() <= 1e-3 * a.grad.abs().max()
 
 
+def flat_grads(inputs: list[torch.Tensor]) -> torch.Tensor:
+    return torch.cat([x.grad.flatten() for x in inputs])
+
+
 def test_native_gradients_are_the_same_bytes_on_every_run():
     """Per-thread partial sums must not depend on which thread took which tile (training is seeded)."""
     args = [a.float() for a in random_scene(3000, 7, log_scale=-3.0)]
@@ -174,7 +178,7 @@ def test_native_gradients_are_the_same_bytes_on_every_run():
         for _ in range(12):
             inputs = [a.clone().requires_grad_() for a in args]
             (rasterize(*inputs, view.float(), K.float(), 128, 96, backend="native") * grad_out).sum().backward()
-            runs.append(torch.cat([x.grad.flatten() for x in inputs]))
+            runs.append(flat_grads(inputs))
     finally:
         torch.set_num_threads(threads)
     assert all(torch.equal(runs[0], r) for r in runs[1:])
@@ -196,7 +200,7 @@ def test_reused_buffers_never_leak_between_frames():
         image = frame(inputs, view, K, 96, 64)
         frame(small, view_s, K_s, 33, 47)  # a forward between this forward and its backward
         image.sum().backward()
-        return torch.cat([x.grad.flatten() for x in inputs])
+        return flat_grads(inputs)
 
     first_big, first_small, first_grads = frame(big, view, K, 96, 64), frame(small, view_s, K_s, 33, 47), grads()
     for _ in range(3):
