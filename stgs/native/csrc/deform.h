@@ -8,6 +8,10 @@
 
 #include "fastmath.h"
 
+#if defined(__AVX512F__)
+#include <immintrin.h>
+#endif
+
 namespace stgs {
 
 constexpr int kFeat = 16;        // channels of one temporal feature
@@ -80,6 +84,95 @@ inline bool deformed_geometry(const DeformIO& io, int64_t g, const float* d, flo
   for (int c = 0; c < 3; ++c) dir[c] *= inv;
   return true;
 }
+
+#if defined(__AVX512F__)
+// maybe_visible for 8 Gaussians (one double lane each; mean and largest scale as float
+// arrays): the same operations in the same order, so the same decisions bit for bit.
+inline __mmask8 maybe_visible_x8(const float* mx, const float* my, const float* mz, const float* smax,
+                                 const double* viewmat, const double* K, int width, int height,
+                                 const double* guard) {
+  const __m512d m0 = _mm512_cvtps_pd(_mm256_loadu_ps(mx)), m1 = _mm512_cvtps_pd(_mm256_loadu_ps(my));
+  const __m512d m2 = _mm512_cvtps_pd(_mm256_loadu_ps(mz));
+  const auto row = [&](const double* v) {
+    const __m512d a = _mm512_add_pd(_mm512_mul_pd(_mm512_set1_pd(v[0]), m0), _mm512_mul_pd(_mm512_set1_pd(v[1]), m1));
+    return _mm512_add_pd(_mm512_add_pd(a, _mm512_mul_pd(_mm512_set1_pd(v[2]), m2)), _mm512_set1_pd(v[3]));
+  };
+  const __m512d x = row(viewmat), y = row(viewmat + 4), z = row(viewmat + 8);
+  __mmask8 ok = _mm512_cmp_pd_mask(z, _mm512_set1_pd(kNearZ), _CMP_GE_OQ);
+  if (guard != nullptr) {
+    ok &= _mm512_cmp_pd_mask(z, _mm512_set1_pd(guard[0]), _CMP_GT_OQ);
+    ok &= _mm512_cmp_pd_mask(_mm512_abs_pd(x), _mm512_mul_pd(_mm512_set1_pd(guard[1]), z), _CMP_LE_OQ);
+    ok &= _mm512_cmp_pd_mask(_mm512_abs_pd(y), _mm512_mul_pd(_mm512_set1_pd(guard[2]), z), _CMP_LE_OQ);
+  }
+  const __m512d s = _mm512_cvtps_pd(_mm256_loadu_ps(smax));
+  const __m512d xn = _mm512_div_pd(x, z), yn = _mm512_div_pd(y, z);
+  const __m512d k0 = _mm512_set1_pd(K[0]), k1 = _mm512_set1_pd(K[1]), k4 = _mm512_set1_pd(K[4]);
+  const __m512d j00 = _mm512_div_pd(k0, z), j01 = _mm512_div_pd(k1, z);
+  const __m512d j02 = _mm512_div_pd(
+      _mm512_sub_pd(_mm512_setzero_pd(), _mm512_add_pd(_mm512_mul_pd(k0, xn), _mm512_mul_pd(k1, yn))), z);
+  const __m512d j11 = _mm512_div_pd(k4, z);
+  const __m512d j12 = _mm512_div_pd(_mm512_mul_pd(_mm512_set1_pd(-K[4]), yn), z);
+  __m512d jf2 = _mm512_mul_pd(j00, j00);
+  jf2 = _mm512_add_pd(jf2, _mm512_mul_pd(j01, j01));
+  jf2 = _mm512_add_pd(jf2, _mm512_mul_pd(j02, j02));
+  jf2 = _mm512_add_pd(jf2, _mm512_mul_pd(j11, j11));
+  jf2 = _mm512_add_pd(jf2, _mm512_mul_pd(j12, j12));
+  const __m512d spread = _mm512_add_pd(_mm512_mul_pd(_mm512_mul_pd(jf2, s), s), _mm512_set1_pd(0.3));
+  const __m512d radius = _mm512_add_pd(
+      _mm512_mul_pd(_mm512_sqrt_pd(_mm512_mul_pd(_mm512_set1_pd(2.0 * std::log(255.0)), spread)),
+                    _mm512_set1_pd(1.01)),
+      _mm512_set1_pd(1.0));
+  const __m512d u = _mm512_add_pd(_mm512_add_pd(_mm512_mul_pd(k0, xn), _mm512_mul_pd(k1, yn)), _mm512_set1_pd(K[2]));
+  const __m512d v = _mm512_add_pd(_mm512_mul_pd(k4, yn), _mm512_set1_pd(K[5]));
+  ok &= _mm512_cmp_pd_mask(_mm512_add_pd(u, radius), _mm512_setzero_pd(), _CMP_GE_OQ);
+  ok &= _mm512_cmp_pd_mask(_mm512_sub_pd(u, radius), _mm512_set1_pd(double(width)), _CMP_LE_OQ);
+  ok &= _mm512_cmp_pd_mask(_mm512_add_pd(v, radius), _mm512_setzero_pd(), _CMP_GE_OQ);
+  ok &= _mm512_cmp_pd_mask(_mm512_sub_pd(v, radius), _mm512_set1_pd(double(height)), _CMP_LE_OQ);
+  return ok;
+}
+
+// deformed_geometry of Gaussians first .. first + count - 1 (count <= 8; d: their decoder
+// rows, stride apart), vectorised; bit k of the result says whether first + k is kept, and
+// dirs[3 k .. 3 k + 2] then holds its view direction.
+inline __mmask8 deformed_geometry_x8(const DeformIO& io, int64_t first, int count, const float* d, int stride,
+                                     float* dirs) {
+  alignas(32) float mx[8] = {}, my[8] = {}, mz[8] = {}, smax[8] = {};
+  for (int b = 0; b < count; ++b) {
+    const int64_t g = first + b;
+    const float* db = d + b * stride;
+    float* mean = &io.means[3 * g];
+    for (int c = 0; c < 3; ++c) mean[c] = io.xyz[3 * g + c] + db[c];
+    for (int c = 0; c < 4; ++c) io.quats[4 * g + c] = io.rotation[4 * g + c] + db[6 + c];
+    mx[b] = mean[0], my[b] = mean[1], mz[b] = mean[2];
+    const float* sc = &io.scales[3 * g];
+    smax[b] = std::max(sc[0], std::max(sc[1], sc[2]));
+  }
+  __mmask8 keep = __mmask8((1u << count) - 1u);
+  if (io.viewmat != nullptr)
+    keep &= maybe_visible_x8(mx, my, mz, smax, io.viewmat, io.K, io.width, io.height, io.guard);
+  // dir = mean - camera centre in float, its norm in double, as deformed_geometry.
+  const __m256 dx = _mm256_sub_ps(_mm256_load_ps(mx), _mm256_set1_ps(io.camera_center[0]));
+  const __m256 dy = _mm256_sub_ps(_mm256_load_ps(my), _mm256_set1_ps(io.camera_center[1]));
+  const __m256 dz = _mm256_sub_ps(_mm256_load_ps(mz), _mm256_set1_ps(io.camera_center[2]));
+  const __m512d ex = _mm512_cvtps_pd(dx), ey = _mm512_cvtps_pd(dy), ez = _mm512_cvtps_pd(dz);
+  const __m512d norm2 = _mm512_add_pd(_mm512_add_pd(_mm512_mul_pd(ex, ex), _mm512_mul_pd(ey, ey)), _mm512_mul_pd(ez, ez));
+  const __m256 inv = _mm512_cvtpd_ps(
+      _mm512_div_pd(_mm512_set1_pd(1.0), _mm512_max_pd(_mm512_sqrt_pd(norm2), _mm512_set1_pd(1e-12))));
+  alignas(32) float ux[8], uy[8], uz[8];
+  _mm256_store_ps(ux, _mm256_mul_ps(dx, inv));
+  _mm256_store_ps(uy, _mm256_mul_ps(dy, inv));
+  _mm256_store_ps(uz, _mm256_mul_ps(dz, inv));
+  for (int b = 0; b < count; ++b) {
+    if (keep & (1u << b)) {
+      dirs[3 * b] = ux[b], dirs[3 * b + 1] = uy[b], dirs[3 * b + 2] = uz[b];
+    } else {
+      io.opacities[first + b] = 0.0f;
+      for (int c = 0; c < 3; ++c) io.colors[3 * (first + b) + c] = 0.0f;
+    }
+  }
+  return keep;
+}
+#endif
 
 // Opacity and colour of Gaussian g from the appearance decoders' outputs d = [do(1) dc(3)].
 inline void deformed_appearance(const DeformIO& io, int64_t g, const float* d) {

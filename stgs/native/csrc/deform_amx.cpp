@@ -188,13 +188,18 @@ int stgs_deform_bf16(int64_t n, int window, int frame, const float* feats, const
       stgs::deformed_scales(io, first, rows, out2, kOut);
       bool keep[kRows];
       int kept = 0;
-      for (int b = 0; b < rows; ++b) {
-        float dir[3];
-        keep[b] = stgs::deformed_geometry(io, first + b, &out2[b * kOut], dir);
-        if (!keep[b]) continue;
-        std::memcpy(&a_app[b * kAppIn], &a_h[b * kHidden], kHidden * sizeof(bf16));
-        for (int k = 0; k < 3; ++k) a_app[b * kAppIn + kHidden + k] = scalar_bf16(dir[k]);
-        ++kept;
+      for (int b0 = 0; b0 < rows; b0 += 8) {
+        float dirs[24];
+        const int count = std::min(8, rows - b0);
+        const __mmask8 lanes = stgs::deformed_geometry_x8(io, first + b0, count, &out2[b0 * kOut], kOut, dirs);
+        for (int i = 0; i < count; ++i) {
+          const int b = b0 + i;
+          keep[b] = (lanes >> i) & 1u;
+          if (!keep[b]) continue;
+          std::memcpy(&a_app[b * kAppIn], &a_h[b * kHidden], kHidden * sizeof(bf16));
+          for (int k = 0; k < 3; ++k) a_app[b * kAppIn + kHidden + k] = scalar_bf16(dirs[3 * i + k]);
+          ++kept;
+        }
       }
       if (kept == 0) continue;
       // D_o and D_c on [h, view direction]: [do(1) dc(3)] in out2.
