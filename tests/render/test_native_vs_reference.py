@@ -79,6 +79,10 @@ def test_gradients_match_reference(scene):
 
 def test_native_projection_matches_torch_projection():
     args = [a.float() for a in random_scene(500, 5)]
+    args[1][:9] = 0.0  # zero quaternions: identity rotation
+    args[1][9:20] *= 1e30  # huge ones: normalised without overflow
+    args[0][20:31, 2] = -1.0  # behind the camera
+    args[3][31:40] = 0.001  # alpha below 1/255 everywhere: no extent
     view, K = pinhole(64, 48, 50.0)
     ref = project(*[a.double() for a in args[:4]], view, K)  # same float32 inputs, in float64
     nat = project_native(*args[:4], view, K)
