@@ -174,12 +174,10 @@ int stgs_deform_bf16(int64_t n, int window, int frame, const float* feats, const
         for (int w = 0; w < window; ++w)
           store_bf16(&a_t[b * lt + w * kFeat], _mm512_loadu_ps(feats + ((frame + w) * n + first + b) * kFeat));
       matmul_16x64(a_t, lt, t_chunks, w_t, 4, 0, c, kHidden);
-      for (int b = 0; b < kRows; ++b) {
-        float* hb = &c[b * kHidden];
-#pragma omp simd
-        for (int m = 0; m < kHidden; ++m) hb[m] = stgs::fast_tanh(hb[m] + pe_bias[m]);
-        for (int m = 0; m < kHidden; m += 16) store_bf16(&a_h[b * kHidden + m], _mm512_load_ps(hb + m));
-      }
+      for (int b = 0; b < kRows; ++b)
+        for (int m = 0; m < kHidden; m += 16)
+          store_bf16(&a_h[b * kHidden + m],
+                     stgs::fast_tanh_v(_mm512_add_ps(_mm512_load_ps(&c[b * kHidden + m]), _mm512_loadu_ps(pe_bias + m))));
       // D_v and D_cov: [dx(3) ds(3) dq(4)] in out2.
       matmul_16x64(a_h, kHidden, 2, w_geo1, 8, 0, c, kWide);
       matmul_16x64(a_h, kHidden, 2, w_geo1, 8, 4, c + 64, kWide);
