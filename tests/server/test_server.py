@@ -6,12 +6,13 @@ import asyncio
 import hashlib
 import os
 import subprocess
+import time
 from pathlib import Path
 
 import aiohttp
 import pytest
 from stgs.packager import PackConfig, pack
-from stgs.server.app import ServeConfig, build_app
+from stgs.server.app import Metrics, ServeConfig, build_app
 
 from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, expand_template, parse_mpd
 from stgs.synth import SynthConfig, synthesize
@@ -320,8 +321,9 @@ def sockets_of(pid: int) -> int:
 
 
 def test_workers_share_the_port_and_their_metrics(root):
-    """--workers 2: the kernel spreads connections over both processes, /metrics counts every request once,
-    SIGTERM ends the parent with status 0 and takes the workers with it."""
+    """--workers 2: the kernel spreads connections over both processes, /metrics counts every request once
+    (the other worker's within Metrics.FLUSH_SECONDS), SIGTERM ends the parent with status 0 and takes the
+    workers with it."""
     import signal
     import socket
     import urllib.request
@@ -344,6 +346,7 @@ def test_workers_share_the_port_and_their_metrics(root):
         for rel in files * 3:
             with urllib.request.urlopen(f"http://127.0.0.1:{port}/scene1/{rel}", timeout=10) as resp:
                 assert resp.status == 200 and resp.read() == (root / "scene1" / rel).read_bytes()
+        time.sleep(2 * Metrics.FLUSH_SECONDS)  # the worker not answering /metrics shows its counts once flushed
         with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10) as resp:
             text = resp.read().decode()
         [ok] = [line for line in text.splitlines()
@@ -387,3 +390,22 @@ def test_sigterm_shuts_down_cleanly_during_a_transfer(root):
         if proc.poll() is None:
             proc.kill()
         big.unlink()
+
+
+def test_metrics_fold_request_counts_in_at_each_exposition():
+    m = Metrics()
+    m.handling = 2
+    for method, status in (("GET", 200), ("GET", 200), ("HEAD", 404)):
+        m.answered(method, status)
+    m.transferred(0.003, 1000)
+    m.transferred(0.2, 24)
+    lines = dict(line.rsplit(" ", 1) for line in m.exposition().decode().splitlines() if not line.startswith("#"))
+    assert float(lines['stgs_http_requests_total{method="GET",status="200"}']) == 2
+    assert float(lines['stgs_http_requests_total{method="HEAD",status="404"}']) == 1
+    assert float(lines["stgs_http_sent_bytes_total"]) == 1024
+    assert float(lines["stgs_http_in_flight"]) == 2
+    assert float(lines['stgs_http_request_seconds_bucket{le="0.005"}']) == 1
+    assert float(lines["stgs_http_request_seconds_count"]) == 2
+    m.answered("GET", 200)
+    again = m.exposition().decode()
+    assert 'stgs_http_requests_total{method="GET",status="200"} 3.0' in again  # added once, not re-added
