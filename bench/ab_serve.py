@@ -1,0 +1,115 @@
+#!/usr/bin/env python3
+"""A/B of `stgs serve`'s cost per request between two source trees (server CPU per request under wrk).
+
+Each round starts one tree's server (2 workers, --quiet) on a free loopback port, runs wrk (one thread,
+keep-alive, round-robin over every segment of a packaged scene) and reads the workers' CPU time (utime +
+stime of /proc/PID/stat) before and after; then the other tree, the order alternating by round. Like
+bench/ab_frame.py, it compares builds within one run because this machine's speed drifts.
+
+The editable install maps stgs.server (and client, packager, harness) to this checkout, so each tree runs
+from a folder of symlinks that puts its own server/, client/, packager/ and harness/ under its stgs/.
+
+Usage: .venv/bin/python bench/ab_serve.py OLD_TREE NEW_TREE DASH_DIR [--rounds 4] [--clients 64] [--seconds 6]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+from stgs.benchmarks.serve import WRK_SCRIPT, check_serves, free_port, wait_for
+
+TOP_LEVEL = ("server", "client", "packager", "harness")
+
+
+def import_root(tree: Path, tmp: Path) -> Path:
+    """A folder whose stgs/ is tree's stgs/ plus its top-level packages (for PYTHONPATH)."""
+    root = tmp / tree.name
+    (root / "stgs").mkdir(parents=True)
+    for entry in (tree / "stgs").iterdir():
+        (root / "stgs" / entry.name).symlink_to(entry)
+    for name in TOP_LEVEL:
+        (root / "stgs" / name).symlink_to(tree / name)
+    return root
+
+
+def cpu_seconds(pids: list[int]) -> float:
+    ticks = 0
+    for pid in pids:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        ticks += int(fields[11]) + int(fields[12])  # utime, stime
+    return ticks / os.sysconf("SC_CLK_TCK")
+
+
+def workers_of(pid: int) -> list[int]:
+    children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    return [int(c) for c in children if b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes()]
+
+
+def measure(root: Path, dash: Path, script: Path, first: str, clients: int, seconds: int) -> tuple[float, float]:
+    """(server CPU µs per request, requests per second) of one run."""
+    port = free_port()
+    env = dict(os.environ, PYTHONPATH=str(root))
+    # cwd=root: `python -m` puts the working directory first on sys.path, ahead of PYTHONPATH
+    server = subprocess.Popen([sys.executable, "-m", "stgs.server.main", str(dash), "--port", str(port),
+                               "--workers", "2", "--quiet"], cwd=root, env=env, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
+    try:
+        wait_for(port)
+        check_serves(port, first)
+        pids = workers_of(server.pid)
+        before = cpu_seconds(pids)
+        out = subprocess.run(["wrk", "-t", "1", "-c", str(clients), "-d", f"{seconds}s", "-s", str(script),
+                              f"http://127.0.0.1:{port}/"], capture_output=True, text=True, check=True,
+                             timeout=seconds + 30).stdout
+        used = cpu_seconds(pids) - before
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+    requests = int(re.search(r"(\d+) requests in", out).group(1))
+    return used / requests * 1e6, requests / seconds
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("old", type=Path)
+    parser.add_argument("new", type=Path)
+    parser.add_argument("dash", type=Path, help="a packaged scene (stgs pack output)")
+    parser.add_argument("--rounds", type=int, default=4)
+    parser.add_argument("--clients", type=int, default=64)
+    parser.add_argument("--seconds", type=int, default=6)
+    args = parser.parse_args()
+    dash = args.dash.resolve()
+    paths = sorted(str(p.relative_to(dash)) for p in dash.rglob("*") if p.suffix in (".m4s", ".stgk", ".mp4"))
+    if not paths:
+        raise SystemExit(f"{dash}: no segments (expected a folder written by stgs pack)")
+    results: dict[str, list[tuple[float, float]]] = {"old": [], "new": []}
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        script = tmp / "paths.lua"
+        script.write_text(WRK_SCRIPT.format(paths=", ".join(f'"/{p}"' for p in paths)))
+        roots = {}
+        for name, tree in (("old", args.old.resolve()), ("new", args.new.resolve())):
+            if not all((tree / d).is_dir() for d in ("stgs", *TOP_LEVEL)):
+                raise SystemExit(f"{tree} is not a streamstgs source tree")
+            roots[name] = import_root(tree, tmp / name)
+        for r in range(args.rounds):
+            for name in ("old", "new") if r % 2 == 0 else ("new", "old"):
+                results[name].append(measure(roots[name], dash, script, paths[0], args.clients, args.seconds))
+                us, rps = results[name][-1]
+                print(f"round {r + 1} {name}: {us:.0f} us CPU per request, {rps:.0f} requests/s", flush=True)
+    print("\n| tree | server CPU µs per request (median) | requests/s (median) |")
+    print("|---|---|---|")
+    for name, runs in results.items():
+        print(f"| {name} | {statistics.median(u for u, _ in runs):.0f} | {statistics.median(r for _, r in runs):.0f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
