@@ -158,6 +158,22 @@ def test_bf16_deform_matches_its_torch_oracle(window, n):
         assert (g - f).abs().max() <= 1e-1 * peak, name  # bf16's 8-bit mantissa, large random weights
 
 
+@pytest.mark.parametrize("precision", ["fp32", pytest.param("bf16", marks=needs_amx)])
+def test_a_nan_feature_is_refused_not_drawn(precision):
+    """NaN must come out of the native deformation as NaN (its fast tanh clamps its input and its relu
+    compares, and both let NaN pass, as torch does), so that the splatter refuses the frame instead of
+    drawing a plausible Gaussian."""
+    model = random_model(n=40)
+    with torch.no_grad():
+        model.features[:, 7, 3] = float("nan")
+        got = deform_native(model, 2, torch.tensor([0.3, -0.2, -4.0]), precision=precision)
+    assert torch.isnan(got.means[7]).all()
+    assert torch.isfinite(got.means[torch.arange(40) != 7]).all()
+    cam = Camera("c", intrinsics(32, 24, 20.0), look_at((0.0, 0.0, -3.0), (0.0, 0.0, 0.0)), 32, 24)
+    with pytest.raises(ValueError, match="NaN or Inf"):
+        FrameRenderer(model, native=True, precision=precision).render(2, cam)
+
+
 @needs_amx
 def test_bf16_renders_close_to_fp32():
     model = random_model(n=3000)

@@ -91,7 +91,7 @@ unsigned block_geometry(const stgs::DeformIO& io, int64_t first, int, const floa
 }
 #endif
 
-inline float relu(float v) { return v > 0.0f ? v : 0.0f; }
+inline float relu(float v) { return v < 0.0f ? 0.0f : v; }  // NaN passes, as in torch.relu
 
 
 void relu_inplace(float* x, int count) {

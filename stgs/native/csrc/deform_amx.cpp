@@ -113,10 +113,10 @@ inline bf16 scalar_bf16(float v) {
   return bf16(bits >> 16);
 }
 
-// relu(c) of a (16 x 128) float block into bf16.
+// relu(c) of a (16 x 128) float block into bf16 (c second: max returns it when it is NaN, as torch.relu does).
 void relu_to_bf16(const float* c, bf16* a) {
   const __m512 zero = _mm512_setzero_ps();
-  for (int i = 0; i < kRows * kWide; i += 16) store_bf16(a + i, _mm512_max_ps(_mm512_load_ps(c + i), zero));
+  for (int i = 0; i < kRows * kWide; i += 16) store_bf16(a + i, _mm512_max_ps(zero, _mm512_load_ps(c + i)));
 }
 #endif  // STGS_HAVE_AMX
 

@@ -47,7 +47,8 @@ inline float fast_tanh(float x) {
 // fast_exp on 16 lanes (the same reduction and polynomial; fused multiply-adds, so the last
 // bit may differ from fast_exp's).
 inline __m512 fast_exp_v(__m512 x) {
-  x = _mm512_min_ps(_mm512_max_ps(x, _mm512_set1_ps(-87.0f)), _mm512_set1_ps(88.0f));
+  // Clamp with x as the second operand, which max/min return when either is NaN: NaN propagates, as in fast_exp.
+  x = _mm512_min_ps(_mm512_set1_ps(88.0f), _mm512_max_ps(_mm512_set1_ps(-87.0f), x));
   const __m512 n = _mm512_roundscale_ps(_mm512_fmadd_ps(x, _mm512_set1_ps(1.44269504088896341f), _mm512_set1_ps(0.5f)),
                                         _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC);
   __m512 r = _mm512_fnmadd_ps(n, _mm512_set1_ps(0.693145751953125f), x);
