@@ -77,20 +77,6 @@ void matmul_rows(const float* x, int rows, int K, int ldx, const float* wt, floa
 }
 #endif
 
-// deformed_geometry of count <= kGeometryLanes Gaussians; bit i: first + i is kept, its view
-// direction in dirs[3 i ..].
-#if defined(__AVX512F__)
-constexpr int kGeometryLanes = 8;
-unsigned block_geometry(const stgs::DeformIO& io, int64_t first, int count, const float* d, float* dirs) {
-  return stgs::deformed_geometry_x8(io, first, count, d, kOut, dirs);
-}
-#else
-constexpr int kGeometryLanes = 1;
-unsigned block_geometry(const stgs::DeformIO& io, int64_t first, int, const float* d, float* dirs) {
-  return stgs::deformed_geometry(io, first, d, dirs) ? 1u : 0u;
-}
-#endif
-
 inline float relu(float v) { return v < 0.0f ? 0.0f : v; }  // NaN passes, as in torch.relu
 
 
@@ -145,10 +131,10 @@ void stgs_deform(int64_t n, int window, int frame, const float* feats, const flo
     bool keep[kBlock];
     int slot[kBlock];
     int kept = 0;
-    for (int b0 = 0; b0 < rows; b0 += kGeometryLanes) {
-      float dirs[3 * kGeometryLanes];
-      const int count = std::min(kGeometryLanes, rows - b0);
-      const unsigned lanes = block_geometry(io, first + b0, count, &out2[b0 * kOut], dirs);
+    for (int b0 = 0; b0 < rows; b0 += stgs::kGeometryLanes) {
+      float dirs[3 * stgs::kGeometryLanes];
+      const int count = std::min(stgs::kGeometryLanes, rows - b0);
+      const unsigned lanes = stgs::block_geometry(io, first + b0, count, &out2[b0 * kOut], kOut, dirs);
       for (int i = 0; i < count; ++i) {
         const int b = b0 + i;
         keep[b] = (lanes >> i) & 1u;

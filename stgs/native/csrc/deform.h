@@ -174,6 +174,21 @@ inline __mmask8 deformed_geometry_x8(const DeformIO& io, int64_t first, int coun
 }
 #endif
 
+// deformed_geometry of count <= kGeometryLanes Gaussians (d: their decoder rows, stride apart): bit i of
+// the result says whether first + i is kept, and dirs[3 i .. 3 i + 2] then holds its view direction.
+#if defined(__AVX512F__)
+constexpr int kGeometryLanes = 8;
+inline unsigned block_geometry(const DeformIO& io, int64_t first, int count, const float* d, int stride,
+                               float* dirs) {
+  return deformed_geometry_x8(io, first, count, d, stride, dirs);
+}
+#else
+constexpr int kGeometryLanes = 1;
+inline unsigned block_geometry(const DeformIO& io, int64_t first, int, const float* d, int, float* dirs) {
+  return deformed_geometry(io, first, d, dirs) ? 1u : 0u;
+}
+#endif
+
 // Opacity and colour of Gaussian g from the appearance decoders' outputs d = [do(1) dc(3)].
 inline void deformed_appearance(const DeformIO& io, int64_t g, const float* d) {
   const float base = 1.0f / (1.0f + fast_exp(-io.opacity_logit[g]));

@@ -186,10 +186,10 @@ int stgs_deform_bf16(int64_t n, int window, int frame, const float* feats, const
       stgs::deformed_scales(io, first, rows, out2, kOut);
       bool keep[kRows];
       int kept = 0;
-      for (int b0 = 0; b0 < rows; b0 += 8) {
-        float dirs[24];
-        const int count = std::min(8, rows - b0);
-        const __mmask8 lanes = stgs::deformed_geometry_x8(io, first + b0, count, &out2[b0 * kOut], kOut, dirs);
+      for (int b0 = 0; b0 < rows; b0 += stgs::kGeometryLanes) {
+        float dirs[3 * stgs::kGeometryLanes];
+        const int count = std::min(stgs::kGeometryLanes, rows - b0);
+        const unsigned lanes = stgs::block_geometry(io, first + b0, count, &out2[b0 * kOut], kOut, dirs);
         for (int i = 0; i < count; ++i) {
           const int b = b0 + i;
           keep[b] = (lanes >> i) & 1u;
