@@ -8,9 +8,11 @@ Prometheus metrics. Only files with a known extension, inside ROOT after
 resolving symlinks, and not hidden are served; anything else is 404.
 
 Per request the Python work is what limits throughput (docs/BENCHMARKS.md), so
-the file's stat/open run on the event loop rather than through a thread hop,
-and `workers` processes can share the port (SO_REUSEPORT), their metrics
-summed through prometheus_client's multiprocess mode.
+`stgs serve` runs the app with SceneRunner, which answers plain whole-file
+GET/HEADs before aiohttp's router and middleware (WholeFileFastPath); the
+file's stat/open run on the event loop rather than through a thread hop; and
+`workers` processes can share the port (SO_REUSEPORT), their metrics summed
+through prometheus_client's multiprocess mode.
 """
 
 from __future__ import annotations
@@ -32,13 +34,13 @@ import socket
 import stat
 import tempfile
 import time
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 from aiohttp import web
-from aiohttp.abc import AbstractAccessLogger
+from aiohttp.abc import AbstractAccessLogger, AbstractStreamWriter
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest, multiprocess
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 
@@ -152,10 +154,9 @@ class Metrics:
         self._answered: collections.Counter[tuple[str, int]] = collections.Counter()
         self._sent = 0
 
-    def answered(self, method: str, status: int) -> None:
+    def answered(self, method: str, status: int, seconds: float, body_bytes: int) -> None:
+        """One request answered: its status, handling time (the transfer included) and body bytes."""
         self._answered[(method, status)] += 1
-
-    def transferred(self, seconds: float, body_bytes: int) -> None:
         self.latency.observe(seconds)
         self._sent += body_bytes
 
@@ -268,21 +269,31 @@ def response_headers(cfg: ServeConfig) -> dict[str, dict[str, str]]:
             for suffix, content_type in CONTENT_TYPES.items()}
 
 
-class SlottedFileResponse(web.FileResponse):
-    """A FileResponse that sends inside one of the app's transfer slots and reports to the metrics."""
-
-    async def prepare(self, request: web.BaseRequest):
-        app = request.match_info.current_app
-        start = time.perf_counter()
+async def counted_transfer(app: web.Application, request: web.BaseRequest, response: web.StreamResponse,
+                           send: Callable[[web.BaseRequest], Awaitable[AbstractStreamWriter | None]],
+                           ) -> AbstractStreamWriter | None:
+    """Run a file response's `send` inside one of the app's transfer slots; report it to the metrics (status,
+    time including the transfer, body bytes) once it ends, also when the client hung up."""
+    metrics: Metrics = app[METRICS_KEY]
+    start = time.perf_counter()
+    metrics.handling += 1
+    try:
         async with app[SLOTS_KEY]:
-            writer = await super().prepare(request)
-        report_transfer(app, request, self, start)
-        return writer
+            return await send(request)
+    finally:
+        metrics.handling -= 1
+        metrics.answered(request.method, response.status, time.perf_counter() - start, body_bytes(request, response))
 
 
-def report_transfer(app: web.Application, request: web.BaseRequest, response: web.StreamResponse,
-                    start: float) -> None:
-    app[METRICS_KEY].transferred(time.perf_counter() - start, body_bytes(request, response))
+class SlottedFileResponse(web.FileResponse):
+    """aiohttp's FileResponse (Range, conditions), sent inside a transfer slot and reported to the metrics."""
+
+    def __init__(self, app: web.Application, path: str, headers: dict[str, str]):
+        super().__init__(path, headers=headers)
+        self._app = app
+
+    async def prepare(self, request: web.BaseRequest) -> AbstractStreamWriter | None:
+        return await counted_transfer(self._app, request, self, super().prepare)
 
 
 CONDITIONAL_HEADERS = ("Range", "If-Range", "If-None-Match", "If-Modified-Since", "If-Match",
@@ -299,32 +310,32 @@ class WholeFileResponse(web.StreamResponse):
     takes it; asyncio's loop.sendfile sends whatever is left.
     """
 
-    def __init__(self, path: str, headers: dict[str, str]):
+    def __init__(self, app: web.Application, path: str, headers: dict[str, str]):
         super().__init__(headers=headers)
+        self._app = app
         self._path = path
 
-    async def prepare(self, request: web.BaseRequest):
-        app = request.match_info.current_app
-        start = time.perf_counter()
-        async with app[SLOTS_KEY]:
-            try:
-                if app[CONFIG_KEY].io_threads == 0:
-                    fd, st = open_and_stat(self._path)
-                else:  # slow storage: keep the syscalls off the event loop, as FileResponse does
-                    fd, st = await asyncio.get_running_loop().run_in_executor(None, open_and_stat, self._path)
-            except OSError:  # gone or unreadable since resolve_path looked
-                self.set_status(404)
-                return await super().prepare(request)
-            try:
-                self.headers.update(file_validators(st.st_size, st.st_mtime_ns, st.st_mtime))
-                writer = await super().prepare(request)
-                if request.method != "HEAD" and st.st_size:
-                    await send_file_body(request, fd, st.st_size)
-                    await super().write_eof()
-            finally:
-                os.close(fd)
-        report_transfer(app, request, self, start)
-        return writer
+    async def prepare(self, request: web.BaseRequest) -> AbstractStreamWriter | None:
+        return await counted_transfer(self._app, request, self, self._send)
+
+    async def _send(self, request: web.BaseRequest) -> AbstractStreamWriter | None:
+        try:
+            if self._app[CONFIG_KEY].io_threads == 0:
+                fd, st = open_and_stat(self._path)
+            else:  # slow storage: keep the syscalls off the event loop, as FileResponse does
+                fd, st = await asyncio.get_running_loop().run_in_executor(None, open_and_stat, self._path)
+        except OSError:  # gone or unreadable since resolve_path looked
+            self.set_status(404)
+            return await super().prepare(request)
+        try:
+            self.headers.update(file_validators(st.st_size, st.st_mtime_ns, st.st_mtime))
+            writer = await super().prepare(request)
+            if request.method != "HEAD" and st.st_size:
+                await send_file_body(request, fd, st.st_size)
+                await super().write_eof()
+            return writer
+        finally:
+            os.close(fd)
 
 
 @functools.lru_cache(maxsize=4096)
@@ -368,13 +379,45 @@ async def send_file_body(request: web.BaseRequest, fd: int, size: int) -> None:
 
 
 async def serve_file(request: web.Request) -> web.StreamResponse:
-    path = resolve_path(request.app[ROOT_KEY], request.path)
+    app = request.app
+    path = resolve_path(app[ROOT_KEY], request.path)
     if path is None:
         raise web.HTTPNotFound()
-    headers = request.app[HEADERS_KEY][os.path.splitext(path)[1]]
+    headers = app[HEADERS_KEY][os.path.splitext(path)[1]]
     if any(name in request.headers for name in CONDITIONAL_HEADERS):
-        return SlottedFileResponse(path, headers=headers)
-    return WholeFileResponse(path, headers)
+        return SlottedFileResponse(app, path, headers)
+    return WholeFileResponse(app, path, headers)
+
+
+class WholeFileFastPath:
+    """The server's request handler in front of the app's: whole-file GET/HEADs of servable files, what a player
+    sends for every segment, are answered here, past aiohttp's router and middleware (a fifth of the server's
+    CPU per request, docs/BENCHMARKS.md); every other request goes on to the app. The answer is the one the
+    app's serve_file route gives (same WholeFileResponse), so only the app's own middleware is skipped, and it
+    only counts what WholeFileResponse reports itself."""
+
+    def __init__(self, app: web.Application, app_handler: Callable[[web.BaseRequest], Awaitable[web.StreamResponse]]):
+        self._app = app
+        self._app_handler = app_handler
+        self._root = app[ROOT_KEY]
+        self._headers = app[HEADERS_KEY]
+
+    async def __call__(self, request: web.BaseRequest) -> web.StreamResponse:
+        if request.method in ("GET", "HEAD") and not any(name in request.headers for name in CONDITIONAL_HEADERS):
+            path = resolve_path(self._root, request.path)
+            if path is not None:
+                return WholeFileResponse(self._app, path, self._headers[os.path.splitext(path)[1]])
+        return await self._app_handler(request)
+
+
+class SceneRunner(web.AppRunner):
+    """The AppRunner of a build_app app with WholeFileFastPath in front of the app: how `stgs serve` runs."""
+
+    async def setup(self) -> None:
+        await super().setup()
+        server = self.server
+        assert server is not None
+        server.request_handler = WholeFileFastPath(self.app, server.request_handler)
 
 
 async def preflight(request: web.Request) -> web.Response:
@@ -427,7 +470,7 @@ async def metrics(request: web.Request) -> web.Response:
 
 @web.middleware
 async def observe(request: web.Request, handler) -> web.StreamResponse:
-    """Count requests by status; files report their transfer time and bytes themselves (it happens later)."""
+    """Count requests by status; file responses report themselves once their transfer ends (it happens later)."""
     m: Metrics = request.app[METRICS_KEY]
     start = time.perf_counter()
     m.handling += 1
@@ -442,9 +485,9 @@ async def observe(request: web.Request, handler) -> web.StreamResponse:
         raise
     finally:
         m.handling -= 1
-        m.answered(request.method, status)
         if not isinstance(response, (SlottedFileResponse, WholeFileResponse)):
-            m.transferred(time.perf_counter() - start, body_bytes(request, response) if response is not None else 0)
+            m.answered(request.method, status, time.perf_counter() - start,
+                       body_bytes(request, response) if response is not None else 0)
 
 
 def file_io_executor(threads: int):
@@ -487,12 +530,13 @@ def build_app(cfg: ServeConfig) -> web.Application:
 async def loopback(root: Path, middlewares: tuple = ()) -> AsyncIterator[str]:
     """Serve `root` on a free loopback port inside the running event loop; yields the base URL (ends in /).
 
-    For the demo, benchmarks and tests; `middlewares` run before the server's own (e.g. a test-only delay).
+    For the demo, benchmarks and tests; `middlewares` run before the server's own (e.g. a test-only delay), and
+    then every request takes the app's route, the whole-file fast path included.
     """
     app = build_app(ServeConfig(root=root, port=0, access_log=False, io_threads=None))
     for i, middleware in enumerate(middlewares):
         app.middlewares.insert(i, middleware)
-    async with on_loopback(app) as base:
+    async with on_loopback(app, web.AppRunner if middlewares else SceneRunner) as base:
         yield base
 
 
@@ -570,9 +614,30 @@ def serve_process(cfg: ServeConfig, listening: multiprocessing.synchronize.Event
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     access = logging.getLogger("stgs.access")
     access.setLevel(logging.INFO if cfg.access_log else logging.WARNING)
-    web.run_app(build_app(cfg), host=cfg.host, port=cfg.port, shutdown_timeout=cfg.shutdown_timeout,
-                keepalive_timeout=cfg.keepalive_timeout, access_log_class=JsonAccessLogger,
-                access_log=access, max_line_size=cfg.max_header_bytes, max_field_size=cfg.max_header_bytes,
-                max_headers=cfg.max_headers, reuse_port=cfg.workers > 1 or None,
-                print=(lambda msg: print(f"stgs serve: {msg}", flush=True)) if listening is None
-                else lambda msg: listening.set())  # run_app prints once its sites listen
+    if listening is None:
+        def announce(msg: str) -> None:
+            print(f"stgs serve: {msg}", flush=True)
+    else:
+        def announce(msg: str) -> None:
+            listening.set()
+    asyncio.run(serve_until_signalled(cfg, access, announce))
+
+
+async def serve_until_signalled(cfg: ServeConfig, access: logging.Logger, announce: Callable[[str], None]) -> None:
+    """Serve cfg on its address until SIGINT/SIGTERM, then stop listening and give in-flight transfers
+    cfg.shutdown_timeout seconds (aiohttp's graceful shutdown, as web.run_app does it)."""
+    runner = SceneRunner(build_app(cfg), shutdown_timeout=cfg.shutdown_timeout, keepalive_timeout=cfg.keepalive_timeout,
+                         access_log_class=JsonAccessLogger, access_log=access, max_line_size=cfg.max_header_bytes,
+                         max_field_size=cfg.max_header_bytes, max_headers=cfg.max_headers)
+    await runner.setup()
+    try:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(signum, stop.set)
+        site = web.TCPSite(runner, cfg.host, cfg.port, reuse_port=cfg.workers > 1 or None)
+        await site.start()
+        announce(f"======== Running on {site.name} ========\n(Press CTRL+C to quit)")
+        await stop.wait()
+    finally:
+        await runner.cleanup()

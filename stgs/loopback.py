@@ -9,9 +9,9 @@ from aiohttp import web
 
 
 @contextlib.asynccontextmanager
-async def on_loopback(app: web.Application) -> AsyncIterator[str]:
+async def on_loopback(app: web.Application, runner_class: type[web.AppRunner] = web.AppRunner) -> AsyncIterator[str]:
     """Serve `app` on 127.0.0.1 at a free port; yields its base URL (ending in /)."""
-    runner = web.AppRunner(app, access_log=None)
+    runner = runner_class(app, access_log=None)
     await runner.setup()
     try:
         await web.TCPSite(runner, "127.0.0.1", 0).start()

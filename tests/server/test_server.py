@@ -11,8 +11,10 @@ from pathlib import Path
 
 import aiohttp
 import pytest
+from aiohttp import web
+from aiohttp.test_utils import TestServer
 from stgs.packager import PackConfig, pack
-from stgs.server.app import Metrics, ServeConfig, build_app
+from stgs.server.app import Metrics, SceneRunner, ServeConfig, build_app
 
 from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, expand_template, parse_mpd
 from stgs.synth import SynthConfig, synthesize
@@ -50,9 +52,34 @@ def scene_files(root: Path) -> list[str]:
     return files
 
 
+class SceneTestServer(TestServer):
+    """aiohttp's TestServer running the app as `stgs serve` does: SceneRunner, the whole-file fast path first."""
+
+    async def _make_runner(self, **kwargs) -> SceneRunner:
+        return SceneRunner(self.app, **kwargs)
+
+
 @pytest.fixture
-async def client(aiohttp_client, root):
-    return await aiohttp_client(build_app(ServeConfig(root=root, max_transfers=8)))
+async def scene_server():
+    """Like pytest-aiohttp's aiohttp_server(app, **server_kwargs), with SceneTestServer."""
+    servers = []
+
+    async def start(app, **kwargs) -> SceneTestServer:
+        server = SceneTestServer(app)
+        await server.start_server(**kwargs)
+        servers.append(server)
+        return server
+
+    yield start
+    for server in servers:
+        await server.close()
+
+
+@pytest.fixture(params=["fast path", "routed"])
+async def client(request, aiohttp_client, root):
+    """A client of the server as `stgs serve` runs it, and of the app alone (every request through its router)."""
+    app = build_app(ServeConfig(root=root, max_transfers=8))
+    return await aiohttp_client(SceneTestServer(app) if request.param == "fast path" else app)
 
 
 async def test_content_types_and_cache_lifetimes(client, root):
@@ -168,8 +195,47 @@ async def test_catalogue_health_and_metrics(client):
     assert float(sent[0].split()[1]) > 0
 
 
-async def test_oversized_headers_are_refused(aiohttp_server, root):
-    server = await aiohttp_server(build_app(ServeConfig(root=root)), max_field_size=1024)
+def recording_app(root: Path, seen: list[str]) -> web.Application:
+    """The server's app with a first middleware that notes each request's path."""
+    @web.middleware
+    async def record(request, handler):
+        seen.append(request.path)
+        return await handler(request)
+
+    app = build_app(ServeConfig(root=root))
+    app.middlewares.insert(0, record)
+    return app
+
+
+async def test_the_fast_path_answers_whole_files_as_the_route_does(scene_server, aiohttp_server, root):
+    """SceneRunner answers plain GET/HEADs of files before the app's router and middleware, with the status,
+    headers and bytes the app's route gives; Range, conditions and anything not a servable file reach the app."""
+    seen_fast, seen_routed = [], []
+    fast = await scene_server(recording_app(root, seen_fast))
+    routed = await aiohttp_server(recording_app(root, seen_routed))
+    files = scene_files(root)
+    async with aiohttp.ClientSession() as session:
+        for rel in files:
+            for method in ("GET", "HEAD"):
+                answers = []
+                for server in (fast, routed):
+                    async with session.request(method, f"http://{server.host}:{server.port}/scene1/{rel}") as resp:
+                        headers = {k: v for k, v in resp.headers.items() if k != "Date"}
+                        answers.append((resp.status, headers, await resp.read()))
+                assert answers[0] == answers[1], (method, rel)
+        assert seen_fast == [] and len(seen_routed) == 2 * len(files)
+        base = f"http://{fast.host}:{fast.port}"
+        async with session.get(f"{base}/scene1/{files[-1]}", headers={"Range": "bytes=0-9"}) as resp:
+            assert resp.status == 206 and len(await resp.read()) == 10
+        async with session.get(f"{base}/scene1/nope.m4s") as resp:
+            assert resp.status == 404
+        async with session.get(f"{base}/healthz") as resp:
+            assert resp.status == 200
+    assert seen_fast == [f"/scene1/{files[-1]}", "/scene1/nope.m4s", "/healthz"]
+
+
+async def test_oversized_headers_are_refused(scene_server, root):
+    server = await scene_server(build_app(ServeConfig(root=root)), max_field_size=1024)
     reader, writer = await asyncio.open_connection(server.host, server.port)
     writer.write(b"GET /healthz HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 5000 + b"\r\n\r\n")
     await writer.drain()
@@ -178,8 +244,8 @@ async def test_oversized_headers_are_refused(aiohttp_server, root):
     assert int(line.split()[1]) in (400, 431)
 
 
-async def test_ffmpeg_decodes_every_representation_over_http(aiohttp_server, root):
-    server = await aiohttp_server(build_app(ServeConfig(root=root)))
+async def test_ffmpeg_decodes_every_representation_over_http(scene_server, root):
+    server = await scene_server(build_app(ServeConfig(root=root)))
     url = f"http://{server.host}:{server.port}/scene1/manifest.mpd"
     for stream in range(2):  # qp20, qp32
         proc = await asyncio.create_subprocess_exec(
@@ -195,8 +261,8 @@ def open_fds() -> int:
     return len(os.listdir("/proc/self/fd"))
 
 
-async def test_200_concurrent_clients_get_every_byte(aiohttp_server, root):
-    server = await aiohttp_server(build_app(ServeConfig(root=root, max_transfers=64)))
+async def test_200_concurrent_clients_get_every_byte(scene_server, root):
+    server = await scene_server(build_app(ServeConfig(root=root, max_transfers=64)))
     files = scene_files(root)
     want = {rel: hashlib.sha256((root / "scene1" / rel).read_bytes()).hexdigest() for rel in files}
     fds_before = open_fds()
@@ -218,11 +284,11 @@ async def test_200_concurrent_clients_get_every_byte(aiohttp_server, root):
     assert open_fds() <= fds_before + 5, "file descriptors leaked"
 
 
-async def test_a_client_that_disconnects_mid_segment_does_not_disturb_others(aiohttp_server, root, tmp_path):
+async def test_a_client_that_disconnects_mid_segment_does_not_disturb_others(scene_server, root, tmp_path):
     big = root / "scene1" / "big_test_segment.m4s"
     big.write_bytes(os.urandom(32 << 20))
     try:
-        server = await aiohttp_server(build_app(ServeConfig(root=root)))
+        server = await scene_server(build_app(ServeConfig(root=root)))
         url = f"http://{server.host}:{server.port}/scene1/big_test_segment.m4s"
         reader, writer = await asyncio.open_connection(server.host, server.port)
         writer.write(b"GET /scene1/big_test_segment.m4s HTTP/1.1\r\nHost: x\r\n\r\n")
@@ -236,7 +302,7 @@ async def test_a_client_that_disconnects_mid_segment_does_not_disturb_others(aio
         big.unlink()
 
 
-async def test_a_slow_reader_gets_the_rest_of_a_big_segment_after_the_direct_sendfile(aiohttp_server, root,
+async def test_a_slow_reader_gets_the_rest_of_a_big_segment_after_the_direct_sendfile(scene_server, root,
                                                                                        monkeypatch):
     """A whole-file GET starts with os.sendfile on the socket; what the socket cannot take at once goes out
     through asyncio's loop.sendfile once the client reads on."""
@@ -251,7 +317,7 @@ async def test_a_slow_reader_gets_the_rest_of_a_big_segment_after_the_direct_sen
 
     monkeypatch.setattr(asyncio.BaseEventLoop, "sendfile", spy)
     try:
-        server = await aiohttp_server(build_app(ServeConfig(root=root)))
+        server = await scene_server(build_app(ServeConfig(root=root)))
         async with aiohttp.ClientSession() as session, \
                 session.get(f"http://{server.host}:{server.port}/scene1/big_slow_segment.m4s") as resp:
             chunks = []
@@ -265,14 +331,14 @@ async def test_a_slow_reader_gets_the_rest_of_a_big_segment_after_the_direct_sen
         big.unlink()
 
 
-async def test_access_log_has_one_json_line_per_request_with_body_bytes(aiohttp_server, root, caplog):
+async def test_access_log_has_one_json_line_per_request_with_body_bytes(scene_server, root, caplog):
     import json
     import logging
 
     from stgs.server.app import JsonAccessLogger
 
     logger = logging.getLogger("stgs.test.access")
-    server = await aiohttp_server(build_app(ServeConfig(root=root)), access_log_class=JsonAccessLogger,
+    server = await scene_server(build_app(ServeConfig(root=root)), access_log_class=JsonAccessLogger,
                                   access_log=logger)
     rel = scene_files(root)[2]
     size = (root / "scene1" / rel).stat().st_size
@@ -395,17 +461,15 @@ def test_sigterm_shuts_down_cleanly_during_a_transfer(root):
 def test_metrics_fold_request_counts_in_at_each_exposition():
     m = Metrics()
     m.handling = 2
-    for method, status in (("GET", 200), ("GET", 200), ("HEAD", 404)):
-        m.answered(method, status)
-    m.transferred(0.003, 1000)
-    m.transferred(0.2, 24)
+    for method, status, seconds, sent in (("GET", 200, 0.003, 1000), ("GET", 200, 0.2, 24), ("HEAD", 404, 0.3, 0)):
+        m.answered(method, status, seconds, sent)
     lines = dict(line.rsplit(" ", 1) for line in m.exposition().decode().splitlines() if not line.startswith("#"))
     assert float(lines['stgs_http_requests_total{method="GET",status="200"}']) == 2
     assert float(lines['stgs_http_requests_total{method="HEAD",status="404"}']) == 1
     assert float(lines["stgs_http_sent_bytes_total"]) == 1024
     assert float(lines["stgs_http_in_flight"]) == 2
     assert float(lines['stgs_http_request_seconds_bucket{le="0.005"}']) == 1
-    assert float(lines["stgs_http_request_seconds_count"]) == 2
-    m.answered("GET", 200)
+    assert float(lines["stgs_http_request_seconds_count"]) == 3
+    m.answered("GET", 200, 0.001, 5)
     again = m.exposition().decode()
     assert 'stgs_http_requests_total{method="GET",status="200"} 3.0' in again  # added once, not re-added
