@@ -32,6 +32,7 @@ import os
 import signal
 import socket
 import stat
+import sys
 import tempfile
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
@@ -221,6 +222,19 @@ def body_bytes(request: web.BaseRequest, response: web.StreamResponse) -> int:
     return len(body) if isinstance(body, bytes) else 0
 
 
+def servable_parts(url_path: str) -> list[str] | None:
+    """The path components of a URL path that may name a served file, or None: no NUL or backslash, no ".",
+    ".." or hidden names, and a served extension. What the file system then says is the caller's part."""
+    if "\x00" in url_path or "\\" in url_path:
+        return None
+    parts = [p for p in url_path.split("/") if p]
+    if not parts or any(p[0] == "." for p in parts):  # ".", ".." and hidden names
+        return None
+    if os.path.splitext(parts[-1])[1] not in CONTENT_TYPES:
+        return None
+    return parts
+
+
 def resolve_path(root: Path, url_path: str) -> str | None:
     """The file under root that url_path names, or None (outside root, hidden, unknown type, missing).
 
@@ -228,12 +242,8 @@ def resolve_path(root: Path, url_path: str) -> str | None:
     anywhere sends the path through realpath and a containment check. Plain strings, not pathlib: this
     runs for every request, and its Python is a measurable share of one.
     """
-    if "\x00" in url_path or "\\" in url_path:
-        return None
-    parts = [p for p in url_path.split("/") if p]
-    if not parts or any(p[0] == "." for p in parts):  # ".", ".." and hidden names
-        return None
-    if os.path.splitext(parts[-1])[1] not in CONTENT_TYPES:
+    parts = servable_parts(url_path)
+    if parts is None:
         return None
     current = str(root).rstrip("/")
     for part in parts:
@@ -310,17 +320,26 @@ class WholeFileResponse(web.StreamResponse):
     takes it; asyncio's loop.sendfile sends whatever is left.
     """
 
-    def __init__(self, app: web.Application, path: str, headers: dict[str, str]):
+    def __init__(self, app: web.Application, path: str, headers: dict[str, str],
+                 opened: tuple[int, os.stat_result] | None = None):
         super().__init__(headers=headers)
         self._app = app
         self._path = path
+        self._opened = opened  # (descriptor, stat) of the file the fast path opened; this response closes it
 
     async def prepare(self, request: web.BaseRequest) -> AbstractStreamWriter | None:
-        return await counted_transfer(self._app, request, self, self._send)
+        try:
+            return await counted_transfer(self._app, request, self, self._send)
+        finally:
+            if self._opened is not None:  # never sent (cancelled while waiting for a slot)
+                os.close(self._opened[0])
+                self._opened = None
 
     async def _send(self, request: web.BaseRequest) -> AbstractStreamWriter | None:
         try:
-            if self._app[CONFIG_KEY].io_threads == 0:
+            if self._opened is not None:
+                (fd, st), self._opened = self._opened, None
+            elif self._app[CONFIG_KEY].io_threads == 0:
                 fd, st = open_and_stat(self._path)
             else:  # slow storage: keep the syscalls off the event loop, as FileResponse does
                 fd, st = await asyncio.get_running_loop().run_in_executor(None, open_and_stat, self._path)
@@ -389,35 +408,118 @@ async def serve_file(request: web.Request) -> web.StreamResponse:
     return WholeFileResponse(app, path, headers)
 
 
+class BeneathOpener:
+    """Opens files below one folder with openat2(2) and RESOLVE_BENEATH | RESOLVE_NO_SYMLINKS: one syscall in which
+    the kernel refuses `..`, absolute paths and every symlink on the way (EXDEV, ELOOP). Nothing can swap a
+    component for a symlink between a check and the open, as it could between resolve_path's lstats and a
+    later open. Linux 5.6+; `for_root` gives None where the kernel (or a seccomp filter) lacks it."""
+
+    SYS_OPENAT2 = 437  # one number on every Linux architecture
+    RESOLVE = 0x02 | 0x04 | 0x08  # RESOLVE_NO_MAGICLINKS | RESOLVE_NO_SYMLINKS | RESOLVE_BENEATH
+
+    class OpenHow(ctypes.Structure):
+        _fields_ = [("flags", ctypes.c_uint64), ("mode", ctypes.c_uint64), ("resolve", ctypes.c_uint64)]
+
+    def __init__(self, root_fd: int):
+        libc = ctypes.CDLL(None, use_errno=True)
+        self._syscall = libc.syscall
+        self._syscall.restype = ctypes.c_long
+        self._syscall.argtypes = [ctypes.c_long, ctypes.c_int, ctypes.c_char_p, ctypes.c_void_p, ctypes.c_size_t]
+        self._how = self.OpenHow(os.O_RDONLY | os.O_CLOEXEC, 0, self.RESOLVE)
+        self._how_address = ctypes.addressof(self._how)
+        self._how_size = ctypes.sizeof(self._how)
+        self.root_fd = root_fd
+
+    @classmethod
+    def for_root(cls, root: Path) -> BeneathOpener | None:
+        if not sys.platform.startswith("linux"):
+            return None
+        opener = cls(os.open(root, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC))
+        try:
+            os.close(opener.open("."))
+        except OSError:  # ENOSYS: kernel before 5.6; EPERM: a seccomp profile that forbids it
+            opener.close()
+            return None
+        return opener
+
+    def open(self, relative: str) -> int:
+        """A read-only descriptor of root/relative; OSError if missing, outside root or reached through a symlink."""
+        fd = self._syscall(self.SYS_OPENAT2, self.root_fd, os.fsencode(relative), self._how_address, self._how_size)
+        if fd < 0:
+            err = ctypes.get_errno()
+            raise OSError(err, os.strerror(err), relative)
+        return fd
+
+    def close(self) -> None:
+        os.close(self.root_fd)
+
+
 class WholeFileFastPath:
     """The server's request handler in front of the app's: whole-file GET/HEADs of servable files, what a player
     sends for every segment, are answered here, past aiohttp's router and middleware (a fifth of the server's
     CPU per request, docs/BENCHMARKS.md); every other request goes on to the app. The answer is the one the
     app's serve_file route gives (same WholeFileResponse), so only the app's own middleware is skipped, and it
-    only counts what WholeFileResponse reports itself."""
+    only counts what WholeFileResponse reports itself.
 
-    def __init__(self, app: web.Application, app_handler: Callable[[web.BaseRequest], Awaitable[web.StreamResponse]]):
+    With an `opener` (openat2) the file is opened here, in one syscall that also keeps the path inside ROOT; a
+    path it refuses (missing, a symlink on the way) goes to the app, whose route answers 404 or follows a symlink
+    that stays inside ROOT. Without one (old kernels, or io_threads for slow storage) resolve_path checks it."""
+
+    def __init__(self, app: web.Application, app_handler: Callable[[web.BaseRequest], Awaitable[web.StreamResponse]],
+                 opener: BeneathOpener | None):
         self._app = app
         self._app_handler = app_handler
         self._root = app[ROOT_KEY]
         self._headers = app[HEADERS_KEY]
+        self._opener = opener
 
     async def __call__(self, request: web.BaseRequest) -> web.StreamResponse:
         if request.method in ("GET", "HEAD") and not any(name in request.headers for name in CONDITIONAL_HEADERS):
-            path = resolve_path(self._root, request.path)
-            if path is not None:
-                return WholeFileResponse(self._app, path, self._headers[os.path.splitext(path)[1]])
+            response = self._whole_file(request.path)
+            if response is not None:
+                return response
         return await self._app_handler(request)
+
+    def _whole_file(self, url_path: str) -> WholeFileResponse | None:
+        if self._opener is None:
+            path = resolve_path(self._root, url_path)
+            if path is None:
+                return None
+            return WholeFileResponse(self._app, path, self._headers[os.path.splitext(path)[1]])
+        parts = servable_parts(url_path)
+        if parts is None:
+            return None
+        relative = "/".join(parts)
+        try:
+            fd = self._opener.open(relative)
+        except OSError:  # missing, or a symlink on the way: the app's route answers
+            return None
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            os.close(fd)
+            return None
+        return WholeFileResponse(self._app, f"{self._root}/{relative}", self._headers[os.path.splitext(relative)[1]],
+                                 (fd, st))
 
 
 class SceneRunner(web.AppRunner):
     """The AppRunner of a build_app app with WholeFileFastPath in front of the app: how `stgs serve` runs."""
 
+    _opener: BeneathOpener | None = None
+
     async def setup(self) -> None:
         await super().setup()
         server = self.server
         assert server is not None
-        server.request_handler = WholeFileFastPath(self.app, server.request_handler)
+        on_the_loop = self.app[CONFIG_KEY].io_threads == 0
+        self._opener = BeneathOpener.for_root(self.app[ROOT_KEY]) if on_the_loop else None
+        server.request_handler = WholeFileFastPath(self.app, server.request_handler, self._opener)
+
+    async def cleanup(self) -> None:
+        await super().cleanup()
+        if self._opener is not None:
+            self._opener.close()
+            self._opener = None
 
 
 async def preflight(request: web.Request) -> web.Response:

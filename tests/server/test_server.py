@@ -14,7 +14,7 @@ import pytest
 from aiohttp import web
 from aiohttp.test_utils import TestServer
 from stgs.packager import PackConfig, pack
-from stgs.server.app import Metrics, SceneRunner, ServeConfig, build_app
+from stgs.server.app import BeneathOpener, Metrics, SceneRunner, ServeConfig, build_app
 
 from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, expand_template, parse_mpd
 from stgs.synth import SynthConfig, synthesize
@@ -75,11 +75,14 @@ async def scene_server():
         await server.close()
 
 
-@pytest.fixture(params=["fast path", "routed"])
-async def client(request, aiohttp_client, root):
-    """A client of the server as `stgs serve` runs it, and of the app alone (every request through its router)."""
+@pytest.fixture(params=["fast path", "fast path without openat2", "routed"])
+async def client(request, aiohttp_client, root, monkeypatch):
+    """A client of the server as `stgs serve` runs it (on a kernel with openat2, and on one without), and of the
+    app alone (every request through its router)."""
+    if request.param == "fast path without openat2":
+        monkeypatch.setattr(BeneathOpener, "for_root", classmethod(lambda cls, root: None))
     app = build_app(ServeConfig(root=root, max_transfers=8))
-    return await aiohttp_client(SceneTestServer(app) if request.param == "fast path" else app)
+    return await aiohttp_client(app if request.param == "routed" else SceneTestServer(app))
 
 
 async def test_content_types_and_cache_lifetimes(client, root):
@@ -193,6 +196,28 @@ async def test_catalogue_health_and_metrics(client):
     assert "stgs_http_request_seconds_bucket" in text and "stgs_http_in_flight" in text
     sent = [line for line in text.splitlines() if line.startswith("stgs_http_sent_bytes_total")]
     assert float(sent[0].split()[1]) > 0
+
+
+def test_the_beneath_opener_refuses_every_way_out_and_every_symlink(root):
+    """openat2 with RESOLVE_BENEATH | RESOLVE_NO_SYMLINKS: files below root open; `..` out of root, absolute paths
+    and symlinks (even one that stays inside root) are refused by the kernel."""
+    import errno
+
+    opener = BeneathOpener.for_root(root)
+    assert opener is not None, "this kernel has openat2 (Linux 5.6+)"
+    try:
+        fd = opener.open("scene1/manifest.mpd")
+        with open(fd, "rb") as f:
+            assert f.read() == (root / "scene1" / "manifest.mpd").read_bytes()
+        for path, code in [("../secret.mpd", errno.EXDEV), ("scene1/../../secret.mpd", errno.EXDEV),
+                           (str(root / "scene1" / "manifest.mpd"), errno.EXDEV),
+                           ("scene1/alias.mpd", errno.ELOOP), ("scene1/escape.mpd", errno.ELOOP),
+                           ("scene1/outdir/x.mpd", errno.ELOOP), ("scene1/nope.mpd", errno.ENOENT)]:
+            with pytest.raises(OSError) as caught:
+                os.close(opener.open(path))
+            assert caught.value.errno == code, path
+    finally:
+        opener.close()
 
 
 def recording_app(root: Path, seen: list[str]) -> web.Application:
