@@ -198,6 +198,23 @@ async def test_catalogue_health_and_metrics(client):
     assert float(sent[0].split()[1]) > 0
 
 
+async def test_a_segment_counts_once_with_its_bytes(client, root):
+    """Between two /metrics answers: the first /metrics (counted once it is sent) and one segment GET."""
+    def counted(text: str) -> tuple[float, float, float]:
+        lines = dict(line.rsplit(" ", 1) for line in text.splitlines() if not line.startswith("#"))
+        return (float(lines.get('stgs_http_requests_total{method="GET",status="200"}', 0)),
+                float(lines.get("stgs_http_sent_bytes_total", 0)),
+                float(lines.get("stgs_http_request_seconds_count", 0)))
+
+    rel = scene_files(root)[-1]
+    first = await (await client.get("/metrics")).read()
+    assert await (await client.get(f"/scene1/{rel}")).read() == (root / "scene1" / rel).read_bytes()
+    second = await (await client.get("/metrics")).read()
+    (get_1, sent_1, seen_1), (get_2, sent_2, seen_2) = counted(first.decode()), counted(second.decode())
+    assert get_2 - get_1 == 2 and seen_2 - seen_1 == 2
+    assert sent_2 - sent_1 == len(first) + (root / "scene1" / rel).stat().st_size
+
+
 def test_the_beneath_opener_refuses_every_way_out_and_every_symlink(root):
     """openat2 with RESOLVE_BENEATH | RESOLVE_NO_SYMLINKS: files below root open; `..` out of root, absolute paths
     and symlinks (even one that stays inside root) are refused by the kernel."""
@@ -364,7 +381,7 @@ async def test_access_log_has_one_json_line_per_request_with_body_bytes(scene_se
 
     logger = logging.getLogger("stgs.test.access")
     server = await scene_server(build_app(ServeConfig(root=root)), access_log_class=JsonAccessLogger,
-                                  access_log=logger)
+                                access_log=logger)
     rel = scene_files(root)[2]
     size = (root / "scene1" / rel).stat().st_size
     base = f"http://{server.host}:{server.port}/scene1/"
