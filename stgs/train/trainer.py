@@ -44,7 +44,7 @@ from stgs.model.view import splat
 from stgs.train import losses
 from stgs.train.aux import AuxTransformer
 from stgs.train.config import TrainConfig
-from stgs.train.dynamic import dynamic_mask
+from stgs.train.dynamic import gop_dynamic_masks
 from stgs.train.init import (
     MIN_TRIANGULATED,
     background_shell_points,
@@ -535,9 +535,7 @@ class Trainer:
             frames = self.gop_frames(k)
             views = load_views(self.ds, self.train_names, frames, cfg.scale, self.progress)
             if cfg.dynamic:
-                pick = views.images[: min(len(frames), cfg.dynamic_frames)].float().div_(255)
-                views.dynamic = torch.stack([dynamic_mask(pick[:, c], cfg.dynamic_theta)
-                                             for c in range(len(views.cameras))])
+                views.dynamic = gop_dynamic_masks(views.images, cfg.dynamic_frames, cfg.dynamic_theta)
             val = (load_views(self.ds, self.val_names, frames, cfg.scale, False) if self.val_names else None)
             model, report = self.train_gop(k, coarse, views, val)
             save_gop(model, done)
