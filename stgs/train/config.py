@@ -61,7 +61,7 @@ class TrainConfig:
     dynamic_theta: float = 0.05
     """A pixel is dynamic when its luminance std over `dynamic_frames` frames exceeds this."""
     dynamic_frames: int = 30
-    """Frames, spread evenly over the GOP, whose per-pixel std decides the dynamic mask."""
+    """The GOP's first frames, whose per-pixel std decides the dynamic mask."""
     dynamic_weight: float = 1.0
     """Weight of the photometric term on dynamic pixels."""
     aux: bool = True
