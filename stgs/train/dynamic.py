@@ -13,7 +13,6 @@ def dynamic_mask(frames: torch.Tensor, theta: float) -> torch.Tensor:
     return luma.std(dim=0) > theta
 
 
-
 def gop_dynamic_masks(images: torch.Tensor, count: int, theta: float) -> torch.Tensor:
     """(C, H, W) dynamic masks of a GOP's (F, C, H, W, 3) uint8 images from its first `count` frames (30 frames
     spread over a 60-frame GOP instead measured 0.42 dB worse held out on Panoptic: docs/BENCHMARKS.md). One
