@@ -16,14 +16,13 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
 import statistics
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-from stgs.benchmarks.serve import WRK_SCRIPT, check_serves, free_port, wait_for
+from stgs.benchmarks.serve import WRK_SCRIPT, check_serves, cpu_per_request, free_port, wait_for, worker_pids
 
 TOP_LEVEL = ("server", "client", "packager", "harness")
 
@@ -39,19 +38,6 @@ def import_root(tree: Path, tmp: Path) -> Path:
     return root
 
 
-def cpu_seconds(pids: list[int]) -> float:
-    ticks = 0
-    for pid in pids:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        ticks += int(fields[11]) + int(fields[12])  # utime, stime
-    return ticks / os.sysconf("SC_CLK_TCK")
-
-
-def workers_of(pid: int) -> list[int]:
-    children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
-    return [int(c) for c in children if b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes()]
-
-
 def measure(root: Path, dash: Path, script: Path, first: str, clients: int, seconds: int) -> tuple[float, float]:
     """(server CPU µs per request, requests per second) of one run."""
     port = free_port()
@@ -63,17 +49,11 @@ def measure(root: Path, dash: Path, script: Path, first: str, clients: int, seco
     try:
         wait_for(port)
         check_serves(port, first)
-        pids = workers_of(server.pid)
-        before = cpu_seconds(pids)
-        out = subprocess.run(["wrk", "-t", "1", "-c", str(clients), "-d", f"{seconds}s", "-s", str(script),
-                              f"http://127.0.0.1:{port}/"], capture_output=True, text=True, check=True,
-                             timeout=seconds + 30).stdout
-        used = cpu_seconds(pids) - before
+        us, rps, _ = cpu_per_request(worker_pids(server.pid), port, script, clients, seconds)
     finally:
         server.terminate()
         server.wait(timeout=30)
-    requests = int(re.search(r"(\d+) requests in", out).group(1))
-    return used / requests * 1e6, requests / seconds
+    return us, rps
 
 
 def main() -> int:

@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import os
-import re
 import shutil
 import statistics
 import subprocess
@@ -26,21 +25,18 @@ import sys
 import tempfile
 from pathlib import Path
 
-from stgs.benchmarks.serve import NGINX_CONF, WRK_SCRIPT, check_serves, free_port, wait_for
+from stgs.benchmarks.serve import (
+    NGINX_CONF,
+    WRK_SCRIPT,
+    check_serves,
+    child_pids,
+    cpu_per_request,
+    free_port,
+    wait_for,
+    worker_pids,
+)
 
 SERVERS = ("stgs serve", "aiohttp floor", "nginx")
-
-
-def cpu_seconds(pids: list[int]) -> float:
-    ticks = 0
-    for pid in pids:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        ticks += int(fields[11]) + int(fields[12])  # utime, stime
-    return ticks / os.sysconf("SC_CLK_TCK")
-
-
-def children(pid: int) -> list[int]:
-    return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
 
 
 def floor_server(root: Path, port: int) -> None:
@@ -81,7 +77,7 @@ def start(name: str, dash: Path, port: int, tmp: Path) -> tuple[list[subprocess.
         proc = subprocess.Popen([sys.executable, "-m", "stgs.server.main", str(dash), "--port", str(port),
                                  "--workers", "2", "--quiet"], **quiet)
         wait_for(port)
-        return [proc], [pid for pid in children(proc.pid) if b"spawn_main" in Path(f"/proc/{pid}/cmdline").read_bytes()]
+        return [proc], worker_pids(proc.pid)
     if name == "aiohttp floor":
         procs = [subprocess.Popen([sys.executable, __file__, str(dash), "--floor-server", str(port)], **quiet)
                  for _ in range(2)]
@@ -91,7 +87,7 @@ def start(name: str, dash: Path, port: int, tmp: Path) -> tuple[list[subprocess.
     conf.write_text(NGINX_CONF.format(tmp=tmp, port=port, root=dash, workers=2))
     proc = subprocess.Popen([shutil.which("nginx") or "/usr/sbin/nginx", "-c", str(conf), "-g", "daemon off;"], **quiet)
     wait_for(port)
-    return [proc], children(proc.pid)
+    return [proc], child_pids(proc.pid)
 
 
 def measure(name: str, dash: Path, script: Path, first: str, tmp: Path, clients: int, seconds: int
@@ -101,11 +97,7 @@ def measure(name: str, dash: Path, script: Path, first: str, tmp: Path, clients:
     procs, pids = start(name, dash, port, tmp)
     try:
         check_serves(port, first)
-        before = cpu_seconds(pids)
-        out = subprocess.run(["wrk", "-t", "1", "-c", str(clients), "-d", f"{seconds}s", "-s", str(script),
-                              f"http://127.0.0.1:{port}/"], capture_output=True, text=True, check=True,
-                             timeout=seconds + 30).stdout
-        used = cpu_seconds(pids) - before
+        us, rps, out = cpu_per_request(pids, port, script, clients, seconds)
     finally:
         for proc in procs:
             proc.terminate()  # nginx's master takes its workers along; stgs serve's parent its workers
@@ -113,8 +105,7 @@ def measure(name: str, dash: Path, script: Path, first: str, tmp: Path, clients:
             proc.wait(timeout=30)
     if "Non-2xx" in out:
         raise RuntimeError(f"{name}: errors under load:\n{out}")
-    requests = int(re.search(r"(\d+) requests in", out).group(1))
-    return used / requests * 1e6, requests / seconds
+    return us, rps
 
 
 def main() -> int:

@@ -100,6 +100,36 @@ def parse_wrk(text: str) -> dict:
             "errors": int(m.group(1)) if (m := re.search(r"Non-2xx or 3xx responses:\s+(\d+)", text)) else 0}
 
 
+def child_pids(pid: int) -> list[int]:
+    return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+
+
+def worker_pids(pid: int) -> list[int]:
+    """The worker processes of a `stgs serve --workers N` parent (its multiprocessing spawn children)."""
+    return [c for c in child_pids(pid) if b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes()]
+
+
+def cpu_seconds(pids: list[int]) -> float:
+    """User + system CPU time the processes have used so far (utime + stime of /proc/PID/stat)."""
+    ticks = 0
+    for pid in pids:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        ticks += int(fields[11]) + int(fields[12])
+    return ticks / os.sysconf("SC_CLK_TCK")
+
+
+def cpu_per_request(pids: list[int], port: int, script: Path, clients: int, seconds: int) -> tuple[float, float, str]:
+    """One wrk run (one thread, keep-alive) against the server on port: (CPU µs the processes `pids` spent per
+    request, requests per second, wrk's output)."""
+    before = cpu_seconds(pids)
+    out = subprocess.run(["wrk", "-t", "1", "-c", str(clients), "-d", f"{seconds}s", "-s", str(script),
+                          f"http://127.0.0.1:{port}/"], capture_output=True, text=True, check=True,
+                         timeout=seconds + 30).stdout
+    used = cpu_seconds(pids) - before
+    requests = int(re.search(r"(\d+) requests in", out).group(1))
+    return used / requests * 1e6, requests / seconds, out
+
+
 def run_wrk(port: int, script: Path, clients: int, seconds: int) -> dict:
     cmd = ["wrk", "-t", "1", "-c", str(clients), "-d", f"{seconds}s", "--latency", "-s", str(script),
            f"http://127.0.0.1:{port}/"]

@@ -16,6 +16,7 @@ from aiohttp.test_utils import TestServer
 from stgs.packager import PackConfig, pack
 from stgs.server.app import BeneathOpener, Metrics, SceneRunner, ServeConfig, build_app
 
+from stgs.benchmarks.serve import worker_pids
 from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, expand_template, parse_mpd
 from stgs.synth import SynthConfig, synthesize
 
@@ -416,11 +417,6 @@ def start_server(root: Path, *args: str) -> tuple[subprocess.Popen, int]:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     line = proc.stdout.readline()
     return proc, int(line.rsplit(":", 1)[1].split()[0].rstrip("/"))
-
-
-def worker_pids(pid: int) -> list[int]:
-    children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
-    return [int(c) for c in children if b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes()]
 
 
 def sockets_of(pid: int) -> int:
