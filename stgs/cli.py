@@ -294,6 +294,9 @@ def add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--background-share", type=float,
                    help="share of the Gaussians first placed on the walls and floor of a rig that surrounds the "
                    "scene (default: the budget's, 0.5 for cpu and paper, 0 for quick; 0 turns it off)")
+    p.add_argument("--init-frames", type=_positive_int,
+                   help="frames spread over the trained span whose views are triangulated for the initial points "
+                   "(default 6; 1: the first frame only)")
     p.add_argument("--no-aux", dest="aux", action="store_false", default=None,
                    help="no transformer-guided auxiliary pass")
     p.add_argument("--no-dynamic-density", dest="dynamic", action="store_false", default=None,
@@ -311,7 +314,7 @@ def add_train(sub: argparse._SubParsersAction) -> None:
 
 TRAIN_OVERRIDES = ("max_gops", "gop_size", "start_frame", "grid_side", "iterations", "coarse_iterations", "scale",
                    "window", "aux", "dynamic", "temporal_weight", "relocate", "seed", "threads", "holdout",
-                   "background_share")
+                   "background_share", "init_frames")
 
 
 def train_overrides(args: argparse.Namespace) -> dict:

@@ -91,6 +91,9 @@ class TrainConfig:
     """Iterations between checkpoints (for --resume)."""
     init_points: int = 0
     """Use at most this many triangulated points (0: all)."""
+    init_frames: int = 6
+    """Frames, spread over the trained span, whose views are triangulated for the initial points (1: the
+    first frame only; people who move are then seeded only where they start)."""
     background_share: float = 0.0
     """Share of the capacity first placed on the rig's walls and floor, for the background a rig that
     surrounds the action sees behind it (0: none; ignored for forward-facing rigs)."""
@@ -105,7 +108,8 @@ class TrainConfig:
                   (self.relocate_every >= 1 and self.checkpoint_every >= 1 and self.sort_every >= 1,
                    "every-N settings must be >= 1"),
                   (self.max_gops is None or self.max_gops >= 1, "max_gops must be >= 1"),
-                  (0 <= self.background_share < 1, "background_share must be in [0, 1)")]
+                  (0 <= self.background_share < 1, "background_share must be in [0, 1)"),
+                  (self.init_frames >= 1, "init_frames must be >= 1")]
         checks += [(math.isfinite(rate) and rate > 0, f"lr.{name} must be a positive number, got {rate}")
                    for name, rate in dataclasses.asdict(self.lr).items()]
         for ok, message in checks:

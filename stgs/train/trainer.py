@@ -1,8 +1,8 @@
 """Per-GOP StreamSTGS training on the CPU (`stgs train DATASET OUT`).
 
 1. Load the dataset's training views, scaled; compute per-camera dynamic masks.
-2. Initial points: triangulated from the first frame's calibrated views
-   (stgs.train.init), topped up with jittered copies and random frustum points
+2. Initial points: triangulated from the calibrated views of a few frames
+   spread over the trained span (stgs.train.init), topped up with jittered copies and random frustum points
    to the capacity N = S².
 3. Coarse stage: canonical 3DGS (no deformation) on frames from all times.
 4. Per GOP, from the coarse canonical Gaussians: canonical Gaussians +
@@ -116,13 +116,21 @@ class InitialPoints:
     """How many points went on the rig's walls and floor."""
 
 
-def initial_points(ds: Dataset, names: list[str], frame: int, count: int, gen: torch.Generator,
+def initial_points(ds: Dataset, names: list[str], frames: list[int], count: int, gen: torch.Generator,
                    limit: int = 0, background_share: float = 0.0) -> InitialPoints:
-    """`count` starting points; `background_share` of them on the rig's walls and floor
+    """`count` starting points, triangulated at each of `frames` (people who move are seeded where they are
+    at each of those times); `background_share` of them on the rig's walls and floor
     (background_shell_points) when the cameras surround the scene."""
-    cams = [c for c in ds.cameras(frame) if c.name in names]
-    images = [ds.image(frame, c.name) for c in cams]
-    pts, col = triangulate(cams, images, [ds.mask(frame, c.name) for c in cams])
+    found_pts, found_col = [], []
+    for frame in frames:
+        cams = [c for c in ds.cameras(frame) if c.name in names]
+        images = [ds.image(frame, c.name) for c in cams]
+        p, c = triangulate(cams, images, [ds.mask(frame, c.name) for c in cams])
+        found_pts.append(p)
+        found_col.append(c)
+    pts, col = torch.cat(found_pts), torch.cat(found_col)
+    cams = [c for c in ds.cameras(frames[0]) if c.name in names]
+    images = [ds.image(frames[0], c.name) for c in cams]
     if limit and len(pts) > limit:
         keep = torch.randperm(len(pts), generator=gen)[:limit]
         pts, col = pts[keep], col[keep]
@@ -156,6 +164,15 @@ def initial_points(ds: Dataset, names: list[str], frame: int, count: int, gen: t
     points = torch.cat(parts)
     flags = torch.arange(len(points)) < anchored
     return InitialPoints(points, torch.cat(colors), flags, found, background)
+
+
+def init_frames(frames: list[int], count: int) -> list[int]:
+    """`count` of `frames` spread evenly from the first (all of them when there are fewer)."""
+    if count >= len(frames):
+        return list(frames)
+    if count == 1:
+        return [frames[0]]
+    return [frames[round(i * (len(frames) - 1) / (count - 1))] for i in range(count)]
 
 
 def init_canonical(model: GOPModel, init: InitialPoints, opacity: float = 0.1, filler_opacity: float = 0.02) -> None:
@@ -335,8 +352,8 @@ class Trainer:
         resumed = self.load_checkpoint("coarse", model, opt)
         start = resumed[0]["iteration"] if resumed else 0
         if not resumed:
-            init = initial_points(self.ds, self.train_names, views.frames[0], self.shape.capacity, self.gen,
-                                  cfg.init_points, cfg.background_share)
+            init = initial_points(self.ds, self.train_names, init_frames(views.frames, cfg.init_frames),
+                                  self.shape.capacity, self.gen, cfg.init_points, cfg.background_share)
             self.triangulated, self.background_points = init.triangulated, init.background
             init_canonical(model, init)
         bar = tqdm(range(start, cfg.coarse_iterations), desc="coarse canonical", unit="it", disable=not self.progress)

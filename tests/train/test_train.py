@@ -206,6 +206,45 @@ def test_triangulated_points_land_in_the_foreground(panoptic_frame0):
     assert np.median(fractions) > 0.7 and sum(f > 0.5 for f in fractions) >= 0.75 * len(cams), fractions
 
 
+def _foreground_share(ds, cams, frame: int, pts: torch.Tensor) -> float:
+    """Median over cameras of the share of points that land inside that camera's foreground mask at `frame`."""
+    from stgs.train.init import in_view
+
+    shares = []
+    for cam in cams:
+        mask = ds.mask(frame, cam.name).numpy()
+        uv, inside = in_view(cam, pts.double().numpy())
+        x = np.clip(uv[:, 0].astype(int), 0, cam.width - 1)
+        y = np.clip(uv[:, 1].astype(int), 0, cam.height - 1)
+        shares.append(float((mask[y, x] & inside).mean()))
+    return float(np.median(shares))
+
+
+def test_initial_points_seed_the_people_at_every_triangulated_time(panoptic_frame0):
+    from stgs.train.trainer import initial_points
+
+    ds, cams = panoptic_frame0
+    names = [c.name for c in cams]
+    first = initial_points(ds, names, [0], 4096, torch.Generator().manual_seed(0))
+    both = initial_points(ds, names, [0, 48], 4096, torch.Generator().manual_seed(0))
+    assert both.triangulated > first.triangulated
+    seeded = both.points[:both.triangulated]
+    late = seeded[first.triangulated:]  # triangulated at frame 48
+    assert _foreground_share(ds, cams, 48, late) > 0.7
+    # The players moved: frame 0's points miss where they stand at frame 48, frame 48's points do not.
+    assert _foreground_share(ds, cams, 48, first.points[:first.triangulated]) < 0.5
+
+
+def test_init_frames_spread_over_the_span():
+    from stgs.train.trainer import init_frames
+
+    assert init_frames(list(range(60)), 6) == [0, 12, 24, 35, 47, 59]
+    assert init_frames(list(range(10, 70)), 1) == [10]
+    assert init_frames([3, 4], 6) == [3, 4]
+    with pytest.raises(UserError, match="init_frames"):
+        budget("quick", init_frames=0)
+
+
 def test_background_shell_points_cover_the_walls_and_floor_in_the_image_colours(panoptic_frame0):
     from stgs.train.init import background_shell_points, ground_height, in_view, rig_sphere, triangulate
 
@@ -269,7 +308,7 @@ def test_background_share_is_validated_and_splits_the_capacity(scene):
         budget("quick", background_share=1.0)
     ds = open_dataset(scene)
     names, _ = split(ds)
-    init = initial_points(ds, names, 0, 256, torch.Generator().manual_seed(0), background_share=0.25)
+    init = initial_points(ds, names, [0], 256, torch.Generator().manual_seed(0), background_share=0.25)
     assert init.points.shape == init.colors.shape == (256, 3) and torch.isfinite(init.points).all()
     assert init.background == 64  # a quarter of the capacity; the rest inside the rig as before
     assert init.anchored[:64].all()
