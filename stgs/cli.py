@@ -361,7 +361,10 @@ def run_eval(args: argparse.Namespace) -> int:
     result = evaluate(args.model_dir, args.dataset, args.out or args.model_dir, args.dash, args.holdout,
                       args.stride, progress=not args.quiet)
     for name, stream in result["streams"].items():
-        print(f"{name}: PSNR {stream['psnr']:.2f} dB, SSIM {stream['ssim']:.4f} over {len(stream['gops'])} GOP(s)")
+        regions = (f" (foreground {stream['psnr_foreground']:.2f} dB, background {stream['psnr_background']:.2f} dB)"
+                   if "psnr_foreground" in stream and "psnr_background" in stream else "")
+        print(f"{name}: PSNR {stream['psnr']:.2f} dB{regions}, SSIM {stream['ssim']:.4f} over "
+              f"{len(stream['gops'])} GOP(s)")
     print(f"wrote {(args.out or args.model_dir) / 'eval.json'}")
     return 0
 

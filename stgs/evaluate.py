@@ -1,7 +1,8 @@
 """`stgs eval MODEL_DIR DATASET`: quality of a trained model on held-out cameras, uncompressed and streamed.
 
 Per frame and per GOP: PSNR and SSIM of renders from the validation cameras
-against the dataset's images, for the uncompressed model dir and, with
+against the dataset's images (and, where the dataset has foreground masks,
+PSNR inside and outside them), for the uncompressed model dir and, with
 `--dash`, for every feature Representation of the packaged tree (decoded
 exactly as a player decodes it). LPIPS is not computed: its network weights
 would have to be downloaded. Writes eval.json and a side-by-side grid
@@ -106,13 +107,11 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
                                                             interpolation=cv2.INTER_AREA))
                     image = renderer.render(i, cam).clamp(0, 1)
                     rows.append({"frame": f, "camera": cam_name, "psnr": _finite(psnr(image, truth)),
-                                 "ssim": float(ssim(image, truth))})
+                                 "ssim": float(ssim(image, truth))} | region_psnr(image, truth, ds.mask(f, cam_name)))
                     if name == "uncompressed" and len(grid_rows) < 3 * GRID_ROWS and i % max(1, g // 2) == 0:
                         grid_rows += [image, truth, ((image - truth).abs() * 10).clamp(0, 1)]
-            per_gop.append({"gop": k, "psnr": _mean(r["psnr"] for r in rows), "ssim": _mean(r["ssim"] for r in rows),
-                            "frames": rows})
-        result["streams"][name] = {"psnr": _mean(p["psnr"] for p in per_gop),
-                                   "ssim": _mean(p["ssim"] for p in per_gop), "gops": per_gop}
+            per_gop.append({"gop": k} | _means(rows) | {"frames": rows})
+        result["streams"][name] = _means(per_gop) | {"gops": per_gop}
     report = Path(model_dir) / "train_report.json"
     if report.is_file():
         result["train_seconds_per_gop"] = [gop.get("seconds") for gop in json.loads(report.read_text())["gops"]]
@@ -121,6 +120,31 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
     if grid_rows:
         save_png(out / "eval_grid.png", image_grid(grid_rows, 3))
     return result
+
+
+REGIONS = ("psnr_foreground", "psnr_background")
+"""PSNR inside and outside the dataset's foreground masks (where it has masks): where the error lives."""
+
+
+def region_psnr(image: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor | None) -> dict:
+    """{psnr_foreground, psnr_background} of one view (None for a region the mask leaves empty); {} without a mask."""
+    if mask is None:
+        return {}
+    if mask.shape != image.shape[:2]:
+        mask = torch.from_numpy(cv2.resize(mask.numpy().astype("uint8"), (image.shape[1], image.shape[0]),
+                                           interpolation=cv2.INTER_NEAREST) > 0)
+    values = (psnr(image, truth, mask=mask), psnr(image, truth, mask=~mask))
+    return {key: (_finite(v) if not math.isnan(v) else None) for key, v in zip(REGIONS, values, strict=True)}
+
+
+def _means(rows: list[dict]) -> dict:
+    """Mean PSNR and SSIM of views (or GOPs), and of the region PSNRs over those that have them."""
+    means = {"psnr": _mean(r["psnr"] for r in rows), "ssim": _mean(r["ssim"] for r in rows)}
+    for key in REGIONS:
+        values = [r[key] for r in rows if r.get(key) is not None]
+        if values:
+            means[key] = _mean(values)
+    return means
 
 
 def _finite(value: float) -> float:

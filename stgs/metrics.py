@@ -7,11 +7,19 @@ import math
 import torch
 
 
-def psnr(image: torch.Tensor, reference: torch.Tensor, peak: float = 1.0) -> float:
-    """PSNR in dB of image vs reference (same shape, values in [0, peak]); inf when identical."""
+def psnr(image: torch.Tensor, reference: torch.Tensor, peak: float = 1.0, mask: torch.Tensor | None = None) -> float:
+    """PSNR in dB of (H, W, C) image vs reference (values in [0, peak]), over the pixels of an (H, W) bool `mask`
+    when given; inf when identical, nan when the mask is empty."""
     if image.shape != reference.shape:
         raise ValueError(f"psnr: shapes differ {tuple(image.shape)} vs {tuple(reference.shape)}")
-    mse = (image.double() - reference.double()).square().mean().item()
+    error = (image.double() - reference.double()).square()
+    if mask is not None:
+        if mask.shape != image.shape[:2]:
+            raise ValueError(f"psnr: mask {tuple(mask.shape)} does not cover the image {tuple(image.shape[:2])}")
+        if not mask.any():
+            return math.nan
+        error = error[mask]
+    mse = error.mean().item()
     return math.inf if mse == 0 else 10 * math.log10(peak * peak / mse)
 
 

@@ -30,14 +30,17 @@ def _read_json(path: Path) -> dict:
 
 
 def run_label(model_dir: Path) -> str:
-    """'all components' or the ablation switches the run was trained with, and its capacity and position
-    learning rate when they are not the budget's."""
+    """'all components' or the ablation switches the run was trained with, and its capacity, initial-point frames
+    and position learning rate when they are not the budget's."""
     config = _read_json(model_dir / "model.json").get("extra", {}).get("config", {})
     off = [flag for key, flag in SWITCHES.items() if key in config and not config[key]]
     label = f"{config.get('budget', '?')}: " + (" ".join(off) if off else "all components")
     default, side = BUDGETS.get(config.get("budget")), config.get("grid_side")
     if default is not None and isinstance(side, int) and side != default.grid_side:
         label += f", {side * side:,} Gaussians"
+    frames = config.get("init_frames", 1)  # runs from before the setting triangulated their first frame only
+    if default is not None and isinstance(frames, int) and frames != default.init_frames:
+        label += f", init frames {frames}"
     position_lr = config.get("lr", {}).get("position") if isinstance(config.get("lr"), dict) else None
     if default is not None and isinstance(position_lr, float) and position_lr != default.lr.position:
         label += f", position lr {position_lr:g}"
@@ -64,7 +67,8 @@ def eval_rows(label: str, evaluation: dict) -> list[str]:
     rows = []
     for stream, result in evaluation["streams"].items():
         for gop in result["gops"]:
-            rows.append(f"| {label} | {stream} | {gop['gop']} | {gop['psnr']:.2f} | {gop['ssim']:.4f} "
+            regions = f"{_num(gop.get('psnr_foreground'), '.2f')} / {_num(gop.get('psnr_background'), '.2f')}"
+            rows.append(f"| {label} | {stream} | {gop['gop']} | {gop['psnr']:.2f} | {gop['ssim']:.4f} | {regions} "
                         f"| {len(gop['frames'])} |")
     return rows
 
@@ -112,8 +116,8 @@ def main(model_dirs: list[Path], plot_path: Path) -> int:
     evaluated = [(label, _read_json(d / "eval.json")) for d, label, _ in runs if (d / "eval.json").is_file()]
     if evaluated:
         print()
-        print("| run | stream | GOP | PSNR (dB) | SSIM | frames x cameras |")
-        print("|---|---|---|---|---|---|")
+        print("| run | stream | GOP | PSNR (dB) | SSIM | foreground / background PSNR (dB) | frames x cameras |")
+        print("|---|---|---|---|---|---|---|")
         for label, evaluation in evaluated:
             print("\n".join(eval_rows(label, evaluation)))
     plot([(label, report) for _, label, report in runs], plot_path)

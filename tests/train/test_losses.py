@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from stgs.metrics import SSIM_C1, SSIM_C2, ssim, ssim_map
+from stgs.metrics import SSIM_C1, SSIM_C2, psnr, ssim, ssim_map
 from stgs.train import losses
 from stgs.train.dynamic import dynamic_mask, gop_dynamic_masks
 
@@ -29,6 +29,18 @@ def test_ssim_of_flat_images_by_hand():
     assert ssim_map(a, b)[15, 15].item() == pytest.approx(expected, rel=1e-5)
     assert ssim(a, a).item() == pytest.approx(1.0, abs=1e-6)
     assert SSIM_C2 > 0
+
+
+def test_masked_psnr_by_hand():
+    truth = torch.zeros(2, 2, 3)
+    image = torch.tensor([[[0.1] * 3, [0.0] * 3], [[0.0] * 3, [0.3] * 3]])
+    mask = torch.tensor([[True, True], [False, False]])
+    assert psnr(image, truth, mask=mask) == pytest.approx(10 * math.log10(1 / (0.01 / 2)))  # errors 0.1², 0
+    assert psnr(image, truth, mask=~mask) == pytest.approx(10 * math.log10(1 / (0.09 / 2)))
+    assert psnr(image, truth) == pytest.approx(10 * math.log10(1 / (0.1 / 4)))
+    assert math.isnan(psnr(image, truth, mask=torch.zeros(2, 2, dtype=torch.bool)))
+    with pytest.raises(ValueError, match="mask"):
+        psnr(image, truth, mask=torch.ones(3, 2, dtype=torch.bool))
 
 
 def test_masked_ssim_and_photometric_use_only_the_mask():

@@ -156,12 +156,15 @@ def test_bench_train_tables_and_plot(trained, tmp_path):
 def test_bench_train_labels_name_what_differs_from_the_budget(tmp_path):
     from stgs.benchmarks.train import run_label
 
-    config = {"budget": "cpu", "grid_side": 192, "aux": False, "lr": {"position": 8e-4}}
+    config = {"budget": "cpu", "grid_side": 192, "aux": False, "lr": {"position": 8e-4}, "init_frames": 12}
     (tmp_path / "model.json").write_text(json.dumps({"extra": {"config": config}}))
-    assert run_label(tmp_path) == "cpu: --no-aux, 36,864 Gaussians, position lr 0.0008"
-    config.update(grid_side=128, aux=True, lr={"position": 1.6e-4})
+    assert run_label(tmp_path) == "cpu: --no-aux, 36,864 Gaussians, init frames 12, position lr 0.0008"
+    config.update(grid_side=128, aux=True, lr={"position": 1.6e-4}, init_frames=6)
     (tmp_path / "model.json").write_text(json.dumps({"extra": {"config": config}}))
     assert run_label(tmp_path) == "cpu: all components"
+    del config["init_frames"]  # a run from before the setting: its first frame only
+    (tmp_path / "model.json").write_text(json.dumps({"extra": {"config": config}}))
+    assert run_label(tmp_path) == "cpu: all components, init frames 1"
 
 
 def test_bad_training_input_is_one_line(scene, tmp_path):
@@ -233,6 +236,51 @@ def test_initial_points_seed_the_people_at_every_triangulated_time(panoptic_fram
     assert _foreground_share(ds, cams, 48, late) > 0.7
     # The players moved: frame 0's points miss where they stand at frame 48, frame 48's points do not.
     assert _foreground_share(ds, cams, 48, first.points[:first.triangulated]) < 0.5
+
+
+def test_eval_splits_psnr_by_the_foreground_masks(panoptic_frame0, tmp_path):
+    from stgs.camera import rig_focus
+    from stgs.evaluate import evaluate
+    from stgs.model.gop import GOPModel, GOPShape
+    from stgs.model.store import save_model
+
+    ds, cams = panoptic_frame0
+    focus, _ = rig_focus(cams)
+    gen = torch.Generator().manual_seed(3)
+    model = GOPModel(GOPShape(256, gop_size=60))
+    with torch.no_grad():  # a cloud of visible blobs around the action
+        model.xyz.copy_(focus.float() + torch.randn(256, 3, generator=gen) * 0.6)
+        model.log_scale.fill_(-2.5)
+        model.opacity_logit.fill_(0.0)
+        model.color.copy_(torch.rand(256, 3, generator=gen))
+    save_model(tmp_path / "m", [model], ds.fps, {"validation_cameras": ["1", "14"], "start_frame": 0})
+    doc = evaluate(tmp_path / "m", PANOPTIC, tmp_path / "m", stride=30, progress=False)
+    rows = doc["streams"]["uncompressed"]["gops"][0]["frames"]
+    assert len(rows) == 4  # frames 0 and 30, cameras 1 and 14
+    for row in rows:
+        share = float(ds.mask(row["frame"], row["camera"]).float().mean())
+        assert 0.01 < share < 0.5
+        # The two regions' squared errors add up to the whole image's.
+        mse = {k: 10 ** (-row[k] / 10) for k in ("psnr", "psnr_foreground", "psnr_background")}
+        assert mse["psnr"] == pytest.approx(share * mse["psnr_foreground"] + (1 - share) * mse["psnr_background"],
+                                            rel=1e-6)
+    stream = doc["streams"]["uncompressed"]
+    assert stream["psnr_foreground"] == pytest.approx(sum(r["psnr_foreground"] for r in rows) / 4)
+
+
+def test_region_psnr_scales_the_mask_to_the_render():
+    from stgs.evaluate import region_psnr
+    from stgs.metrics import psnr
+
+    truth = torch.zeros(2, 2, 3)
+    image = torch.tensor([[[0.1] * 3, [0.2] * 3], [[0.3] * 3, [0.4] * 3]])
+    mask = torch.zeros(4, 4, dtype=torch.bool)
+    mask[:2] = True  # the top half at twice the render's size
+    top = torch.tensor([[True, True], [False, False]])
+    assert region_psnr(image, truth, mask) == {"psnr_foreground": pytest.approx(psnr(image, truth, mask=top)),
+                                               "psnr_background": pytest.approx(psnr(image, truth, mask=~top))}
+    assert region_psnr(image, truth, None) == {}
+    assert region_psnr(image, truth, torch.zeros(2, 2, dtype=torch.bool))["psnr_foreground"] is None
 
 
 def test_init_frames_spread_over_the_span():
