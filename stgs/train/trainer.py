@@ -2,8 +2,8 @@
 
 1. Load the dataset's training views, scaled; compute per-camera dynamic masks.
 2. Initial points: triangulated from the calibrated views of a few frames
-   spread over the trained span (stgs.train.init), topped up with jittered copies and random frustum points
-   to the capacity N = S².
+   spread over the trained span (stgs.train.init), topped up with jittered
+   copies and random frustum points to the capacity N = S².
 3. Coarse stage: canonical 3DGS (no deformation) on frames from all times.
 4. Per GOP, from the coarse canonical Gaussians: canonical Gaussians +
    temporal features + deformation field, one random (frame, camera) per
@@ -121,16 +121,10 @@ def initial_points(ds: Dataset, names: list[str], frames: list[int], count: int,
     """`count` starting points, triangulated at each of `frames` (people who move are seeded where they are
     at each of those times); `background_share` of them on the rig's walls and floor
     (background_shell_points) when the cameras surround the scene."""
-    found_pts, found_col = [], []
-    for frame in frames:
-        cams = [c for c in ds.cameras(frame) if c.name in names]
-        images = [ds.image(frame, c.name) for c in cams]
-        p, c = triangulate(cams, images, [ds.mask(frame, c.name) for c in cams])
-        found_pts.append(p)
-        found_col.append(c)
-    pts, col = torch.cat(found_pts), torch.cat(found_col)
+    found_at = [_triangulate_at(ds, names, frame) for frame in frames]  # one frame's images held at a time
+    pts, col = torch.cat([p for p, _ in found_at]), torch.cat([c for _, c in found_at])
     cams = [c for c in ds.cameras(frames[0]) if c.name in names]
-    images = [ds.image(frames[0], c.name) for c in cams]
+    images = [ds.image(frames[0], c.name) for c in cams]  # the walls and floor are coloured from the first frame
     if limit and len(pts) > limit:
         keep = torch.randperm(len(pts), generator=gen)[:limit]
         pts, col = pts[keep], col[keep]
@@ -164,6 +158,11 @@ def initial_points(ds: Dataset, names: list[str], frames: list[int], count: int,
     points = torch.cat(parts)
     flags = torch.arange(len(points)) < anchored
     return InitialPoints(points, torch.cat(colors), flags, found, background)
+
+
+def _triangulate_at(ds: Dataset, names: list[str], frame: int) -> tuple[torch.Tensor, torch.Tensor]:
+    cams = [c for c in ds.cameras(frame) if c.name in names]
+    return triangulate(cams, [ds.image(frame, c.name) for c in cams], [ds.mask(frame, c.name) for c in cams])
 
 
 def init_frames(frames: list[int], count: int) -> list[int]:
