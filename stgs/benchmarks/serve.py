@@ -122,19 +122,21 @@ def cpu_per_request(pids: list[int], port: int, script: Path, clients: int, seco
     """One wrk run (one thread, keep-alive) against the server on port: (CPU µs the processes `pids` spent per
     request, requests per second, wrk's output)."""
     before = cpu_seconds(pids)
-    out = subprocess.run(["wrk", "-t", "1", "-c", str(clients), "-d", f"{seconds}s", "-s", str(script),
-                          f"http://127.0.0.1:{port}/"], capture_output=True, text=True, check=True,
-                         timeout=seconds + 30).stdout
+    out = wrk_output(port, script, clients, seconds)
     used = cpu_seconds(pids) - before
     requests = int(re.search(r"(\d+) requests in", out).group(1))
     return used / requests * 1e6, requests / seconds, out
 
 
-def run_wrk(port: int, script: Path, clients: int, seconds: int) -> dict:
-    cmd = ["wrk", "-t", "1", "-c", str(clients), "-d", f"{seconds}s", "--latency", "-s", str(script),
+def wrk_output(port: int, script: Path, clients: int, seconds: int, *flags: str) -> str:
+    """wrk's report of one run (one thread, `clients` keep-alive connections) against the server on port."""
+    cmd = ["wrk", "-t", "1", "-c", str(clients), "-d", f"{seconds}s", *flags, "-s", str(script),
            f"http://127.0.0.1:{port}/"]
-    out = subprocess.run(cmd, capture_output=True, text=True, timeout=seconds + 30, check=True).stdout
-    return parse_wrk(out)
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=seconds + 30, check=True).stdout
+
+
+def run_wrk(port: int, script: Path, clients: int, seconds: int) -> dict:
+    return parse_wrk(wrk_output(port, script, clients, seconds, "--latency"))
 
 
 def main(scene_dir: Path | None, clients: list[int], seconds: int) -> int:
