@@ -121,10 +121,12 @@ def initial_points(ds: Dataset, names: list[str], frames: list[int], count: int,
     """`count` starting points, triangulated at each of `frames` (people who move are seeded where they are
     at each of those times); `background_share` of them on the rig's walls and floor
     (background_shell_points) when the cameras surround the scene."""
-    found_at = [_triangulate_at(ds, names, frame) for frame in frames]  # one frame's images held at a time
+    cams, images = _training_views(ds, names, frames[0])  # the walls and floor are coloured from the first frame
+    found_at = [triangulate(cams, images, [ds.mask(frames[0], c.name) for c in cams])]
+    for frame in frames[1:]:  # one more frame's images held at a time
+        later_cams, later_images = _training_views(ds, names, frame)
+        found_at.append(triangulate(later_cams, later_images, [ds.mask(frame, c.name) for c in later_cams]))
     pts, col = torch.cat([p for p, _ in found_at]), torch.cat([c for _, c in found_at])
-    cams = [c for c in ds.cameras(frames[0]) if c.name in names]
-    images = [ds.image(frames[0], c.name) for c in cams]  # the walls and floor are coloured from the first frame
     if limit and len(pts) > limit:
         keep = torch.randperm(len(pts), generator=gen)[:limit]
         pts, col = pts[keep], col[keep]
@@ -160,9 +162,9 @@ def initial_points(ds: Dataset, names: list[str], frames: list[int], count: int,
     return InitialPoints(points, torch.cat(colors), flags, found, background)
 
 
-def _triangulate_at(ds: Dataset, names: list[str], frame: int) -> tuple[torch.Tensor, torch.Tensor]:
+def _training_views(ds: Dataset, names: list[str], frame: int) -> tuple[list[Camera], list[torch.Tensor]]:
     cams = [c for c in ds.cameras(frame) if c.name in names]
-    return triangulate(cams, [ds.image(frame, c.name) for c in cams], [ds.mask(frame, c.name) for c in cams])
+    return cams, [ds.image(frame, c.name) for c in cams]
 
 
 def init_frames(frames: list[int], count: int) -> list[int]:
