@@ -39,11 +39,14 @@ class AttributeSpec:
         return np.dtype(np.uint8 if self.levels <= 256 else np.uint16)
 
 
+OPACITY_LOGIT_RANGE = (-4.0, 4.0)
+"""The stream's canonical opacity logit range: sigmoid(-4) ≈ 0.018 is the faintest a packaged Gaussian can be."""
+
 SPECS = (
     AttributeSpec("position", "xyz", 3, 1 << 16, None),
     AttributeSpec("scale", "log_scale", 3, 1 << 6, None),
     AttributeSpec("rotation", "rotation", 4, 1 << 7, (-1.0, 2.0)),
-    AttributeSpec("opacity", "opacity_logit", 1, 1 << 6, (-4.0, 4.0)),
+    AttributeSpec("opacity", "opacity_logit", 1, 1 << 6, OPACITY_LOGIT_RANGE),
     AttributeSpec("color", "color", 3, 1 << 16, (0.0, 4.0)),
 )
 """The five attribute images, in container order."""

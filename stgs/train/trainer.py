@@ -32,6 +32,7 @@ from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
 from stgs.camera import Camera, resize, surrounds
+from stgs.codec.attributes import OPACITY_LOGIT_RANGE
 from stgs.codec.plas import PLASConfig, plas_order, sort_key
 from stgs.data import Dataset, open_dataset, split
 from stgs.errors import UserError
@@ -383,6 +384,8 @@ class Trainer:
         opt.opt.step()
         with torch.no_grad():
             model.rotation.div_(model.rotation.norm(dim=1, keepdim=True).clamp_min(1e-8))
+            # Train the model the stream carries: the keyframe clips the opacity logit to this range.
+            model.opacity_logit.clamp_(*OPACITY_LOGIT_RANGE)
 
     def train_gop(self, k: int, coarse: GOPModel, views: Views, val: Views | None) -> tuple[GOPModel, GOPReport]:
         cfg = self.cfg
@@ -494,7 +497,7 @@ class Trainer:
             param.index_copy_(axis, dead, param.index_select(axis, src))
             opt.rows(name, dead, None)
             opt.rows(name, src, None)
-        logit = torch.logit(split.clamp(1e-6, 1 - 1e-6))
+        logit = torch.logit(split.clamp(1e-6, 1 - 1e-6)).clamp(*OPACITY_LOGIT_RANGE)
         model.opacity_logit[dead] = logit
         model.opacity_logit[src] = logit
         model.xyz[dead] += torch.randn(len(dead), 3, generator=self.gen) * model.log_scale[dead].exp() * 0.5
@@ -509,10 +512,17 @@ class Trainer:
 
     @torch.no_grad()
     def prune(self, model: GOPModel, accum: torch.Tensor) -> int:
-        """Slots whose average opacity over the GOP stayed below dead_opacity become unused (opacity 0)."""
+        """Park the slots whose average opacity over the GOP stayed below dead_opacity.
+
+        The stream cannot carry opacity 0 (its floor is sigmoid(-4)), so a parked slot gets the floor opacity
+        and the smallest scale of the live Gaussians: a faint dot about a pixel wide that packs losslessly
+        (it widens neither the opacity nor the scale range).
+        """
         avg = accum[0] / accum[1].clamp_min(1)
         dead = (avg < self.cfg.dead_opacity) & (accum[1] > 0)
-        model.opacity_logit[dead] = -12.0
+        model.opacity_logit[dead] = OPACITY_LOGIT_RANGE[0]
+        if not dead.all():
+            model.log_scale[dead] = model.log_scale[~dead].amin(0)
         return int(dead.sum())
 
     @torch.no_grad()

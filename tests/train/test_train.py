@@ -359,3 +359,39 @@ def test_background_share_is_validated_and_splits_the_capacity(scene):
     opacity = torch.sigmoid(model.opacity_logit.detach())
     assert torch.allclose(opacity[init.anchored], torch.tensor(0.1)) and torch.allclose(
         opacity[~init.anchored], torch.tensor(0.02))  # filler starts faint
+
+
+def test_training_keeps_opacity_in_the_streams_range_and_parks_dead_slots(scene, trained, tmp_path):
+    from stgs.codec.attributes import OPACITY_LOGIT_RANGE, SPECS, dequantize, encode_attributes
+    from stgs.model.gop import GOPModel
+    from stgs.train.trainer import Optimizer, Trainer
+
+    lo, hi = OPACITY_LOGIT_RANGE
+    trainer = Trainer(scene, tmp_path / "m", budget("quick", **TINY), progress=False)
+    model = GOPModel(trainer.shape)
+    opt = Optimizer(model, trainer.cfg, trainer.extent, None)
+    with torch.no_grad():
+        model.opacity_logit.fill_(lo + 0.5)
+        model.opacity_logit[:3] = hi - 0.5
+    for it in range(20):  # a loss that drives every opacity towards 0 and a few towards 1
+        trainer._step(opt, model.opacity_logit.sum() * 100 - model.opacity_logit[:3].sum() * 200, "test", it, model)
+    assert model.opacity_logit.min().item() == lo and model.opacity_logit.max().item() == hi
+
+    accum = torch.stack([torch.full((256,), 0.5), torch.ones(256)])
+    accum[0, :10] = 0.001  # ten slots stayed dead over the GOP
+    with torch.no_grad():
+        model.opacity_logit.fill_(1.0)
+        model.log_scale.copy_(torch.linspace(-6, -2, 256 * 3).reshape(256, 3))
+    assert trainer.prune(model, accum) == 10
+    assert (model.opacity_logit[:10] == lo).all() and (model.opacity_logit[10:] == 1.0).all()
+    live_min = torch.linspace(-6, -2, 256 * 3).reshape(256, 3)[10:].amin(0)
+    assert torch.equal(model.log_scale[:10], live_min.expand(10, 3))
+
+    # The trained model packs its opacities to within half a quantisation step: the clip changes nothing.
+    trained_model = load_model(trained[0])[1][0]
+    logits = trained_model.opacity_logit.detach()
+    assert lo <= logits.min() and logits.max() <= hi
+    spec = next(s for s in SPECS if s.name == "opacity")
+    codes, rng = encode_attributes(trained_model, 16)["opacity"]
+    step = (hi - lo) / (spec.levels - 1)
+    assert (dequantize(spec, codes, rng).reshape(-1) - logits).abs().max() <= step / 2 + 1e-6
