@@ -351,6 +351,9 @@ def add_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--holdout", type=_names, help="validation cameras (default: those the model was trained without)")
     p.add_argument("--stride", type=_positive_int, default=1, help="evaluate every n-th frame (default: 1)")
     p.add_argument("--out", type=Path, help="where eval.json and eval_grid.png go (default: MODEL_DIR)")
+    p.add_argument("--lpips", choices=["alex", "vgg", "off"], default="alex",
+                   help="LPIPS network, computed only where torchvision's cache ($TORCH_HOME/hub/checkpoints) "
+                   "already holds its ImageNet backbone; nothing is downloaded (default: alex)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(run=run_eval)
 
@@ -359,12 +362,15 @@ def run_eval(args: argparse.Namespace) -> int:
     from stgs.evaluate import evaluate
 
     result = evaluate(args.model_dir, args.dataset, args.out or args.model_dir, args.dash, args.holdout,
-                      args.stride, progress=not args.quiet)
+                      args.stride, progress=not args.quiet, lpips_net=None if args.lpips == "off" else args.lpips)
     for name, stream in result["streams"].items():
         regions = (f" (foreground {stream['psnr_foreground']:.2f} dB, background {stream['psnr_background']:.2f} dB)"
                    if "psnr_foreground" in stream and "psnr_background" in stream else "")
-        print(f"{name}: PSNR {stream['psnr']:.2f} dB{regions}, SSIM {stream['ssim']:.4f} over "
+        lpips = f", LPIPS ({args.lpips}) {stream['lpips']:.4f}" if "lpips" in stream else ""
+        print(f"{name}: PSNR {stream['psnr']:.2f} dB{regions}, SSIM {stream['ssim']:.4f}{lpips} over "
               f"{len(stream['gops'])} GOP(s)")
+    if result["lpips"] and not result["lpips"]["computed"]:
+        print(f"LPIPS not computed: {result['lpips']['reason']}")
     print(f"wrote {(args.out or args.model_dir) / 'eval.json'}")
     return 0
 

@@ -4,9 +4,9 @@ Per frame and per GOP: PSNR and SSIM of renders from the validation cameras
 against the dataset's images (and, where the dataset has foreground masks,
 PSNR inside and outside them), for the uncompressed model dir and, with
 `--dash`, for every feature Representation of the packaged tree (decoded
-exactly as a player decodes it). LPIPS is not computed: its network weights
-would have to be downloaded. Writes eval.json and a side-by-side grid
-(render | ground truth | 10x error).
+exactly as a player decodes it). LPIPS too where its backbone's weights are
+already on this machine (torchvision's cache; never downloaded). Writes
+eval.json and a side-by-side grid (render | ground truth | 10x error).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from stgs.codec.video import decode_segment
 from stgs.data import open_dataset
 from stgs.errors import UserError
 from stgs.fsio import atomic_write_bytes, image_grid, save_png
-from stgs.metrics import psnr, ssim
+from stgs.metrics import LPIPS, lpips_backbone_file, psnr, ssim
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.store import load_gop, read_meta
 from stgs.model.view import FrameRenderer
@@ -68,7 +68,8 @@ def packaged_gops(dash: Path) -> dict[str, Callable[[int], GOPModel]]:
 
 
 def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None, holdout: list[str] | None = None,
-             stride: int = 1, progress: bool = True) -> dict:
+             stride: int = 1, progress: bool = True, lpips_net: str | None = "alex") -> dict:
+    """Write and return eval.json's document; `lpips_net` None: no LPIPS even where its weights are present."""
     from tqdm import tqdm
 
     meta = read_meta(model_dir)
@@ -88,8 +89,9 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
     sources: dict[str, Callable[[int], GOPModel]] = {"uncompressed": lambda k: load_gop(model_dir, meta, k)}
     if dash is not None:
         sources |= packaged_gops(Path(dash))
+    lpips = LPIPS.load(lpips_net) if lpips_net else None
     result: dict = {"model_dir": str(model_dir), "dataset": ds.name, "validation_cameras": cams_val,
-                    "frame_stride": stride, "lpips": None, "streams": {}}
+                    "frame_stride": stride, "lpips": lpips_info(lpips, lpips_net), "streams": {}}
     grid_rows: list[torch.Tensor] = []
     for name, load in sources.items():
         per_gop = []
@@ -106,8 +108,11 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
                         truth = torch.from_numpy(cv2.resize(truth.numpy(), (cam.width, cam.height),
                                                             interpolation=cv2.INTER_AREA))
                     image = renderer.render(i, cam).clamp(0, 1)
-                    rows.append({"frame": f, "camera": cam_name, "psnr": _finite(psnr(image, truth)),
-                                 "ssim": float(ssim(image, truth))} | region_psnr(image, truth, ds.mask(f, cam_name)))
+                    row = {"frame": f, "camera": cam_name, "psnr": _finite(psnr(image, truth)),
+                           "ssim": float(ssim(image, truth))} | region_psnr(image, truth, ds.mask(f, cam_name))
+                    if lpips is not None:
+                        row["lpips"] = lpips(image, truth)
+                    rows.append(row)
                     if name == "uncompressed" and len(grid_rows) < 3 * GRID_ROWS and i % max(1, g // 2) == 0:
                         grid_rows += [image, truth, ((image - truth).abs() * 10).clamp(0, 1)]
             per_gop.append({"gop": k} | _means(rows) | {"frames": rows})
@@ -125,6 +130,19 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
 REGIONS = ("psnr_foreground", "psnr_background")
 """PSNR inside and outside the dataset's foreground masks (where it has masks): where the error lives."""
 
+OPTIONAL = (*REGIONS, "lpips")
+"""Per-view values some evaluations lack; averaged over the views that have them."""
+
+
+def lpips_info(lpips: LPIPS | None, net: str | None) -> dict | None:
+    """eval.json's `lpips`: which network was used, or why no LPIPS was computed (None: not asked for)."""
+    if net is None:
+        return None
+    if lpips is None:
+        return {"net": net, "computed": False, "reason": f"no local backbone weights at {lpips_backbone_file(net)} "
+                "(stgs never downloads them)"}
+    return {"net": net, "computed": True, "version": "0.1", "backbone": str(lpips.backbone)}
+
 
 def region_psnr(image: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor | None) -> dict:
     """{psnr_foreground, psnr_background} of one view (None for a region the mask leaves empty); {} without a mask."""
@@ -138,9 +156,9 @@ def region_psnr(image: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor | N
 
 
 def _means(rows: list[dict]) -> dict:
-    """Mean PSNR and SSIM of views (or GOPs), and of the region PSNRs over those that have them."""
+    """Mean PSNR and SSIM of views (or GOPs), and of the OPTIONAL values over those that have them."""
     means = {"psnr": _mean(r["psnr"] for r in rows), "ssim": _mean(r["ssim"] for r in rows)}
-    for key in REGIONS:
+    for key in OPTIONAL:
         values = [r[key] for r in rows if r.get(key) is not None]
         if values:
             means[key] = _mean(values)

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import torch
+
+from stgs.errors import UserError
 
 
 def psnr(image: torch.Tensor, reference: torch.Tensor, peak: float = 1.0, mask: torch.Tensor | None = None) -> float:
@@ -69,3 +72,53 @@ def ssim(image: torch.Tensor, reference: torch.Tensor, mask: torch.Tensor | None
     if mask.sum() == 0:
         return values.new_ones(())
     return values[mask].mean()
+
+
+LPIPS_BACKBONES = {"alex": "AlexNet_Weights", "vgg": "VGG16_Weights"}
+"""LPIPS network -> the torchvision weights enum of its ImageNet backbone."""
+
+
+def lpips_backbone_file(net: str = "alex") -> Path:
+    """Where torchvision's cache keeps LPIPS's ImageNet backbone ($TORCH_HOME/hub/checkpoints/...)."""
+    from torchvision import models
+
+    url = getattr(models, LPIPS_BACKBONES[net]).IMAGENET1K_V1.url
+    return Path(torch.hub.get_dir()) / "checkpoints" / url.rsplit("/", 1)[1]
+
+
+class LPIPS:
+    """LPIPS v0.1 (Zhang et al. 2018, the `lpips` package) of (H, W, 3) images in [0, 1]; lower is closer.
+
+    The linear heads ship with the package; the backbone's ImageNet weights are read from torchvision's cache
+    (`lpips_backbone_file`) as plain tensors and never downloaded: `LPIPS.load` returns None without them.
+    """
+
+    def __init__(self, net: str, backbone: Path):
+        import warnings
+
+        import lpips
+
+        with warnings.catch_warnings():  # lpips 0.1.4 passes torchvision's deprecated `pretrained=False`
+            warnings.simplefilter("ignore", UserWarning)
+            self.model = lpips.LPIPS(net=net, pnet_rand=True, verbose=False).eval()
+        try:
+            state = torch.load(backbone, map_location="cpu", weights_only=True)
+            # lpips keeps torchvision's `features.<i>` layers as `slice<k>.<i>`.
+            own = self.model.net.state_dict()
+            self.model.net.load_state_dict({key: state["features." + key.split(".", 1)[1]] for key in own})
+        except Exception as exc:  # a corrupt or foreign file: any loader error means the same to the user
+            raise UserError(f"{backbone}: not usable as the LPIPS {net} backbone ({exc})") from None
+        self.net, self.backbone = net, backbone
+
+    @classmethod
+    def load(cls, net: str = "alex") -> LPIPS | None:
+        path = lpips_backbone_file(net)
+        return cls(net, path) if path.is_file() else None
+
+    @torch.no_grad()
+    def __call__(self, image: torch.Tensor, reference: torch.Tensor) -> float:
+        if image.shape != reference.shape or image.ndim != 3 or image.shape[2] != 3:
+            raise ValueError(f"lpips: need two (H, W, 3) images, got {tuple(image.shape)} and "
+                             f"{tuple(reference.shape)}")
+        x, y = (t.float().permute(2, 0, 1)[None] * 2 - 1 for t in (image, reference))
+        return float(self.model(x, y))

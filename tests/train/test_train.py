@@ -121,9 +121,10 @@ def test_a_non_finite_loss_stops_with_the_last_checkpoint_kept(scene, tmp_path, 
     assert not (tmp_path / "m" / "model.json").exists()
 
 
-def test_eval_uncompressed_and_packaged(scene, trained, tmp_path):
+def test_eval_uncompressed_and_packaged(scene, trained, tmp_path, monkeypatch):
     from stgs.packager import PackConfig, pack
 
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "empty-cache"))  # no LPIPS weights here
     model, _ = trained
     pack(model, tmp_path / "dash", PackConfig(qps=(16, 32), jobs=2), progress=False)
     result = stgs("eval", str(model), str(scene), "--dash", str(tmp_path / "dash"), "--out", str(tmp_path / "ev"),
@@ -134,8 +135,27 @@ def test_eval_uncompressed_and_packaged(scene, trained, tmp_path):
     assert set(streams) == {"uncompressed", "qp16", "qp32"}
     assert len(streams["uncompressed"]["gops"][0]["frames"]) == SCENE.gop_size  # every frame, one held-out camera
     assert streams["uncompressed"]["psnr"] >= streams["qp16"]["psnr"] - 0.5 >= streams["qp32"]["psnr"] - 1.0
-    assert 0 < streams["qp32"]["ssim"] <= 1 and doc["lpips"] is None
+    assert 0 < streams["qp32"]["ssim"] <= 1
+    assert doc["lpips"]["computed"] is False and "lpips" not in streams["qp32"]
+    assert str(tmp_path / "empty-cache") in doc["lpips"]["reason"] and "LPIPS not computed" in result.stdout
     assert (tmp_path / "ev" / "eval_grid.png").stat().st_size > 1000
+
+
+def test_eval_adds_lpips_where_its_weights_are_local(scene, trained, tmp_path, monkeypatch):
+    from stgs.evaluate import evaluate
+    from tests.test_lpips import place_random_alexnet
+
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    place_random_alexnet(tmp_path / "torch")
+    doc = evaluate(trained[0], scene, tmp_path / "ev", stride=2, progress=False)
+    assert doc["lpips"] == {"net": "alex", "computed": True, "version": "0.1",
+                            "backbone": str(tmp_path / "torch" / "hub" / "checkpoints" / "alexnet-owt-7be5be79.pth")}
+    stream = doc["streams"]["uncompressed"]
+    rows = stream["gops"][0]["frames"]
+    assert len(rows) == 3 and all(0 < r["lpips"] < 2 for r in rows)
+    assert stream["lpips"] == pytest.approx(sum(r["lpips"] for r in rows) / 3)
+    off = evaluate(trained[0], scene, tmp_path / "ev", stride=2, progress=False, lpips_net=None)
+    assert off["lpips"] is None and "lpips" not in off["streams"]["uncompressed"]
 
 
 def test_bench_train_tables_and_plot(trained, tmp_path):
