@@ -68,8 +68,8 @@ def eval_rows(label: str, evaluation: dict) -> list[str]:
     for stream, result in evaluation["streams"].items():
         for gop in result["gops"]:
             regions = f"{_num(gop.get('psnr_foreground'), '.2f')} / {_num(gop.get('psnr_background'), '.2f')}"
-            rows.append(f"| {label} | {stream} | {gop['gop']} | {gop['psnr']:.2f} | {gop['ssim']:.4f} | {regions} "
-                        f"| {len(gop['frames'])} |")
+            rows.append(f"| {label} | {stream} | {gop['gop']} | {gop['psnr']:.2f} | {gop['ssim']:.4f} "
+                        f"| {_num(gop.get('lpips'), '.4f')} | {regions} | {len(gop['frames'])} |")
     return rows
 
 
@@ -116,8 +116,9 @@ def main(model_dirs: list[Path], plot_path: Path) -> int:
     evaluated = [(label, _read_json(d / "eval.json")) for d, label, _ in runs if (d / "eval.json").is_file()]
     if evaluated:
         print()
-        print("| run | stream | GOP | PSNR (dB) | SSIM | foreground / background PSNR (dB) | frames x cameras |")
-        print("|---|---|---|---|---|---|---|")
+        print("| run | stream | GOP | PSNR (dB) | SSIM | LPIPS | foreground / background PSNR (dB) "
+              "| frames x cameras |")
+        print("|---|---|---|---|---|---|---|---|")
         for label, evaluation in evaluated:
             print("\n".join(eval_rows(label, evaluation)))
     plot([(label, report) for _, label, report in runs], plot_path)

@@ -173,6 +173,18 @@ def test_bench_train_tables_and_plot(trained, tmp_path):
         assert bad.returncode == 2 and message in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
 
 
+def test_bench_train_eval_rows_show_lpips_where_computed():
+    from stgs.benchmarks.train import eval_rows
+
+    view = {"frame": 0, "camera": "1", "psnr": 20.0, "ssim": 0.8}
+    evaluation = {"streams": {
+        "uncompressed": {"gops": [{"gop": 0, "psnr": 20.0, "ssim": 0.8, "lpips": 0.12345, "frames": [view] * 2}]},
+        "qp16": {"gops": [{"gop": 0, "psnr": 19.5, "ssim": 0.79, "psnr_foreground": 17.0, "psnr_background": 21.0,
+                           "frames": [view]}]}}}
+    assert eval_rows("r", evaluation) == ["| r | uncompressed | 0 | 20.00 | 0.8000 | 0.1235 | - / - | 2 |",
+                                          "| r | qp16 | 0 | 19.50 | 0.7900 | - | 17.00 / 21.00 | 1 |"]
+
+
 def test_bench_train_labels_name_what_differs_from_the_budget(tmp_path):
     from stgs.benchmarks.train import run_label
 
