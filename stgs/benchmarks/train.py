@@ -30,8 +30,8 @@ def _read_json(path: Path) -> dict:
 
 
 def run_label(model_dir: Path) -> str:
-    """'all components' or the ablation switches the run was trained with, and its capacity, initial-point frames
-    and position learning rate when they are not the budget's."""
+    """'all components' or the ablation switches the run was trained with, and its capacity, initial-point frames,
+    position learning rate and seed when they are not the budget's."""
     config = _read_json(model_dir / "model.json").get("extra", {}).get("config", {})
     off = [flag for key, flag in SWITCHES.items() if key in config and not config[key]]
     label = f"{config.get('budget', '?')}: " + (" ".join(off) if off else "all components")
@@ -44,7 +44,17 @@ def run_label(model_dir: Path) -> str:
     position_lr = config.get("lr", {}).get("position") if isinstance(config.get("lr"), dict) else None
     if default is not None and isinstance(position_lr, float) and position_lr != default.lr.position:
         label += f", position lr {position_lr:g}"
+    seed = config.get("seed", 0)
+    if default is not None and isinstance(seed, int) and seed != default.seed:
+        label += f", seed {seed}"
     return label
+
+
+def distinct_labels(model_dirs: list[Path], labels: list[str]) -> list[str]:
+    """Runs whose settings read the same (e.g. one command on two versions of the code) are told apart by
+    their folder name."""
+    return [f"{label} ({d.name})" if labels.count(label) > 1 else label
+            for d, label in zip(model_dirs, labels, strict=True)]
 
 
 def curve_rows(label: str, report: dict) -> list[str]:
@@ -103,6 +113,8 @@ def main(model_dirs: list[Path], plot_path: Path) -> int:
         if not report_path.is_file():
             raise UserError(f"{model_dir}: no train_report.json (not a finished stgs train run)")
         runs.append((model_dir, run_label(model_dir), _read_json(report_path)))
+    labels = distinct_labels([d for d, _, _ in runs], [label for _, label, _ in runs])
+    runs = [(d, label, report) for (d, _, report), label in zip(runs, labels, strict=True)]
     print("| run | GOP | iteration | training min | loss | held-out PSNR (dB) | held-out SSIM |")
     print("|---|---|---|---|---|---|---|")
     for _, label, report in runs:

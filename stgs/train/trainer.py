@@ -127,11 +127,15 @@ def initial_points(ds: Dataset, names: list[str], frames: list[int], count: int,
     for frame in frames[1:]:  # one more frame's images held at a time
         later_cams, later_images = _training_views(ds, names, frame)
         found_at.append(triangulate(later_cams, later_images, [ds.mask(frame, c.name) for c in later_cams]))
-    pts, col = torch.cat([p for p, _ in found_at]), torch.cat([c for _, c in found_at])
+    # A time with too few points to describe the scene there (tiny images, no texture) contributes none: a few
+    # points from each of several such times would draw every seeded copy around them instead of random points.
+    found_at = [(p, c) for p, c in found_at if len(p) >= MIN_TRIANGULATED]
+    pts = torch.cat([p for p, _ in found_at]) if found_at else torch.empty(0, 3)
+    col = torch.cat([c for _, c in found_at]) if found_at else torch.empty(0, 3)
     if limit and len(pts) > limit:
         keep = torch.randperm(len(pts), generator=gen)[:limit]
         pts, col = pts[keep], col[keep]
-    if len(pts) < MIN_TRIANGULATED:  # too few to describe the scene (tiny images, no texture): random points
+    if len(pts) < MIN_TRIANGULATED:  # random points instead
         pts, col = pts[:0], col[:0]
     found = len(pts)
     parts, colors, background = [], [], 0

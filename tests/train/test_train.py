@@ -57,7 +57,7 @@ def test_quick_training_learns_the_scene(scene, trained):
     curve = gop["curve"]
     assert curve[-1]["loss"] < curve[0]["loss"]  # the loss falls
     baseline = mean_colour_psnr(scene)
-    assert gop["val_psnr"] > baseline + 6.0, (gop["val_psnr"], baseline)  # measured: 27.4 vs 15.6 dB
+    assert gop["val_psnr"] > baseline + 6.0, (gop["val_psnr"], baseline)  # measured: 27.1 vs 15.6 dB
     assert 0 < curve[0]["val_ssim"] < gop["val_ssim"] <= 1  # SSIM on the held-out camera improves too
     seconds = [point["seconds"] for point in curve]
     assert seconds == sorted(seconds) and seconds[-1] <= gop["seconds"]
@@ -143,10 +143,10 @@ def test_eval_uncompressed_and_packaged(scene, trained, tmp_path, monkeypatch):
 
 def test_eval_adds_lpips_where_its_weights_are_local(scene, trained, tmp_path, monkeypatch):
     from stgs.evaluate import evaluate
-    from tests.test_lpips import place_random_alexnet
+    from tests.test_lpips import place_random_backbone
 
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
-    place_random_alexnet(tmp_path / "torch")
+    place_random_backbone(tmp_path / "torch")
     doc = evaluate(trained[0], scene, tmp_path / "ev", stride=2, progress=False)
     assert doc["lpips"] == {"net": "alex", "computed": True, "version": "0.1",
                             "backbone": str(tmp_path / "torch" / "hub" / "checkpoints" / "alexnet-owt-7be5be79.pth")}
@@ -197,6 +197,17 @@ def test_bench_train_labels_name_what_differs_from_the_budget(tmp_path):
     del config["init_frames"]  # a run from before the setting: its first frame only
     (tmp_path / "model.json").write_text(json.dumps({"extra": {"config": config}}))
     assert run_label(tmp_path) == "cpu: all components, init frames 1"
+    config.update(init_frames=6, seed=1)
+    (tmp_path / "model.json").write_text(json.dumps({"extra": {"config": config}}))
+    assert run_label(tmp_path) == "cpu: all components, seed 1"
+
+
+def test_bench_train_tells_runs_with_the_same_settings_apart():
+    from stgs.benchmarks.train import distinct_labels
+
+    dirs = [Path("/runs/new"), Path("/runs/old"), Path("/runs/seed1")]
+    assert distinct_labels(dirs, ["cpu: --no-aux", "cpu: --no-aux", "cpu: --no-aux, seed 1"]) == [
+        "cpu: --no-aux (new)", "cpu: --no-aux (old)", "cpu: --no-aux, seed 1"]
 
 
 def test_bad_training_input_is_one_line(scene, tmp_path):
@@ -371,6 +382,25 @@ def test_rig_sphere_fits_a_dome_and_falls_back_for_a_ring():
     assert surrounds(ring)
     forward = _cameras_at([(x, 0.0, -4.0) for x in (-1.0, -0.5, 0.0, 0.5, 1.0)], (0.0, 0.0, 0.0))
     assert not surrounds(forward)  # side by side, looking the same way: no walls around them
+
+
+def test_times_with_too_few_triangulated_points_fall_back_to_random_points(scene):
+    from stgs.train.init import MIN_TRIANGULATED, triangulate
+    from stgs.train.trainer import initial_points
+
+    ds = open_dataset(scene)
+    names, _ = split(ds)
+    frames = list(range(SCENE.gop_size))
+    per_frame = []
+    for f in frames:
+        cams = [c for c in ds.cameras(f) if c.name in names]
+        per_frame.append(len(triangulate(cams, [ds.image(f, c.name) for c in cams], [None] * len(cams))[0]))
+    # Each time of the tiny synthetic scene yields a few points, together more than the minimum (measured:
+    # 6 to 17 each, 69 in all): pooled, they drew every seeded copy around a few blobs (held out 21.6 dB
+    # against 27.1 from random points).
+    assert all(0 < n < MIN_TRIANGULATED for n in per_frame) and sum(per_frame) >= MIN_TRIANGULATED
+    init = initial_points(ds, names, frames, 256, torch.Generator().manual_seed(0))
+    assert init.triangulated == 0 and not init.anchored.any() and torch.isfinite(init.points).all()
 
 
 def test_background_share_is_validated_and_splits_the_capacity(scene):
