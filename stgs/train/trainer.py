@@ -519,8 +519,8 @@ class Trainer:
         """Park the slots whose average opacity over the GOP stayed below dead_opacity.
 
         The stream cannot carry opacity 0 (its floor is sigmoid(-4)), so a parked slot gets the floor opacity
-        and the smallest scale of the live Gaussians: a faint dot about a pixel wide that packs losslessly
-        (it widens neither the opacity nor the scale range).
+        and the smallest scale of the live Gaussians: a faint dot about a pixel wide that widens neither the
+        opacity nor the scale range of the packed attributes.
         """
         avg = accum[0] / accum[1].clamp_min(1)
         dead = (avg < self.cfg.dead_opacity) & (accum[1] > 0)
