@@ -6,7 +6,7 @@ judged by alternating the two builds in one run, never by comparing tables
 taken at different times. Each round runs one short subprocess per tree (its
 own native build, from its own sources), A then B, then B then A, and so on.
 
-Usage: .venv/bin/python bench/ab_frame.py OLD_TREE NEW_TREE [--rounds 3] [--n 65536] [--frames 25]
+Usage: .venv/bin/python -m bench.ab_frame OLD_TREE NEW_TREE [--rounds 3] [--n 65536] [--frames 25]
 
 Make OLD_TREE with e.g. `git worktree add /tmp/old <commit>`; both trees use
 this virtualenv's packages and build their kernels into the shared cache.
@@ -25,7 +25,7 @@ from pathlib import Path
 CHILD = r"""
 import json, statistics, sys, time
 import torch
-from stgs.benchmarks.render import bench_camera, random_model
+from bench.render import bench_camera, random_model
 from stgs.model.native_deform import bf16_available
 from stgs.model.view import FrameRenderer
 

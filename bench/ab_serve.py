@@ -9,7 +9,7 @@ bench/ab_frame.py, it compares builds within one run because this machine's spee
 The editable install maps stgs.server (and client, packager, harness) to this checkout, so each tree runs
 from a folder of symlinks that puts its own server/, client/, packager/ and harness/ under its stgs/.
 
-Usage: .venv/bin/python bench/ab_serve.py OLD_TREE NEW_TREE DASH_DIR [--rounds 4] [--clients 64] [--seconds 6]
+Usage: .venv/bin/python -m bench.ab_serve OLD_TREE NEW_TREE DASH_DIR [--rounds 4] [--clients 64] [--seconds 6]
 """
 
 from __future__ import annotations
@@ -22,7 +22,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-from stgs.benchmarks.serve import WRK_SCRIPT, check_serves, cpu_per_request, free_port, wait_for, worker_pids
+from bench.serve import WRK_SCRIPT, check_serves, cpu_per_request, free_port, wait_for, worker_pids
+from stgs.tree import SEGMENT_SUFFIXES
 
 TOP_LEVEL = ("server", "client", "packager", "harness")
 
@@ -43,7 +44,7 @@ def measure(root: Path, dash: Path, script: Path, first: str, clients: int, seco
     port = free_port()
     env = dict(os.environ, PYTHONPATH=str(root))
     # cwd=root: `python -m` puts the working directory first on sys.path, ahead of PYTHONPATH
-    server = subprocess.Popen([sys.executable, "-m", "stgs.server.main", str(dash), "--port", str(port),
+    server = subprocess.Popen([sys.executable, "-m", "stgs.cli", "serve", str(dash), "--port", str(port),
                                "--workers", "2", "--quiet"], cwd=root, env=env, stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL)
     try:
@@ -66,7 +67,7 @@ def main() -> int:
     parser.add_argument("--seconds", type=int, default=6)
     args = parser.parse_args()
     dash = args.dash.resolve()
-    paths = sorted(str(p.relative_to(dash)) for p in dash.rglob("*") if p.suffix in (".m4s", ".stgk", ".mp4"))
+    paths = sorted(str(p.relative_to(dash)) for p in dash.rglob("*") if p.suffix in SEGMENT_SUFFIXES)
     if not paths:
         raise SystemExit(f"{dash}: no segments (expected a folder written by stgs pack)")
     results: dict[str, list[tuple[float, float]]] = {"old": [], "new": []}

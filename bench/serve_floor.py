@@ -10,7 +10,7 @@ nginx (sendfile, access log off). Each run: wrk (one thread, keep-alive, round-r
 what any aiohttp server can reach on this machine; the gap between it and `stgs serve` is what our own
 Python costs.
 
-Usage: .venv/bin/python bench/serve_floor.py DASH_DIR [--rounds 4] [--clients 64] [--seconds 6]
+Usage: .venv/bin/python -m bench.serve_floor DASH_DIR [--rounds 4] [--clients 64] [--seconds 6]
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from stgs.benchmarks.serve import (
+from bench.serve import (
     NGINX_CONF,
     WRK_SCRIPT,
     check_serves,
@@ -35,6 +35,7 @@ from stgs.benchmarks.serve import (
     wait_for,
     worker_pids,
 )
+from stgs.tree import SEGMENT_SUFFIXES
 
 SERVERS = ("stgs serve", "aiohttp floor", "nginx")
 
@@ -42,7 +43,9 @@ SERVERS = ("stgs serve", "aiohttp floor", "nginx")
 def floor_server(root: Path, port: int) -> None:
     """The cheapest aiohttp server of the scene's files: a dict lookup, then the body as `stgs serve` sends it."""
     from aiohttp import web
-    from stgs.server.app import open_and_stat, send_file_body
+
+    from stgs.server.files import open_and_stat
+    from stgs.server.responses import send_file_body
 
     files = {f"/{p.relative_to(root)}": str(p) for p in root.rglob("*") if p.is_file()}
 
@@ -74,7 +77,7 @@ def start(name: str, dash: Path, port: int, tmp: Path) -> tuple[list[subprocess.
     """The server's processes (to stop) and the pids that do its work (to measure)."""
     quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
     if name == "stgs serve":
-        proc = subprocess.Popen([sys.executable, "-m", "stgs.server.main", str(dash), "--port", str(port),
+        proc = subprocess.Popen([sys.executable, "-m", "stgs.cli", "serve", str(dash), "--port", str(port),
                                  "--workers", "2", "--quiet"], **quiet)
         wait_for(port)
         return [proc], worker_pids(proc.pid)
@@ -120,7 +123,7 @@ def main() -> int:
     if args.floor_server is not None:
         floor_server(dash, args.floor_server)
         return 0
-    paths = sorted(str(p.relative_to(dash)) for p in dash.rglob("*") if p.suffix in (".m4s", ".stgk", ".mp4"))
+    paths = sorted(str(p.relative_to(dash)) for p in dash.rglob("*") if p.suffix in SEGMENT_SUFFIXES)
     if not paths:
         raise SystemExit(f"{dash}: no segments (expected a folder written by stgs pack)")
     results: dict[str, list[tuple[float, float]]] = {name: [] for name in SERVERS}

@@ -1,12 +1,139 @@
-#!/usr/bin/env python3
-"""Held-out quality vs training time of finished `stgs train` runs (same as `stgs bench train`).
+"""Training accuracy vs time from finished `stgs train` runs (`stgs bench train --runs DIR,DIR`).
 
-Usage: .venv/bin/python bench/train.py --runs MODEL_DIR[,MODEL_DIR...] [--plot docs/train_curves.png]
+Reads each model dir's train_report.json (and the eval.json `stgs eval` wrote
+there, when present) and prints Markdown: validation PSNR/SSIM against
+training seconds per run, the final numbers per GOP, and the evaluation per
+stream (uncompressed and each packaged QP). Plots the curves (matplotlib PNG).
+Training itself is not run here: a `cpu`-budget GOP takes most of an hour.
 """
 
-import sys
+from __future__ import annotations
 
-from stgs.cli import main
+import json
+from pathlib import Path
 
-if __name__ == "__main__":
-    sys.exit(main(["bench", "train", *sys.argv[1:]]))
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+
+from stgs.errors import StgsError
+from stgs.fsio import save_figure
+from stgs.train.config import BUDGETS, SWITCHES
+from stgs.tree import MODEL_META, TRAIN_REPORT
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise StgsError(f"{path}: cannot read ({exc})") from None
+
+
+def run_label(model_dir: Path) -> str:
+    """'all components' or the ablation switches the run was trained with, and its capacity, initial-point frames,
+    position learning rate and seed when they are not the budget's."""
+    config = _read_json(model_dir / MODEL_META).get("extra", {}).get("config", {})
+    off = [flag for key, flag in SWITCHES.items() if key in config and not config[key]]
+    label = f"{config.get('budget', '?')}: " + (" ".join(off) if off else "all components")
+    default, side = BUDGETS.get(config.get("budget")), config.get("grid_side")
+    if default is not None and isinstance(side, int) and side != default.grid_side:
+        label += f", {side * side:,} Gaussians"
+    frames = config.get("init_frames", 1)  # runs from before the setting triangulated their first frame only
+    if default is not None and isinstance(frames, int) and frames != default.init_frames:
+        label += f", init frames {frames}"
+    position_lr = config.get("lr", {}).get("position") if isinstance(config.get("lr"), dict) else None
+    if default is not None and isinstance(position_lr, float) and position_lr != default.lr.position:
+        label += f", position lr {position_lr:g}"
+    seed = config.get("seed", 0)
+    if default is not None and isinstance(seed, int) and seed != default.seed:
+        label += f", seed {seed}"
+    return label
+
+
+def distinct_labels(model_dirs: list[Path], labels: list[str]) -> list[str]:
+    """Runs whose settings read the same (e.g. one command on two versions of the code) are told apart by
+    their folder name."""
+    return [f"{label} ({d.name})" if labels.count(label) > 1 else label
+            for d, label in zip(model_dirs, labels, strict=True)]
+
+
+def curve_rows(label: str, report: dict) -> list[str]:
+    rows = []
+    for gop in report["gops"]:
+        for point in gop["curve"]:
+            psnr, ssim = point.get("val_psnr"), point.get("val_ssim")
+            rows.append(f"| {label} | {gop['gop']} | {point['iteration']} | {point['seconds'] / 60:.1f} "
+                        f"| {point['loss']:.4f} | {_num(psnr, '.2f')} | {_num(ssim, '.4f')} |")
+    return rows
+
+
+def gop_rows(label: str, report: dict) -> list[str]:
+    return [f"| {label} | {gop['gop']} | {gop['iterations']} | {gop['seconds'] / 60:.1f} | {gop['train_psnr']:.2f} "
+            f"| {_num(gop.get('val_psnr'), '.2f')} | {_num(gop.get('val_ssim'), '.4f')} | {gop['relocated']} "
+            f"| {gop['pruned']} |" for gop in report["gops"]]
+
+
+def eval_rows(label: str, evaluation: dict) -> list[str]:
+    rows = []
+    for stream, result in evaluation["streams"].items():
+        for gop in result["gops"]:
+            regions = f"{_num(gop.get('psnr_foreground'), '.2f')} / {_num(gop.get('psnr_background'), '.2f')}"
+            rows.append(f"| {label} | {stream} | {gop['gop']} | {gop['psnr']:.2f} | {gop['ssim']:.4f} "
+                        f"| {_num(gop.get('lpips'), '.4f')} | {regions} | {len(gop['frames'])} |")
+    return rows
+
+
+def _num(value: float | None, fmt: str) -> str:
+    return "-" if value is None else format(value, fmt)
+
+
+def plot(runs: list[tuple[str, dict]], path: Path) -> None:
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    for label, report in runs:
+        for gop in report["gops"]:
+            points = [p for p in gop["curve"] if p.get("val_psnr") is not None]
+            minutes = [p["seconds"] / 60 for p in points]
+            name = f"{label}, GOP {gop['gop']}" if len(report["gops"]) > 1 else label
+            axes[0].plot(minutes, [p["val_psnr"] for p in points], "o-", label=name)
+            axes[1].plot(minutes, [p.get("val_ssim") for p in points], "o-", label=name)
+    for ax, metric in zip(axes, ("PSNR (dB)", "SSIM"), strict=True):
+        ax.set_xlabel("training time (min, this machine)")
+        ax.set_ylabel(f"held-out {metric}")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle("stgs train: held-out quality vs training time")
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def main(model_dirs: list[Path], plot_path: Path) -> int:
+    runs = []
+    for model_dir in model_dirs:
+        report_path = model_dir / TRAIN_REPORT
+        if not report_path.is_file():
+            raise StgsError(f"{model_dir}: no train_report.json (not a finished stgs train run)")
+        runs.append((model_dir, run_label(model_dir), _read_json(report_path)))
+    labels = distinct_labels([d for d, _, _ in runs], [label for _, label, _ in runs])
+    runs = [(d, label, report) for (d, _, report), label in zip(runs, labels, strict=True)]
+    print("| run | GOP | iteration | training min | loss | held-out PSNR (dB) | held-out SSIM |")
+    print("|---|---|---|---|---|---|---|")
+    for _, label, report in runs:
+        print("\n".join(curve_rows(label, report)))
+    print()
+    print("| run | GOP | iterations | training min | train PSNR (dB) | held-out PSNR (dB) | held-out SSIM "
+          "| relocated | pruned |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for _, label, report in runs:
+        print("\n".join(gop_rows(label, report)))
+    evaluated = [(label, _read_json(d / "eval.json")) for d, label, _ in runs if (d / "eval.json").is_file()]
+    if evaluated:
+        print()
+        print("| run | stream | GOP | PSNR (dB) | SSIM | LPIPS | foreground / background PSNR (dB) "
+              "| frames x cameras |")
+        print("|---|---|---|---|---|---|---|---|")
+        for label, evaluation in evaluated:
+            print("\n".join(eval_rows(label, evaluation)))
+    plot([(label, report) for _, label, report in runs], plot_path)
+    print(f"\n<!-- plot: {plot_path} -->")
+    return 0

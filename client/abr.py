@@ -1,9 +1,12 @@
 """Adaptive bitrate rules: small objects behind one interface, defaults in one settings place.
 
 A rule gets an `AbrState` (ladder, throughput history, buffer level, the
-next GOP's keyframe and per-Representation segment sizes) and returns the
-index of a ladder rung. The keyframe part of every GOP is not adaptive: each
-rule counts its bits before it spends anything on features.
+next GOP's keyframe and per-Representation segment sizes, and for a download
+in flight its progress) and returns a `Decision`: the ladder rung, the rule
+that decided and the reason with the numbers it used (dash.js's
+SwitchRequest). The playback log keeps every decision. The keyframe part of
+every GOP is not adaptive: each rule counts its bits before it spends
+anything on features.
 
 - `ThroughputRule`: EWMA throughput with a fast and a slow half-life (the
   lower of the two, as dash.js does), times a safety factor, minus the
@@ -13,7 +16,9 @@ rule counts its bits before it spends anything on features.
   GOP (keyframe + features); choose argmax (V·(v_m + γp) − buffer) / size_m.
 - `DynamicRule`: throughput while the buffer is low, BOLA once it is
   full enough, with hysteresis (dash.js's DYNAMIC strategy).
-- `FixedRule`: one pinned Representation (`--qp`).
+- `FixedRule`: one pinned Representation (`qp`).
+- `AbandonRule`: judges a feature download in flight; drops it for the
+  lowest rung when it would outlast the buffer (None: no change).
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from stgs.errors import UserError
+from stgs.errors import FieldError
 
 
 @dataclass
@@ -52,6 +57,34 @@ class ThroughputSample:
     seconds: float
 
 
+@dataclass(frozen=True)
+class Decision:
+    """What a rule decided: a ladder rung, who decided it and why (dash.js's SwitchRequest)."""
+
+    index: int
+    """Ladder rung (0: lowest)."""
+    rule: str
+    """The rule that decided (DYNAMIC: the one of its two it used)."""
+    reason: str
+    """The numbers the rule used, in words."""
+
+    def to_json(self) -> dict:
+        return {"index": self.index, "rule": self.rule, "reason": self.reason}
+
+
+@dataclass(frozen=True)
+class InFlight:
+    """A feature download in progress, for the abandonment rule."""
+
+    rung: int
+    received: int
+    """Bytes so far."""
+    total: int | None
+    """Content-Length (None: unknown)."""
+    elapsed_s: float
+    """Media seconds since the request started."""
+
+
 @dataclass
 class AbrState:
     """What a rule sees when it decides the next GOP's feature Representation."""
@@ -72,6 +105,8 @@ class AbrState:
     """Size of the next GOP's media segment per rung (None: @bandwidth x duration)."""
     current: int | None = None
     """Rung chosen for the previous GOP."""
+    in_flight: InFlight | None = None
+    """The feature download being judged (AbandonRule only)."""
 
     def sizes(self) -> list[float]:
         """Feature bits of the next GOP per rung."""
@@ -83,8 +118,8 @@ class AbrState:
 class AbrRule(Protocol):
     name: str
 
-    def choose(self, state: AbrState) -> int:
-        """Index of the ladder rung for the next GOP."""
+    def choose(self, state: AbrState) -> Decision | None:
+        """The rung for the next GOP (None: no change, which only AbandonRule answers)."""
 
 
 def ewma_kbps(samples: Sequence[ThroughputSample], half_life_s: float) -> float | None:
@@ -112,16 +147,20 @@ class ThroughputRule:
     settings: AbrSettings = field(default_factory=AbrSettings)
     name: str = "throughput"
 
-    def choose(self, state: AbrState) -> int:
+    def choose(self, state: AbrState) -> Decision:
         kbps = throughput_kbps(state.samples, self.settings)
         if kbps is None:
-            return 0
+            return Decision(0, self.name, "no throughput sample yet: lowest rung")
         budget = kbps * 1e3 * self.settings.safety_factor - state.keyframe_bits / state.segment_s
+        sizes = state.sizes()
         best = 0
-        for i, bits in enumerate(state.sizes()):
+        for i, bits in enumerate(sizes):
             if bits / state.segment_s <= budget:
                 best = i
-        return best
+        return Decision(best, self.name, f"estimate {kbps:.0f} kbit/s x {self.settings.safety_factor:g} - keyframe "
+                        f"{state.keyframe_bits / state.segment_s / 1e3:.0f} = budget {budget / 1e3:.0f} kbit/s; "
+                        f"rung {best} needs "
+                        f"{sizes[best] / state.segment_s / 1e3:.0f}")
 
 
 @dataclass
@@ -138,10 +177,12 @@ class BolaRule:
         gp = max(utilities[-1] - 1, 1e-9) / (target / min_buffer - 1)
         return sizes, utilities, min_buffer / gp, gp
 
-    def choose(self, state: AbrState) -> int:
+    def choose(self, state: AbrState) -> Decision:
         sizes, utilities, v, gp = self.parameters(state)
         scores = [(v * (u + gp) - state.buffer_s) / s for u, s in zip(utilities, sizes, strict=True)]
-        return max(range(len(scores)), key=lambda i: (scores[i], i))
+        best = max(range(len(scores)), key=lambda i: (scores[i], i))
+        return Decision(best, self.name, f"buffer {state.buffer_s:.2f} s, V {v:.3g}, gamma*p {gp:.3g}: "
+                        f"best score {scores[best]:.3g} per bit")
 
 
 @dataclass
@@ -155,12 +196,16 @@ class DynamicRule:
         self.throughput = ThroughputRule(self.settings)
         self.bola = BolaRule(self.settings)
 
-    def choose(self, state: AbrState) -> int:
-        if self.using_bola and state.buffer_s < self.settings.dynamic_bola_off * state.buffer_capacity_s:
+    def choose(self, state: AbrState) -> Decision:
+        s = self.settings
+        if self.using_bola and state.buffer_s < s.dynamic_bola_off * state.buffer_capacity_s:
             self.using_bola = False
-        elif not self.using_bola and state.buffer_s >= self.settings.dynamic_bola_on * state.buffer_capacity_s:
+        elif not self.using_bola and state.buffer_s >= s.dynamic_bola_on * state.buffer_capacity_s:
             self.using_bola = True
-        return (self.bola if self.using_bola else self.throughput).choose(state)
+        inner = (self.bola if self.using_bola else self.throughput).choose(state)
+        band = (f">= {s.dynamic_bola_off:g}" if self.using_bola else f"< {s.dynamic_bola_on:g}")
+        return Decision(inner.index, inner.rule, f"dynamic: buffer {state.buffer_s:.2f} s {band} x capacity "
+                        f"{state.buffer_capacity_s:.2f} s; {inner.reason}")
 
 
 @dataclass
@@ -168,29 +213,41 @@ class FixedRule:
     index: int
     name: str = "fixed"
 
-    def choose(self, state: AbrState) -> int:
-        return self.index
+    def choose(self, state: AbrState) -> Decision:
+        return Decision(self.index, self.name, f"pinned rung {self.index}")
+
+
+@dataclass
+class AbandonRule:
+    """Drop an in-flight feature download that would outlast the buffer when restarting at the lowest rung
+    would not (dash.js's AbandonRequestsRule, in spirit)."""
+
+    settings: AbrSettings = field(default_factory=AbrSettings)
+    name: str = "abandon"
+
+    def choose(self, state: AbrState) -> Decision | None:
+        f = state.in_flight
+        if f is None or f.rung == 0:
+            return None
+        lowest_bytes = state.sizes()[0] / 8
+        if not should_abandon(f.received, f.total, f.elapsed_s, state.buffer_s, lowest_bytes, self.settings):
+            return None
+        rate = f.received / f.elapsed_s
+        return Decision(0, self.name, f"{(f.total - f.received) / rate:.2f} s left at {rate * 8 / 1e3:.0f} kbit/s "
+                        f"> buffer {state.buffer_s:.2f} s; the lowest rung takes {lowest_bytes / rate:.2f} s")
 
 
 RULES = {"throughput": ThroughputRule, "bola": BolaRule, "dynamic": DynamicRule}
 """`--abr` names."""
 
 
-def make_rule(name: str, ladder_qps: Sequence[int | None], qp: int | None, settings: AbrSettings,
-              option: str = "--qp") -> AbrRule:
-    """The rule `name`, or a FixedRule on the rung of `qp` when one is pinned (`option` names it in errors)."""
+def make_rule(name: str, ladder_qps: Sequence[int | None], qp: int | None, settings: AbrSettings) -> AbrRule:
+    """The rule `name`, or a FixedRule on the rung of `qp` when one is pinned."""
     if qp is None:
         return RULES[name](settings)
     if qp not in ladder_qps:
-        raise UserError(f"{option} {qp}: the scene offers QPs {', '.join(str(q) for q in ladder_qps)}")
+        raise FieldError("qp", f"{qp} is not offered: the scene has QPs {', '.join(str(q) for q in ladder_qps)}")
     return FixedRule(list(ladder_qps).index(qp))
-
-
-def deciding_rule(rule: AbrRule) -> str:
-    """Name of the rule that made `rule`'s last decision (DYNAMIC: the one of its two it used)."""
-    if isinstance(rule, DynamicRule):
-        return "bola" if rule.using_bola else "throughput"
-    return rule.name
 
 
 def should_abandon(received: int, total: int | None, elapsed_s: float, buffer_s: float, lowest_bytes: float,

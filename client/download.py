@@ -39,6 +39,10 @@ class DownloadSettings:
     connections: int = 4
     """Keep-alive connections to the server."""
 
+    def backoff(self, attempt: int) -> float:
+        """Seconds to wait before retry number `attempt` (1, 2, ...)."""
+        return min(self.max_backoff_s, self.backoff_s * 2 ** (attempt - 1))
+
 
 @dataclass
 class Sample:
@@ -77,8 +81,8 @@ class AbandonError(Exception):
         self.sample = sample
 
 
-class _RetryableError(Exception):
-    pass
+class TransientError(Exception):
+    """A failure worth retrying: connection error, timeout, truncated body, HTTP 408/429/5xx."""
 
 
 Progress = Callable[[int, int | None, float], bool]
@@ -112,25 +116,27 @@ class Downloader:
         last = "no attempt"
         for attempt in range(1, attempts + 1):
             try:
-                data, sample = await self._once(url, kind, max_bytes, progress)
-            except _RetryableError as exc:
+                data, sample = await self.fetch_once(url, kind, max_bytes, progress)
+            except TransientError as exc:
                 last = str(exc)
                 if attempt < attempts:
                     self.retries += 1
-                    await asyncio.sleep(min(self.settings.max_backoff_s, self.settings.backoff_s * 2 ** (attempt - 1)))
+                    await asyncio.sleep(self.settings.backoff(attempt))
                 continue
             sample.attempts = attempt
-            self.samples.append(sample)
             return data
         raise FetchError(url, last, attempts)
 
-    async def _once(self, url: str, kind: str, max_bytes: int, progress: Progress | None) -> tuple[bytes, Sample]:
+    async def fetch_once(self, url: str, kind: str, max_bytes: int,
+                         progress: Progress | None = None) -> tuple[bytes, Sample]:
+        """One attempt at `url` (no retry): its body and sample; raises TransientError, FetchError or
+        AbandonError. Every finished transfer is appended to `samples`."""
         start = time.perf_counter()
         try:
             async with self._session.get(url) as resp:
                 ttfb = time.perf_counter() - start
                 if resp.status in RETRY_STATUS:
-                    raise _RetryableError(f"HTTP {resp.status}")
+                    raise TransientError(f"HTTP {resp.status}")
                 if resp.status != 200:
                     raise FetchError(url, f"HTTP {resp.status} {resp.reason or ''}".rstrip())
                 length = resp.content_length
@@ -146,7 +152,9 @@ class Downloader:
                         raise AbandonError(Sample(url, kind, len(body), time.perf_counter() - start, ttfb,
                                                resp.status, abandoned=True))
                 if length is not None and len(body) != length:
-                    raise _RetryableError(f"truncated body ({len(body)} of {length} bytes)")
-                return bytes(body), Sample(url, kind, len(body), time.perf_counter() - start, ttfb, resp.status)
-        except (aiohttp.ClientError, asyncio.TimeoutError, ConnectionError) as exc:
-            raise _RetryableError(f"{type(exc).__name__}: {exc}".rstrip(": ")) from exc
+                    raise TransientError(f"truncated body ({len(body)} of {length} bytes)")
+                sample = Sample(url, kind, len(body), time.perf_counter() - start, ttfb, resp.status)
+                self.samples.append(sample)
+                return bytes(body), sample
+        except (TimeoutError, aiohttp.ClientError, ConnectionError) as exc:
+            raise TransientError(f"{type(exc).__name__}: {exc}".rstrip(": ")) from exc

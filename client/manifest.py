@@ -13,6 +13,15 @@ import math
 from dataclasses import dataclass
 from urllib.parse import urljoin
 
+from stgs.limits import (
+    MAX_CAPACITY,
+    MAX_GOP_SIZE,
+    MAX_GOPS,
+    MAX_PE_FREQS,
+    MAX_SEGMENT_BYTES,
+    MAX_WINDOW,
+    SEGMENT_SLACK,
+)
 from stgs.model.gop import GOPShape
 from stgs.mpd import (
     FEATURE_SCHEME,
@@ -24,18 +33,8 @@ from stgs.mpd import (
     expand_template,
     parse_mpd,
 )
+from stgs.tree import qp_of
 
-MAX_CAPACITY = 1 << 22
-"""Most Gaussians per GOP the client accepts (4 M; 1.3 GB of features per 62-frame GOP)."""
-MAX_GOP_SIZE = 1024
-MAX_WINDOW = 16
-MAX_PE_FREQS = 16
-MAX_GOPS = 1 << 20
-SEGMENT_SLACK = 1.25
-"""A segment may exceed @bandwidth x duration by this factor (the packager's @bandwidth covers the largest)."""
-MAX_SEGMENT_BYTES = 1 << 30
-"""Fixed cap on any segment, whatever the manifest says."""
-MAX_INIT_BYTES = 1 << 20
 DURATION_PRECISION_S = 1e-3
 
 
@@ -74,9 +73,6 @@ def _bounded_int(fields: dict[str, str], key: str, lo: int, hi: int) -> int:
     return value
 
 
-def _qp_of(rep_id: str) -> int | None:
-    return int(rep_id[2:]) if rep_id.startswith("qp") and rep_id[2:].isdigit() else None
-
 
 class Presentation:
     """A parsed, checked StreamSTGS MPD with URL construction for every segment."""
@@ -102,7 +98,7 @@ class Presentation:
         capacity = _bounded_int(fields, "capacity", 1, MAX_CAPACITY)
         self.shape = GOPShape(capacity, _bounded_int(fields, "gop_size", 2, MAX_GOP_SIZE),
                               _bounded_int(fields, "window", 1, MAX_WINDOW),
-                              _bounded_int(fields, "pe_freqs", 1, MAX_PE_FREQS))
+                              _bounded_int(fields, "pe_freqs", 0, MAX_PE_FREQS))
         side = _bounded_int(fields, "grid_side", 1, math.isqrt(MAX_CAPACITY))
         if side * side != capacity:
             raise MPDError(f"keyframe descriptor: grid_side {side} does not match capacity {capacity}")
@@ -120,7 +116,7 @@ class Presentation:
         self.num_gops = max(1, math.ceil((mpd.duration - DURATION_PRECISION_S) / self.segment_seconds))
         if self.num_gops > MAX_GOPS:
             raise MPDError(f"{self.num_gops} GOPs is over the client limit of {MAX_GOPS}")
-        self.ladder = sorted((Rung(r.id, r.bandwidth, _qp_of(r.id)) for r in self.features.representations),
+        self.ladder = sorted((Rung(r.id, r.bandwidth, qp_of(r.id)) for r in self.features.representations),
                              key=lambda r: (r.bandwidth, r.rep_id))
         self.keyframe_rep = self.keyframes.representations[0]
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from stgs.codec.video import require_ffmpeg
-from stgs.errors import UserError
+from stgs.errors import StgsError
 from stgs.fsio import DIR_MODE, FILE_MODE, atomic_write_bytes, encode_png, to_uint8
 
 
@@ -36,7 +36,7 @@ class PngSink(NullSink):
     def __init__(self, folder: Path):
         self.folder = Path(folder)
         if self.folder.exists() and not self.folder.is_dir():
-            raise UserError(f"{folder}: exists and is not a folder")
+            raise StgsError(f"{folder}: exists and is not a folder")
         self.folder.mkdir(parents=True, exist_ok=True, mode=DIR_MODE)
 
     def write(self, frame: int, image) -> None:
@@ -69,7 +69,7 @@ class Mp4Sink(NullSink):
         except BrokenPipeError:
             err = self.proc.stderr.read().decode(errors="replace").strip()
             self.abort()
-            raise UserError(f"{self.path}: ffmpeg stopped writing the video ({err})") from None
+            raise StgsError(f"{self.path}: ffmpeg stopped writing the video ({err})") from None
 
     def write(self, frame: int, image) -> None:
         data = np.ascontiguousarray(to_uint8(image)).tobytes()
@@ -84,7 +84,7 @@ class Mp4Sink(NullSink):
         err = self.proc.stderr.read().decode(errors="replace").strip()
         if self.proc.wait() != 0:
             self.abort()
-            raise UserError(f"{self.path}: ffmpeg failed to write the video ({err})")
+            raise StgsError(f"{self.path}: ffmpeg failed to write the video ({err})")
         os.chmod(self.tmp, FILE_MODE)
         os.replace(self.tmp, self.path)
 

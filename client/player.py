@@ -27,40 +27,40 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
-from stgs.client.abr import (
-    RULES,
-    AbrSettings,
-    AbrState,
-    FixedRule,
-    ThroughputSample,
-    deciding_rule,
-    make_rule,
-    should_abandon,
-)
-from stgs.client.abr import throughput_kbps as estimate_kbps
+
+from stgs.client.abr import RULES, AbrSettings, Decision, make_rule
 from stgs.client.clock import PlaybackClock
-from stgs.client.download import AbandonError, Downloader, DownloadSettings, FetchError
-from stgs.client.manifest import MAX_INIT_BYTES, Presentation
+from stgs.client.download import AbandonError, Downloader, DownloadSettings, FetchError, TransientError
+from stgs.client.manifest import Presentation
 from stgs.client.output import NullSink, open_sink
 from stgs.client.playlog import GOPRecord, playback_log
+from stgs.client.schedule import (
+    Abandoned,
+    Done,
+    Failed,
+    Fetched,
+    FetchSchedule,
+    Outcome,
+    Request,
+    ScheduleError,
+    Step,
+    Wait,
+)
 from stgs.client.view import Trajectory, ViewSpec, build_trajectory, parse_scene_cameras
-
 from stgs.codec.features import features_from_frames
 from stgs.codec.keyframe import Keyframe, KeyframeError, decode_keyframe
 from stgs.codec.video import decode_segment
-from stgs.errors import UserError
+from stgs.errors import FieldError, StgsError
 from stgs.fsio import atomic_write_bytes
+from stgs.limits import MAX_DOC_BYTES, MAX_MPD_BYTES
 from stgs.model.native_deform import check_precision
 from stgs.model.view import FrameRenderer
-from stgs.mpd import MAX_MPD_BYTES, MPDError
+from stgs.mpd import MPDError
 from stgs.native.build import NativeUnavailableError
 from stgs.tree import CAMERAS, STATS
 
-MAX_DOC_BYTES = 16 << 20
-"""Cap on stats.json and cameras.json."""
 
-
-class PlaybackError(UserError):
+class PlaybackError(StgsError):
     """Playback could not go on (after the retries and fallbacks the log records)."""
 
 
@@ -103,33 +103,24 @@ class PlayConfig:
 
     def validate(self) -> None:
         if self.abr not in RULES:
-            raise UserError(f"--abr must be one of {', '.join(RULES)}, got {self.abr!r}")
+            raise FieldError("abr", f"must be one of {', '.join(RULES)}, got {self.abr!r}")
         if self.buffer_s is not None and not self.buffer_s > 0:
-            raise UserError("--buffer must be a positive number of seconds")
+            raise FieldError("buffer_s", "must be a positive number of seconds")
         if not (math.isfinite(self.start_s) and self.start_s >= 0):
-            raise UserError("--start must be a non-negative number of seconds")
+            raise FieldError("start_s", "must be a non-negative number of seconds")
         if self.duration_s is not None and not self.duration_s > 0:
-            raise UserError("--duration must be a positive number of seconds")
+            raise FieldError("duration_s", "must be a positive number of seconds")
         if self.max_decoded < 2:
-            raise UserError("max_decoded must be >= 2 (the GOP playing and the next)")
+            raise FieldError("max_decoded", "must be >= 2 (the GOP playing and the next)")
         if not (math.isfinite(self.speed) and self.speed > 0) or (self.speed != 1 and self.decode):
-            raise UserError("speed must be positive, and other than 1 only without decoding")
+            raise FieldError("speed", "must be positive, and other than 1 only without decoding")
         if self.decode:
             try:
                 check_precision(self.precision)
             except (ValueError, NativeUnavailableError) as err:
-                raise UserError(f"--precision: {err}") from None
+                raise FieldError("precision", str(err)) from None
             if self.precision != "fp32" and self.native is False:
-                raise UserError("--precision other than fp32 needs the native renderer")
-
-
-@dataclass
-class Downloaded:
-    index: int
-    rung: int
-    keyframe: bytes
-    init: bytes
-    media: bytes
+                raise FieldError("precision", "other than fp32 needs the native renderer")
 
 
 @dataclass
@@ -162,14 +153,15 @@ class Session:
         span = pres.span(cfg.start_s, cfg.duration_s, cfg.buffer_s)
         self.k0, self.frames, self.gops, self.capacity_s = span.first_gop, span.frames, span.gops, span.buffer_s
         self.first_frame = self.k0 * self.G
-        self.rule = make_rule(cfg.abr, [r.qp for r in pres.ladder], cfg.qp, cfg.abr_settings)
         self.records = {k: GOPRecord(k) for k in self.gops}
-        self.inits: dict[str, bytes] = {}
-        self.samples: list[ThroughputSample] = []
-        self.wasted_bytes = 0
         self.speed = cfg.speed
         self.t_start = self.now()
         self.clock = PlaybackClock(self.T, self.capacity_s, self.k0)
+        rep_ids = [r.rep_id for r in pres.ladder]
+        self.schedule = FetchSchedule(
+            pres, make_rule(cfg.abr, [r.qp for r in pres.ladder], cfg.qp, cfg.abr_settings), self.buffer_level,
+            self.capacity_s, lambda k: _stats_sizes(stats, k, rep_ids) if stats is not None else None,
+            cfg.abr_settings, dl.settings)
 
     def now(self) -> float:
         """The playback clock: wall seconds scaled by PlayConfig.speed (media seconds)."""
@@ -181,111 +173,74 @@ class Session:
     def buffer_level(self) -> float:
         return self.clock.buffer_level(self.now())
 
-    # --- fetching ---
+    # --- fetching: the schedule decides, this performs its requests with aiohttp ---
 
-    def abr_state(self, k: int, current: int | None, keyframe_bits: float) -> AbrState:
-        ladder = self.pres.ladder
-        sizes = _stats_sizes(self.stats, k, [r.rep_id for r in ladder]) if self.stats is not None else None
-        return AbrState([r.bandwidth for r in ladder], self.T, self.buffer_level(), self.capacity_s,
-                        list(self.samples), keyframe_bits, sizes, current)
+    async def drive(self, steps: Step) -> Fetched:
+        """Run one of the schedule's step generators to its end; ScheduleError becomes PlaybackError."""
+        outcome = None
+        try:
+            while True:
+                item = steps.send(outcome)
+                if isinstance(item, Wait):
+                    await self.sleep(item.seconds)
+                    outcome = None
+                else:
+                    outcome = await self.perform(item)
+        except StopIteration as stop:
+            return stop.value
+        except ScheduleError as exc:
+            raise PlaybackError(str(exc)) from None
+
+    async def perform(self, req: Request) -> Outcome:
+        """One attempt at the request (times in media seconds)."""
+        pres = self.pres
+        url = (pres.keyframe_url(req.gop) if req.kind == "keyframe" else
+               pres.init_url(req.rep) if req.kind == "init" else pres.media_url(req.rep, req.gop))
+        verdict: list[Decision] = []
+
+        def progress(received: int, total: int | None, elapsed: float) -> bool:
+            decision = req.judge(received, total, elapsed * self.speed)
+            if decision is not None:
+                verdict.append(decision)
+            return decision is not None
+
+        try:
+            data, sample = await self.dl.fetch_once(url, req.kind, req.max_bytes,
+                                                    progress if req.judge is not None else None)
+        except AbandonError as exc:
+            return Abandoned(exc.sample.bytes, exc.sample.seconds * self.speed, verdict[0])
+        except TransientError as exc:
+            return Failed(f"{url}: {exc}", retryable=True)
+        except FetchError as exc:
+            return Failed(str(exc), retryable=False)
+        return Done(len(data), sample.seconds * self.speed, sample.ttfb * self.speed, data)
 
     async def fetch_loop(self, downloaded: dict[int, asyncio.Future]) -> None:
-        current = None
         for k in self.gops:
             while not self.clock.has_room(self.now()):
                 await self.sleep(min(0.05, self.T / 20))
+            rec = self.records[k]
+            start = self.now()
+            rec.fetch_start_s = start - self.t_start
             try:
-                item = await self.fetch_gop(k, current)
-            except (FetchError, MPDError) as exc:
-                downloaded[k].set_exception(PlaybackError(f"GOP {k}: {exc}"))
+                item = await self.drive(self.schedule.fetch_gop(k, rec))
+            except (PlaybackError, MPDError) as exc:
+                downloaded[k].set_exception(exc if isinstance(exc, PlaybackError) else PlaybackError(f"GOP {k}: {exc}"))
                 return
-            current = item.rung
+            rec.download_s = self.now() - start
+            rec.fetch_end_s = rec.fetch_start_s + rec.download_s
             downloaded[k].set_result(item)
             self.clock.fetched_end = k + 1
 
-    async def fetch_gop(self, k: int, current: int | None) -> Downloaded:
-        """GOP k's keyframe (not adaptive, so first: its download is also a throughput sample), then the
-        feature segment of the rung the ABR rule picks with that keyframe's exact size in its budget."""
-        rec = self.records[k]
-        start = self.now()
-        rec.fetch_start_s = start - self.t_start
-        retries = self.dl.retries
-        keyframe = await self._fetch(self.pres.keyframe_url(k), "keyframe", self.pres.max_keyframe_bytes())
-        state = self.abr_state(k, current, len(keyframe) * 8)
-        rung = self.rule.choose(state)
-        rec.rule = deciding_rule(self.rule)
-        rec.buffer_s, rec.estimate_kbps = state.buffer_s, estimate_kbps(state.samples, self.cfg.abr_settings)
-        rung, init, media = await self.fetch_features(k, rung, state)
-        rec.download_s = self.now() - start
-        rec.fetch_end_s = rec.fetch_start_s + rec.download_s
-        rec.keyframe_bytes, rec.feature_bytes = len(keyframe), len(media)
-        if self.dl.retries > retries:
-            rec.events.append(f"{self.dl.retries - retries} retried request(s)")
-        return Downloaded(k, rung, keyframe, init, media)
-
-    async def _fetch(self, url: str, kind: str, max_bytes: int, progress=None) -> bytes:
-        data = await self.dl.fetch(url, kind, max_bytes, progress)
-        sample = self.dl.samples[-1]
-        if kind in ("keyframe", "media"):
-            self.samples.append(ThroughputSample(sample.bytes, sample.seconds * self.speed))
-        return data
-
-    async def init_segment(self, rep: str, rec: GOPRecord) -> bytes:
-        """The init segment of `rep`, downloaded once (its bytes count to the GOP that needed it first)."""
-        if rep not in self.inits:
-            self.inits[rep] = await self._fetch(self.pres.init_url(rep), "init", MAX_INIT_BYTES)
-            rec.init_bytes += len(self.inits[rep])
-        return self.inits[rep]
-
-    async def fetch_features(self, k: int, rung: int, state: AbrState) -> tuple[int, bytes, bytes]:
-        """(rung, init, media) of GOP k; abandons a too-slow download and falls back to the lowest rung on errors."""
-        rec = self.records[k]
-        lowest_bytes = state.sizes()[0] / 8
-        adaptive = not isinstance(self.rule, FixedRule)
-
-        def progress(received: int, total: int | None, elapsed: float) -> bool:
-            return adaptive and rung > 0 and should_abandon(received, total, elapsed * self.speed,
-                                                            self.buffer_level(), lowest_bytes, self.cfg.abr_settings)
-        rep = self.pres.ladder[rung].rep_id
-        try:
-            init = await self.init_segment(rep, rec)
-            url = self.pres.media_url(rep, k)
-            media = await self._fetch(url, "media", self.pres.max_media_bytes(rep), progress)
-            rec.ttfb_s = self.dl.samples[-1].ttfb
-            return self._chosen(rec, rung, init, media)
-        except AbandonError as exc:
-            self.samples.append(ThroughputSample(exc.sample.bytes, exc.sample.seconds * self.speed))
-            rec.abandoned_bytes += exc.sample.bytes
-            self.wasted_bytes += exc.sample.bytes
-            rec.events.append(f"abandoned {rep} after {exc.sample.bytes} bytes "
-                              f"({exc.sample.seconds * self.speed:.2f} s)")
-        except FetchError as exc:
-            if rung == 0:
-                raise
-            rec.events.append(f"fallback from {rep}: {exc}")
-        return await self.fetch_lowest(k, rec)
-
-    async def fetch_lowest(self, k: int, rec: GOPRecord) -> tuple[int, bytes, bytes]:
-        """(0, init, media) of GOP k at the lowest rung: the fallback after an abandoned or failed download."""
-        low = self.pres.ladder[0].rep_id
-        init = await self.init_segment(low, rec)
-        media = await self._fetch(self.pres.media_url(low, k), "media", self.pres.max_media_bytes(low))
-        return self._chosen(rec, 0, init, media)
-
-    def _chosen(self, rec: GOPRecord, rung: int, init: bytes, media: bytes) -> tuple[int, bytes, bytes]:
-        r = self.pres.ladder[rung]
-        rec.rep, rec.qp = r.rep_id, r.qp
-        return rung, init, media
-
     # --- decoding ---
 
-    def decode_keyframe(self, item: Downloaded) -> Keyframe:
+    def decode_keyframe(self, item: Fetched) -> Keyframe:
         start = time.perf_counter()
         kf = decode_keyframe(item.keyframe, self.pres.shape, item.index, self.pres.max_keyframe_bytes())
         self.records[item.index].keyframe_decode_s = time.perf_counter() - start
         return kf
 
-    def decode_features(self, item: Downloaded, kf: Keyframe) -> ReadyGOP:
+    def decode_features(self, item: Fetched, kf: Keyframe) -> ReadyGOP:
         rec, side = self.records[item.index], self.pres.grid_side
         start = time.perf_counter()
         frames = decode_segment(item.init, item.media, self.pres.shape.num_features, 4 * side, 4 * side)
@@ -295,32 +250,29 @@ class Session:
         rec.feature_decode_s, rec.dequantise_s = mid - start, time.perf_counter() - mid
         return ReadyGOP(item.index, renderer)
 
-    async def decode_gop(self, item: Downloaded) -> ReadyGOP:
-        rec = self.records[item.index]
+    async def decode_gop(self, item: Fetched) -> ReadyGOP:
+        """Decode one GOP; a rejected keyframe is downloaded once more, features that do not decode fall back to
+        the lowest rung (the schedule decides both)."""
+        k, rec = item.index, self.records[item.index]
         if not self.cfg.decode:
-            return ReadyGOP(item.index, None)
+            return ReadyGOP(k, None)
         try:
             kf = await asyncio.to_thread(self.decode_keyframe, item)
-        except KeyframeError as exc:  # one fresh download, in case it was damaged in transit
-            rec.events.append(f"keyframe rejected, downloaded again: {exc}")
-            item.keyframe = await self._fetch(self.pres.keyframe_url(item.index), "keyframe",
-                                              self.pres.max_keyframe_bytes())
+        except KeyframeError as exc:
+            item.keyframe = (await self.drive(self.schedule.refetch_keyframe(k, rec, str(exc)))).keyframe
             try:
                 kf = await asyncio.to_thread(self.decode_keyframe, item)
             except KeyframeError as again:
-                raise PlaybackError(f"keyframe segment of GOP {item.index}: {again}") from None
+                raise PlaybackError(f"keyframe segment of GOP {k}: {again}") from None
         try:
             return await asyncio.to_thread(self.decode_features, item, kf)
         except ValueError as exc:
-            if item.rung == 0:
-                raise PlaybackError(f"feature segment of GOP {item.index}: {exc}") from None
-            rec.events.append(f"fallback from {rec.rep}: feature segment does not decode ({exc})")
-        item.rung, item.init, item.media = await self.fetch_lowest(item.index, rec)
-        rec.feature_bytes += len(item.media)
+            lowest = await self.drive(self.schedule.fallback(k, rec, item.rung, str(exc)))
+        item.rung, item.init, item.media = lowest.rung, lowest.init, lowest.media
         try:
             return await asyncio.to_thread(self.decode_features, item, kf)
         except ValueError as exc:
-            raise PlaybackError(f"feature segment of GOP {item.index}: {exc}") from None
+            raise PlaybackError(f"feature segment of GOP {k}: {exc}") from None
 
     async def decode_loop(self, downloaded: dict[int, asyncio.Future], ready: dict[int, asyncio.Future],
                           slots: asyncio.Semaphore) -> None:
@@ -329,8 +281,8 @@ class Session:
                 item = await downloaded[k]
                 await slots.acquire()
                 ready[k].set_result(await self.decode_gop(item))
-            except (PlaybackError, FetchError) as exc:
-                ready[k].set_exception(exc if isinstance(exc, PlaybackError) else PlaybackError(f"GOP {k}: {exc}"))
+            except PlaybackError as exc:
+                ready[k].set_exception(exc)
                 return
 
     # --- playing ---
@@ -436,7 +388,8 @@ class Session:
 
     def summary(self, error: BaseException | None) -> dict:
         return playback_log([self.records[k] for k in self.gops], self.clock, url=self.cfg.url,
-                            abr=self.rule.name, wasted_bytes=self.wasted_bytes, retries=self.dl.retries,
+                            abr=self.schedule.rule.name, wasted_bytes=self.schedule.wasted_bytes,
+                            retries=self.schedule.retries + self.dl.retries,
                             error=error, gops_planned=len(self.gops),
                             extra={"realtime": self.cfg.realtime, "decode": self.cfg.decode})
 

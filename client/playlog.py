@@ -19,6 +19,10 @@ class GOPRecord:
     qp: int | None = None
     rule: str = ""
     """Rule that chose the Representation (dynamic: which of its two)."""
+    decisions: list[dict] = field(default_factory=list)
+    """Every decision about this GOP's rung (the ABR choice, abandonment, fallbacks): rule, index, reason."""
+    requests: list[dict] = field(default_factory=list)
+    """Every request made for this GOP, in order: kind, rep and outcome."""
     buffer_s: float = 0.0
     """Buffer level when the choice was made."""
     estimate_kbps: float | None = None
@@ -71,11 +75,12 @@ def gop_row(r: GOPRecord) -> dict:
             "stall_s": r.stall_s, "fetch_start_s": r.fetch_start_s, "fetch_end_s": r.fetch_end_s,
             "play_start_s": r.play_start_s, "presented": r.presented, "render_ms": r.render_ms,
             "deform_ms_mean": mean(r.deform_ms), "splat_ms_mean": mean(r.splat_ms), "dropped": r.dropped,
-            "latency_ms": r.latency_ms, "abandoned_bytes": r.abandoned_bytes, "events": r.events}
+            "latency_ms": r.latency_ms, "abandoned_bytes": r.abandoned_bytes, "events": r.events,
+            "decisions": r.decisions, "requests": r.requests}
 
 
 def playback_log(records: list[GOPRecord], clock: PlaybackClock, *, url: str, abr: str, wasted_bytes: int,
-                 retries: int, error: BaseException | None, gops_planned: int, extra: dict | None = None) -> dict:
+                 retries: int, error: BaseException | str | None, gops_planned: int, extra: dict | None = None) -> dict:
     """The log document of one playback (records of every planned GOP, in order)."""
     recs = [r for r in records if r.rep]
     played = [r for r in recs if r.presented]

@@ -7,13 +7,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from stgs.camera import Camera, intrinsics, look_at, resize, rig_orbit, surrounds
-from stgs.errors import UserError
+from stgs.errors import FieldError, StgsError
+from stgs.limits import MAX_IMAGE_SIDE, MAX_PATH_CAMERAS
 from stgs.model.gop import GOPModel
 from stgs.model.view import framing_orbit
-from stgs.tree import CAMERAS_FORMAT
-
-MAX_PATH_CAMERAS = 100_000
-MAX_IMAGE_SIDE = 8192
+from stgs.tree import CAMERAS, CAMERAS_FORMAT
 
 
 @dataclass
@@ -41,7 +39,7 @@ class ViewSpec:
     def size(self, default: tuple[int, int] = (640, 360)) -> tuple[int, int]:
         w, h = self.width or default[0], self.height or default[1]
         if not (1 <= w <= MAX_IMAGE_SIDE and 1 <= h <= MAX_IMAGE_SIDE):
-            raise UserError(f"image size {w}x{h} is outside 1..{MAX_IMAGE_SIDE}")
+            raise StgsError(f"image size {w}x{h} is outside 1..{MAX_IMAGE_SIDE}")
         return w, h
 
 
@@ -50,7 +48,7 @@ class Trajectory:
 
     def __init__(self, cameras: list[Camera]):
         if not cameras:
-            raise UserError("a trajectory needs at least one camera")
+            raise StgsError("a trajectory needs at least one camera")
         self.cameras = cameras
 
     def camera(self, j: int) -> Camera:
@@ -60,21 +58,21 @@ class Trajectory:
 def parse_scene_cameras(doc: object) -> list[Camera]:
     """Cameras of a cameras.json document (from the network: checked, never trusted)."""
     if not isinstance(doc, dict) or doc.get("format") != CAMERAS_FORMAT or not isinstance(doc.get("cameras"), list):
-        raise UserError(f"cameras.json is not a {CAMERAS_FORMAT} document")
-    return _cameras(doc["cameras"], "cameras.json")
+        raise StgsError(f"cameras.json is not a {CAMERAS_FORMAT} document")
+    return _cameras(doc["cameras"], CAMERAS)
 
 
 def _cameras(items: list, where: str) -> list[Camera]:
     if len(items) > MAX_PATH_CAMERAS:
-        raise UserError(f"{where}: more than {MAX_PATH_CAMERAS} cameras")
+        raise StgsError(f"{where}: more than {MAX_PATH_CAMERAS} cameras")
     cameras = []
     for i, item in enumerate(items):
         try:
             cam = Camera.from_json(item)
         except (KeyError, TypeError, ValueError) as exc:
-            raise UserError(f"{where}: camera {i} is malformed ({exc})") from None
+            raise StgsError(f"{where}: camera {i} is malformed ({exc})") from None
         if not (1 <= cam.width <= MAX_IMAGE_SIDE and 1 <= cam.height <= MAX_IMAGE_SIDE):
-            raise UserError(f"{where}: camera {cam.name!r} has image size {cam.width}x{cam.height}")
+            raise StgsError(f"{where}: camera {cam.name!r} has image size {cam.width}x{cam.height}")
         cameras.append(cam)
     return cameras
 
@@ -83,10 +81,10 @@ def load_path_file(path: Path) -> list[Camera]:
     try:
         doc = json.loads(Path(path).read_text())
     except (OSError, json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise UserError(f"{path}: cannot read the camera path ({exc})") from None
+        raise StgsError(f"{path}: cannot read the camera path ({exc})") from None
     items = doc.get("cameras") if isinstance(doc, dict) else doc
     if not isinstance(items, list):
-        raise UserError(f"{path}: a camera path is a JSON list of cameras or {{\"cameras\": [...]}}")
+        raise StgsError(f"{path}: a camera path is a JSON list of cameras or {{\"cameras\": [...]}}")
     return _cameras(items, str(path))
 
 
@@ -96,10 +94,10 @@ def build_trajectory(spec: ViewSpec, scene_cameras: list[Camera] | None, first_g
     surround it (a trained capture has walls around the action), else frames the first GOP's Gaussians."""
     if spec.camera is not None:
         if not scene_cameras:
-            raise UserError("--camera needs the scene's cameras.json beside the MPD, and this scene has none")
+            raise FieldError("camera", "needs the scene's cameras.json beside the MPD, and this scene has none")
         by_name = {c.name: c for c in scene_cameras}
         if spec.camera not in by_name:
-            raise UserError(f"no camera {spec.camera!r} in this scene; it has {', '.join(by_name)}")
+            raise StgsError(f"no camera {spec.camera!r} in this scene; it has {', '.join(by_name)}")
         cam = by_name[spec.camera]
         return Trajectory([resize(cam, *spec.size((cam.width, cam.height)))])
     if spec.eye is not None:
@@ -107,7 +105,7 @@ def build_trajectory(spec: ViewSpec, scene_cameras: list[Camera] | None, first_g
         try:
             view = look_at(spec.eye, spec.target)
         except ValueError as exc:
-            raise UserError(f"--eye/--target: {exc}") from None
+            raise FieldError("eye", str(exc)) from None
         return Trajectory([Camera("pose", intrinsics(w, h, spec.fov_deg), view, w, h)])
     if spec.path != "orbit":
         return Trajectory(load_path_file(Path(spec.path)))

@@ -10,6 +10,7 @@ COPY server ./server
 COPY packager ./packager
 COPY client ./client
 COPY harness ./harness
+COPY cli ./cli
 # The server's slice of requirements.lock, at exactly the versions the README's setup installs.
 RUN grep -E '^(aiohttp|aiohappyeyeballs|aiosignal|attrs|frozenlist|multidict|propcache|yarl|idna|typing_extensions|lxml|prometheus_client)==' \
         requirements.lock > server-requirements.txt \
@@ -23,6 +24,6 @@ EXPOSE 8080
 HEALTHCHECK --interval=15s --timeout=3s --start-period=5s --retries=3 \
     CMD python -c "import urllib.request,sys; sys.exit(urllib.request.urlopen('http://127.0.0.1:8080/healthz', timeout=2).status != 200)"
 STOPSIGNAL SIGTERM
-ENTRYPOINT ["python", "-m", "stgs.server.main"]
+ENTRYPOINT ["stgs", "serve"]
 # Given more than one core, add "--workers", "N" (processes sharing the port; /metrics sums them).
 CMD ["/data", "--host", "0.0.0.0", "--port", "8080"]

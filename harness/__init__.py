@@ -1,1 +1,1 @@
-"""stgs.harness: the throughput simulation harness (`stgs sim`, issue 7)."""
+"""stgs.harness: the throughput simulation harness (`stgs sim`)."""

@@ -3,10 +3,10 @@ runs it) through a shaping proxy.
 
 The proxy (aiohttp, loopback) forwards every request to the server and
 delivers each segment's bytes on the schedule `stgs.harness.network.Network`
-computes for the scenario's effects, in real time or scaled time (`speed`: the
-player's clock and the network both run that many times faster): one round trip (latency,
-jitter) before the first byte, then the body paced by the bandwidth
-(outages, competing clients, loss). The manifest and stats.json, fetched
+computes for the scenario's effects, in real time or scaled time (`speed`:
+the player's clock and the network both run that many times faster): one
+round trip (latency, jitter) before the first byte, then the body paced by
+the bandwidth (outages, competing clients, loss), or a fault's HTTP status. The manifest and stats.json, fetched
 before playback starts, pass unshaped; the network's clock starts at the first
 segment request, as the simulator's does at its first download.
 """
@@ -23,16 +23,17 @@ from pathlib import Path
 
 import aiohttp
 from aiohttp import web
+
 from stgs.client import PlayConfig, play
 from stgs.client.view import ViewSpec
+from stgs.errors import StgsError
 from stgs.harness.network import DELIVERY_CHUNK, Network
 from stgs.harness.scenario import Scenario
-
-from stgs.errors import UserError
 from stgs.loopback import on_loopback
+from stgs.tree import MANIFEST, SEGMENT_SUFFIXES
 
 SERVER_START_S = 30.0
-SHAPED = (".stgk", ".mp4", ".m4s")
+SHAPED = SEGMENT_SUFFIXES
 
 
 @contextlib.asynccontextmanager
@@ -43,16 +44,21 @@ async def shaping_proxy(upstream: str, network: Network, speed: float = 1.0) -> 
     session = aiohttp.ClientSession()
 
     async def forward(request: web.Request) -> web.StreamResponse:
+        shaped = request.path.endswith(SHAPED)
+        if shaped:
+            now = time.perf_counter()
+            if not origin:
+                origin.append(now)
+            body_start = (now - origin[0]) * speed + network.round_trip()
+            status = network.fault(request.path)
+            if status is not None:
+                await _sleep_until(origin[0] + body_start / speed)
+                return web.Response(status=status)
         async with session.get(upstream + request.path.lstrip("/")) as up:
             body = await up.read()
             status, ctype = up.status, up.headers.get("Content-Type", "application/octet-stream")
-        if not request.path.endswith(SHAPED) or status != 200:
+        if not shaped or status != 200:
             return web.Response(status=status, body=body, content_type=None, headers={"Content-Type": ctype})
-        now = time.perf_counter()
-        if not origin:
-            origin.append(now)
-        t = (now - origin[0]) * speed
-        body_start = t + network.round_trip()
         await _sleep_until(origin[0] + body_start / speed)
         resp = web.StreamResponse(status=200, headers={"Content-Type": ctype, "Content-Length": str(len(body))})
         await resp.prepare(request)
@@ -101,7 +107,7 @@ async def _announced_url(proc: asyncio.subprocess.Process) -> str:
         match = re.search(rb"http://127\.0\.0\.1:\d+", line)
         if match:
             return match.group().decode() + "/"
-    raise UserError("stgs serve exited before it listened")
+    raise StgsError("stgs serve exited before it listened")
 
 
 @contextlib.asynccontextmanager
@@ -124,7 +130,7 @@ def play_config(url: str, scenario: Scenario, rule: str, decode: bool, speed: fl
 async def emulate_async(scenario: Scenario, rule: str, decode: bool = False, speed: float = 1.0) -> dict:
     network = Network(scenario.effects, scenario.seed)
     async with scene_url(scenario.scene) as base, shaping_proxy(base, network, speed) as proxy:
-        log = await play(play_config(proxy + "manifest.mpd", scenario, rule, decode, speed))
+        log = await play(play_config(proxy + MANIFEST, scenario, rule, decode, speed))
     log["engine"] = "emulate" if speed == 1 else f"emulate x{speed:g}"
     return log
 

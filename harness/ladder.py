@@ -10,10 +10,10 @@ from pathlib import Path
 from urllib.parse import urlparse
 
 from stgs.client.download import Downloader, FetchError
-from stgs.client.manifest import MAX_INIT_BYTES, Presentation
-
-from stgs.errors import UserError
-from stgs.mpd import MAX_MPD_BYTES, MPDError
+from stgs.client.manifest import Presentation
+from stgs.errors import StgsError
+from stgs.limits import MAX_INIT_BYTES, MAX_MPD_BYTES
+from stgs.mpd import MPDError
 from stgs.tree import MANIFEST, STATS
 
 
@@ -48,9 +48,9 @@ def load_ladder(scene: str) -> Ladder:
     try:
         pres = Presentation.parse(mpd.read_bytes(), "file:///" + MANIFEST)
     except OSError as exc:
-        raise UserError(f"{scene}: not a packaged scene ({exc.strerror or exc})") from None
+        raise StgsError(f"{scene}: not a packaged scene ({exc.strerror or exc})") from None
     except MPDError as exc:
-        raise UserError(f"{mpd}: {exc}") from None
+        raise StgsError(f"{mpd}: {exc}") from None
     stats = json.loads((folder / STATS).read_text()) if (folder / STATS).is_file() else None
     try:
         kf = [_local_path(folder, pres.keyframe_url(k)).stat().st_size for k in range(pres.num_gops)]
@@ -58,7 +58,7 @@ def load_ladder(scene: str) -> Ladder:
                             for k in range(pres.num_gops)] for r in pres.ladder}
         init = {r.rep_id: _local_path(folder, pres.init_url(r.rep_id)).stat().st_size for r in pres.ladder}
     except OSError as exc:
-        raise UserError(f"{scene}: segment missing ({exc.filename})") from None
+        raise StgsError(f"{scene}: segment missing ({exc.filename})") from None
     return Ladder(pres, kf, media, init, _psnr(stats, pres), stats)
 
 
@@ -83,12 +83,12 @@ async def _remote(url: str) -> Ladder:
             init = {r.rep_id: len(await dl.fetch(pres.init_url(r.rep_id), "init", MAX_INIT_BYTES))
                     for r in pres.ladder}
         except (FetchError, MPDError, json.JSONDecodeError) as exc:
-            raise UserError(f"{url}: cannot read the scene's manifest, stats.json or init segments ({exc})") from None
+            raise StgsError(f"{url}: cannot read the scene's manifest, stats.json or init segments ({exc})") from None
     try:
         kf = [int(g["keyframe_bytes"]) for g in stats["gops"]]
         media = {r.rep_id: [int(g["representations"][r.rep_id]["bytes"]) for g in stats["gops"]] for r in pres.ladder}
     except (KeyError, TypeError, ValueError) as exc:
-        raise UserError(f"{url}: stats.json lacks per-GOP sizes ({exc})") from None
+        raise StgsError(f"{url}: stats.json lacks per-GOP sizes ({exc})") from None
     if len(kf) != pres.num_gops:
-        raise UserError(f"{url}: stats.json lists {len(kf)} GOPs, the MPD {pres.num_gops}")
+        raise StgsError(f"{url}: stats.json lists {len(kf)} GOPs, the MPD {pres.num_gops}")
     return Ladder(pres, kf, media, init, _psnr(stats, pres), stats)

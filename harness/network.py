@@ -7,7 +7,9 @@ Only named effects apply: with none, every transfer is instant.
   latency named TCP's rate is also capped by Mathis et al.'s
   1.22 · MSS / (RTT · √p);
 - latency_ms: one round trip before the first byte; jitter_ms: a uniform
-  ± offset on it per request (never below zero), from the scenario's seed.
+  ± offset on it per request (never below zero), from the scenario's seed;
+- faults: matching segment requests are answered with an HTTP error (after
+  the round trip), as many times as the fault says.
 """
 
 from __future__ import annotations
@@ -26,6 +28,16 @@ class Network:
     def __init__(self, effects: Effects, seed: int = 0):
         self.fx = effects
         self.rng = random.Random(seed)
+        self.fault_left = [f.times for f in effects.faults or ()]
+
+    def fault(self, path: str) -> int | None:
+        """The HTTP error status a request for `path` gets (counting it against its fault), or None."""
+        for i, f in enumerate(self.fx.faults or ()):
+            if f.path in path and self.fault_left[i] != 0:
+                if self.fault_left[i] is not None:
+                    self.fault_left[i] -= 1
+                return f.status
+        return None
 
     def rate(self, t: float) -> tuple[float, float]:
         """(bit/s, seconds the rate holds) at time t; math.inf bit/s without a bandwidth effect."""

@@ -15,10 +15,9 @@ import json
 import math
 from pathlib import Path
 
+from stgs.fsio import atomic_write_bytes, save_figure
 from stgs.harness.ladder import Ladder
 from stgs.harness.scenario import Effects, Trace
-
-from stgs.fsio import atomic_write_bytes, save_figure
 
 REBUFFER_PENALTY = 4.3
 """μ of the linear QoE (Pensieve's value for bit rates in Mbit/s)."""

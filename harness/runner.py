@@ -9,14 +9,15 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from stgs.client import PlayConfig, play
+from stgs.errors import StgsError
 from stgs.harness.emulate import emulate, scene_url
 from stgs.harness.ladder import load_ladder
 from stgs.harness.report import metrics, plot_cdf, plot_timeline, summary_table, timeline, write_json, write_timeline
 from stgs.harness.scenario import TRACE_FORMATS, Scenario, load_trace
 from stgs.harness.sim import simulate
-
-from stgs.errors import UserError
+from stgs.tree import MANIFEST
 
 ENGINES = ("sim", "emulate")
 TRACE_SUFFIX = {".json": "sabre", ".csv": "csv", ".log": "mahimahi", ".txt": "mahimahi"}
@@ -56,7 +57,7 @@ def run_batch(sc: Scenario, traces: Path, engines: list[str], out: Path, speed: 
     """The scenario once per trace file in `traces` (its bandwidth replaced by the trace), per rule and engine."""
     files = sorted(p for p in Path(traces).iterdir() if p.suffix in TRACE_SUFFIX)
     if not files:
-        raise UserError(f"{traces}: no trace files ({', '.join(TRACE_SUFFIX)}; formats {', '.join(TRACE_FORMATS)})")
+        raise StgsError(f"{traces}: no trace files ({', '.join(TRACE_SUFFIX)}; formats {', '.join(TRACE_FORMATS)})")
     ladder = load_ladder(sc.scene)
     rows = []
     for f in files:
@@ -81,7 +82,7 @@ async def _load(sc: Scenario, counts: list[int]) -> list[dict]:
     rows = []
     async with scene_url(sc.scene) as base:
         for n in counts:
-            cfg = PlayConfig(base + "manifest.mpd", abr=rules(sc)[0], qp=sc.qp, buffer_s=sc.buffer_s,
+            cfg = PlayConfig(base + MANIFEST, abr=rules(sc)[0], qp=sc.qp, buffer_s=sc.buffer_s,
                              start_s=sc.start_s, duration_s=sc.duration_s, realtime=True, decode=False)
             start = time.perf_counter()
             logs = await asyncio.gather(*(play(dataclasses.replace(cfg)) for _ in range(n)))

@@ -18,6 +18,7 @@ jitter_ms = 10               # uniform ± per request
 loss = 0.01                  # packet loss probability: its effect on transfer time
 outages = [[3.0, 4.5]]       # no bandwidth in these intervals (seconds)
 competing = 2                # K other clients share the bottleneck fairly
+faults = [{ path = "qp16/seg_00001", status = 503, times = 2 }]   # answer matching requests with an HTTP error
 ```
 """
 
@@ -25,20 +26,20 @@ from __future__ import annotations
 
 import bisect
 import csv
+import dataclasses
 import io
 import json
 import math
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import tomllib
 from stgs.client.abr import RULES
+from stgs.errors import StgsError
+from stgs.limits import MAX_TRACE_POINTS
 
-from stgs.errors import UserError
-
-EFFECTS = ("bandwidth", "latency_ms", "jitter_ms", "loss", "outages", "competing")
+EFFECTS = ("bandwidth", "latency_ms", "jitter_ms", "loss", "outages", "competing", "faults")
 TRACE_FORMATS = ("sabre", "mahimahi", "csv")
-MAX_TRACE_POINTS = 1_000_000
 
 
 @dataclass
@@ -53,15 +54,15 @@ class Trace:
 
     def __post_init__(self) -> None:
         if not self.times:
-            raise UserError(f"{self.source or 'bandwidth'}: the trace is empty")
+            raise StgsError(f"{self.source or 'bandwidth'}: the trace is empty")
         if any(not math.isfinite(v) or v < 0 for v in self.kbps):
-            raise UserError(f"{self.source or 'bandwidth'}: bandwidth must be finite and non-negative")
+            raise StgsError(f"{self.source or 'bandwidth'}: bandwidth must be finite and non-negative")
         if any(b <= a for a, b in zip(self.times, self.times[1:], strict=False)) or self.times[0] != 0:
-            raise UserError(f"{self.source or 'bandwidth'}: times must start at 0 and increase")
+            raise StgsError(f"{self.source or 'bandwidth'}: times must start at 0 and increase")
         ends = [*self.times[1:], self.period]
         if math.isfinite(self.period) and sum(k * (e - s) for s, e, k in zip(self.times, ends, self.kbps,
                                                                               strict=True)) == 0:
-            raise UserError(f"{self.source or 'bandwidth'}: the trace never delivers a byte")
+            raise StgsError(f"{self.source or 'bandwidth'}: the trace never delivers a byte")
 
     def segment(self, t: float) -> tuple[float, float]:
         """(kbit/s, seconds until the bandwidth next changes) at time t."""
@@ -83,7 +84,7 @@ def steps(points: list) -> Trace:
     try:
         times, rates = zip(*[(float(t), float(k)) for t, k in points], strict=True)
     except (TypeError, ValueError):
-        raise UserError("bandwidth steps must be a list of [second, kbit/s] pairs") from None
+        raise StgsError("bandwidth steps must be a list of [second, kbit/s] pairs") from None
     return Trace(list(times), list(rates), math.inf, source="bandwidth steps")
 
 
@@ -91,11 +92,11 @@ def load_trace(path: Path, fmt: str) -> Trace:
     """A trace file in Sabre JSON, Mahimahi/Pensieve two-column text (seconds, Mbit/s) or CSV with named columns
     (time_s, bandwidth_kbps, optional latency_ms); it loops over its own length."""
     if fmt not in TRACE_FORMATS:
-        raise UserError(f"{path}: unknown trace format {fmt!r}; known: {', '.join(TRACE_FORMATS)}")
+        raise StgsError(f"{path}: unknown trace format {fmt!r}; known: {', '.join(TRACE_FORMATS)}")
     try:
         text = Path(path).read_text()
     except (OSError, UnicodeDecodeError) as exc:
-        raise UserError(f"{path}: cannot read trace ({exc})") from None
+        raise StgsError(f"{path}: cannot read trace ({exc})") from None
     try:
         if fmt == "sabre":
             rows = json.loads(text)
@@ -122,11 +123,11 @@ def load_trace(path: Path, fmt: str) -> Trace:
             times = [float(r["time_s"]) for r in rows]
             rates = [float(r["bandwidth_kbps"]) for r in rows]
     except (ValueError, KeyError, TypeError, json.JSONDecodeError) as exc:
-        raise UserError(f"{path}: malformed {fmt} trace ({exc})") from None
+        raise StgsError(f"{path}: malformed {fmt} trace ({exc})") from None
     if len(times) > MAX_TRACE_POINTS:
-        raise UserError(f"{path}: more than {MAX_TRACE_POINTS} points")
+        raise StgsError(f"{path}: more than {MAX_TRACE_POINTS} points")
     if not times:
-        raise UserError(f"{path}: the trace is empty")
+        raise StgsError(f"{path}: the trace is empty")
     if times[0] != 0:
         shift = times[0]
         times = [t - shift for t in times]
@@ -144,6 +145,7 @@ class Effects:
     loss: float | None = None
     outages: list[tuple[float, float]] | None = None
     competing: int | None = None
+    faults: list[Fault] | None = None
 
     def active(self) -> list[str]:
         return [name for name in EFFECTS if getattr(self, name) is not None]
@@ -152,8 +154,35 @@ class Effects:
         out = {}
         for name in self.active():
             value = getattr(self, name)
-            out[name] = value.source if isinstance(value, Trace) else value
+            out[name] = value.source if isinstance(value, Trace) else (
+                [dataclasses.asdict(f) for f in value] if name == "faults" else value)
         return out
+
+
+@dataclass
+class Fault:
+    """Segment requests whose path contains `path` are answered with HTTP `status`, the first `times` of them
+    (None: all); 408/429/5xx make the player retry, any other status is final for that segment."""
+
+    path: str
+    status: int
+    times: int | None = None
+
+
+def parse_faults(spec: object, where: str) -> list[Fault]:
+    if not isinstance(spec, list) or not all(isinstance(f, dict) for f in spec):
+        raise StgsError(f"{where}: 'faults' must be a list of tables with path, status and optional times")
+    faults = []
+    for f in spec:
+        extra = sorted(set(f) - {"path", "status", "times"})
+        if extra or not isinstance(f.get("path"), str) or not f["path"]:
+            raise StgsError(f"{where}: every fault needs a non-empty 'path' (and only path, status, times)")
+        status = _number(f, "status", f"{where}: fault", 400, integer=True)
+        if status is None or status > 599:
+            raise StgsError(f"{where}: a fault's 'status' must be an HTTP error status (400..599)")
+        times = _number(f, "times", f"{where}: fault", 1, integer=True)
+        faults.append(Fault(f["path"], int(status), None if times is None else int(times)))
+    return faults
 
 
 @dataclass
@@ -180,18 +209,18 @@ def _number(doc: dict, key: str, where: str, lo: float = 0.0, integer: bool = Fa
         return None
     value = doc[key]
     if isinstance(value, bool) or not isinstance(value, (int, float)) or (integer and not isinstance(value, int)):
-        raise UserError(f"{where}: '{key}' must be a{'n integer' if integer else ' number'}, got {value!r}")
+        raise StgsError(f"{where}: '{key}' must be a{'n integer' if integer else ' number'}, got {value!r}")
     if not math.isfinite(value) or value < lo:
-        raise UserError(f"{where}: '{key}' must be >= {lo}, got {value}")
+        raise StgsError(f"{where}: '{key}' must be >= {lo}, got {value}")
     return value
 
 
 def parse_effects(doc: object, where: str, base: Path) -> Effects:
     if not isinstance(doc, dict):
-        raise UserError(f"{where}: [effects] must be a table")
+        raise StgsError(f"{where}: [effects] must be a table")
     unknown = sorted(set(doc) - set(EFFECTS))
     if unknown:
-        raise UserError(f"{where}: unknown effect(s) {unknown}; known: {', '.join(EFFECTS)}")
+        raise StgsError(f"{where}: unknown effect(s) {unknown}; known: {', '.join(EFFECTS)}")
     fx = Effects()
     if "bandwidth" in doc:
         fx.bandwidth = parse_bandwidth(doc["bandwidth"], where, base)
@@ -199,25 +228,27 @@ def parse_effects(doc: object, where: str, base: Path) -> Effects:
     fx.jitter_ms = _number(doc, "jitter_ms", where)
     fx.loss = _number(doc, "loss", where)
     if fx.loss is not None and fx.loss >= 1:
-        raise UserError(f"{where}: 'loss' must be below 1, got {fx.loss}")
+        raise StgsError(f"{where}: 'loss' must be below 1, got {fx.loss}")
     competing = _number(doc, "competing", where, integer=True)
     fx.competing = int(competing) if competing is not None else None
+    if "faults" in doc:
+        fx.faults = parse_faults(doc["faults"], where)
     if "outages" in doc:
         try:
             fx.outages = [(float(a), float(b)) for a, b in doc["outages"]]
         except (TypeError, ValueError):
-            raise UserError(f"{where}: 'outages' must be a list of [start, end] seconds") from None
+            raise StgsError(f"{where}: 'outages' must be a list of [start, end] seconds") from None
         if any(not (0 <= a < b) for a, b in fx.outages):
-            raise UserError(f"{where}: every outage needs 0 <= start < end")
+            raise StgsError(f"{where}: every outage needs 0 <= start < end")
     return fx
 
 
 def parse_bandwidth(spec: object, where: str, base: Path) -> Trace:
     if not isinstance(spec, dict) or len({"kbps", "steps", "trace"} & set(spec)) != 1:
-        raise UserError(f"{where}: bandwidth is a table with one of kbps, steps or trace")
+        raise StgsError(f"{where}: bandwidth is a table with one of kbps, steps or trace")
     extra = sorted(set(spec) - {"kbps", "steps", "trace", "format"})
     if extra:
-        raise UserError(f"{where}: unknown bandwidth key(s) {extra}")
+        raise StgsError(f"{where}: unknown bandwidth key(s) {extra}")
     if "kbps" in spec:
         value = _number(spec, "kbps", where)
         return constant(value)
@@ -233,23 +264,23 @@ def load_scenario(path: Path) -> Scenario:
     try:
         doc = tomllib.loads(path.read_text())
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
-        raise UserError(f"{path}: cannot read scenario ({exc})") from None
+        raise StgsError(f"{path}: cannot read scenario ({exc})") from None
     return scenario_from_dict(doc, str(path), path.parent)
 
 
 def scenario_from_dict(doc: dict, where: str, base: Path) -> Scenario:
     unknown = sorted(set(doc) - SCENARIO_KEYS)
     if unknown:
-        raise UserError(f"{where}: unknown key(s) {unknown}; known: {', '.join(sorted(SCENARIO_KEYS))}")
+        raise StgsError(f"{where}: unknown key(s) {unknown}; known: {', '.join(sorted(SCENARIO_KEYS))}")
     if not isinstance(doc.get("scene"), str):
-        raise UserError(f"{where}: 'scene' (a packaged scene folder or MPD URL) is required")
+        raise StgsError(f"{where}: 'scene' (a packaged scene folder or MPD URL) is required")
     scene = doc["scene"]
     if not scene.startswith(("http://", "https://")):
         scene = str((base / scene).resolve())
     abr = doc.get("abr", ["dynamic"])
     abr = [abr] if isinstance(abr, str) else abr
     if not isinstance(abr, list) or not abr or any(a not in RULES for a in abr):
-        raise UserError(f"{where}: 'abr' must list rules from {', '.join(RULES)}, got {abr!r}")
+        raise StgsError(f"{where}: 'abr' must list rules from {', '.join(RULES)}, got {abr!r}")
     qp = _number(doc, "qp", where, integer=True)
     return Scenario(name=str(doc.get("name") or Path(where).stem), scene=scene, abr=list(abr),
                     buffer_s=_number(doc, "buffer_s", where, 1e-3), start_s=_number(doc, "start_s", where) or 0.0,

@@ -30,11 +30,11 @@ from tqdm import tqdm
 
 from stgs.camera import Camera
 from stgs.codec.features import VIDEO_MAX, feature_ranges, features_from_frames, quantize_features, tile_frames
-from stgs.codec.keyframe import EXTENSION, MIME_TYPE, Keyframe, decode_keyframe, encode_keyframe
+from stgs.codec.keyframe import Keyframe, decode_keyframe, encode_keyframe
 from stgs.codec.mp4 import hevc_codecs, set_timeline, split_fragmented
 from stgs.codec.plas import PLASConfig, permute_gop, plas_order, sort_key
 from stgs.codec.video import PRESETS, VideoTiming, decode_segment, encode_gop, require_ffmpeg
-from stgs.errors import UserError
+from stgs.errors import FieldError, StgsError
 from stgs.fsio import atomic_write_bytes
 from stgs.metrics import psnr
 from stgs.model.gop import GOPModel
@@ -50,12 +50,27 @@ from stgs.mpd import (
     Representation,
     SegmentTemplate,
 )
-from stgs.synth import GROUND_TRUTH_DIR, load_ground_truth
-from stgs.tree import CAMERAS, CAMERAS_FORMAT, MANIFEST, STATS
+from stgs.synth import load_ground_truth
+from stgs.tree import (
+    CAMERAS,
+    CAMERAS_FORMAT,
+    GROUND_TRUTH_DIR,
+    KEYFRAME_MIME_TYPE,
+    KEYFRAME_REP,
+    MANIFEST,
+    MODEL_META,
+    PACK_STATE,
+    STATS,
+    feature_init_template,
+    feature_media_template,
+    feature_path,
+    keyframe_path,
+    keyframe_template,
+    rep_id,
+    version_dir,
+)
 
 DEFAULT_QPS = (16, 20, 24, 28, 32)
-STATE = ".pack-state.json"
-KEYFRAME_REP = "keyframes"
 
 
 @dataclass
@@ -83,13 +98,13 @@ class PackConfig:
 
     def validate(self) -> None:
         if not self.qps or any(not 0 <= q <= 51 for q in self.qps) or len(set(self.qps)) != len(self.qps):
-            raise UserError(f"--qps must list distinct QPs in 0..51, got {self.qps}")
+            raise FieldError("qps", f"must list distinct QPs in 0..51, got {self.qps}")
         if self.preset not in PRESETS:
-            raise UserError(f"--preset must be one of {', '.join(PRESETS)}")
+            raise FieldError("preset", f"must be one of {', '.join(PRESETS)}, got {self.preset!r}")
         if self.codec != "hevc":
-            raise UserError(f"--codec {self.codec!r} is not supported (hevc only so far)")
+            raise FieldError("codec", f"{self.codec!r} is not supported (hevc only so far)")
         if self.jobs < 1:
-            raise UserError("--jobs must be >= 1")
+            raise FieldError("jobs", f"must be >= 1, got {self.jobs}")
 
     def digest_fields(self) -> dict:
         """What determines the output bytes (not jobs or resume)."""
@@ -105,20 +120,16 @@ class GOPResult:
 
 
 def pack_id(model_dir: Path, cfg: PackConfig) -> str:
-    digest = hashlib.sha256((Path(model_dir) / "model.json").read_bytes())
+    digest = hashlib.sha256((Path(model_dir) / MODEL_META).read_bytes())
     digest.update(json.dumps(cfg.digest_fields(), sort_keys=True).encode())
     return digest.hexdigest()[:12]
-
-
-def rep_id(qp: int) -> str:
-    return f"qp{qp}"
 
 
 class PackState:
     """Hashes of finished outputs, saved after every task (for --resume)."""
 
     def __init__(self, out: Path, ident: str, resume: bool):
-        self.path = out / STATE
+        self.path = out / PACK_STATE
         self.lock = threading.Lock()
         self.doc = {"pack_id": ident, "files": {}, "tasks": {}}
         if resume and self.path.is_file():
@@ -150,14 +161,14 @@ class PackState:
 
 def check_output_dir(out: Path) -> None:
     if out.exists() and not out.is_dir():
-        raise UserError(f"{out}: exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()) and not ((out / STATE).exists() or (out / MANIFEST).exists()):
-        raise UserError(f"{out}: folder is not empty and not a packaged scene; refusing to write into it")
+        raise StgsError(f"{out}: exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not ((out / PACK_STATE).exists() or (out / MANIFEST).exists()):
+        raise StgsError(f"{out}: folder is not empty and not a packaged scene; refusing to write into it")
 
 
 def stats_cameras(model_dir: Path, model: GOPModel, count: int) -> list[Camera]:
     """Ground-truth cameras of a synthetic scene, else an orbit around the Gaussians."""
-    if (Path(model_dir) / GROUND_TRUTH_DIR / "cameras.json").is_file():
+    if (Path(model_dir) / GROUND_TRUTH_DIR / CAMERAS).is_file():
         return load_ground_truth(model_dir)[1][:count]
     return framing_orbit(model, count, 320, 240)
 
@@ -199,12 +210,12 @@ class Packer:
         self.meta: SceneMeta = read_meta(self.model_dir)
         self.side = self.meta.shape.grid_side
         if self.side == 0:
-            raise UserError(f"{model_dir}: capacity {self.meta.shape.capacity} is not a square; "
+            raise StgsError(f"{model_dir}: capacity {self.meta.shape.capacity} is not a square; "
                             "the packager needs N = S² Gaussians")
         check_output_dir(self.out)
         self.out.mkdir(parents=True, exist_ok=True)
         self.id = pack_id(self.model_dir, cfg)
-        self.version_dir = f"v-{self.id}"
+        self.version_dir = version_dir(self.id)
         self.timing = VideoTiming.for_gop(self.meta.shape.num_features, self.meta.shape.gop_size,
                                           self.meta.fps)
         self.state = PackState(self.out, self.id, cfg.resume)
@@ -212,11 +223,10 @@ class Packer:
         self.lock = threading.Lock()
 
     def keyframe_path(self, k: int) -> str:
-        return f"{self.version_dir}/keyframes/gop_{k:05d}{EXTENSION}"
+        return keyframe_path(self.version_dir, k)
 
     def feature_path(self, qp: int, k: int | None) -> str:
-        name = "init.mp4" if k is None else f"seg_{k:05d}.m4s"
-        return f"{self.version_dir}/features/{rep_id(qp)}/{name}"
+        return feature_path(self.version_dir, rep_id(qp), k)
 
     def write(self, rel: str, data: bytes) -> None:
         atomic_write_bytes(self.out / rel, data)
@@ -312,7 +322,7 @@ class Packer:
         its cameras.json (stgs train) or its ground-truth cameras (stgs synth)."""
         if (self.model_dir / CAMERAS).is_file():
             data = (self.model_dir / CAMERAS).read_bytes()
-        elif (self.model_dir / GROUND_TRUTH_DIR / "cameras.json").is_file():
+        elif (self.model_dir / GROUND_TRUTH_DIR / CAMERAS).is_file():
             cameras = load_ground_truth(self.model_dir)[1]
             doc = {"format": CAMERAS_FORMAT, "version": 1, "cameras": [c.to_json() for c in cameras]}
             data = (json.dumps(doc, indent=1) + "\n").encode()
@@ -333,9 +343,8 @@ class Packer:
         params = (f"version=1;capacity={shape.capacity};grid_side={self.side};gop_size={shape.gop_size};"
                   f"window={shape.window};pe_freqs={shape.pe_freqs};fps={self.meta.fps:g}")
         keyframes = AdaptationSet(
-            1, "application", MIME_TYPE,
-            SegmentTemplate(f"{self.version_dir}/keyframes/gop_$Number%05d${EXTENSION}", timing.timescale,
-                            seg_ticks, 0),
+            1, "application", KEYFRAME_MIME_TYPE,
+            SegmentTemplate(keyframe_template(self.version_dir), timing.timescale, seg_ticks, 0),
             [Representation(KEYFRAME_REP, self.bandwidth([r.keyframe_bytes for r in results]))],
             [Descriptor(KEYFRAME_SCHEME, params)])
         rate = timing.rate
@@ -345,9 +354,8 @@ class Packer:
                 for qp in sorted(self.cfg.qps)]
         features = AdaptationSet(
             2, "video", "video/mp4",
-            SegmentTemplate(f"{self.version_dir}/features/$RepresentationID$/seg_$Number%05d$.m4s",
-                            timing.timescale, seg_ticks, 0,
-                            f"{self.version_dir}/features/$RepresentationID$/init.mp4"),
+            SegmentTemplate(feature_media_template(self.version_dir), timing.timescale, seg_ticks, 0,
+                            feature_init_template(self.version_dir)),
             reps, [Descriptor(FEATURE_SCHEME, "tiles=4x4;channels=16;bits=12")])
         duration = self.meta.num_gops * self.seconds_per_gop()
         return MPD(duration, self.seconds_per_gop(), [Period("0", [keyframes, features])])

@@ -23,7 +23,7 @@ from stgs.codec.features import features_from_frames
 from stgs.codec.keyframe import decode_keyframe
 from stgs.codec.video import decode_segment
 from stgs.data import open_dataset
-from stgs.errors import UserError
+from stgs.errors import FieldError, StgsError
 from stgs.fsio import atomic_write_bytes, image_grid, save_png
 from stgs.metrics import LPIPS, lpips_backbone_file, psnr, ssim
 from stgs.model.gop import GOPModel, GOPShape
@@ -31,7 +31,7 @@ from stgs.model.store import load_gop, read_meta
 from stgs.model.view import FrameRenderer
 from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, MPDError, expand_template, parse_mpd
 from stgs.train.trainer import scale_camera
-from stgs.tree import MANIFEST
+from stgs.tree import MANIFEST, TRAIN_REPORT
 
 GRID_ROWS = 4
 
@@ -42,13 +42,13 @@ def packaged_gops(dash: Path) -> dict[str, Callable[[int], GOPModel]]:
         mpd = parse_mpd((dash / MANIFEST).read_bytes())
         kf_set, video = mpd.adaptation_set(KEYFRAME_SCHEME), mpd.adaptation_set(FEATURE_SCHEME)
     except (OSError, MPDError) as exc:
-        raise UserError(f"{dash}: not a packaged scene ({exc})") from None
+        raise StgsError(f"{dash}: not a packaged scene ({exc})") from None
     try:
         fields = kf_set.descriptor(KEYFRAME_SCHEME).fields()
         shape = GOPShape(int(fields["capacity"]), int(fields["gop_size"]), int(fields["window"]),
                          int(fields["pe_freqs"]))
     except (KeyError, ValueError) as exc:
-        raise UserError(f"{dash}: keyframe descriptor lacks or garbles {exc}") from None
+        raise StgsError(f"{dash}: keyframe descriptor lacks or garbles {exc}") from None
     side = shape.grid_side
 
     def loader(rep: str) -> Callable[[int], GOPModel]:
@@ -77,15 +77,15 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
     ds = open_dataset(dataset)
     cams_val = holdout or extra.get("validation_cameras") or list(ds.default_holdout)
     if not cams_val:
-        raise UserError("no validation cameras: pass --holdout (the model dir names none)")
+        raise FieldError("holdout", "no validation cameras: name them (the model dir names none)")
     unknown = sorted(set(cams_val) - set(ds.camera_names))
     if unknown:
-        raise UserError(f"{ds.name}: no camera(s) {unknown}")
+        raise StgsError(f"{ds.name}: no camera(s) {unknown}")
     start = int(extra.get("start_frame", 0))
     scale = float((extra.get("config") or {}).get("scale", 1.0))
     g = meta.shape.gop_size
     if start + meta.num_gops * g > ds.num_frames:
-        raise UserError(f"{ds.name} has {ds.num_frames} frames; the model needs {start + meta.num_gops * g}")
+        raise StgsError(f"{ds.name} has {ds.num_frames} frames; the model needs {start + meta.num_gops * g}")
     sources: dict[str, Callable[[int], GOPModel]] = {"uncompressed": lambda k: load_gop(model_dir, meta, k)}
     if dash is not None:
         sources |= packaged_gops(Path(dash))
@@ -117,7 +117,7 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
                         grid_rows += [image, truth, ((image - truth).abs() * 10).clamp(0, 1)]
             per_gop.append({"gop": k} | _means(rows) | {"frames": rows})
         result["streams"][name] = _means(per_gop) | {"gops": per_gop}
-    report = Path(model_dir) / "train_report.json"
+    report = Path(model_dir) / TRAIN_REPORT
     if report.is_file():
         result["train_seconds_per_gop"] = [gop.get("seconds") for gop in json.loads(report.read_text())["gops"]]
     out = Path(out)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import torch
 
-from stgs.errors import UserError
+from stgs.errors import StgsError
 
 
 def psnr(image: torch.Tensor, reference: torch.Tensor, peak: float = 1.0, mask: torch.Tensor | None = None) -> float:
@@ -107,7 +107,7 @@ class LPIPS:
             own = self.model.net.state_dict()
             self.model.net.load_state_dict({key: state["features." + key.split(".", 1)[1]] for key in own})
         except Exception as exc:  # a corrupt or foreign file: any loader error means the same to the user
-            raise UserError(f"{backbone}: not usable as the LPIPS {net} backbone ({exc})") from None
+            raise StgsError(f"{backbone}: not usable as the LPIPS {net} backbone ({exc})") from None
         self.net, self.backbone = net, backbone
 
     @classmethod

@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 
 from lxml import etree
 
+from stgs.limits import MAX_MPD_BYTES, MAX_TEMPLATE_NUMBER_WIDTH
+
 NS = "urn:mpeg:dash:schema:mpd:2011"
 PROFILE_LIVE = "urn:mpeg:dash:profile:isoff-live:2011"
 """Segment-template addressing of separate init and media segments."""
@@ -23,12 +25,6 @@ KEYFRAME_SCHEME = "urn:streamstgs:keyframe:2026"
 """SupplementalProperty scheme marking the keyframe AdaptationSet."""
 FEATURE_SCHEME = "urn:streamstgs:features:2026"
 """SupplementalProperty scheme marking the feature-video AdaptationSet."""
-KEYFRAME_MIME_TYPE = "application/vnd.streamstgs.keyframe"
-"""@mimeType of the keyframe AdaptationSet (container: stgs.codec.keyframe)."""
-KEYFRAME_EXTENSION = ".stgk"
-"""File extension of keyframe segments."""
-MAX_MPD_BYTES = 1 << 20
-"""Largest manifest `parse_mpd` accepts."""
 
 
 class MPDError(ValueError):
@@ -334,6 +330,9 @@ def expand_template(template: str, representation_id: str, number: int | None = 
                 width = re.fullmatch(r"%0(\d+)d", fmt)
                 if not width:
                     raise MPDError(f"unsupported format tag {fmt!r} in {template!r}")
+                if len(width.group(1)) > 3 or int(width.group(1)) > MAX_TEMPLATE_NUMBER_WIDTH:
+                    raise MPDError(f"$Number$ width {width.group(1)} in {template!r} is over the limit of "
+                                   f"{MAX_TEMPLATE_NUMBER_WIDTH}")
                 return f"{number:0{int(width.group(1))}d}"
             return str(number)
         raise MPDError(f"unsupported identifier ${name}$ in {template!r}")

@@ -1,5 +1,38 @@
-"""File names of a packaged scene (manifests/PROFILE.md): what `stgs pack` writes and `stgs play` reads."""
+"""Every file name and path template of a model dir and a packaged tree, in one place.
 
+Model dir (docs/MODEL_FORMAT.md): `model.json` and one safetensors file per
+GOP; `stgs synth` adds its ground truth under `gt/`, `stgs train` its state.
+Packaged tree (manifests/PROFILE.md): the MPD, stats.json and cameras.json
+beside it, and every segment under a folder named after a digest of the
+pack's inputs (`v-<id>/`), so content under a URL never changes. The MPD's
+SegmentTemplates and the packager's file names both come from the templates
+here, expanded by the one DASH template expander.
+"""
+
+from stgs.mpd import expand_template
+
+# --- model dir ---
+MODEL_META = "model.json"
+"""Versioned scene metadata, written last."""
+GROUND_TRUTH_DIR = "gt"
+"""`stgs synth`'s ground-truth images and cameras inside a model dir."""
+
+
+TRAIN_REPORT = "train_report.json"
+"""`stgs train`'s report beside model.json."""
+
+
+def gop_stem(index: int) -> str:
+    """GOP `index`'s name in a model dir (and in the trainer's checkpoints and reports)."""
+    return f"gop_{index:04d}"
+
+
+def gop_file(index: int) -> str:
+    """The safetensors file of GOP `index` in a model dir."""
+    return f"{gop_stem(index)}.safetensors"
+
+
+# --- packaged tree: documents beside the MPD ---
 MANIFEST = "manifest.mpd"
 """The MPD, written last."""
 STATS = "stats.json"
@@ -7,3 +40,54 @@ STATS = "stats.json"
 CAMERAS = "cameras.json"
 """The scene's cameras, when the model dir has them: {"format", "version", "cameras": [Camera.to_json()]}."""
 CAMERAS_FORMAT = "streamstgs-cameras"
+PACK_STATE = ".pack-state.json"
+"""The packager's record of finished tasks (for --resume); hidden, so never served."""
+
+# --- packaged tree: segments ---
+KEYFRAME_EXTENSION = ".stgk"
+"""File extension of keyframe segments."""
+KEYFRAME_MIME_TYPE = "application/vnd.streamstgs.keyframe"
+"""@mimeType of the keyframe AdaptationSet (container: stgs.codec.keyframe)."""
+KEYFRAME_REP = "keyframes"
+"""The keyframe AdaptationSet's one Representation."""
+SEGMENT_SUFFIXES = (KEYFRAME_EXTENSION, ".mp4", ".m4s")
+"""Every segment file's suffix (documents are the rest)."""
+
+
+def version_dir(pack_id: str) -> str:
+    """The folder every segment of one pack lives under."""
+    return f"v-{pack_id}"
+
+
+def keyframe_template(version: str) -> str:
+    return f"{version}/keyframes/gop_$Number%05d${KEYFRAME_EXTENSION}"
+
+
+def feature_media_template(version: str) -> str:
+    return f"{version}/features/$RepresentationID$/seg_$Number%05d$.m4s"
+
+
+def feature_init_template(version: str) -> str:
+    return f"{version}/features/$RepresentationID$/init.mp4"
+
+
+def keyframe_path(version: str, k: int) -> str:
+    """Path (relative to the MPD) of GOP k's keyframe segment."""
+    return expand_template(keyframe_template(version), KEYFRAME_REP, k)
+
+
+def feature_path(version: str, rep: str, k: int | None) -> str:
+    """Path of GOP k's feature segment of Representation `rep`, or of its init segment when k is None."""
+    if k is None:
+        return expand_template(feature_init_template(version), rep)
+    return expand_template(feature_media_template(version), rep, k)
+
+
+def rep_id(qp: int) -> str:
+    """The feature Representation id of a QP."""
+    return f"qp{qp}"
+
+
+def qp_of(rep: str) -> int | None:
+    """The QP a Representation id names (`qp<N>`), or None."""
+    return int(rep[2:]) if rep.startswith("qp") and rep[2:].isdigit() else None

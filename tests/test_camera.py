@@ -5,9 +5,9 @@ from __future__ import annotations
 import math
 
 import torch
-from stgs.client.view import ViewSpec, build_trajectory
 
 from stgs.camera import Camera, intrinsics, look_at, rig_focus, rig_orbit, surrounds
+from stgs.client.view import ViewSpec, build_trajectory
 from stgs.model.gop import GOPModel, GOPShape
 
 FOCUS = (0.0, -1.0, 0.0)

@@ -61,7 +61,6 @@ def test_bench_pack_smoke(tmp_path):
 
 def test_bench_play_smoke(tmp_path):
     from stgs.packager import PackConfig, pack
-
     from stgs.synth import SynthConfig, synthesize
 
     synthesize(SynthConfig(grid_side=8, num_gops=2, gop_size=4, width=32, height=24, num_cameras=1, fit_steps=10),

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from stgs.errors import UserError
+from stgs.errors import StgsError
 from stgs.metrics import LPIPS, lpips_backbone_file
 
 
@@ -67,5 +67,5 @@ def test_a_corrupt_backbone_file_is_a_clear_error(torch_home):
     path = lpips_backbone_file("alex")
     path.parent.mkdir(parents=True)
     path.write_bytes(b"not a tensor file")
-    with pytest.raises(UserError, match="not usable as the LPIPS alex backbone"):
+    with pytest.raises(StgsError, match="not usable as the LPIPS alex backbone"):
         LPIPS.load("alex")

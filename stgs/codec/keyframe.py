@@ -32,14 +32,11 @@ from safetensors.torch import load, save
 from stgs.codec.attributes import SPECS, apply_attributes, dequantize, encode_attributes
 from stgs.codec.features import VIDEO_BITS
 from stgs.codec.jxl import ImageDecodeError, decode_jxl, encode_jxl
+from stgs.limits import MAX_KEYFRAME_HEADER_BYTES
 from stgs.model.gop import FEATURE_DIM, DeformationField, GOPModel, GOPShape
-from stgs.mpd import KEYFRAME_EXTENSION, KEYFRAME_MIME_TYPE
 
 FORMAT = "streamstgs-keyframe"
 VERSION = 1
-MIME_TYPE = KEYFRAME_MIME_TYPE
-EXTENSION = KEYFRAME_EXTENSION
-MAX_HEADER_BYTES = 1 << 20
 META_KEY = "streamstgs"
 """The one `__metadata__` entry: a JSON object (sorted keys) of the fields below."""
 
@@ -106,7 +103,7 @@ def _header(data: bytes) -> dict:
     if len(data) < 8:
         raise KeyframeError("keyframe segment is truncated")
     size = struct.unpack_from("<Q", data)[0]
-    if size > MAX_HEADER_BYTES or 8 + size > len(data):
+    if size > MAX_KEYFRAME_HEADER_BYTES or 8 + size > len(data):
         raise KeyframeError(f"keyframe header claims {size} bytes")
     try:
         header = json.loads(data[8:8 + size])

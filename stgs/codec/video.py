@@ -18,7 +18,7 @@ from fractions import Fraction
 import ffmpeg
 import numpy as np
 
-from stgs.errors import UserError
+from stgs.errors import StgsError
 
 PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow")
 """x265 presets, fastest first."""
@@ -50,7 +50,7 @@ class VideoTiming:
 
 def require_ffmpeg() -> None:
     if shutil.which("ffmpeg") is None or shutil.which("ffprobe") is None:
-        raise UserError("ffmpeg and ffprobe are required (Debian: apt-get install ffmpeg)")
+        raise StgsError("ffmpeg and ffprobe are required (Debian: apt-get install ffmpeg)")
 
 
 def x265_params(qp: int, keyint: int, crf: bool = False) -> str:
@@ -66,7 +66,7 @@ def encode_gop(frames: np.ndarray, qp: int, timing: VideoTiming, preset: str = "
     if frames.ndim != 3 or frames.dtype != np.uint16:
         raise ValueError("encode_gop takes (E, H, W) uint16 frames")
     if preset not in PRESETS:
-        raise UserError(f"unknown x265 preset {preset!r}; choose from {', '.join(PRESETS)}")
+        raise StgsError(f"unknown x265 preset {preset!r}; choose from {', '.join(PRESETS)}")
     e, h, w = frames.shape
     with tempfile.TemporaryDirectory() as tmp:
         out_path = os.path.join(tmp, "gop.mp4")

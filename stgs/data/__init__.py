@@ -22,7 +22,7 @@ from typing import Protocol
 import torch
 
 from stgs.camera import Camera
-from stgs.errors import UserError
+from stgs.errors import StgsError
 
 
 class Dataset(Protocol):
@@ -45,7 +45,7 @@ class Dataset(Protocol):
 
 def check_frame(ds: Dataset, frame: int) -> None:
     if not 0 <= frame < ds.num_frames:
-        raise UserError(f"{ds.name}: frame {frame} is outside 0..{ds.num_frames - 1}")
+        raise StgsError(f"{ds.name}: frame {frame} is outside 0..{ds.num_frames - 1}")
 
 
 def split(ds: Dataset, holdout: list[str] | None = None) -> tuple[list[str], list[str]]:
@@ -53,10 +53,10 @@ def split(ds: Dataset, holdout: list[str] | None = None) -> tuple[list[str], lis
     val = list(ds.default_holdout if holdout is None else holdout)
     unknown = sorted(set(val) - set(ds.camera_names))
     if unknown:
-        raise UserError(f"{ds.name}: no camera(s) {unknown} to hold out; cameras are {', '.join(ds.camera_names)}")
+        raise StgsError(f"{ds.name}: no camera(s) {unknown} to hold out; cameras are {', '.join(ds.camera_names)}")
     train = [c for c in ds.camera_names if c not in val]
     if not train:
-        raise UserError(f"{ds.name}: holding out {val} leaves no training camera")
+        raise StgsError(f"{ds.name}: holding out {val} leaves no training camera")
     return train, val
 
 
@@ -71,8 +71,8 @@ def open_dataset(path: Path, kind: str = "auto", **options) -> Dataset:
     if kind == "auto":
         kind = next((k for k, r in readers.items() if r.recognises(path)), "")
         if not kind:
-            raise UserError(f"{path}: not a dataset this version reads (Panoptic train_meta.json, N3DV "
+            raise StgsError(f"{path}: not a dataset this version reads (Panoptic train_meta.json, N3DV "
                             "poses_bounds.npy + cam*.mp4, or a stgs synth model dir)")
     if kind not in readers:
-        raise UserError(f"unknown dataset kind {kind!r}; known: auto, {', '.join(readers)}")
+        raise StgsError(f"unknown dataset kind {kind!r}; known: auto, {', '.join(readers)}")
     return readers[kind](path, **options)

@@ -7,16 +7,16 @@ from pathlib import Path
 import cv2
 import torch
 
-from stgs.errors import UserError
+from stgs.errors import StgsError
 
 
 def read_rgb(path: Path, size: tuple[int, int] | None = None) -> torch.Tensor:
     """(H, W, 3) float32 RGB of an image file; `size` = (H, W) it must have."""
     data = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if data is None:
-        raise UserError(f"{path}: missing or not a readable image")
+        raise StgsError(f"{path}: missing or not a readable image")
     if size is not None and data.shape[:2] != tuple(size):
-        raise UserError(f"{path}: image is {data.shape[1]}x{data.shape[0]}, expected {size[1]}x{size[0]}")
+        raise StgsError(f"{path}: image is {data.shape[1]}x{data.shape[0]}, expected {size[1]}x{size[0]}")
     return torch.from_numpy(cv2.cvtColor(data, cv2.COLOR_BGR2RGB)).float().div_(255.0)
 
 
@@ -24,7 +24,7 @@ def read_mask(path: Path, size: tuple[int, int]) -> torch.Tensor:
     """(H, W) bool foreground mask (any non-zero pixel is foreground)."""
     data = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if data is None:
-        raise UserError(f"{path}: missing or not a readable mask")
+        raise StgsError(f"{path}: missing or not a readable mask")
     if data.shape != tuple(size):
-        raise UserError(f"{path}: mask is {data.shape[1]}x{data.shape[0]}, expected {size[1]}x{size[0]}")
+        raise StgsError(f"{path}: mask is {data.shape[1]}x{data.shape[0]}, expected {size[1]}x{size[0]}")
     return torch.from_numpy(data > 0)

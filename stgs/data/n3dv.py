@@ -22,7 +22,7 @@ import torch
 from stgs.camera import Camera
 from stgs.codec.video import require_ffmpeg
 from stgs.data.images import read_rgb
-from stgs.errors import UserError
+from stgs.errors import StgsError
 
 POSES = "poses_bounds.npy"
 DEFAULT_CACHE = Path(os.environ.get("STGS_DATA_CACHE", Path.home() / ".cache" / "stgs" / "frames"))
@@ -52,13 +52,13 @@ class N3DVReader:
         try:
             poses = np.load(self.root / POSES, allow_pickle=False)
         except (OSError, ValueError) as exc:
-            raise UserError(f"{self.root}: cannot read {POSES} ({exc})") from None
+            raise StgsError(f"{self.root}: cannot read {POSES} ({exc})") from None
         if poses.ndim != 2 or poses.shape[1] != 17 or not np.isfinite(poses).all():
-            raise UserError(f"{self.root / POSES}: expected a finite (cameras, 17) array, got {poses.shape}")
+            raise StgsError(f"{self.root / POSES}: expected a finite (cameras, 17) array, got {poses.shape}")
         if len(videos) != len(poses):
-            raise UserError(f"{self.root}: {len(videos)} cam*.mp4 video(s) but {len(poses)} camera pose(s) in {POSES}")
+            raise StgsError(f"{self.root}: {len(videos)} cam*.mp4 video(s) but {len(poses)} camera pose(s) in {POSES}")
         if not videos:
-            raise UserError(f"{self.root}: no cam*.mp4 videos")
+            raise StgsError(f"{self.root}: no cam*.mp4 videos")
         require_ffmpeg()
         self.camera_names = [v.stem for v in videos]
         self.default_holdout = list(holdout) if holdout is not None else ["cam00"][: len(videos) - 1]
@@ -84,7 +84,7 @@ class N3DVReader:
         try:
             return int(result.stdout.strip().split(",")[0])
         except ValueError:
-            raise UserError(f"{video}: not a readable video ({result.stderr.strip()[:200]})") from None
+            raise StgsError(f"{video}: not a readable video ({result.stderr.strip()[:200]})") from None
 
     def cameras(self, frame: int) -> list[Camera]:
         return list(self._cams)
@@ -102,7 +102,7 @@ class N3DVReader:
         result = subprocess.run(cmd, capture_output=True, text=True)
         if result.returncode != 0:
             shutil.rmtree(tmp, ignore_errors=True)
-            raise UserError(f"{self._videos[camera]}: ffmpeg could not extract frames "
+            raise StgsError(f"{self._videos[camera]}: ffmpeg could not extract frames "
                             f"({result.stderr.strip()[:200]})")
         try:
             tmp.rename(out)
@@ -112,7 +112,7 @@ class N3DVReader:
 
     def image(self, frame: int, camera: str) -> torch.Tensor:
         if camera not in self._videos or not 0 <= frame < self.num_frames:
-            raise UserError(f"{self.name}: no frame {frame} of camera {camera!r}")
+            raise StgsError(f"{self.name}: no frame {frame} of camera {camera!r}")
         cam = self._cams[self.camera_names.index(camera)]
         return read_rgb(self._extract(camera) / f"{frame:05d}.png", (cam.height, cam.width))
 

@@ -14,7 +14,7 @@ import torch
 
 from stgs.camera import Camera
 from stgs.data.images import read_mask, read_rgb
-from stgs.errors import UserError
+from stgs.errors import StgsError
 
 META = "train_meta.json"
 FPS = 30.0
@@ -29,32 +29,32 @@ class PanopticReader:
         try:
             meta = json.loads((self.root / META).read_text())
         except (OSError, json.JSONDecodeError) as exc:
-            raise UserError(f"{self.root}: cannot read {META} ({exc})") from None
+            raise StgsError(f"{self.root}: cannot read {META} ({exc})") from None
         try:
             self.width, self.height = int(meta["w"]), int(meta["h"])
             k, w2c, fn, ids = meta["k"], meta["w2c"], meta["fn"], meta["cam_id"]
         except (KeyError, TypeError, ValueError) as exc:
-            raise UserError(f"{self.root / META}: missing or malformed key ({exc})") from None
+            raise StgsError(f"{self.root / META}: missing or malformed key ({exc})") from None
         frames = len(fn)
         if not frames or not (len(k) == len(w2c) == len(ids) == frames):
-            raise UserError(f"{self.root / META}: k, w2c, fn and cam_id list {len(k)}, {len(w2c)}, {frames} and "
+            raise StgsError(f"{self.root / META}: k, w2c, fn and cam_id list {len(k)}, {len(w2c)}, {frames} and "
                             f"{len(ids)} frames; they must agree (and not be empty)")
         counts = {len(x) for f in range(frames) for x in (k[f], w2c[f], fn[f], ids[f])}
         if len(counts) != 1:
-            raise UserError(f"{self.root / META}: camera counts differ between frames or keys ({sorted(counts)})")
+            raise StgsError(f"{self.root / META}: camera counts differ between frames or keys ({sorted(counts)})")
         if any(ids[f] != ids[0] for f in range(frames)):
-            raise UserError(f"{self.root / META}: cameras are listed in a different order in some frames")
+            raise StgsError(f"{self.root / META}: cameras are listed in a different order in some frames")
         self.num_frames = frames
         self.camera_names = [str(c) for c in ids[0]]
         self.default_holdout = list(holdout or [])
         self._k = torch.tensor(k, dtype=torch.float64)
         self._w2c = torch.tensor(w2c, dtype=torch.float64)
         if self._k.shape[2:] != (3, 3) or self._w2c.shape[2:] != (4, 4):
-            raise UserError(f"{self.root / META}: k must be 3x3 and w2c 4x4 per camera")
+            raise StgsError(f"{self.root / META}: k must be 3x3 and w2c 4x4 per camera")
         self._fn = fn
         missing = [f"ims/{name}" for row in fn for name in row if not (self.root / "ims" / name).is_file()]
         if missing:
-            raise UserError(f"{self.root}: {len(missing)} frame image(s) missing, e.g. {missing[0]}")
+            raise StgsError(f"{self.root}: {len(missing)} frame image(s) missing, e.g. {missing[0]}")
 
     @classmethod
     def recognises(cls, path: Path) -> bool:
@@ -68,7 +68,7 @@ class PanopticReader:
         try:
             return self._fn[frame][self.camera_names.index(camera)]
         except (IndexError, ValueError):
-            raise UserError(f"{self.name}: no frame {frame} of camera {camera!r}") from None
+            raise StgsError(f"{self.name}: no frame {frame} of camera {camera!r}") from None
 
     def image(self, frame: int, camera: str) -> torch.Tensor:
         return read_rgb(self.root / "ims" / self._file(frame, camera), (self.height, self.width))

@@ -8,8 +8,9 @@ import torch
 
 from stgs.camera import Camera
 from stgs.data.images import read_rgb
-from stgs.errors import UserError
-from stgs.synth import GROUND_TRUTH_DIR, load_ground_truth
+from stgs.errors import StgsError
+from stgs.synth import load_ground_truth
+from stgs.tree import CAMERAS, GROUND_TRUTH_DIR
 
 
 class SynthReader:
@@ -20,14 +21,14 @@ class SynthReader:
             doc, cams = load_ground_truth(self.root)
             self.fps, self.num_frames, self.pattern = float(doc["fps"]), int(doc["num_frames"]), str(doc["pattern"])
         except (KeyError, TypeError, ValueError) as exc:
-            raise UserError(f"{self.root}: malformed {GROUND_TRUTH_DIR}/cameras.json ({exc})") from None
+            raise StgsError(f"{self.root}: malformed {GROUND_TRUTH_DIR}/{CAMERAS} ({exc})") from None
         self._cameras = cams
         self.camera_names = [c.name for c in cams]
         self.default_holdout = list(holdout) if holdout is not None else self.camera_names[-1:][: len(cams) - 1]
 
     @classmethod
     def recognises(cls, path: Path) -> bool:
-        return (Path(path) / GROUND_TRUTH_DIR / "cameras.json").is_file()
+        return (Path(path) / GROUND_TRUTH_DIR / CAMERAS).is_file()
 
     def cameras(self, frame: int) -> list[Camera]:
         return list(self._cameras)
@@ -35,7 +36,7 @@ class SynthReader:
     def image(self, frame: int, camera: str) -> torch.Tensor:
         cam = next((c for c in self._cameras if c.name == camera), None)
         if cam is None or not 0 <= frame < self.num_frames:
-            raise UserError(f"{self.name}: no frame {frame} of camera {camera!r}")
+            raise StgsError(f"{self.name}: no frame {frame} of camera {camera!r}")
         return read_rgb(self.root / GROUND_TRUTH_DIR / self.pattern.format(camera=camera, frame=frame),
                         (cam.height, cam.width))
 

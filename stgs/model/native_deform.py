@@ -15,6 +15,7 @@ from ctypes import c_int, c_int64, c_void_p
 
 import torch
 
+from stgs.limits import MAX_BF16_WINDOW, MAX_WINDOW
 from stgs.model.gop import (
     FEATURE_DIM,
     HIDDEN,
@@ -25,8 +26,6 @@ from stgs.model.gop import (
 )
 from stgs.native.build import NativeUnavailableError, available, load
 
-MAX_WINDOW = 8
-"""Largest sliding window the native kernel accepts."""
 PRECISIONS = ("fp32", "bf16")
 """Arithmetic of the native deformation: float32, or bf16 inputs/weights with float32 accumulation."""
 
@@ -136,8 +135,9 @@ def deform_native(model: GOPModel, frame: int, camera_center: torch.Tensor,
     """
     model.check_frame(frame)
     check_precision(precision)
-    if model.shape.window > MAX_WINDOW:
-        raise ValueError(f"native deform supports windows up to {MAX_WINDOW}")
+    if model.shape.window > (MAX_BF16_WINDOW if precision == "bf16" else MAX_WINDOW):
+        raise ValueError(f"native {precision} deform supports windows up to "
+                         f"{MAX_BF16_WINDOW if precision == 'bf16' else MAX_WINDOW}")
     weights = weights or PackedWeights(model)
     n = model.shape.capacity
     feats = _c(model.features)

@@ -17,17 +17,14 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save
 
-from stgs.errors import UserError
+from stgs.errors import StgsError
 from stgs.fsio import atomic_write_bytes
+from stgs.limits import MAX_CAPACITY, MAX_GOP_SIZE, MAX_GOPS, MAX_PE_FREQS, MAX_WINDOW
 from stgs.model.gop import FEATURE_DIM, HIDDEN, DeformationField, GOPModel, GOPShape
+from stgs.tree import MODEL_META, gop_file
 
 FORMAT = "streamstgs-model"
 VERSION = 1
-MAX_CAPACITY = 1 << 22
-"""Largest Gaussian count a model dir may declare (4M slots: 1 GiB of features per GOP at G=60)."""
-MAX_GOP_SIZE = 1024
-MAX_WINDOW = 16
-MAX_GOPS = 100_000
 
 
 @dataclass
@@ -50,10 +47,6 @@ class SceneMeta:
     @property
     def num_frames(self) -> int:
         return self.num_gops * self.shape.gop_size
-
-
-def gop_file_name(index: int) -> str:
-    return f"gop_{index:04d}.safetensors"
 
 
 def save_gop(model: GOPModel, path: Path) -> str:
@@ -81,7 +74,7 @@ def write_meta(model_dir: Path, meta: SceneMeta, hashes: list[str]) -> None:
                  for i, (f, h) in enumerate(zip(meta.gop_files, hashes, strict=True))],
         "extra": meta.extra,
     }
-    atomic_write_bytes(model_dir / "model.json", (json.dumps(doc, indent=2) + "\n").encode())
+    atomic_write_bytes(model_dir / MODEL_META, (json.dumps(doc, indent=2) + "\n").encode())
 
 
 def save_model(model_dir: Path, gops: list[GOPModel], fps: float, extra: dict | None = None) -> SceneMeta:
@@ -92,7 +85,7 @@ def save_model(model_dir: Path, gops: list[GOPModel], fps: float, extra: dict | 
     if any(g.shape != shape for g in gops):
         raise ValueError("save_model: every GOP of a scene must share one shape (capacity, G, W)")
     model_dir = Path(model_dir)
-    files = [gop_file_name(i) for i in range(len(gops))]
+    files = [gop_file(i) for i in range(len(gops))]
     hashes = [save_gop(g, model_dir / f) for g, f in zip(gops, files, strict=True)]
     meta = SceneMeta(shape, float(fps), files, dict(extra or {}))
     write_meta(model_dir, meta, hashes)
@@ -102,41 +95,41 @@ def save_model(model_dir: Path, gops: list[GOPModel], fps: float, extra: dict | 
 def _int_field(doc: dict, key: str, lo: int, hi: int) -> int:
     value = doc.get(key)
     if not isinstance(value, int) or isinstance(value, bool) or not lo <= value <= hi:
-        raise UserError(f"model.json: '{key}' must be an integer in {lo}..{hi}, got {value!r}")
+        raise StgsError(f"model.json: '{key}' must be an integer in {lo}..{hi}, got {value!r}")
     return value
 
 
 def read_meta(model_dir: Path) -> SceneMeta:
     """Parse and validate model.json (no tensor is read)."""
-    path = Path(model_dir) / "model.json"
+    path = Path(model_dir) / MODEL_META
     if not path.is_file():
-        raise UserError(f"{model_dir}: not a model dir (no model.json)")
+        raise StgsError(f"{model_dir}: not a model dir (no model.json)")
     try:
         doc = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise UserError(f"{path}: not valid JSON ({exc})") from exc
+        raise StgsError(f"{path}: not valid JSON ({exc})") from exc
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-        raise UserError(f"{path}: not a {FORMAT} file")
+        raise StgsError(f"{path}: not a {FORMAT} file")
     if doc.get("version") != VERSION:
-        raise UserError(f"{path}: format version {doc.get('version')!r} is not supported "
+        raise StgsError(f"{path}: format version {doc.get('version')!r} is not supported "
                         f"(this build reads version {VERSION})")
     if doc.get("feature_dim") != FEATURE_DIM or doc.get("hidden") != HIDDEN:
-        raise UserError(f"{path}: feature_dim/hidden must be {FEATURE_DIM}/{HIDDEN}")
+        raise StgsError(f"{path}: feature_dim/hidden must be {FEATURE_DIM}/{HIDDEN}")
     shape = GOPShape(capacity=_int_field(doc, "capacity", 1, MAX_CAPACITY),
                      gop_size=_int_field(doc, "gop_size", 1, MAX_GOP_SIZE),
                      window=_int_field(doc, "window", 1, MAX_WINDOW),
-                     pe_freqs=_int_field(doc, "pe_freqs", 0, 16))
+                     pe_freqs=_int_field(doc, "pe_freqs", 0, MAX_PE_FREQS))
     fps = doc.get("fps")
     if not isinstance(fps, (int, float)) or not 0 < fps <= 1000:
-        raise UserError(f"{path}: 'fps' must be a number in (0, 1000], got {fps!r}")
+        raise StgsError(f"{path}: 'fps' must be a number in (0, 1000], got {fps!r}")
     gops = doc.get("gops")
     if not isinstance(gops, list) or not 0 < len(gops) <= MAX_GOPS:
-        raise UserError(f"{path}: 'gops' must be a non-empty list")
+        raise StgsError(f"{path}: 'gops' must be a non-empty list")
     files = []
     for i, entry in enumerate(gops):
         name = entry.get("file") if isinstance(entry, dict) else None
         if not isinstance(name, str) or "/" in name or "\\" in name or name.startswith("."):
-            raise UserError(f"{path}: gops[{i}].file must be a plain file name")
+            raise StgsError(f"{path}: gops[{i}].file must be a plain file name")
         files.append(name)
     extra = doc.get("extra", {})
     return SceneMeta(shape, float(fps), files, extra if isinstance(extra, dict) else {})
@@ -157,24 +150,24 @@ def _capacity_shapes(shape: GOPShape) -> dict[str, tuple[int, ...]]:
 def load_gop(model_dir: Path, meta: SceneMeta, index: int) -> GOPModel:
     """Load GOP `index`, checking every tensor's name, shape and finiteness."""
     if not 0 <= index < meta.num_gops:
-        raise UserError(f"GOP {index} does not exist (scene has {meta.num_gops})")
+        raise StgsError(f"GOP {index} does not exist (scene has {meta.num_gops})")
     path = Path(model_dir) / meta.gop_files[index]
     if not path.is_file():
-        raise UserError(f"{path}: missing GOP file")
+        raise StgsError(f"{path}: missing GOP file")
     try:
         tensors = load_file(str(path))
     except (SafetensorError, OSError, ValueError) as exc:
-        raise UserError(f"{path}: unreadable GOP file ({exc})") from exc
+        raise StgsError(f"{path}: unreadable GOP file ({exc})") from exc
     want = expected_shapes(meta.shape)
     if set(tensors) != set(want):
         missing, unknown = sorted(set(want) - set(tensors)), sorted(set(tensors) - set(want))
-        raise UserError(f"{path}: tensors do not match the format (missing {missing}, unknown {unknown})")
+        raise StgsError(f"{path}: tensors do not match the format (missing {missing}, unknown {unknown})")
     for name, t in tensors.items():
         if tuple(t.shape) != want[name]:
-            raise UserError(f"{path}: tensor '{name}' has shape {tuple(t.shape)}, "
+            raise StgsError(f"{path}: tensor '{name}' has shape {tuple(t.shape)}, "
                             f"model.json implies {want[name]}")
         if not torch.isfinite(t).all():
-            raise UserError(f"{path}: tensor '{name}' contains NaN or Inf")
+            raise StgsError(f"{path}: tensor '{name}' contains NaN or Inf")
     model = GOPModel(meta.shape)
     model.load_state_dict({k: v.to(torch.float32) for k, v in tensors.items()})
     return model

@@ -12,14 +12,12 @@ from typing import Literal
 
 import torch
 
+from stgs.limits import MAX_IMAGE_SIDE
 from stgs.native.build import NativeUnavailableError, available, load
 from stgs.render.project import Projected, project
 from stgs.render.reference import composite_reference
 
 Backend = Literal["auto", "native", "reference"]
-
-MAX_IMAGE_SIDE = 16384
-"""Largest width or height accepted (bounds the image allocation)."""
 
 
 def _value_range(t: torch.Tensor) -> tuple[float, float]:

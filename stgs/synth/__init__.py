@@ -15,15 +15,15 @@ import json
 import shutil
 import tempfile
 import time
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import tomllib
 import torch
 from tqdm import tqdm
 
 from stgs.camera import Camera, orbit
-from stgs.errors import UserError
+from stgs.errors import StgsError
 from stgs.fsio import DIR_MODE, atomic_write_bytes, load_png, save_png
 from stgs.metrics import psnr
 from stgs.model.gop import GOPShape
@@ -32,8 +32,8 @@ from stgs.model.view import FrameRenderer
 from stgs.render import rasterize
 from stgs.synth.fit import fit_gop
 from stgs.synth.scene import EFFECTS, ProceduralScene
+from stgs.tree import CAMERAS, GROUND_TRUTH_DIR, MODEL_META
 
-GROUND_TRUTH_DIR = "gt"
 SCENE_TARGET = (0.0, 0.55, 0.0)
 
 
@@ -79,10 +79,10 @@ class SynthConfig:
                   (self.fidelity_stride >= 1, "fidelity_stride must be >= 1")]
         for ok, message in checks:
             if not ok:
-                raise UserError(f"synth config: {message}")
+                raise StgsError(f"synth config: {message}")
         unknown = sorted(set(self.effects) - set(EFFECTS))
         if unknown:
-            raise UserError(f"synth config: unknown effect(s) {unknown}; known: {', '.join(EFFECTS)}")
+            raise StgsError(f"synth config: unknown effect(s) {unknown}; known: {', '.join(EFFECTS)}")
 
 
 PRESETS = {
@@ -99,19 +99,19 @@ def config_from_toml(path: Path, base: SynthConfig | None = None) -> SynthConfig
     try:
         doc = tomllib.loads(Path(path).read_text())
     except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise UserError(f"{path}: cannot read synth config ({exc})") from exc
+        raise StgsError(f"{path}: cannot read synth config ({exc})") from exc
     names = {f.name: f for f in dataclasses.fields(SynthConfig)}
     unknown = sorted(set(doc) - set(names))
     if unknown:
-        raise UserError(f"{path}: unknown key(s) {unknown}; known: {', '.join(names)}")
+        raise StgsError(f"{path}: unknown key(s) {unknown}; known: {', '.join(names)}")
     values = {}
     for key, value in doc.items():
         if key == "effects":
             if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
-                raise UserError(f"{path}: 'effects' must be a list of names")
+                raise StgsError(f"{path}: 'effects' must be a list of names")
             value = tuple(value)
         elif not isinstance(value, (int, float)) or isinstance(value, bool):
-            raise UserError(f"{path}: '{key}' must be a number")
+            raise StgsError(f"{path}: '{key}' must be a number")
         values[key] = value
     return dataclasses.replace(base or SynthConfig(), **values)
 
@@ -151,14 +151,14 @@ def write_ground_truth(out: Path, scene: ProceduralScene, cfg: SynthConfig, came
             save_png(gt / cam.name / f"{f:05d}.png", render_truth(scene, f / cfg.fps, cam))
     doc = {"fps": cfg.fps, "num_frames": frames, "pattern": "{camera}/{frame:05d}.png",
            "cameras": [c.to_json() for c in cameras]}
-    atomic_write_bytes(gt / "cameras.json", (json.dumps(doc, indent=2) + "\n").encode())
+    atomic_write_bytes(gt / CAMERAS, (json.dumps(doc, indent=2) + "\n").encode())
 
 
 def load_ground_truth(model_dir: Path) -> tuple[dict, list[Camera]]:
     """cameras.json of a synthetic model dir and its cameras."""
-    path = Path(model_dir) / GROUND_TRUTH_DIR / "cameras.json"
+    path = Path(model_dir) / GROUND_TRUTH_DIR / CAMERAS
     if not path.is_file():
-        raise UserError(f"{model_dir}: no ground truth ({path} missing)")
+        raise StgsError(f"{model_dir}: no ground truth ({path} missing)")
     doc = json.loads(path.read_text())
     return doc, [Camera.from_json(c) for c in doc["cameras"]]
 
@@ -183,9 +183,9 @@ def _replace_dir(staging: Path, out: Path) -> None:
     """Move a finished staging folder to `out`, replacing an older model dir there."""
     if out.exists():
         if not out.is_dir():
-            raise UserError(f"{out}: exists and is not a folder")
-        if any(out.iterdir()) and not (out / "model.json").is_file():
-            raise UserError(f"{out}: folder is not empty and not a model dir; refusing to overwrite")
+            raise StgsError(f"{out}: exists and is not a folder")
+        if any(out.iterdir()) and not (out / MODEL_META).is_file():
+            raise StgsError(f"{out}: folder is not empty and not a model dir; refusing to overwrite")
         old = out.with_name(f".{out.name}.old-{time.time_ns()}")
         out.rename(old)
         staging.rename(out)

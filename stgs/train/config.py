@@ -6,7 +6,7 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
-from stgs.errors import UserError
+from stgs.errors import StgsError
 
 
 @dataclass
@@ -115,7 +115,7 @@ class TrainConfig:
                    for name, rate in dataclasses.asdict(self.lr).items()]
         for ok, message in checks:
             if not ok:
-                raise UserError(f"train config: {message}")
+                raise StgsError(f"train config: {message}")
 
 
 BUDGETS = {
@@ -136,7 +136,7 @@ SWITCHES = {"aux": "--no-aux", "dynamic": "--no-dynamic-density", "temporal_weig
 
 def budget(name: str, **overrides) -> TrainConfig:
     if name not in BUDGETS:
-        raise UserError(f"unknown budget {name!r}; choose from {', '.join(BUDGETS)}")
+        raise StgsError(f"unknown budget {name!r}; choose from {', '.join(BUDGETS)}")
     cfg = dataclasses.replace(BUDGETS[name], **overrides)
     cfg.validate()
     return cfg

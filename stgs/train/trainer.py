@@ -35,12 +35,12 @@ from stgs.camera import Camera, resize, surrounds
 from stgs.codec.attributes import OPACITY_LOGIT_RANGE
 from stgs.codec.plas import PLASConfig, plas_order, sort_key
 from stgs.data import Dataset, open_dataset, split
-from stgs.errors import UserError
+from stgs.errors import StgsError
 from stgs.fsio import atomic_write_bytes
 from stgs.memory import reuse_large_allocations
 from stgs.metrics import psnr, ssim, ssim_map
 from stgs.model.gop import GOPModel, GOPShape, frame_time
-from stgs.model.store import gop_file_name, save_gop, save_model
+from stgs.model.store import save_gop, save_model
 from stgs.model.view import splat
 from stgs.train import losses
 from stgs.train.aux import AuxTransformer
@@ -53,14 +53,14 @@ from stgs.train.init import (
     random_frustum_points,
     triangulate,
 )
-from stgs.tree import CAMERAS, CAMERAS_FORMAT
+from stgs.tree import CAMERAS, CAMERAS_FORMAT, MODEL_META, TRAIN_REPORT, gop_file, gop_stem
 
 STATE_DIR = ".train"
 GAUSSIAN_AXIS = {"xyz": 0, "log_scale": 0, "rotation": 0, "opacity_logit": 0, "color": 0, "features": 1}
 """Which axis of each per-Gaussian parameter indexes the Gaussians."""
 
 
-class DivergedError(UserError):
+class DivergedError(StgsError):
     """The loss became NaN or infinite; the last good checkpoint is kept."""
 
 
@@ -89,7 +89,7 @@ def load_views(ds: Dataset, names: list[str], frames: list[int], scale: float, p
     cams = [scale_camera(by_name[n], scale) for n in names]
     h, w = cams[0].height, cams[0].width
     if any((c.height, c.width) != (h, w) for c in cams):
-        raise UserError(f"{ds.name}: training cameras must share one image size")
+        raise StgsError(f"{ds.name}: training cameras must share one image size")
     images = torch.empty(len(frames), len(cams), h, w, 3, dtype=torch.uint8)
     for i, f in enumerate(tqdm(frames, desc="load frames", unit="frame", disable=not progress)):
         for j, cam in enumerate(cams):
@@ -285,16 +285,16 @@ class Trainer:
         if cfg.max_gops is not None:
             self.num_gops = min(self.num_gops, cfg.max_gops)
         if self.num_gops < 1:
-            raise UserError(f"{self.ds.name}: {usable} frame(s) from frame {cfg.start_frame} do not fill one "
+            raise StgsError(f"{self.ds.name}: {usable} frame(s) from frame {cfg.start_frame} do not fill one "
                             f"GOP of {cfg.gop_size}")
         self.shape = GOPShape(cfg.grid_side ** 2, cfg.gop_size, cfg.window, cfg.pe_freqs)
         self.state = self.out / STATE_DIR
         if self.out.exists() and not self.out.is_dir():
-            raise UserError(f"{self.out}: exists and is not a folder")
-        ours = {STATE_DIR, "model.json", CAMERAS, "train_report.json"}
-        if self.out.is_dir() and not (self.out / "model.json").is_file() and \
+            raise StgsError(f"{self.out}: exists and is not a folder")
+        ours = {STATE_DIR, MODEL_META, CAMERAS, TRAIN_REPORT}
+        if self.out.is_dir() and not (self.out / MODEL_META).is_file() and \
                 any(p.name not in ours for p in self.out.iterdir()):
-            raise UserError(f"{self.out}: folder is not empty and not a model dir; refusing to write into it")
+            raise StgsError(f"{self.out}: folder is not empty and not a model dir; refusing to write into it")
         if not resume and self.state.exists():
             shutil.rmtree(self.state)
         self.state.mkdir(parents=True, exist_ok=True)
@@ -381,7 +381,7 @@ class Trainer:
     def _step(self, opt: Optimizer, loss: torch.Tensor, stage: str, it: int, model: GOPModel) -> None:
         if not torch.isfinite(loss):
             raise DivergedError(f"the {stage} loss became {loss.item()} at iteration {it}; the last good "
-                                f"checkpoint is in {self.state} (--resume continues from it; lower the "
+                                f"checkpoint is in {self.state} (a resumed run continues from it; lower the "
                                 "learning rates or the feature noise)")
         opt.opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -402,7 +402,7 @@ class Trainer:
         opt = Optimizer(model, cfg, self.extent, aux)
         report = GOPReport(k)
         accum = torch.zeros(2, self.shape.capacity)  # running sum and count of deformed opacities
-        resumed = self.load_checkpoint(f"gop_{k:04d}", model, opt, aux)
+        resumed = self.load_checkpoint(gop_stem(k), model, opt, aux)
         start = 0
         if resumed:
             extra, saved_accum = resumed
@@ -437,7 +437,7 @@ class Trainer:
                                 psnr=f"{psnr(img.detach().clamp(0, 1), target):.1f}")
             if (it + 1) % cfg.checkpoint_every == 0 and it + 1 < cfg.iterations:
                 report.seconds = time.perf_counter() - clock
-                self.save_checkpoint(f"gop_{k:04d}", model, opt, {"iteration": it + 1,
+                self.save_checkpoint(gop_stem(k), model, opt, {"iteration": it + 1,
                                                                  "report": dataclasses.asdict(report)}, aux, accum)
         report.pruned = self.prune(model, accum)
         report.seconds = time.perf_counter() - clock
@@ -558,8 +558,8 @@ class Trainer:
         del coarse_views
         reports, gops = [], []
         for k in range(self.num_gops):
-            done = self.state / gop_file_name(k)
-            report_path = self.state / f"gop_{k:04d}.report.json"
+            done = self.state / gop_file(k)
+            report_path = self.state / f"{gop_stem(k)}.report.json"
             if self.resume and done.is_file() and report_path.is_file():
                 gops.append(self._load_done(done))
                 reports.append(json.loads(report_path.read_text()))
@@ -594,7 +594,7 @@ class Trainer:
                   "triangulated_points": self.triangulated,
                   "background_points": self.background_points, "capacity": self.shape.capacity,
                   "train_cameras": self.train_names, "validation_cameras": self.val_names}
-        atomic_write_bytes(self.out / "train_report.json", (json.dumps(report, indent=1) + "\n").encode())
+        atomic_write_bytes(self.out / TRAIN_REPORT, (json.dumps(report, indent=1) + "\n").encode())
         return report
 
 

@@ -5,12 +5,16 @@ from __future__ import annotations
 import math
 
 import pytest
+
 from stgs.client.abr import (
+    AbandonRule,
     AbrSettings,
     AbrState,
     BolaRule,
+    Decision,
     DynamicRule,
     FixedRule,
+    InFlight,
     ThroughputRule,
     ThroughputSample,
     ewma_kbps,
@@ -48,33 +52,33 @@ def test_ewma_by_hand():
 
 def test_throughput_rule_starts_low_then_spends_the_safe_budget():
     rule = ThroughputRule()
-    assert rule.choose(state()) == 0  # no history yet
+    assert rule.choose(state()).index == 0  # no history yet
     # 1000 kbit/s * 0.9 - 100 kbit/s keyframe = 800 kbit/s >= 400 kbit/s: the top rung
-    assert rule.choose(state(samples=kbps_samples((1000, 1)))) == 2
+    assert rule.choose(state(samples=kbps_samples((1000, 1)))).index == 2
 
 
 def test_throughput_drop_moves_down_on_the_next_gop():
     rule = ThroughputRule()
     # estimate 336.81 kbit/s (test_ewma_by_hand): budget 0.9 * 336.81 - 100 = 203.1 kbit/s -> 200k rung
-    assert rule.choose(state(samples=kbps_samples((1000, 1), (200, 3)))) == 1
+    assert rule.choose(state(samples=kbps_samples((1000, 1), (200, 3)))).index == 1
     # a deeper drop: nothing fits, the lowest rung
-    assert rule.choose(state(samples=kbps_samples((1000, 1), (50, 6)))) == 0
+    assert rule.choose(state(samples=kbps_samples((1000, 1), (50, 6)))).index == 0
 
 
 def test_throughput_rule_budgets_the_keyframe():
     rule = ThroughputRule()
     fast = kbps_samples((1000, 1))
-    assert rule.choose(state(samples=fast, keyframe_bits=300_000)) == 2  # 900 - 300 = 600 >= 400
-    assert rule.choose(state(samples=fast, keyframe_bits=600_000)) == 1  # 900 - 600 = 300: 200 fits, 400 not
-    assert rule.choose(state(samples=fast, keyframe_bits=850_000)) == 0  # 50 left
+    assert rule.choose(state(samples=fast, keyframe_bits=300_000)).index == 2  # 900 - 300 = 600 >= 400
+    assert rule.choose(state(samples=fast, keyframe_bits=600_000)).index == 1  # 900 - 600 = 300: 200 fits, 400 not
+    assert rule.choose(state(samples=fast, keyframe_bits=850_000)).index == 0  # 50 left
 
 
 def test_throughput_rule_uses_the_next_gops_actual_sizes():
     # The top rung's next segment is small (a quiet GOP): it fits a 250 kbit/s budget although @bandwidth does not.
     samples = kbps_samples((1000, 1))
-    assert ThroughputRule().choose(state(samples=samples, keyframe_bits=650_000)) == 1
+    assert ThroughputRule().choose(state(samples=samples, keyframe_bits=650_000)).index == 1
     assert ThroughputRule().choose(state(samples=samples, keyframe_bits=650_000,
-                                         segment_bits=[50_000, 240_000, 245_000])) == 2
+                                         segment_bits=[50_000, 240_000, 245_000])).index == 2
 
 
 def test_bola_by_hand():
@@ -91,7 +95,7 @@ def test_bola_by_hand():
 
 def test_bola_climbs_as_the_buffer_fills():
     rule = BolaRule()
-    choices = [rule.choose(state(buffer_s=b)) for b in (0.0, 1.0, 2.0, 3.0, 4.0)]
+    choices = [rule.choose(state(buffer_s=b)).index for b in (0.0, 1.0, 2.0, 3.0, 4.0)]
     assert choices[0] == 0 and choices[-1] == 2  # empty buffer: lowest; full buffer: top
     assert choices == sorted(choices)
 
@@ -99,15 +103,15 @@ def test_bola_climbs_as_the_buffer_fills():
 def test_dynamic_switches_with_hysteresis():
     rule = DynamicRule()  # BOLA from 0.6 * 4 = 2.4 s, back to throughput below 0.3 * 4 = 1.2 s
     slow = kbps_samples((150, 4))  # throughput alone would pick the lowest rung
-    assert rule.choose(state(buffer_s=2.0, samples=slow)) == 0 and not rule.using_bola
-    assert rule.choose(state(buffer_s=4.0, samples=slow)) == 2 and rule.using_bola
+    assert rule.choose(state(buffer_s=2.0, samples=slow)).index == 0 and not rule.using_bola
+    assert rule.choose(state(buffer_s=4.0, samples=slow)).index == 2 and rule.using_bola
     rule.choose(state(buffer_s=1.5, samples=slow))
     assert rule.using_bola  # between the thresholds: keeps BOLA
-    assert rule.choose(state(buffer_s=1.0, samples=slow)) == 0 and not rule.using_bola
+    assert rule.choose(state(buffer_s=1.0, samples=slow)).index == 0 and not rule.using_bola
 
 
 def test_fixed_rule_ignores_everything():
-    assert FixedRule(1).choose(state(buffer_s=0.0, samples=kbps_samples((1, 10)))) == 1
+    assert FixedRule(1).choose(state(buffer_s=0.0, samples=kbps_samples((1, 10)))).index == 1
 
 
 def test_abandon_only_when_the_download_would_outlast_the_buffer():
@@ -118,3 +122,29 @@ def test_abandon_only_when_the_download_would_outlast_the_buffer():
     assert not should_abandon(100_000, 1_000_000, 0.1, 2.0, 50_000, settings)  # too early to judge
     assert not should_abandon(100_000, None, 1.0, 2.0, 50_000, settings)  # size unknown
     assert not should_abandon(100_000, 1_000_000, 1.0, 2.0, 950_000, settings)  # restarting is no faster
+
+
+def test_decisions_carry_the_rule_and_the_numbers_it_used():
+    fast = kbps_samples((1000, 1))
+    d = ThroughputRule().choose(state(samples=fast, keyframe_bits=300_000))
+    assert d == Decision(2, "throughput", d.reason)
+    assert "estimate 1000 kbit/s" in d.reason and "keyframe 300" in d.reason and "budget 600" in d.reason
+    assert ThroughputRule().choose(state()).reason == "no throughput sample yet: lowest rung"
+    dyn = DynamicRule().choose(state(buffer_s=4.0, samples=kbps_samples((150, 4))))
+    assert dyn.rule == "bola" and dyn.reason.startswith("dynamic: buffer 4.00 s") and "V " in dyn.reason
+    assert FixedRule(1).choose(state()).to_json() == {"index": 1, "rule": "fixed", "reason": "pinned rung 1"}
+
+
+def test_abandonment_is_a_rule_with_a_reason():
+    rule = AbandonRule()
+    lowest = [400_000.0, 800_000.0, 8_000_000.0]  # bits: the lowest rung is 50 kB
+    judged = state(buffer_s=2.0, segment_bits=lowest)
+    assert rule.choose(judged) is None  # nothing in flight
+    keep = AbrState(**{**judged.__dict__, "in_flight": InFlight(2, 100_000, 1_000_000, 0.1)})
+    assert rule.choose(keep) is None  # too early to judge
+    drop = AbrState(**{**judged.__dict__, "in_flight": InFlight(2, 100_000, 1_000_000, 1.0)})
+    d = rule.choose(drop)
+    assert d.index == 0 and d.rule == "abandon"
+    assert d.reason == "9.00 s left at 800 kbit/s > buffer 2.00 s; the lowest rung takes 0.50 s"
+    lowest_in_flight = AbrState(**{**judged.__dict__, "in_flight": InFlight(0, 100_000, 1_000_000, 1.0)})
+    assert rule.choose(lowest_in_flight) is None  # nothing lower to fall to

@@ -5,8 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from stgs.client.manifest import MAX_CAPACITY, Presentation
 
+from stgs.client.manifest import MAX_CAPACITY, Presentation
 from stgs.mpd import MPDError
 
 EXAMPLE = (Path(__file__).resolve().parents[2] / "manifests" / "example.mpd").read_bytes()

@@ -15,17 +15,17 @@ import cv2
 import pytest
 import torch
 from aiohttp import web
+
+from stgs.camera import Camera
 from stgs.client import PlaybackError, PlayConfig, play
 from stgs.client.download import DownloadSettings
 from stgs.client.view import ViewSpec
-from stgs.packager import PackConfig, pack
-from stgs.server.app import loopback
-
-from stgs.camera import Camera
-from stgs.errors import UserError
+from stgs.errors import StgsError
 from stgs.metrics import psnr
 from stgs.model.store import load_model
 from stgs.model.view import FrameRenderer
+from stgs.packager import PackConfig, pack
+from stgs.server.app import loopback
 from stgs.synth import SynthConfig, load_ground_truth, synthesize
 
 # fps = G: one-second GOPs, so a real-time playback of the 3 GOPs takes 3 s.
@@ -204,7 +204,7 @@ async def test_server_gone_mid_stream_is_an_error_not_a_hang(scene, tmp_path):
 
 async def test_scene_camera_and_explicit_pose(scene, tmp_path):
     async with serving(scene / "dash") as url:
-        with pytest.raises(UserError, match="no camera 'nope'"):
+        with pytest.raises(StgsError, match="no camera 'nope'"):
             await play(PlayConfig(url, view=ViewSpec(camera="nope"), download=QUICK))
         await play(PlayConfig(url, duration_s=0.5, view=ViewSpec(eye=(0, 1, 3), target=(0, 0.5, 0), width=40,
                                                                  height=30), out=tmp_path / "pose"))
@@ -251,7 +251,7 @@ async def test_the_play_command(scene, tmp_path):
         assert "played 3 GOP(s), 18 frames" in out and "stalls 0" in out
         assert json.loads((tmp_path / "playback.json").read_text())["frames"] == 18
         for args, message in [((url.replace("manifest", "missing"),), "cannot fetch the manifest"),
-                              ((url, "--qp", "17"), "--qp 17: the scene offers QPs 32, 24, 16"),
+                              ((url, "--qp", "17"), "--qp 17 is not offered: the scene has QPs 32, 24, 16"),
                               (("ftp://x/m.mpd",), "must start with http"),
                               ((url, "--camera", "cam99"), "no camera 'cam99'"),
                               ((url, "--path", str(tmp_path / "nope.json")), "cannot read the camera path")]:

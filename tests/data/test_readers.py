@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from stgs.data import open_dataset, split
-from stgs.errors import UserError
+from stgs.errors import StgsError
 from tests.conftest import SHARED
 
 PANOPTIC = SHARED / "data" / "panoptic-basketball"
@@ -47,17 +47,17 @@ def test_panoptic_bad_layouts_are_clear(tmp_path):
     (tmp_path / "ims").symlink_to(PANOPTIC / "ims")
     meta["k"] = meta["k"][:-1]
     (tmp_path / "train_meta.json").write_text(json.dumps(meta))
-    with pytest.raises(UserError, match="must agree"):
+    with pytest.raises(StgsError, match="must agree"):
         open_dataset(tmp_path)
     meta = json.loads((PANOPTIC / "train_meta.json").read_text())
     meta["fn"][3] = meta["fn"][3][:-1]
     (tmp_path / "train_meta.json").write_text(json.dumps(meta))
-    with pytest.raises(UserError, match="camera counts differ"):
+    with pytest.raises(StgsError, match="camera counts differ"):
         open_dataset(tmp_path)
     meta = json.loads((PANOPTIC / "train_meta.json").read_text())
     meta["fn"][7][2] = "3/999999.jpg"
     (tmp_path / "train_meta.json").write_text(json.dumps(meta))
-    with pytest.raises(UserError, match=r"1 frame image\(s\) missing, e\.g\. ims/3/999999\.jpg"):
+    with pytest.raises(StgsError, match=r"1 frame image\(s\) missing, e\.g\. ims/3/999999\.jpg"):
         open_dataset(tmp_path)
 
 
@@ -95,11 +95,11 @@ def test_n3dv_reader_extracts_downscaled_frames(tmp_path):
 def test_n3dv_mismatched_cameras_and_garbage_are_clear(tmp_path):
     root = _n3dv(tmp_path / "scene", cameras=2)
     shutil.copy(root / "cam01.mp4", root / "cam02.mp4")
-    with pytest.raises(UserError, match=r"3 cam\*\.mp4 video\(s\) but 2 camera pose\(s\)"):
+    with pytest.raises(StgsError, match=r"3 cam\*\.mp4 video\(s\) but 2 camera pose\(s\)"):
         open_dataset(root, cache=tmp_path / "cache")
     (root / "cam02.mp4").unlink()
     (root / "cam01.mp4").write_bytes(b"not a video")
-    with pytest.raises(UserError, match="not a readable video"):
+    with pytest.raises(StgsError, match="not a readable video"):
         open_dataset(root, cache=tmp_path / "cache")
 
 
@@ -112,7 +112,7 @@ def test_synth_reader_and_unknown_folders(tmp_path):
     assert ds.num_frames == 2 and ds.camera_names == ["cam00", "cam01", "cam02"]
     assert split(ds) == (["cam00", "cam01"], ["cam02"])
     assert ds.image(1, "cam01").shape == (12, 16, 3) and ds.mask(0, "cam00") is None
-    with pytest.raises(UserError, match="not a dataset"):
+    with pytest.raises(StgsError, match="not a dataset"):
         open_dataset(tmp_path)
-    with pytest.raises(UserError, match=r"no camera\(s\) \['nope'\]"):
+    with pytest.raises(StgsError, match=r"no camera\(s\) \['nope'\]"):
         split(ds, ["nope"])

@@ -7,15 +7,15 @@ import json
 from pathlib import Path
 
 import pytest
+
 from stgs.client.manifest import Presentation
+from stgs.errors import StgsError
 from stgs.harness.ladder import Ladder, load_ladder
 from stgs.harness.network import Network
 from stgs.harness.report import metrics, sabre_manifest, timeline
 from stgs.harness.scenario import Effects, constant, load_trace, scenario_from_dict, steps
 from stgs.harness.sim import simulate
 from stgs.packager import PackConfig, pack
-
-from stgs.errors import UserError
 from stgs.synth import SynthConfig, synthesize
 from tests.conftest import run_stgs as stgs
 
@@ -232,5 +232,76 @@ def test_single_scenario_writes_timeline_plot_and_summary(packed, tmp_path):
     assert csv_text[0].startswith("index,rep,qp") and len(csv_text) == 4
     assert all(line.split(",")[-2] == "30.0" for line in csv_text[1:])  # latency_ms column
     assert dataclasses.is_dataclass(Effects())
-    with pytest.raises(UserError):
+    with pytest.raises(StgsError):
         load_ladder(str(tmp_path / "nothing"))
+
+
+
+def fetch_trace(log: dict) -> list[tuple]:
+    """Per GOP: its requests (kind, Representation, done/failed/abandoned) and decisions (rule, rung)."""
+    def outcome(text: str) -> str:
+        return "done" if text.split()[0].isdigit() else text.split()[0].rstrip(":")
+
+    return [(g["index"], [(r["kind"], r["rep"], outcome(r["outcome"])) for r in g["requests"]],
+             [(d["rule"], d["index"]) for d in g["decisions"]]) for g in log["gops"]]
+
+
+@pytest.mark.parametrize("name, effects, rule, qp", [
+    # a media segment the server refuses for good: fallback to the lowest rung for that GOP
+    ("fallback", {"faults": [{"path": "qp16/seg_00001", "status": 404}]}, "throughput", 16),
+    # a keyframe answered 503 twice, then served: two retries with backoff
+    ("retries", {"faults": [{"path": "gop_00002", "status": 503, "times": 2}]}, "throughput", 32),
+    # adaptive on a fast network, one transient failure of the top rung's segment
+    ("adaptive", {"bandwidth": {"kbps": 100_000},
+                  "faults": [{"path": "qp16/seg_00001", "status": 500, "times": 1}]}, "throughput", None),
+])
+def test_player_and_simulator_make_the_same_requests_and_decisions(packed, name, effects, rule, qp):
+    from stgs.harness.emulate import emulate
+
+    ladder = load_ladder(str(packed))
+    sc = scenario_from_dict({"scene": str(packed), "abr": [rule], "effects": effects, **({"qp": qp} if qp else {})},
+                            name, Path("."))
+    sim, emu = simulate(ladder, sc, rule), emulate(sc, rule)
+    trace = fetch_trace(sim)
+    assert trace == fetch_trace(emu)
+    assert sim["retries"] == emu["retries"] and sim["error"] is None and emu["error"] is None
+    if name == "fallback":
+        assert trace[1][1] == [("keyframe", "keyframes", "done"), ("media", "qp16", "failed"),
+                               ("init", "qp32", "done"), ("media", "qp32", "done")]
+        assert trace[1][2] == [("fixed", 2), ("fallback", 0)]
+        assert [g["qp"] for g in sim["gops"]] == [16, 32, 16]
+        assert "HTTP 404" in sim["gops"][1]["decisions"][1]["reason"]
+    elif name == "retries":
+        assert trace[2][1] == [("keyframe", "keyframes", "failed"), ("keyframe", "keyframes", "failed"),
+                               ("keyframe", "keyframes", "done"), ("media", "qp32", "done")]
+        assert sim["retries"] == 2
+    else:
+        assert trace[1][1] == [("keyframe", "keyframes", "done"), ("media", "qp16", "failed"),
+                               ("media", "qp16", "done")]
+        assert trace[0][2] == [("throughput", 2)] and sim["retries"] == 1
+    assert any("decode" in line for line in sim["not_modelled"])
+
+
+def test_a_refused_lowest_rung_ends_both_playbacks_at_the_same_gop(packed):
+    from stgs.client import PlaybackError
+    from stgs.harness.emulate import emulate
+
+    ladder = load_ladder(str(packed))
+    sc = scenario_from_dict({"scene": str(packed), "abr": ["throughput"], "qp": 32,
+                             "effects": {"faults": [{"path": "qp32/seg_00001", "status": 404}]}}, "fatal", Path("."))
+    sim = simulate(ladder, sc, "throughput")
+    assert sim["error"].startswith("GOP 1: ") and "HTTP 404" in sim["error"] and sim["gops_played"] == 1
+    with pytest.raises(PlaybackError, match=r"^GOP 1: .*HTTP 404"):
+        emulate(sc, "throughput")
+
+
+def test_faults_are_parsed_and_counted():
+    faults = [{"path": "seg_00001", "status": 503, "times": 2}, {"path": "gop_", "status": 404}]
+    fx = scenario({"faults": faults}).effects
+    net = Network(fx)
+    assert [net.fault("v/qp16/seg_00001.m4s") for _ in range(3)] == [503, 503, None]
+    assert net.fault("v/keyframes/gop_00000.stgk") == 404 and net.fault("v/init.mp4") is None
+    for bad in ([{"path": "x", "status": 200}], [{"path": "", "status": 404}], {"path": "x"},
+                [{"path": "x", "status": 404, "times": 0}], [{"path": "x", "status": 404, "when": 1}]):
+        with pytest.raises(StgsError, match="fault"):
+            scenario({"faults": bad})

@@ -8,7 +8,7 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
-from stgs.errors import UserError
+from stgs.errors import StgsError
 from stgs.model.store import VERSION, load_model, read_meta, save_model
 from tests.model.test_gop import random_model
 
@@ -57,7 +57,7 @@ def corrupt(path, name, fn):
 def test_bad_tensors_are_clear_errors(model_dir, damage, message):
     path, _ = model_dir
     corrupt(path, "gop_0001.safetensors", damage)
-    with pytest.raises(UserError, match=message):
+    with pytest.raises(StgsError, match=message):
         load_model(path)
 
 
@@ -68,21 +68,21 @@ def test_bad_metadata_is_a_clear_error(model_dir):
                                 ("gop_size", -1, "gop_size"), ("fps", "fast", "fps")]:
         bad = dict(doc, **{key: value})
         (path / "model.json").write_text(json.dumps(bad))
-        with pytest.raises(UserError, match=message):
+        with pytest.raises(StgsError, match=message):
             read_meta(path)
     bad = dict(doc, gops=[{"file": "../escape.safetensors"}])
     (path / "model.json").write_text(json.dumps(bad))
-    with pytest.raises(UserError, match="plain file name"):
+    with pytest.raises(StgsError, match="plain file name"):
         read_meta(path)
 
 
 def test_garbage_files_are_clear_errors(model_dir, tmp_path):
     path, _ = model_dir
     (path / "gop_0000.safetensors").write_bytes(b"\x80\x04not a safetensors file")
-    with pytest.raises(UserError, match="unreadable GOP file"):
+    with pytest.raises(StgsError, match="unreadable GOP file"):
         load_model(path)
     (path / "model.json").write_text("{not json")
-    with pytest.raises(UserError, match="not valid JSON"):
+    with pytest.raises(StgsError, match="not valid JSON"):
         load_model(path)
-    with pytest.raises(UserError, match="not a model dir"):
+    with pytest.raises(StgsError, match="not a model dir"):
         load_model(tmp_path / "nowhere")

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 from safetensors.torch import load_file, save_file
-from stgs.packager import MANIFEST, STATS, PackConfig, pack
 
 from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, expand_template, parse_mpd
+from stgs.packager import MANIFEST, STATS, PackConfig, pack
 from stgs.synth import SynthConfig, synthesize
 from tests.conftest import SHARED
 from tests.conftest import run_stgs as stgs

@@ -1,4 +1,4 @@
-"""docker/: the Dockerfiles and the compose file have the pieces issue 4 asks for.
+"""docker/: the Dockerfiles and the compose file have the pieces a deployment needs.
 
 No Docker engine runs here, so the images are not built; this checks the files
 and that the server's entry point really needs none of the heavy packages the
@@ -72,7 +72,7 @@ def test_server_slice_covers_what_the_server_imports():
 
 
 def test_server_entry_point_needs_no_torch():
-    code = ("import sys; from stgs.cli import build_parser; build_parser(('serve',)); import stgs.server.app; "
+    code = ("import sys; from stgs.cli import build_parser; build_parser(('serve',)); import stgs.server.workers; "
             "sys.exit(1 if {'torch', 'numpy', 'cv2'} & set(sys.modules) else 0)")
     assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0
 

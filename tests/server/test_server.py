@@ -13,11 +13,14 @@ import aiohttp
 import pytest
 from aiohttp import web
 from aiohttp.test_utils import TestServer
-from stgs.packager import PackConfig, pack
-from stgs.server.app import BeneathOpener, Metrics, SceneRunner, ServeConfig, build_app
 
-from stgs.benchmarks.serve import worker_pids
+from bench.serve import worker_pids
 from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, expand_template, parse_mpd
+from stgs.packager import PackConfig, pack
+from stgs.server.app import SceneRunner, build_app
+from stgs.server.config import ServeConfig
+from stgs.server.files import BeneathOpener
+from stgs.server.metrics import Metrics
 from stgs.synth import SynthConfig, synthesize
 
 # fps = G: one-second GOPs (ffmpeg's DASH demuxer reads mediaPresentationDuration in whole seconds).
@@ -199,6 +202,27 @@ async def test_catalogue_health_and_metrics(client):
     assert float(sent[0].split()[1]) > 0
 
 
+async def test_a_slow_catalogue_scan_does_not_delay_segment_transfers(client, root, monkeypatch):
+    """With io_threads=0 the loop's default executor runs calls inline: the scan must not use it."""
+    import stgs.server.catalogue as catalogue
+
+    scan = catalogue.scene_summary
+
+    def slow_summary(name, manifest):
+        time.sleep(1.5)  # a catalogue of many scenes on slow storage
+        return scan(name, manifest)
+
+    monkeypatch.setattr(catalogue, "scene_summary", slow_summary)
+    segment = scene_files(root)[-1]
+    listing = asyncio.ensure_future(client.get("/scenes"))
+    await asyncio.sleep(0.2)  # the scan is under way
+    start = time.perf_counter()
+    resp = await client.get(f"/scene1/{segment}")
+    assert resp.status == 200 and await resp.read() == (root / "scene1" / segment).read_bytes()
+    assert time.perf_counter() - start < 0.5 and not listing.done()
+    assert len((await (await listing).json())["scenes"]) == 1
+
+
 async def test_a_segment_counts_once_with_its_bytes(client, root):
     """Between two /metrics answers: the first /metrics (counted once it is sent) and one segment GET."""
     def counted(text: str) -> tuple[float, float, float]:
@@ -378,7 +402,7 @@ async def test_access_log_has_one_json_line_per_request_with_body_bytes(scene_se
     import json
     import logging
 
-    from stgs.server.app import JsonAccessLogger
+    from stgs.server.metrics import JsonAccessLogger
 
     logger = logging.getLogger("stgs.test.access")
     server = await scene_server(build_app(ServeConfig(root=root)), access_log_class=JsonAccessLogger,
@@ -413,7 +437,7 @@ def start_server(root: Path, *args: str) -> tuple[subprocess.Popen, int]:
     """A real `stgs serve` process on a free loopback port."""
     import sys
 
-    proc = subprocess.Popen([sys.executable, "-m", "stgs.server.main", str(root), "--port", "0", "--quiet", *args],
+    proc = subprocess.Popen([sys.executable, "-m", "stgs.cli", "serve", str(root), "--port", "0", "--quiet", *args],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     line = proc.stdout.readline()
     return proc, int(line.rsplit(":", 1)[1].split()[0].rstrip("/"))

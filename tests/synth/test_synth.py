@@ -8,7 +8,7 @@ import json
 import pytest
 import torch
 
-from stgs.errors import UserError
+from stgs.errors import StgsError
 from stgs.model.store import load_model
 from stgs.synth import SynthConfig, config_from_toml, synthesize
 from stgs.synth.scene import EFFECTS, ProceduralScene
@@ -67,7 +67,7 @@ def test_unused_slots_are_transparent():
 def test_unknown_effect_is_rejected():
     with pytest.raises(ValueError, match="unknown effect"):
         ProceduralScene(100, ("rigid", "explode"))
-    with pytest.raises(UserError, match="unknown effect"):
+    with pytest.raises(StgsError, match="unknown effect"):
         dataclasses.replace(TINY, effects=("explode",)).validate()
 
 
@@ -99,7 +99,7 @@ def test_synth_refuses_to_clobber_a_foreign_folder(tmp_path):
     target = tmp_path / "precious"
     target.mkdir()
     (target / "thesis.txt").write_text("do not delete")
-    with pytest.raises(UserError, match="refusing to overwrite"):
+    with pytest.raises(StgsError, match="refusing to overwrite"):
         synthesize(dataclasses.replace(TINY, num_gops=1, fit_steps=1), target, progress=False)
     assert (target / "thesis.txt").read_text() == "do not delete"
     assert [p.name for p in tmp_path.iterdir()] == ["precious"], "no staging folder left behind"
@@ -111,5 +111,5 @@ def test_config_from_toml(tmp_path):
     cfg = config_from_toml(path)
     assert cfg.grid_side == 8 and cfg.effects == ("rigid",)
     path.write_text("grid_sid = 8\n")
-    with pytest.raises(UserError, match="unknown key"):
+    with pytest.raises(StgsError, match="unknown key"):
         config_from_toml(path)

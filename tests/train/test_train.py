@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from stgs.data import open_dataset, split
-from stgs.errors import UserError
+from stgs.errors import StgsError
 from stgs.metrics import psnr
 from stgs.model.store import load_model
 from stgs.synth import SynthConfig, synthesize
@@ -174,7 +174,7 @@ def test_bench_train_tables_and_plot(trained, tmp_path):
 
 
 def test_bench_train_eval_rows_show_lpips_where_computed():
-    from stgs.benchmarks.train import eval_rows
+    from bench.train import eval_rows
 
     view = {"frame": 0, "camera": "1", "psnr": 20.0, "ssim": 0.8}
     evaluation = {"streams": {
@@ -186,7 +186,7 @@ def test_bench_train_eval_rows_show_lpips_where_computed():
 
 
 def test_bench_train_labels_name_what_differs_from_the_budget(tmp_path):
-    from stgs.benchmarks.train import run_label
+    from bench.train import run_label
 
     config = {"budget": "cpu", "grid_side": 192, "aux": False, "lr": {"position": 8e-4}, "init_frames": 12}
     (tmp_path / "model.json").write_text(json.dumps({"extra": {"config": config}}))
@@ -203,7 +203,7 @@ def test_bench_train_labels_name_what_differs_from_the_budget(tmp_path):
 
 
 def test_bench_train_tells_runs_with_the_same_settings_apart():
-    from stgs.benchmarks.train import distinct_labels
+    from bench.train import distinct_labels
 
     dirs = [Path("/runs/new"), Path("/runs/old"), Path("/runs/seed1")]
     assert distinct_labels(dirs, ["cpu: --no-aux", "cpu: --no-aux", "cpu: --no-aux, seed 1"]) == [
@@ -325,7 +325,7 @@ def test_init_frames_spread_over_the_span():
     assert init_frames(list(range(60)), 6) == [0, 12, 24, 35, 47, 59]
     assert init_frames(list(range(10, 70)), 1) == [10]
     assert init_frames([3, 4], 6) == [3, 4]
-    with pytest.raises(UserError, match="init_frames"):
+    with pytest.raises(StgsError, match="init_frames"):
         budget("quick", init_frames=0)
 
 
@@ -407,7 +407,7 @@ def test_background_share_is_validated_and_splits_the_capacity(scene):
     from stgs.model.gop import GOPModel, GOPShape
     from stgs.train.trainer import init_canonical, initial_points
 
-    with pytest.raises(UserError, match="background_share"):
+    with pytest.raises(StgsError, match="background_share"):
         budget("quick", background_share=1.0)
     ds = open_dataset(scene)
     names, _ = split(ds)

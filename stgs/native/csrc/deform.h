@@ -16,7 +16,7 @@ namespace stgs {
 
 constexpr int kFeat = 16;        // channels of one temporal feature
 constexpr int kHidden = 64;      // width of every hidden layer
-constexpr int kMaxWindow = 8;    // largest sliding window the kernels accept
+constexpr int kMaxWindow = 16;   // largest sliding window the fp32 kernel accepts (stgs.limits.MAX_WINDOW)
 constexpr int kOut = 16;         // padded width of the packed second layers
 constexpr double kNearZ = 0.01;  // the splatter's near plane (DESIGN.md)
 

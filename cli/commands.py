@@ -1,19 +1,33 @@
 """The `stgs` command: one entry point, one subcommand per pipeline stage.
 
-User mistakes (bad paths, bad configs, bad input files) raise UserError and
-end as one `stgs: ...` line on stderr with exit status 2; anything else is a
-bug and keeps its traceback.
+User mistakes (bad paths, bad configs, bad input files) raise the library's
+StgsError, or UsageError here for a bad combination of flags, and end as one
+`stgs: ...` line on stderr with exit status 2; a FieldError names a config
+field, which FLAGS turns into the flag that sets it. Anything else is a bug
+and keeps its traceback.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib
 import math
 import sys
 from pathlib import Path
 
-from stgs.errors import UserError
+from stgs.errors import FieldError, StgsError
+from stgs.tree import MANIFEST
+
+
+class UsageError(StgsError):
+    """Flags that do not go together or do not parse (the CLI's own error)."""
+
+
+FLAGS = {"qps": "--qps", "preset": "--preset", "codec": "--codec", "jobs": "--jobs", "abr": "--abr",
+         "buffer_s": "--buffer", "start_s": "--start", "duration_s": "--duration", "precision": "--precision",
+         "camera": "--camera", "eye": "--eye/--target", "holdout": "--holdout", "qp": "--qp", "speed": "--speed"}
+"""Config field -> the flag that sets it, for FieldError messages."""
 
 
 def _int_at_least(lowest: int, words: str):
@@ -154,12 +168,13 @@ def add_serve(sub: argparse._SubParsersAction) -> None:
 
 
 def run_serve(args: argparse.Namespace) -> int:
-    from stgs.server.app import ServeConfig, run
+    from stgs.server.config import ServeConfig
+    from stgs.server.workers import run
 
     if not args.root.is_dir():
-        raise UserError(f"{args.root}: not a folder")
+        raise UsageError(f"{args.root}: not a folder")
     if not 0 <= args.port <= 65535:
-        raise UserError(f"--port must be in 0..65535, got {args.port}")
+        raise UsageError(f"--port must be in 0..65535, got {args.port}")
     run(ServeConfig(root=args.root, host=args.host, port=args.port, max_transfers=args.max_transfers,
                     workers=args.workers, io_threads=args.io_threads, access_log=not args.quiet))
     return 0
@@ -236,11 +251,11 @@ def run_play(args: argparse.Namespace) -> int:
     from stgs.client.view import ViewSpec
 
     if not args.url.startswith(("http://", "https://")):
-        raise UserError(f"{args.url}: the manifest URL must start with http:// or https://")
+        raise UsageError(f"{args.url}: the manifest URL must start with http:// or https://")
     if args.retries < 0 or args.timeout <= 0:
-        raise UserError("--retries must be >= 0 and --timeout > 0")
+        raise UsageError("--retries must be >= 0 and --timeout > 0")
     if not 1 <= args.fov < 180:
-        raise UserError("--fov must be in [1, 180) degrees")
+        raise UsageError("--fov must be in [1, 180) degrees")
     width, height = args.size or (None, None)
     view = ViewSpec(camera=args.camera, eye=args.eye, target=args.target, path=args.path,
                     orbit_seconds=args.orbit_seconds, width=width, height=height, fov_deg=args.fov)
@@ -413,7 +428,7 @@ def run_sim(args: argparse.Namespace) -> int:
         print((args.out / f"{sc.name}.load.md").read_text().rstrip())
         return 0 if rows else 1
     if not (args.speed > 0 and math.isfinite(args.speed)) or (args.speed != 1 and args.decode):
-        raise UserError("--speed must be positive, and other than 1 only without --decode")
+        raise UsageError("--speed must be positive, and other than 1 only without --decode")
     rows = run_batch(sc, args.traces, engines, args.out, args.speed) if args.traces else run_scenario(
         sc, engines, args.out, args.decode, args.speed)
     print(summary_table(rows))
@@ -432,7 +447,7 @@ def add_demo(sub: argparse._SubParsersAction) -> None:
 
 
 def run_demo(args: argparse.Namespace) -> int:
-    from stgs.demo import run
+    from stgs.cli.demo import run
 
     return run(args.out, progress=not args.quiet)
 
@@ -476,57 +491,61 @@ def _int_list(text: str, option: str) -> list[int]:
     try:
         values = [int(s) for s in text.split(",") if s]
     except ValueError:
-        raise UserError(f"{option} must be comma-separated integers, got {text!r}") from None
+        raise UsageError(f"{option} must be comma-separated integers, got {text!r}") from None
     if not values or min(values) < 0:
-        raise UserError(f"{option} must list non-negative integers, got {text!r}")
+        raise UsageError(f"{option} must list non-negative integers, got {text!r}")
     return values
 
 
-def run_bench(args: argparse.Namespace) -> int:
-    if args.dash is not None and not (args.dash / "manifest.mpd").is_file():
-        raise UserError(f"--dash {args.dash}: no manifest.mpd there")
-    if args.suite == "train":
-        from stgs.benchmarks.train import main as bench_train
+def bench_suite(name: str):
+    """The module bench/<name>.py of the source checkout (the benchmarks are not installed with the package)."""
+    root = Path(__file__).resolve().parents[1]
+    if not (root / "bench" / f"{name}.py").is_file():
+        raise UsageError("stgs bench runs from a source checkout: its bench/ folder is not installed")
+    if str(root) not in sys.path:
+        sys.path.insert(0, str(root))
+    return importlib.import_module(f"bench.{name}")
 
+
+def run_bench(args: argparse.Namespace) -> int:
+    if args.dash is not None and not (args.dash / MANIFEST).is_file():
+        raise UsageError(f"--dash {args.dash}: no {MANIFEST} there")
+    if args.suite == "train":
+        bench_train = bench_suite("train").main
         if not args.runs:
-            raise UserError("bench train needs --runs DIR[,DIR...] (model dirs of finished stgs train runs)")
+            raise UsageError("bench train needs --runs DIR[,DIR...] (model dirs of finished stgs train runs)")
         return bench_train([Path(d) for d in args.runs.split(",") if d], args.plot or Path("docs/train_curves.png"))
     if args.suite == "sim":
-        from stgs.benchmarks.sim import main as bench_sim
-
+        bench_sim = bench_suite("sim").main
         return bench_sim(args.dash)
     if args.suite == "serve":
-        from stgs.benchmarks.serve import main as bench_serve
-
+        bench_serve = bench_suite("serve").main
         return bench_serve(args.dash, _int_list(args.clients, "--clients"), args.seconds)
     from stgs.synth import PRESETS
 
     scene = args.scene or ("large" if args.suite == "play" else "demo")
     if scene not in PRESETS:
-        raise UserError(f"--scene must be one of {', '.join(sorted(PRESETS))}")
+        raise UsageError(f"--scene must be one of {', '.join(sorted(PRESETS))}")
     if args.suite == "play":
-        from stgs.benchmarks.play import main as bench_play
-
+        bench_play = bench_suite("play").main
         return bench_play(args.dash, PRESETS[scene], _int_list(args.qps, "--qps"), args.width, args.height)
     if args.suite == "pack":
-        from stgs.benchmarks.pack import main as bench_pack
+        bench_pack = bench_suite("pack").main
         from stgs.codec.video import PRESETS as X265_PRESETS
 
         presets = [p for p in args.presets.split(",") if p]
         unknown = sorted(set(presets) - set(X265_PRESETS))
         if unknown:
-            raise UserError(f"--presets: unknown x265 preset(s) {unknown}")
+            raise UsageError(f"--presets: unknown x265 preset(s) {unknown}")
         return bench_pack(_int_list(args.qps, "--qps"), presets, _int_list(args.sides, "--sides"),
                           args.plot or Path("docs/rate_distortion.png"),
                           PRESETS[scene])
     if args.suite == "synth":
-        from stgs.benchmarks.synth import main as bench_synth
-
+        bench_synth = bench_suite("synth").main
         if args.preset not in PRESETS:
-            raise UserError(f"--preset must be one of {', '.join(sorted(PRESETS))}")
+            raise UsageError(f"--preset must be one of {', '.join(sorted(PRESETS))}")
         return bench_synth(_int_list(args.steps, "--steps"), args.preset)
-    from stgs.benchmarks.render import main as bench_render
-
+    bench_render = bench_suite("render").main
     return bench_render(_int_list(args.sizes, "--sizes"), args.width, args.height, args.repeats,
                         args.reference_max)
 
@@ -548,7 +567,10 @@ def main(argv: list[str] | None = None, commands: tuple[str, ...] | None = None)
     args = build_parser(commands).parse_args(argv)
     try:
         return args.run(args)
-    except UserError as exc:
+    except FieldError as exc:
+        print(f"stgs: {FLAGS.get(exc.field, exc.field)} {exc.message}", file=sys.stderr)
+        return 2
+    except StgsError as exc:
         print(f"stgs: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # unwritable output, missing file, full disk: the user's environment

@@ -25,6 +25,7 @@ from stgs.metrics import psnr
 from stgs.model.view import FrameRenderer
 from stgs.native.build import available
 from stgs.synth import PRESETS, SCENE_TARGET, synthesize
+from stgs.tree import MANIFEST
 
 SHEET_COLUMNS = 6
 SHEET_ROWS = 2
@@ -88,7 +89,7 @@ async def stream(dash: Path, play_cfg_kwargs: dict, probe: TruthProbe) -> dict:
     from stgs.server.app import loopback
 
     async with loopback(dash) as base:
-        return await play(PlayConfig(url=base + "manifest.mpd", **play_cfg_kwargs), on_gop=probe)
+        return await play(PlayConfig(url=base + MANIFEST, **play_cfg_kwargs), on_gop=probe)
 
 
 def run(out: Path, progress: bool = True) -> int:

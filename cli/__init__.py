@@ -1,0 +1,5 @@
+"""stgs.cli: the `stgs` command and `stgs demo`, the top layer that drives the stages (nothing imports it)."""
+
+from stgs.cli.commands import build_parser, main, train_overrides
+
+__all__ = ["build_parser", "main", "train_overrides"]

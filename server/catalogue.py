@@ -1,0 +1,61 @@
+"""The catalogue of packaged scenes at `/` and `/scenes`.
+
+The scan reads and parses every scene's MPD: it runs on a thread of its own, never on the event loop (with
+io_threads=0 the loop's default executor runs calls inline), so a large catalogue does not delay transfers."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import AsyncIterator
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+from aiohttp import web
+
+from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, MPDError, parse_mpd
+from stgs.server.config import CORS_HEADERS, ROOT_KEY
+from stgs.tree import MANIFEST
+
+
+def scene_summary(name: str, manifest: Path) -> dict:
+    mpd = parse_mpd(manifest.read_bytes())
+    video = mpd.adaptation_set(FEATURE_SCHEME)
+    keyframes = mpd.adaptation_set(KEYFRAME_SCHEME)
+    seconds = video.segment_template.seconds
+    prefix = "" if name == "." else f"{name}/"
+    return {"name": name, "manifest": f"/{prefix}{MANIFEST}", "duration": mpd.duration,
+            "gops": round(mpd.duration / seconds), "gop_seconds": seconds,
+            "keyframe_bandwidth": keyframes.representations[0].bandwidth,
+            "ladder": [{"id": r.id, "bandwidth": r.bandwidth, "codecs": r.codecs} for r in video.representations]}
+
+
+def catalogue(root: Path) -> list[dict]:
+    """Every packaged scene at root or one folder below, skipping unreadable manifests."""
+    candidates = [(".", root / MANIFEST)]
+    candidates += [(d.name, d / MANIFEST) for d in sorted(root.iterdir())
+                   if d.is_dir() and not d.name.startswith(".")]
+    scenes = []
+    for name, manifest in candidates:
+        if manifest.is_file():
+            try:
+                scenes.append(scene_summary(name, manifest))
+            except (MPDError, OSError, IndexError, ZeroDivisionError):
+                logging.getLogger("stgs.server").warning("skipping %s: not a StreamSTGS manifest", manifest)
+    return scenes
+
+
+async def scenes(request: web.Request) -> web.Response:
+    data = await asyncio.get_running_loop().run_in_executor(request.app[CATALOGUE_KEY], catalogue,
+                                                            request.app[ROOT_KEY])
+    return web.json_response({"scenes": data}, headers={"Cache-Control": "no-cache", **CORS_HEADERS})
+
+
+CATALOGUE_KEY = web.AppKey("catalogue", ThreadPoolExecutor)
+
+
+async def catalogue_thread(app: web.Application) -> AsyncIterator[None]:
+    """Cleanup context: the catalogue's own thread (scans queue behind each other, transfers never wait)."""
+    app[CATALOGUE_KEY] = ThreadPoolExecutor(1, "stgs-catalogue")
+    yield
+    app[CATALOGUE_KEY].shutdown(wait=False)

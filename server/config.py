@@ -1,0 +1,91 @@
+"""Settings of `stgs serve` and what follows from them: the served types, cache lifetimes, CORS, app keys."""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import dataclass
+from pathlib import Path
+
+from aiohttp import web
+
+from stgs.tree import KEYFRAME_EXTENSION, KEYFRAME_MIME_TYPE
+
+CONTENT_TYPES = {
+    ".mpd": "application/dash+xml",
+    ".mp4": "video/mp4",
+    ".m4s": "video/iso.segment",
+    KEYFRAME_EXTENSION: KEYFRAME_MIME_TYPE,
+    ".json": "application/json",
+}
+"""The only files served, by extension."""
+
+
+MUTABLE_SUFFIXES = (".mpd", ".json")
+"""Mutable documents: short cache lifetime. Everything else is an immutable segment."""
+
+
+CORS_HEADERS = {
+    "Access-Control-Allow-Origin": "*",
+    "Access-Control-Expose-Headers": "Content-Length, Content-Range, ETag, Last-Modified, Accept-Ranges",
+}
+
+
+ROOT_KEY = web.AppKey("root", Path)
+
+
+CONFIG_KEY = web.AppKey("config", object)
+
+
+METRICS_KEY = web.AppKey("metrics", object)
+
+
+SLOTS_KEY = web.AppKey("slots", asyncio.Semaphore)
+
+
+HEADERS_KEY = web.AppKey("headers", dict)
+
+
+@dataclass
+class ServeConfig:
+    """Settings of one server."""
+
+    root: Path
+    """Folder of packaged scenes (each a folder with manifest.mpd), or one packaged scene."""
+    host: str = "127.0.0.1"
+    """Listen address (loopback by default)."""
+    port: int = 8080
+    """Listen port (0: any free port)."""
+    max_transfers: int = 512
+    """File transfers in flight at once; further requests wait for a slot."""
+    keepalive_timeout: float = 15.0
+    """Seconds an idle keep-alive connection stays open."""
+    max_header_bytes: int = 8190
+    """Longest request line / header field accepted (longer: 400)."""
+    max_headers: int = 64
+    """Most header fields per request."""
+    shutdown_timeout: float = 10.0
+    """On SIGTERM, seconds in-flight transfers get to finish before they are cut."""
+    manifest_max_age: int = 2
+    """Cache-Control max-age of MPDs and stats (seconds)."""
+    segment_max_age: int = 31_536_000
+    """Cache-Control max-age of segments (they never change under one URL)."""
+    access_log: bool = True
+    """Write one JSON line per request to stderr."""
+    workers: int = 1
+    """Server processes sharing the port (SO_REUSEPORT: the kernel spreads connections); /metrics sums them all."""
+    io_threads: int | None = 0
+    """Threads for each file's stat/open/close: 0 does them on the event loop (microseconds on a local disk,
+    far less than a hop to a thread), N uses N threads (slow network storage), None leaves the loop's
+    default executor alone (a server sharing its loop with other code, like the demo's player)."""
+
+
+def cache_control(suffix: str, cfg: ServeConfig) -> str:
+    if suffix in MUTABLE_SUFFIXES:
+        return f"public, max-age={cfg.manifest_max_age}, must-revalidate"
+    return f"public, max-age={cfg.segment_max_age}, immutable"
+
+
+def response_headers(cfg: ServeConfig) -> dict[str, dict[str, str]]:
+    """Per served extension, the headers every response for such a file carries."""
+    return {suffix: {"Content-Type": content_type, "Cache-Control": cache_control(suffix, cfg), **CORS_HEADERS}
+            for suffix, content_type in CONTENT_TYPES.items()}

@@ -1,0 +1,197 @@
+"""File responses: whole files (our sendfile fast path) and ranges/conditionals (aiohttp's FileResponse), both
+inside a transfer slot and reported to the metrics; the route handler and the fast path in front of the router.
+
+The fast path and the route decide the same way (`file_response`): a GET/HEAD with a Range or a condition goes
+to FileResponse (206/416, 304, 412), anything else to WholeFileResponse."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import stat
+import time
+from collections.abc import Awaitable, Callable
+from typing import TYPE_CHECKING
+
+from aiohttp import web
+from aiohttp.abc import AbstractStreamWriter
+
+from stgs.server.config import CONFIG_KEY, HEADERS_KEY, METRICS_KEY, ROOT_KEY, SLOTS_KEY
+from stgs.server.files import BeneathOpener, file_validators, open_and_stat, resolve_path, servable_parts
+
+if TYPE_CHECKING:
+    from stgs.server.metrics import Metrics
+
+
+def is_file_response(response: web.StreamResponse | None) -> bool:
+    """File responses report themselves to the metrics once their transfer ends."""
+    return isinstance(response, (SlottedFileResponse, WholeFileResponse))
+
+
+def body_bytes(request: web.BaseRequest, response: web.StreamResponse) -> int:
+    """Body bytes a response carries (a file's go out by sendfile, past the writer's own count)."""
+    if request.method == "HEAD":
+        return 0
+    if is_file_response(response):
+        return (response.content_length or 0) if response.status in (200, 206) else 0
+    body = getattr(response, "body", None)
+    return len(body) if isinstance(body, bytes) else 0
+
+
+async def counted_transfer(app: web.Application, request: web.BaseRequest, response: web.StreamResponse,
+                           send: Callable[[web.BaseRequest], Awaitable[AbstractStreamWriter | None]],
+                           ) -> AbstractStreamWriter | None:
+    """Run a file response's `send` inside one of the app's transfer slots; report it to the metrics (status,
+    time including the transfer, body bytes) once it ends, also when the client hung up."""
+    metrics: Metrics = app[METRICS_KEY]
+    start = time.perf_counter()
+    metrics.handling += 1
+    try:
+        async with app[SLOTS_KEY]:
+            return await send(request)
+    finally:
+        metrics.handling -= 1
+        metrics.answered(request.method, response.status, time.perf_counter() - start, body_bytes(request, response))
+
+
+class SlottedFileResponse(web.FileResponse):
+    """aiohttp's FileResponse (Range, conditions), sent inside a transfer slot and reported to the metrics."""
+
+    def __init__(self, app: web.Application, path: str, headers: dict[str, str]):
+        super().__init__(path, headers=headers)
+        self._app = app
+
+    async def prepare(self, request: web.BaseRequest) -> AbstractStreamWriter | None:
+        return await counted_transfer(self._app, request, self, super().prepare)
+
+
+CONDITIONAL_HEADERS = ("Range", "If-Range", "If-None-Match", "If-Modified-Since", "If-Match",
+                       "If-Unmodified-Since")
+"""Requests with any of these go through aiohttp's FileResponse (206/416, 304, 412)."""
+
+
+class WholeFileResponse(web.StreamResponse):
+    """200 with a whole file, for GET/HEAD without Range or conditions: what a player sends for every segment.
+
+    The same answer FileResponse gives such a request (same ETag, Last-Modified, Accept-Ranges), with less
+    Python per request, which is what limits this server (docs/BENCHMARKS.md): the file is opened and stat'ed
+    once, and the body goes out by os.sendfile straight on the socket, in one call when the socket's buffer
+    takes it; asyncio's loop.sendfile sends whatever is left.
+    """
+
+    def __init__(self, app: web.Application, path: str, headers: dict[str, str],
+                 opened: tuple[int, os.stat_result] | None = None):
+        super().__init__(headers=headers)
+        self._app = app
+        self._path = path
+        self._opened = opened  # (descriptor, stat) of the file the fast path opened; this response closes it
+
+    async def prepare(self, request: web.BaseRequest) -> AbstractStreamWriter | None:
+        try:
+            return await counted_transfer(self._app, request, self, self._send)
+        finally:
+            if self._opened is not None:  # never sent (cancelled while waiting for a slot)
+                os.close(self._opened[0])
+                self._opened = None
+
+    async def _send(self, request: web.BaseRequest) -> AbstractStreamWriter | None:
+        try:
+            if self._opened is not None:
+                (fd, st), self._opened = self._opened, None
+            elif self._app[CONFIG_KEY].io_threads == 0:
+                fd, st = open_and_stat(self._path)
+            else:  # slow storage: keep the syscalls off the event loop, as FileResponse does
+                fd, st = await asyncio.get_running_loop().run_in_executor(None, open_and_stat, self._path)
+        except OSError:  # gone or unreadable since resolve_path looked
+            self.set_status(404)
+            return await super().prepare(request)
+        try:
+            self.headers.update(file_validators(st.st_size, st.st_mtime_ns, st.st_mtime))
+            writer = await super().prepare(request)
+            if request.method != "HEAD" and st.st_size:
+                await send_file_body(request, fd, st.st_size)
+                await super().write_eof()
+            return writer
+        finally:
+            os.close(fd)
+
+
+async def send_file_body(request: web.BaseRequest, fd: int, size: int) -> None:
+    transport = request.transport
+    if transport is None or transport.is_closing():
+        raise ConnectionResetError("connection lost")
+    sent = 0
+    if transport.get_write_buffer_size() == 0:  # the headers are out: the socket is ours until the body is
+        sock = transport.get_extra_info("socket")
+        try:
+            while sent < size:
+                n = os.sendfile(sock.fileno(), fd, sent, size - sent)
+                if n == 0:
+                    break
+                sent += n
+        except BlockingIOError:
+            pass
+        except OSError as exc:  # peer gone (EPIPE, ECONNRESET)
+            raise ConnectionResetError(str(exc)) from exc
+    if sent < size:
+        with open(fd, "rb", closefd=False) as f:
+            await asyncio.get_running_loop().sendfile(transport, f, sent, size - sent)
+
+
+async def serve_file(request: web.Request) -> web.StreamResponse:
+    app = request.app
+    path = resolve_path(app[ROOT_KEY], request.path)
+    if path is None:
+        raise web.HTTPNotFound()
+    headers = app[HEADERS_KEY][os.path.splitext(path)[1]]
+    if any(name in request.headers for name in CONDITIONAL_HEADERS):
+        return SlottedFileResponse(app, path, headers)
+    return WholeFileResponse(app, path, headers)
+
+
+class WholeFileFastPath:
+    """The server's request handler in front of the app's: whole-file GET/HEADs of servable files, what a player
+    sends for every segment, are answered here, past aiohttp's router and middleware (a fifth of the server's
+    CPU per request, docs/BENCHMARKS.md); every other request goes on to the app. The answer is the one the
+    app's serve_file route gives (same WholeFileResponse), so only the app's own middleware is skipped, and it
+    only counts what WholeFileResponse reports itself.
+
+    With an `opener` (openat2) the file is opened here, in one syscall that also keeps the path inside ROOT; a
+    path it refuses (missing, a symlink on the way) goes to the app, whose route answers 404 or follows a symlink
+    that stays inside ROOT. Without one (old kernels, or io_threads for slow storage) resolve_path checks it."""
+
+    def __init__(self, app: web.Application, app_handler: Callable[[web.BaseRequest], Awaitable[web.StreamResponse]],
+                 opener: BeneathOpener | None):
+        self._app = app
+        self._app_handler = app_handler
+        self._root = app[ROOT_KEY]
+        self._headers = app[HEADERS_KEY]
+        self._opener = opener
+
+    async def __call__(self, request: web.BaseRequest) -> web.StreamResponse:
+        if request.method in ("GET", "HEAD") and not any(name in request.headers for name in CONDITIONAL_HEADERS):
+            response = self._whole_file(request.path)
+            if response is not None:
+                return response
+        return await self._app_handler(request)
+
+    def _whole_file(self, url_path: str) -> WholeFileResponse | None:
+        if self._opener is None:
+            path = resolve_path(self._root, url_path)
+            if path is None:
+                return None
+            return WholeFileResponse(self._app, path, self._headers[os.path.splitext(path)[1]])
+        parts = servable_parts(url_path)
+        if parts is None:
+            return None
+        relative = "/".join(parts)
+        try:
+            fd = self._opener.open(relative)
+        except OSError:  # missing, or a symlink on the way: the app's route answers
+            return None
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            os.close(fd)
+            return None
+        return WholeFileResponse(self._app, f"{self._root}/{relative}", self._headers[os.path.splitext(relative)[1]],
+                                 (fd, st))

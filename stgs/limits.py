@@ -1,0 +1,46 @@
+"""Every size cap of the system, in one place (DESIGN.md, security rules: sizes are checked before allocation).
+
+A model dir, a manifest and a keyframe segment are all checked against these
+same numbers, so whatever `stgs train`/`stgs synth` may write, `stgs pack`
+accepts and `stgs play` decodes.
+"""
+
+# --- scene shape (model.json, the keyframe descriptor of an MPD) ---
+MAX_CAPACITY = 1 << 22
+"""Most Gaussians per GOP (4 M slots: about 1 GiB of float32 features per GOP at G = 60)."""
+MAX_GOP_SIZE = 1024
+"""Most frames per GOP."""
+MAX_WINDOW = 16
+"""Longest sliding window W of temporal features per frame (the native fp32 kernel takes all of them)."""
+MAX_BF16_WINDOW = 8
+"""Longest window the AMX bf16 deformation kernel takes (its D_t input is padded to 128 = 8 x 16 lanes)."""
+MAX_PE_FREQS = 16
+"""Most positional-encoding frequencies of t."""
+MAX_GOPS = 100_000
+"""Most GOPs per scene (55 hours at 2-second GOPs)."""
+
+# --- images ---
+MAX_IMAGE_SIDE = 16_384
+"""Largest width or height the splatter renders, and a camera may ask for."""
+MAX_PATH_CAMERAS = 100_000
+"""Most cameras in a camera path or a scene's cameras.json."""
+
+# --- documents and segments fetched over the network ---
+MAX_MPD_BYTES = 1 << 20
+"""Largest manifest accepted."""
+MAX_DOC_BYTES = 16 << 20
+"""Largest stats.json or cameras.json accepted."""
+MAX_KEYFRAME_HEADER_BYTES = 1 << 20
+"""Largest safetensors header of a keyframe segment."""
+MAX_SEGMENT_BYTES = 1 << 30
+"""Fixed cap on any segment, whatever the manifest says."""
+MAX_INIT_BYTES = 1 << 20
+"""Largest init segment of a feature Representation."""
+SEGMENT_SLACK = 1.25
+"""A segment may exceed @bandwidth x duration by this factor (the packager's @bandwidth covers the largest)."""
+MAX_TEMPLATE_NUMBER_WIDTH = 32
+"""Widest `$Number%0Nd$` a segment template may ask for (DASH's widths are a handful of digits)."""
+
+# --- harness inputs ---
+MAX_TRACE_POINTS = 1_000_000
+"""Most points of one bandwidth trace."""
