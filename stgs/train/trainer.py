@@ -348,6 +348,9 @@ class Trainer:
         self.gen.set_state(tensors["rng"])
         return extra, tensors.get("accum")
 
+    def _coarse_state(self, iteration: int) -> dict:
+        return {"iteration": iteration, "triangulated": self.triangulated, "background": self.background_points}
+
     # --- stages ---
 
     def coarse(self, views: Views) -> GOPModel:
@@ -357,7 +360,9 @@ class Trainer:
         opt = Optimizer(model, cfg, self.extent, None, canonical_only=True)
         resumed = self.load_checkpoint("coarse", model, opt)
         start = resumed[0]["iteration"] if resumed else 0
-        if not resumed:
+        if resumed:  # the counts the interrupted run found, for the report
+            self.triangulated, self.background_points = resumed[0].get("triangulated"), resumed[0].get("background")
+        else:
             init = initial_points(self.ds, self.train_names, init_frames(views.frames, cfg.init_frames),
                                   self.shape.capacity, self.gen, cfg.init_points, cfg.background_share)
             self.triangulated, self.background_points = init.triangulated, init.background
@@ -373,9 +378,9 @@ class Trainer:
             if cfg.relocate and (it + 1) % cfg.relocate_every == 0 and it < cfg.relocate_until * cfg.coarse_iterations:
                 self.relocate(model, opt, torch.sigmoid(model.opacity_logit.detach()))
             if (it + 1) % cfg.checkpoint_every == 0:
-                self.save_checkpoint("coarse", model, opt, {"iteration": it + 1})
+                self.save_checkpoint("coarse", model, opt, self._coarse_state(it + 1))
         if cfg.coarse_iterations:
-            self.save_checkpoint("coarse", model, opt, {"iteration": cfg.coarse_iterations})
+            self.save_checkpoint("coarse", model, opt, self._coarse_state(cfg.coarse_iterations))
         return model
 
     def _step(self, opt: Optimizer, loss: torch.Tensor, stage: str, it: int, model: GOPModel) -> None:

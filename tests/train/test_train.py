@@ -103,6 +103,10 @@ def test_same_seed_same_model_and_resume_matches(scene, tmp_path, monkeypatch):
     monkeypatch.setattr(loss_module, "opacity_l1", real)
     train(scene, tmp_path / "c", cfg, progress=False, resume=True)
     assert (tmp_path / "c" / "gop_0000.safetensors").read_bytes() == a
+    # the resumed run reports the points the interrupted one triangulated
+    report_a, report_c = (json.loads((tmp_path / d / "train_report.json").read_text()) for d in ("a", "c"))
+    assert report_c["triangulated_points"] == report_a["triangulated_points"] is not None
+    assert report_c["background_points"] == report_a["background_points"]
 
 
 def test_a_non_finite_loss_stops_with_the_last_checkpoint_kept(scene, tmp_path, monkeypatch):
