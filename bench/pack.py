@@ -24,6 +24,7 @@ from stgs.codec.video import decode_segment, encode_gop
 from stgs.fsio import save_figure
 from stgs.metrics import psnr
 from stgs.packager.packer import PackConfig, Packer
+from stgs.packager.segments import measure
 from stgs.synth import PRESETS, SynthConfig, synthesize
 from stgs.synth.scene import EFFECTS, ProceduralScene
 
@@ -40,15 +41,15 @@ def codec_rows(model_dir: Path, out: Path, qps: list[int], presets: list[str], s
             gop = packer.prepare_gop(k)
             for qp in qps:
                 start = time.perf_counter()
-                init, media = packer.encode_task(k, qp, gop.frames)
+                init, media = packer.encoder.encode(k, qp, gop.frames)
                 encode_s = time.perf_counter() - start
                 start = time.perf_counter()
                 decode_segment(init, media, shape.num_features, 4 * packer.side, 4 * packer.side)
                 decode_s = time.perf_counter() - start
-                m = packer.measure(gop, init, media)
+                m = measure(gop, init, media, packer.meta)
                 per_qp[qp].append({**m, "keyframe_bytes": len(gop.keyframe), "encode_s": encode_s,
                                    "decode_s": decode_s})
-            packer.init_segments.clear()
+            packer.encoder.init_segments.clear()
         for qp in qps:
             runs = per_qp[qp]
             g = shape.gop_size

@@ -121,7 +121,7 @@ def test_repack_is_byte_identical_and_resume_completes(scene, packed, tmp_path):
 
 
 def test_interrupted_pack_leaves_no_manifest(scene, tmp_path, monkeypatch):
-    import stgs.packager.packer as pack_module
+    import stgs.packager.segments as pack_module
 
     calls = {"n": 0}
     real = pack_module.encode_gop

@@ -1,0 +1,141 @@
+"""The manifest layer of the packager: segment records in, `@bandwidth`, the MPD and stats.json out.
+
+As a muxer reports each finished segment to a notifier (shaka-packager), the
+packer reports a `SegmentRecord` (number, duration, bytes, quality) per
+segment to a `ManifestBuilder`; each Representation accumulates its records,
+its `@bandwidth` comes from them (the rate that delivers the largest segment
+within its duration), and the MPD and the statistics are written from them
+alone.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from fractions import Fraction
+
+from stgs.model.gop import GOPShape
+from stgs.mpd import (
+    FEATURE_SCHEME,
+    KEYFRAME_SCHEME,
+    MPD,
+    AdaptationSet,
+    Descriptor,
+    Period,
+    Representation,
+    SegmentTemplate,
+)
+from stgs.tree import (
+    KEYFRAME_MIME_TYPE,
+    KEYFRAME_REP,
+    feature_init_template,
+    feature_media_template,
+    keyframe_template,
+    qp_of,
+)
+
+STATS_FORMAT = "streamstgs-stats"
+
+
+@dataclass(frozen=True)
+class SegmentRecord:
+    """One finished segment, as the packer reports it."""
+
+    number: int
+    """$Number$: the GOP index."""
+    duration_s: float
+    bytes: int
+    quality: dict = field(default_factory=dict)
+    """Measures of a feature segment (feature_psnr, render_psnr); empty for keyframes."""
+
+
+@dataclass
+class RepresentationRecords:
+    """The segments of one Representation, in any order of arrival."""
+
+    rep_id: str
+    segments: dict[int, SegmentRecord] = field(default_factory=dict)
+
+    def add(self, record: SegmentRecord) -> None:
+        self.segments[record.number] = record
+
+    def bandwidth(self) -> int:
+        """@bandwidth (bit/s): the rate that delivers the largest segment within its duration."""
+        return math.ceil(max(r.bytes * 8 / r.duration_s for r in self.segments.values()))
+
+    def ordered(self) -> list[SegmentRecord]:
+        return [self.segments[k] for k in sorted(self.segments)]
+
+
+@dataclass
+class ManifestBuilder:
+    """Collects segment records per Representation and builds the MPD and stats.json from them."""
+
+    shape: GOPShape
+    grid_side: int
+    fps: float
+    version: str
+    """The folder all segments of this pack live under (stgs.tree.version_dir)."""
+    timescale: int
+    segment_ticks: int
+    frame_rate: Fraction
+    """The feature video's frame rate."""
+    keyframes: RepresentationRecords = field(default_factory=lambda: RepresentationRecords(KEYFRAME_REP))
+    features: dict[str, RepresentationRecords] = field(default_factory=dict)
+    codecs: dict[str, str] = field(default_factory=dict)
+    """@codecs per feature Representation."""
+
+    @property
+    def segment_seconds(self) -> float:
+        return self.shape.gop_size / self.fps
+
+    def on_keyframe(self, record: SegmentRecord) -> None:
+        self.keyframes.add(record)
+
+    def on_feature_segment(self, rep_id: str, record: SegmentRecord) -> None:
+        self.features.setdefault(rep_id, RepresentationRecords(rep_id)).add(record)
+
+    def ladder(self) -> list[RepresentationRecords]:
+        """Feature Representations, lowest QP number last (highest bandwidth last for the usual ladder)."""
+        return sorted(self.features.values(), key=lambda r: (qp_of(r.rep_id) is None, qp_of(r.rep_id) or 0,
+                                                             r.rep_id))
+
+    def mpd(self) -> MPD:
+        shape, side = self.shape, self.grid_side
+        params = (f"version=1;capacity={shape.capacity};grid_side={side};gop_size={shape.gop_size};"
+                  f"window={shape.window};pe_freqs={shape.pe_freqs};fps={self.fps:g}")
+        keyframes = AdaptationSet(
+            1, "application", KEYFRAME_MIME_TYPE,
+            SegmentTemplate(keyframe_template(self.version), self.timescale, self.segment_ticks, 0),
+            [Representation(KEYFRAME_REP, self.keyframes.bandwidth())],
+            [Descriptor(KEYFRAME_SCHEME, params)])
+        rate = self.frame_rate
+        frame_rate = str(rate.numerator) if rate.denominator == 1 else f"{rate.numerator}/{rate.denominator}"
+        reps = [Representation(r.rep_id, r.bandwidth(), self.codecs[r.rep_id], 4 * side, 4 * side, frame_rate,
+                               [KEYFRAME_REP], ["cdsc"]) for r in self.ladder()]
+        features = AdaptationSet(
+            2, "video", "video/mp4",
+            SegmentTemplate(feature_media_template(self.version), self.timescale, self.segment_ticks, 0,
+                            feature_init_template(self.version)),
+            reps, [Descriptor(FEATURE_SCHEME, "tiles=4x4;channels=16;bits=12")])
+        duration = len(self.keyframes.segments) * self.segment_seconds
+        return MPD(duration, self.segment_seconds, [Period("0", [keyframes, features])])
+
+    def stats(self, pack_id: str) -> dict:
+        """stats.json: per Representation and per GOP, bytes and quality (manifests/PROFILE.md)."""
+        reps = {}
+        for r in self.ladder():
+            rows = r.ordered()
+            reps[r.rep_id] = {
+                "qp": qp_of(r.rep_id), "bandwidth": r.bandwidth(),
+                "mean_bytes": sum(s.bytes for s in rows) / len(rows),
+                "mean_feature_psnr": sum(s.quality["feature_psnr"] for s in rows) / len(rows),
+                "mean_render_psnr": sum(s.quality["render_psnr"] for s in rows) / len(rows)}
+        return {"format": STATS_FORMAT, "version": 1, "pack_id": pack_id,
+                "segment_seconds": self.segment_seconds, "frames_per_gop": self.shape.gop_size,
+                "keyframe_bandwidth": self.keyframes.bandwidth(),
+                "representations": reps,
+                "gops": [{"index": kf.number, "keyframe_bytes": kf.bytes,
+                          "representations": {r.rep_id: {"bytes": r.segments[kf.number].bytes,
+                                                         **r.segments[kf.number].quality} for r in self.ladder()}}
+                         for kf in self.keyframes.ordered()]}

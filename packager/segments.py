@@ -1,0 +1,116 @@
+"""The packager's per-GOP work: prepare (sort, tile, keyframe, reference views), encode one QP, measure it."""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from stgs.camera import Camera
+from stgs.codec.features import VIDEO_MAX, feature_ranges, features_from_frames, quantize_features, tile_frames
+from stgs.codec.keyframe import Keyframe, decode_keyframe, encode_keyframe
+from stgs.codec.mp4 import set_timeline, split_fragmented
+from stgs.codec.plas import PLASConfig, permute_gop, plas_order, sort_key
+from stgs.codec.video import VideoTiming, decode_segment, encode_gop
+from stgs.metrics import psnr
+from stgs.model.gop import GOPModel
+from stgs.model.store import SceneMeta, load_gop
+from stgs.model.view import FrameRenderer, framing_orbit
+from stgs.synth import load_ground_truth
+from stgs.tree import CAMERAS, GROUND_TRUTH_DIR
+
+
+@dataclass
+class PreparedGOP:
+    """Everything a GOP's QP tasks share, computed once per GOP."""
+
+    index: int
+    original: GOPModel
+    """The uncompressed GOP as stored in the model dir."""
+    frames: np.ndarray
+    """(E, 4S, 4S) 12-bit feature frames of the sorted GOP."""
+    ranges: torch.Tensor
+    """(2, 16) feature ranges."""
+    keyframe: bytes
+    """The keyframe segment."""
+    decoded_keyframe: Keyframe
+    """The keyframe segment as a client decodes it."""
+    views: list[tuple[int, Camera]]
+    """(frame, camera) pairs the rendered-view PSNR uses."""
+    reference: list[torch.Tensor]
+    """Those views rendered from the uncompressed GOP."""
+
+
+def stats_cameras(model_dir: Path, model: GOPModel, count: int) -> list[Camera]:
+    """Ground-truth cameras of a synthetic scene, else an orbit around the Gaussians."""
+    if (Path(model_dir) / GROUND_TRUTH_DIR / CAMERAS).is_file():
+        return load_ground_truth(model_dir)[1][:count]
+    return framing_orbit(model, count, 320, 240)
+
+
+def prepare_gop(model_dir: Path, meta: SceneMeta, k: int, plas: PLASConfig | None, views: int,
+                frames: int) -> PreparedGOP:
+    """GOP k sorted (PLAS unless `plas` is None), tiled, its keyframe written and read back, and `views` x `frames`
+    reference views rendered from the uncompressed GOP."""
+    side = meta.shape.grid_side
+    original = load_gop(model_dir, meta, k)
+    if plas is not None:
+        cfg = PLASConfig(**{**asdict(plas), "seed": plas.seed + k})
+        model = permute_gop(original, plas_order(sort_key(original, cfg), side, cfg))
+    else:
+        model = original
+    feats = model.features.detach()
+    ranges = feature_ranges(feats)
+    tiled = tile_frames(quantize_features(feats, ranges), side).numpy().astype(np.uint16)
+    keyframe = encode_keyframe(k, model, ranges)
+    cams = stats_cameras(model_dir, original, views)
+    g = meta.shape.gop_size
+    pairs = [(f, cam) for f in sorted({0, g // 2, g - 1})[:frames] for cam in cams]
+    renderer = FrameRenderer(original)
+    reference = [renderer.render(f, cam).clamp(0, 1) for f, cam in pairs]
+    decoded = decode_keyframe(keyframe, meta.shape, k, max_bytes=len(keyframe))
+    return PreparedGOP(k, original, tiled, ranges, keyframe, decoded, pairs, reference)
+
+
+class FeatureEncoder:
+    """Encodes GOPs' feature frames at a QP into (init, media) placed on the Representation's timeline; every GOP
+    of one QP must give the same init segment (one per Representation)."""
+
+    def __init__(self, timing: VideoTiming, num_features: int, preset: str):
+        self.timing, self.num_features, self.preset = timing, num_features, preset
+        self.init_segments: dict[int, bytes] = {}
+        self._lock = threading.Lock()
+
+    def encode(self, k: int, qp: int, frames: np.ndarray) -> tuple[bytes, bytes]:
+        init, media = split_fragmented(encode_gop(frames, qp, self.timing, self.preset))
+        media = set_timeline(media, k + 1, k * self.timing.segment_ticks(self.num_features))
+        with self._lock:
+            first = self.init_segments.setdefault(qp, init)
+        if first != init:
+            raise RuntimeError(f"GOP {k} at QP {qp} produced a different init segment; "
+                               "Representations need one init segment for all GOPs")
+        return init, media
+
+
+def mse_psnr(mse: list[float]) -> float:
+    """PSNR of the mean of squared errors (99 dB when identical)."""
+    m = sum(mse) / len(mse)
+    return 99.0 if m == 0 else 10 * math.log10(1.0 / m)
+
+
+def measure(gop: PreparedGOP, init: bytes, media: bytes, meta: SceneMeta) -> dict:
+    """Bytes, decoded-feature PSNR and rendered-view PSNR (against the uncompressed GOP) of one media segment."""
+    side = meta.shape.grid_side
+    decoded_frames = decode_segment(init, media, meta.shape.num_features, 4 * side, 4 * side)
+    feature_psnr = psnr(torch.from_numpy(decoded_frames.astype(np.float32)) / VIDEO_MAX,
+                        torch.from_numpy(gop.frames.astype(np.float32)) / VIDEO_MAX)
+    features = features_from_frames(decoded_frames, side, gop.ranges)
+    renderer = FrameRenderer(gop.decoded_keyframe.to_model(features))
+    mse = [(renderer.render(f, cam).clamp(0, 1).double() - ref.double()).square().mean().item()
+           for (f, cam), ref in zip(gop.views, gop.reference, strict=True)]
+    return {"bytes": len(media), "feature_psnr": round(min(feature_psnr, 99.0), 4),
+            "render_psnr": round(mse_psnr(mse), 4)}
