@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import os
-import subprocess
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from stgs.codec.video import require_ffmpeg
+from stgs.codec.ffmpeg import FFmpegError, Writer, require_ffmpeg
 from stgs.errors import StgsError
 from stgs.fsio import DIR_MODE, FILE_MODE, atomic_write_bytes, encode_png, to_uint8
 
@@ -57,19 +56,17 @@ class Mp4Sink(NullSink):
         os.close(fd)
         self.size = (width, height)
         self.last: bytes | None = None
-        cmd = ["ffmpeg", "-hide_banner", "-nostdin", "-loglevel", "error", "-y", "-f", "rawvideo",
-               "-pix_fmt", "rgb24", "-s", f"{width}x{height}", "-framerate", f"{fps:g}", "-i", "pipe:",
-               "-vf", "pad=ceil(iw/2)*2:ceil(ih/2)*2", "-c:v", "libx264", "-preset", "veryfast", "-crf", "18",
-               "-pix_fmt", "yuv420p", "-movflags", "+faststart", self.tmp]
-        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stderr=subprocess.PIPE)
+        self.encoder = Writer(["-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{width}x{height}",
+                               "-framerate", f"{fps:g}", "-i", "pipe:", "-vf", "pad=ceil(iw/2)*2:ceil(ih/2)*2",
+                               "-c:v", "libx264", "-preset", "veryfast", "-crf", "18", "-pix_fmt", "yuv420p",
+                               "-movflags", "+faststart", self.tmp])
 
     def _send(self, data: bytes) -> None:
         try:
-            self.proc.stdin.write(data)
-        except BrokenPipeError:
-            err = self.proc.stderr.read().decode(errors="replace").strip()
+            self.encoder.write(data)
+        except FFmpegError as exc:
             self.abort()
-            raise StgsError(f"{self.path}: ffmpeg stopped writing the video ({err})") from None
+            raise StgsError(f"{self.path}: {exc}") from None
 
     def write(self, frame: int, image) -> None:
         data = np.ascontiguousarray(to_uint8(image)).tobytes()
@@ -80,18 +77,16 @@ class Mp4Sink(NullSink):
         self._send(self.last if self.last is not None else bytes(self.size[0] * self.size[1] * 3))
 
     def close(self) -> None:
-        self.proc.stdin.close()
-        err = self.proc.stderr.read().decode(errors="replace").strip()
-        if self.proc.wait() != 0:
+        try:
+            self.encoder.close()
+        except FFmpegError as exc:
             self.abort()
-            raise StgsError(f"{self.path}: ffmpeg failed to write the video ({err})")
+            raise StgsError(f"{self.path}: {exc}") from None
         os.chmod(self.tmp, FILE_MODE)
         os.replace(self.tmp, self.path)
 
     def abort(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait()
+        self.encoder.abort()
         if os.path.exists(self.tmp):
             os.unlink(self.tmp)
 

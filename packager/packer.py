@@ -23,9 +23,10 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from stgs.codec.ffmpeg import require_ffmpeg
 from stgs.codec.mp4 import hevc_codecs
 from stgs.codec.plas import PLASConfig
-from stgs.codec.video import PRESETS, VideoTiming, require_ffmpeg
+from stgs.codec.video import PRESETS, VideoTiming
 from stgs.errors import FieldError, StgsError
 from stgs.fsio import atomic_write_bytes
 from stgs.model.store import SceneMeta, read_meta

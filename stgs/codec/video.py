@@ -1,4 +1,4 @@
-"""Feature video: 12-bit gray HEVC (libx265) through ffmpeg, one closed GOP per segment.
+"""Feature video: 12-bit gray HEVC (libx265) through ffmpeg (stgs.codec.ffmpeg), one closed GOP per segment.
 
 Encoding settings (constant QP, closed GOP, IDR at the first frame, no scene
 cuts, keyint = E, one x265 thread pool per encode, bit-exact muxing) make each
@@ -9,15 +9,14 @@ the same frames produce the same bytes.
 from __future__ import annotations
 
 import os
-import shutil
-import subprocess
 import tempfile
+from collections.abc import Iterator
 from dataclasses import dataclass
 from fractions import Fraction
 
-import ffmpeg
 import numpy as np
 
+from stgs.codec import ffmpeg
 from stgs.errors import StgsError
 
 PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow")
@@ -48,11 +47,6 @@ class VideoTiming:
         return num_features * self.frame_ticks
 
 
-def require_ffmpeg() -> None:
-    if shutil.which("ffmpeg") is None or shutil.which("ffprobe") is None:
-        raise StgsError("ffmpeg and ffprobe are required (Debian: apt-get install ffmpeg)")
-
-
 def x265_params(qp: int, keyint: int, crf: bool = False) -> str:
     """x265 settings; crf=True uses the value as a CRF instead of a constant QP (benchmarks only)."""
     return ":".join([f"{'crf' if crf else 'qp'}={qp}", f"keyint={keyint}", f"min-keyint={keyint}", "scenecut=0",
@@ -70,51 +64,51 @@ def encode_gop(frames: np.ndarray, qp: int, timing: VideoTiming, preset: str = "
     e, h, w = frames.shape
     with tempfile.TemporaryDirectory() as tmp:
         out_path = os.path.join(tmp, "gop.mp4")
-        stream = (
-            ffmpeg.input("pipe:", format="rawvideo", pix_fmt="gray12le", s=f"{w}x{h}",
-                         framerate=f"{timing.rate.numerator}/{timing.rate.denominator}")
-            .output(out_path, format="mp4", vcodec="libx265", pix_fmt="gray12le", preset=preset,
-                    **{"x265-params": x265_params(qp, e, crf), "tag:v": "hvc1",
-                       "movflags": "+frag_keyframe+empty_moov+default_base_moof",
-                       "fflags": "+bitexact", "flags:v": "+bitexact", "map_metadata": "-1",
-                       "video_track_timescale": timing.timescale, "frag_duration": 2_000_000_000})
-            .global_args("-hide_banner", "-nostdin", "-loglevel", "error", "-threads", "1")
-        )
+        args = ["-threads", "1", "-f", "rawvideo", "-pix_fmt", "gray12le", "-s", f"{w}x{h}",
+                "-framerate", f"{timing.rate.numerator}/{timing.rate.denominator}", "-i", "pipe:",
+                "-f", "mp4", "-c:v", "libx265", "-pix_fmt", "gray12le", "-preset", preset,
+                "-x265-params", x265_params(qp, e, crf), "-tag:v", "hvc1",
+                "-movflags", "+frag_keyframe+empty_moov+default_base_moof", "-fflags", "+bitexact",
+                "-flags:v", "+bitexact", "-map_metadata", "-1", "-video_track_timescale", str(timing.timescale),
+                "-frag_duration", "2000000000", "-y", out_path]
         try:
-            stream.run(input=np.ascontiguousarray(frames, dtype="<u2").tobytes(), capture_stdout=True,
-                       capture_stderr=True, overwrite_output=True)
-        except ffmpeg.Error as exc:
-            raise RuntimeError(f"ffmpeg encode failed: {exc.stderr.decode(errors='replace').strip()}") from exc
+            ffmpeg.run(args, np.ascontiguousarray(frames, dtype="<u2").tobytes())
+        except ffmpeg.FFmpegError as exc:
+            raise RuntimeError(f"ffmpeg encode failed: {exc}") from exc
         with open(out_path, "rb") as f:
             return f.read()
 
 
-def decode_segment(init: bytes, media: bytes, frames: int, height: int, width: int) -> np.ndarray:
-    """init + one media segment -> (frames, H, W) uint16.
+def iter_frames(path: str, frames: int, height: int, width: int) -> Iterator[np.ndarray]:
+    """The frames of the feature video at `path` ((H, W) uint16 each), decoded one at a time; raises ValueError
+    for a video that does not decode, ends inside a frame, or holds more than `frames` frames (the extra frame is
+    never read whole)."""
+    frame_bytes = height * width * 2
+    args = ["-i", path, "-f", "rawvideo", "-pix_fmt", "gray12le", "-fps_mode", "passthrough", "pipe:"]
+    count = 0
+    with ffmpeg.FrameReader(args, frame_bytes) as reader:
+        try:
+            for data in reader:
+                if count == frames:
+                    raise ValueError(f"feature segment holds more than the {frames} frames of {width}x{height} "
+                                     "announced")
+                count += 1
+                yield np.frombuffer(data, dtype="<u2").reshape(height, width).astype(np.uint16)
+        except ffmpeg.FFmpegError as exc:
+            raise ValueError(f"feature segment does not decode: {exc}") from None
+    if count != frames:
+        raise ValueError(f"feature segment decodes to {count} frames, expected {frames} of {width}x{height}")
 
-    At most the expected number of bytes (+1 to detect extra frames) is read
-    from ffmpeg, so a hostile segment cannot make the decoder allocate more.
-    """
-    expected = frames * height * width * 2
+
+def decode_segment(init: bytes, media: bytes, frames: int, height: int, width: int) -> np.ndarray:
+    """init + one media segment -> (frames, H, W) uint16, decoded frame by frame (at most one frame beyond those
+    announced is ever requested from ffmpeg, so a hostile segment cannot make the decoder allocate more)."""
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "segment.mp4")
         with open(path, "wb") as f:
             f.write(init)
             f.write(media)
-        cmd = ["ffmpeg", "-hide_banner", "-nostdin", "-loglevel", "error", "-i", path,
-               "-f", "rawvideo", "-pix_fmt", "gray12le", "-fps_mode", "passthrough", "pipe:"]
-        with subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE) as proc:
-            data = proc.stdout.read(expected + 1)
-            extra = len(data) > expected
-            if extra:
-                proc.kill()
-            err = proc.stderr.read(1 << 16)
-            code = proc.wait()
-    if extra:
-        raise ValueError(f"feature segment holds more than the {frames} frames of {width}x{height} announced")
-    if code != 0:
-        raise ValueError(f"feature segment does not decode: {err.decode(errors='replace').strip()}")
-    if len(data) != expected:
-        raise ValueError(f"feature segment decodes to {len(data)} bytes, expected {frames} frames of "
-                         f"{width}x{height}")
-    return np.frombuffer(data, dtype="<u2").reshape(frames, height, width).astype(np.uint16)
+        out = np.empty((frames, height, width), np.uint16)
+        for i, frame in enumerate(iter_frames(path, frames, height, width)):
+            out[i] = frame  # iter_frames stops before a frame past `frames`
+    return out

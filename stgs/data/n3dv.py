@@ -12,7 +12,6 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
-import subprocess
 import tempfile
 from pathlib import Path
 
@@ -20,7 +19,8 @@ import numpy as np
 import torch
 
 from stgs.camera import Camera
-from stgs.codec.video import require_ffmpeg
+from stgs.codec import ffmpeg
+from stgs.codec.ffmpeg import require_ffmpeg
 from stgs.data.images import read_rgb
 from stgs.errors import StgsError
 
@@ -78,13 +78,12 @@ class N3DVReader:
 
     @staticmethod
     def _frame_count(video: Path) -> int:
-        cmd = ["ffprobe", "-v", "error", "-select_streams", "v:0", "-count_packets",
-               "-show_entries", "stream=nb_read_packets", "-of", "csv=p=0", str(video)]
-        result = subprocess.run(cmd, capture_output=True, text=True)
+        args = ["-select_streams", "v:0", "-count_packets", "-show_entries", "stream=nb_read_packets",
+                "-of", "csv=p=0", str(video)]
         try:
-            return int(result.stdout.strip().split(",")[0])
-        except ValueError:
-            raise StgsError(f"{video}: not a readable video ({result.stderr.strip()[:200]})") from None
+            return int(ffmpeg.run(args, tool="ffprobe").decode().strip().split(",")[0])
+        except (ffmpeg.FFmpegError, ValueError) as exc:
+            raise StgsError(f"{video}: not a readable video ({str(exc)[:200]})") from None
 
     def cameras(self, frame: int) -> list[Camera]:
         return list(self._cams)
@@ -97,13 +96,13 @@ class N3DVReader:
         self.frames_dir.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{camera}.", dir=self.frames_dir))
         cam = self._cams[self.camera_names.index(camera)]
-        cmd = ["ffmpeg", "-hide_banner", "-nostdin", "-loglevel", "error", "-i", str(self._videos[camera]),
-               "-vf", f"scale={cam.width}:{cam.height}:flags=area", "-start_number", "0", str(tmp / "%05d.png")]
-        result = subprocess.run(cmd, capture_output=True, text=True)
-        if result.returncode != 0:
+        args = ["-i", str(self._videos[camera]), "-vf", f"scale={cam.width}:{cam.height}:flags=area",
+                "-start_number", "0", str(tmp / "%05d.png")]
+        try:
+            ffmpeg.run(args)
+        except ffmpeg.FFmpegError as exc:
             shutil.rmtree(tmp, ignore_errors=True)
-            raise StgsError(f"{self._videos[camera]}: ffmpeg could not extract frames "
-                            f"({result.stderr.strip()[:200]})")
+            raise StgsError(f"{self._videos[camera]}: ffmpeg could not extract frames ({str(exc)[:200]})") from None
         try:
             tmp.rename(out)
         except OSError:  # another process extracted it first
