@@ -25,7 +25,10 @@ from pathlib import Path
 CHILD = r"""
 import json, statistics, sys, time
 import torch
-from bench.render import bench_camera, random_model
+try:
+    from bench.render import bench_camera, random_model
+except ImportError:  # a tree from before the benchmarks moved to bench/
+    from stgs.benchmarks.render import bench_camera, random_model
 from stgs.model.native_deform import bf16_available
 from stgs.model.view import FrameRenderer
 

@@ -25,7 +25,7 @@ from pathlib import Path
 from bench.serve import WRK_SCRIPT, check_serves, cpu_per_request, free_port, wait_for, worker_pids
 from stgs.tree import SEGMENT_SUFFIXES
 
-TOP_LEVEL = ("server", "client", "packager", "harness")
+TOP_LEVEL = ("server", "client", "packager", "harness", "cli")
 
 
 def import_root(tree: Path, tmp: Path) -> Path:
@@ -35,7 +35,8 @@ def import_root(tree: Path, tmp: Path) -> Path:
     for entry in (tree / "stgs").iterdir():
         (root / "stgs" / entry.name).symlink_to(entry)
     for name in TOP_LEVEL:
-        (root / "stgs" / name).symlink_to(tree / name)
+        if (tree / name).is_dir():  # cli/ exists from the restructure on (before it, stgs/cli.py)
+            (root / "stgs" / name).symlink_to(tree / name)
     return root
 
 
