@@ -1,8 +1,8 @@
 """The playback session: ABR -> fetch -> pre-decode the next GOP -> deform + splat per frame.
 
 Three asyncio tasks share one event loop:
-- the fetcher downloads GOP after GOP (keyframe, then the feature segment of
-  the Representation the ABR rule picks) while the buffer has room;
+- the fetcher runs the fetch schedule (stgs.client.schedule) GOP after GOP: keyframe, then the feature segment of
+  the Representation the ABR rule picks, while the buffer has room;
 - the decoder turns downloaded GOPs into ready GOP models in a worker thread
   (JPEG XL via OpenImageIO, video via ffmpeg), at most `max_decoded` at a time
   (the GOP playing and the next one), so a GOP boundary does not wait on
@@ -14,6 +14,10 @@ The clock is the presentation's real-time schedule in both modes: GOP k is due
 due GOP was not ready. `realtime` additionally paces frames to that schedule
 and drops a frame when rendering is behind; otherwise frames render as fast
 as they can (never dropped).
+
+The Session is one class of about 300 lines (over the usual size) because its three tasks share
+one state (clock, records, the fetch schedule); what to fetch lives in
+`stgs.client.schedule`, settings in `stgs.client.config`.
 """
 
 from __future__ import annotations
@@ -23,14 +27,15 @@ import json
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from stgs.client.abr import RULES, AbrSettings, Decision, make_rule
+from stgs.client.abr import Decision, make_rule
 from stgs.client.clock import PlaybackClock
-from stgs.client.download import AbandonError, Downloader, DownloadSettings, FetchError, TransientError
+from stgs.client.config import PlaybackError, PlayConfig
+from stgs.client.download import AbandonError, Downloader, FetchError, TransientError
 from stgs.client.manifest import Presentation
 from stgs.client.output import NullSink, open_sink
 from stgs.client.playlog import GOPRecord, playback_log
@@ -46,81 +51,15 @@ from stgs.client.schedule import (
     Step,
     Wait,
 )
-from stgs.client.view import Trajectory, ViewSpec, build_trajectory, parse_scene_cameras
+from stgs.client.view import Trajectory, build_trajectory, parse_scene_cameras
 from stgs.codec.features import features_from_frames
 from stgs.codec.keyframe import Keyframe, KeyframeError, decode_keyframe
 from stgs.codec.video import decode_segment
-from stgs.errors import FieldError, StgsError
 from stgs.fsio import atomic_write_bytes
 from stgs.limits import MAX_DOC_BYTES, MAX_MPD_BYTES
-from stgs.model.native_deform import check_precision
 from stgs.model.view import FrameRenderer
 from stgs.mpd import MPDError
-from stgs.native.build import NativeUnavailableError
 from stgs.tree import CAMERAS, STATS
-
-
-class PlaybackError(StgsError):
-    """Playback could not go on (after the retries and fallbacks the log records)."""
-
-
-@dataclass
-class PlayConfig:
-    """Everything one playback needs (one config object flows through a run)."""
-
-    url: str
-    """URL of the MPD."""
-    abr: str = "dynamic"
-    """ABR rule: throughput, bola or dynamic."""
-    qp: int | None = None
-    """Pin the feature Representation of this QP (no adaptation)."""
-    buffer_s: float | None = None
-    """Most media seconds downloaded ahead (None: three GOPs)."""
-    start_s: float = 0.0
-    """Start at the GOP holding this presentation time."""
-    duration_s: float | None = None
-    """Seconds to play (None: to the end)."""
-    realtime: bool = False
-    """Pace frames to the clock and drop the ones rendering cannot make; else render every frame at full speed."""
-    view: ViewSpec = field(default_factory=ViewSpec)
-    """Viewpoint."""
-    out: Path | None = None
-    """PNG folder or .mp4 file (None: frames are not written)."""
-    log: Path | None = None
-    """Where to write the JSON playback log."""
-    native: bool | None = None
-    """Native deform + splat (None: when built)."""
-    precision: str = "fp32"
-    """Arithmetic of the native deformation: fp32, or bf16 (faster where the CPU has AMX; costs accuracy)."""
-    max_decoded: int = 2
-    """Decoded GOP models held at once (the one playing + pre-decoded ones)."""
-    decode: bool = True
-    """Decode and render (False: network and buffer only, for emulation and load tests)."""
-    speed: float = 1.0
-    """Media seconds per wall second of the playback clock (> 1: scaled-time emulation; decode off only)."""
-    abr_settings: AbrSettings = field(default_factory=AbrSettings)
-    download: DownloadSettings = field(default_factory=DownloadSettings)
-
-    def validate(self) -> None:
-        if self.abr not in RULES:
-            raise FieldError("abr", f"must be one of {', '.join(RULES)}, got {self.abr!r}")
-        if self.buffer_s is not None and not self.buffer_s > 0:
-            raise FieldError("buffer_s", "must be a positive number of seconds")
-        if not (math.isfinite(self.start_s) and self.start_s >= 0):
-            raise FieldError("start_s", "must be a non-negative number of seconds")
-        if self.duration_s is not None and not self.duration_s > 0:
-            raise FieldError("duration_s", "must be a positive number of seconds")
-        if self.max_decoded < 2:
-            raise FieldError("max_decoded", "must be >= 2 (the GOP playing and the next)")
-        if not (math.isfinite(self.speed) and self.speed > 0) or (self.speed != 1 and self.decode):
-            raise FieldError("speed", "must be positive, and other than 1 only without decoding")
-        if self.decode:
-            try:
-                check_precision(self.precision)
-            except (ValueError, NativeUnavailableError) as err:
-                raise FieldError("precision", str(err)) from None
-            if self.precision != "fp32" and self.native is False:
-                raise FieldError("precision", "other than fp32 needs the native renderer")
 
 
 @dataclass

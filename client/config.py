@@ -1,0 +1,79 @@
+"""What one playback needs (one config object flows through a run) and the error that ends one."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from stgs.client.abr import RULES, AbrSettings
+from stgs.client.download import DownloadSettings
+from stgs.client.view import ViewSpec
+from stgs.errors import FieldError, StgsError
+from stgs.model.native_deform import check_precision
+from stgs.native.build import NativeUnavailableError
+
+
+class PlaybackError(StgsError):
+    """Playback could not go on (after the retries and fallbacks the log records)."""
+
+
+@dataclass
+class PlayConfig:
+    """Everything one playback needs (one config object flows through a run)."""
+
+    url: str
+    """URL of the MPD."""
+    abr: str = "dynamic"
+    """ABR rule: throughput, bola or dynamic."""
+    qp: int | None = None
+    """Pin the feature Representation of this QP (no adaptation)."""
+    buffer_s: float | None = None
+    """Most media seconds downloaded ahead (None: three GOPs)."""
+    start_s: float = 0.0
+    """Start at the GOP holding this presentation time."""
+    duration_s: float | None = None
+    """Seconds to play (None: to the end)."""
+    realtime: bool = False
+    """Pace frames to the clock and drop the ones rendering cannot make; else render every frame at full speed."""
+    view: ViewSpec = field(default_factory=ViewSpec)
+    """Viewpoint."""
+    out: Path | None = None
+    """PNG folder or .mp4 file (None: frames are not written)."""
+    log: Path | None = None
+    """Where to write the JSON playback log."""
+    native: bool | None = None
+    """Native deform + splat (None: when built)."""
+    precision: str = "fp32"
+    """Arithmetic of the native deformation: fp32, or bf16 (faster where the CPU has AMX; costs accuracy)."""
+    max_decoded: int = 2
+    """Decoded GOP models held at once (the one playing + pre-decoded ones)."""
+    decode: bool = True
+    """Decode and render (False: network and buffer only, for emulation and load tests)."""
+    speed: float = 1.0
+    """Media seconds per wall second of the playback clock (> 1: scaled-time emulation; decode off only)."""
+    abr_settings: AbrSettings = field(default_factory=AbrSettings)
+    download: DownloadSettings = field(default_factory=DownloadSettings)
+
+    def validate(self) -> None:
+        if self.abr not in RULES:
+            raise FieldError("abr", f"must be one of {', '.join(RULES)}, got {self.abr!r}")
+        if self.buffer_s is not None and not self.buffer_s > 0:
+            raise FieldError("buffer_s", "must be a positive number of seconds")
+        if not (math.isfinite(self.start_s) and self.start_s >= 0):
+            raise FieldError("start_s", "must be a non-negative number of seconds")
+        if self.duration_s is not None and not self.duration_s > 0:
+            raise FieldError("duration_s", "must be a positive number of seconds")
+        if self.max_decoded < 2:
+            raise FieldError("max_decoded", "must be >= 2 (the GOP playing and the next)")
+        if not (math.isfinite(self.speed) and self.speed > 0) or (self.speed != 1 and self.decode):
+            raise FieldError("speed", "must be positive, and other than 1 only without decoding")
+        if self.decode:
+            try:
+                check_precision(self.precision)
+            except (ValueError, NativeUnavailableError) as err:
+                raise FieldError("precision", str(err)) from None
+            if self.precision != "fp32" and self.native is False:
+                raise FieldError("precision", "other than fp32 needs the native renderer")
+
+
