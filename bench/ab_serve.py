@@ -78,7 +78,7 @@ def main() -> int:
         script.write_text(WRK_SCRIPT.format(paths=", ".join(f'"/{p}"' for p in paths)))
         roots = {}
         for name, tree in (("old", args.old.resolve()), ("new", args.new.resolve())):
-            if not all((tree / d).is_dir() for d in ("stgs", *TOP_LEVEL)):
+            if not all((tree / d).is_dir() for d in ("stgs", "server", "client")):
                 raise SystemExit(f"{tree} is not a streamstgs source tree")
             roots[name] = import_root(tree, tmp / name)
         for r in range(args.rounds):
