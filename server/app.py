@@ -13,6 +13,10 @@ GET/HEADs before aiohttp's router and middleware (WholeFileFastPath); the
 file's stat/open run on the event loop rather than through a thread hop; and
 `workers` processes can share the port (SO_REUSEPORT), their metrics summed
 through prometheus_client's multiprocess mode.
+
+This module is the assembly (routes, cleanup contexts, SceneRunner, the
+loopback helper); the parts are in `config`, `files`, `responses`,
+`metrics`, `catalogue` and `workers`.
 """
 
 from __future__ import annotations
