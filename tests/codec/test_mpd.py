@@ -86,3 +86,10 @@ def test_parse_rejects_hostile_or_foreign_documents():
     dynamic = sample_mpd().to_xml().replace(b'type="static"', b'type="dynamic"')
     with pytest.raises(MPDError, match="static"):
         parse_mpd(dynamic)
+
+
+def test_template_number_width_is_capped():
+    assert expand_template("seg_$Number%032d$.m4s", "r", 7) == f"seg_{7:032d}.m4s"
+    for width in ("033", "0999999999", "099999999999999999999"):
+        with pytest.raises(MPDError, match="over the limit"):
+            expand_template(f"seg_$Number%{width}d$.m4s", "r", 7)
