@@ -17,7 +17,6 @@ import sys
 from pathlib import Path
 
 from stgs.errors import FieldError, StgsError
-from stgs.tree import MANIFEST
 
 
 class UsageError(StgsError):
@@ -508,46 +507,40 @@ def bench_suite(name: str):
 
 
 def run_bench(args: argparse.Namespace) -> int:
+    from stgs.tree import MANIFEST
+
     if args.dash is not None and not (args.dash / MANIFEST).is_file():
         raise UsageError(f"--dash {args.dash}: no {MANIFEST} there")
+    if args.suite == "train" and not args.runs:
+        raise UsageError("bench train needs --runs DIR[,DIR...] (model dirs of finished stgs train runs)")
+    suite = bench_suite(args.suite)
     if args.suite == "train":
-        bench_train = bench_suite("train").main
-        if not args.runs:
-            raise UsageError("bench train needs --runs DIR[,DIR...] (model dirs of finished stgs train runs)")
-        return bench_train([Path(d) for d in args.runs.split(",") if d], args.plot or Path("docs/train_curves.png"))
+        return suite.main([Path(d) for d in args.runs.split(",") if d], args.plot or Path("docs/train_curves.png"))
     if args.suite == "sim":
-        bench_sim = bench_suite("sim").main
-        return bench_sim(args.dash)
+        return suite.main(args.dash)
     if args.suite == "serve":
-        bench_serve = bench_suite("serve").main
-        return bench_serve(args.dash, _int_list(args.clients, "--clients"), args.seconds)
+        return suite.main(args.dash, _int_list(args.clients, "--clients"), args.seconds)
     from stgs.synth import PRESETS
 
     scene = args.scene or ("large" if args.suite == "play" else "demo")
     if scene not in PRESETS:
         raise UsageError(f"--scene must be one of {', '.join(sorted(PRESETS))}")
     if args.suite == "play":
-        bench_play = bench_suite("play").main
-        return bench_play(args.dash, PRESETS[scene], _int_list(args.qps, "--qps"), args.width, args.height)
+        return suite.main(args.dash, PRESETS[scene], _int_list(args.qps, "--qps"), args.width, args.height)
     if args.suite == "pack":
-        bench_pack = bench_suite("pack").main
         from stgs.codec.video import PRESETS as X265_PRESETS
 
         presets = [p for p in args.presets.split(",") if p]
         unknown = sorted(set(presets) - set(X265_PRESETS))
         if unknown:
             raise UsageError(f"--presets: unknown x265 preset(s) {unknown}")
-        return bench_pack(_int_list(args.qps, "--qps"), presets, _int_list(args.sides, "--sides"),
-                          args.plot or Path("docs/rate_distortion.png"),
-                          PRESETS[scene])
+        return suite.main(_int_list(args.qps, "--qps"), presets, _int_list(args.sides, "--sides"),
+                          args.plot or Path("docs/rate_distortion.png"), PRESETS[scene])
     if args.suite == "synth":
-        bench_synth = bench_suite("synth").main
         if args.preset not in PRESETS:
             raise UsageError(f"--preset must be one of {', '.join(sorted(PRESETS))}")
-        return bench_synth(_int_list(args.steps, "--steps"), args.preset)
-    bench_render = bench_suite("render").main
-    return bench_render(_int_list(args.sizes, "--sizes"), args.width, args.height, args.repeats,
-                        args.reference_max)
+        return suite.main(_int_list(args.steps, "--steps"), args.preset)
+    return suite.main(_int_list(args.sizes, "--sizes"), args.width, args.height, args.repeats, args.reference_max)
 
 
 COMMANDS = {"synth": add_synth, "train": add_train, "eval": add_eval, "pack": add_pack, "serve": add_serve,

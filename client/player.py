@@ -132,9 +132,6 @@ class Session:
 
     async def perform(self, req: Request) -> Outcome:
         """One attempt at the request (times in media seconds)."""
-        pres = self.pres
-        url = (pres.keyframe_url(req.gop) if req.kind == "keyframe" else
-               pres.init_url(req.rep) if req.kind == "init" else pres.media_url(req.rep, req.gop))
         verdict: list[Decision] = []
 
         def progress(received: int, total: int | None, elapsed: float) -> bool:
@@ -144,12 +141,12 @@ class Session:
             return decision is not None
 
         try:
-            data, sample = await self.dl.fetch_once(url, req.kind, req.max_bytes,
+            data, sample = await self.dl.fetch_once(req.url, req.kind, req.max_bytes,
                                                     progress if req.judge is not None else None)
         except AbandonError as exc:
             return Abandoned(exc.sample.bytes, exc.sample.seconds * self.speed, verdict[0])
         except TransientError as exc:
-            return Failed(f"{url}: {exc}", retryable=True)
+            return Failed(f"{req.url}: {exc}", retryable=True)
         except FetchError as exc:
             return Failed(str(exc), retryable=False)
         return Done(len(data), sample.seconds * self.speed, sample.ttfb * self.speed, data)

@@ -62,6 +62,8 @@ class Request:
     gop: int
     rep: str
     """The Representation (KEYFRAME_REP for keyframes)."""
+    url: str
+    """Absolute URL, resolved against the MPD's."""
     max_bytes: int
     """The body may not be longer (checked before and while reading)."""
     judge: Callable[[int, int | None, float], Decision | None] | None = None
@@ -143,7 +145,7 @@ class FetchSchedule:
 
     def fetch_gop(self, k: int, rec: GOPRecord) -> Step:
         """GOP k: keyframe, the ABR decision, init (once per Representation) and media, with fallbacks."""
-        keyframe = yield from self._get(Request("keyframe", k, KEYFRAME_REP, self.pres.max_keyframe_bytes()), rec)
+        keyframe = yield from self._get(self._request("keyframe", k, KEYFRAME_REP), rec)
         if not isinstance(keyframe, Done):
             raise ScheduleError(f"GOP {k}: {keyframe.reason}")
         rec.keyframe_bytes = keyframe.nbytes
@@ -160,7 +162,7 @@ class FetchSchedule:
     def refetch_keyframe(self, k: int, rec: GOPRecord, reason: str) -> Step:
         """GOP k's keyframe once more, after the decoder rejected it (damaged in transit?)."""
         rec.events.append(f"keyframe rejected, downloaded again: {reason}")
-        keyframe = yield from self._get(Request("keyframe", k, KEYFRAME_REP, self.pres.max_keyframe_bytes()), rec)
+        keyframe = yield from self._get(self._request("keyframe", k, KEYFRAME_REP), rec)
         if not isinstance(keyframe, Done):
             raise ScheduleError(f"GOP {k}: {keyframe.reason}")
         return Fetched(k, -1, keyframe=keyframe.data)
@@ -177,10 +179,12 @@ class FetchSchedule:
 
     def _features(self, k: int, rung: int, state: AbrState, rec: GOPRecord) -> Step:
         rep = self.pres.ladder[rung].rep_id
-        failure = yield from self._init(rep, rec)
-        if not isinstance(failure, Failed):
+        init = yield from self._init(rep, rec)
+        if isinstance(init, Failed):
+            failure: Failed | Abandoned = init
+        else:
             judge = self._judge(rung, state) if self.adaptive and rung > 0 else None
-            media = yield from self._get(Request("media", k, rep, self.pres.max_media_bytes(rep), judge), rec)
+            media = yield from self._get(self._request("media", k, rep, judge), rec)
             if isinstance(media, Done):
                 return self._chosen(k, rung, rec, media)
             failure = media
@@ -202,7 +206,7 @@ class FetchSchedule:
         init = yield from self._init(low, rec)
         if isinstance(init, Failed):
             raise ScheduleError(f"GOP {k}: {init.reason}")
-        media = yield from self._get(Request("media", k, low, self.pres.max_media_bytes(low)), rec)
+        media = yield from self._get(self._request("media", k, low), rec)
         if not isinstance(media, Done):
             raise ScheduleError(f"GOP {k}: {media.reason}")
         return self._chosen(k, 0, rec, media)
@@ -212,7 +216,7 @@ class FetchSchedule:
         None when it was downloaded before."""
         if rep in self.inits:
             return None
-        outcome = yield from self._get(Request("init", rec.index, rep, MAX_INIT_BYTES), rec)
+        outcome = yield from self._get(self._request("init", rec.index, rep), rec)
         if isinstance(outcome, Done):
             self.inits[rep] = outcome.data
             rec.init_bytes += outcome.nbytes
@@ -237,6 +241,16 @@ class FetchSchedule:
         if isinstance(outcome, Done) and request.kind in ("keyframe", "media"):
             self.samples.append(ThroughputSample(outcome.nbytes, outcome.seconds))
         return outcome
+
+    def _request(self, kind: str, k: int, rep: str,
+                 judge: Callable[[int, int | None, float], Decision | None] | None = None) -> Request:
+        """The request for a part of GOP k: its URL and its size cap from the manifest."""
+        pres = self.pres
+        if kind == "keyframe":
+            return Request(kind, k, rep, pres.keyframe_url(k), pres.max_keyframe_bytes(), judge)
+        if kind == "init":
+            return Request(kind, k, rep, pres.init_url(rep), MAX_INIT_BYTES, judge)
+        return Request(kind, k, rep, pres.media_url(rep, k), pres.max_media_bytes(rep), judge)
 
     def _judge(self, rung: int, state: AbrState) -> Callable[[int, int | None, float], Decision | None]:
         def judge(received: int, total: int | None, elapsed_s: float) -> Decision | None:

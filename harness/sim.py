@@ -117,22 +117,18 @@ class Simulation:
 
     def perform(self, req: Request, rec: GOPRecord) -> Outcome:
         """One request: a round trip, then the body paced by the network (judged per chunk when abandonable)."""
-        pres = self.ladder.pres
-        if req.kind == "keyframe":
-            url, nbytes = pres.keyframe_url(req.gop), self.ladder.keyframe_bytes[req.gop]
-        elif req.kind == "init":
-            url, nbytes = pres.init_url(req.rep), self.ladder.init_bytes[req.rep]
-        else:
-            url, nbytes = pres.media_url(req.rep, req.gop), self.ladder.media_bytes[req.rep][req.gop]
+        ladder = self.ladder
+        nbytes = (ladder.keyframe_bytes[req.gop] if req.kind == "keyframe" else
+                  ladder.init_bytes[req.rep] if req.kind == "init" else ladder.media_bytes[req.rep][req.gop])
         start = self.now
         rtt = self.net.round_trip()
         rec.latency_ms.append(rtt * 1e3)
         body_start = start + rtt
-        status = self.net.fault(url)
+        status = self.net.fault(req.url)
         if status is not None:
             self.now = body_start
             self.advance(self.now)
-            return Failed(f"{url}: HTTP {status}", retryable=status in RETRY_STATUS)
+            return Failed(f"{req.url}: HTTP {status}", retryable=status in RETRY_STATUS)
         end = self.net.finish(body_start, nbytes * 8)
         if req.judge is not None:
             # the player judges a download each time a chunk arrives (none arrive during an outage)

@@ -96,9 +96,8 @@ class ManifestBuilder:
         self.features.setdefault(rep_id, RepresentationRecords(rep_id)).add(record)
 
     def ladder(self) -> list[RepresentationRecords]:
-        """Feature Representations, lowest QP number last (highest bandwidth last for the usual ladder)."""
-        return sorted(self.features.values(), key=lambda r: (qp_of(r.rep_id) is None, qp_of(r.rep_id) or 0,
-                                                             r.rep_id))
+        """Feature Representations in ascending QP (the packager names each `qp<N>`)."""
+        return sorted(self.features.values(), key=lambda r: qp_of(r.rep_id))
 
     def mpd(self) -> MPD:
         shape, side = self.shape, self.grid_side
