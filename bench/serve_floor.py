@@ -10,13 +10,18 @@ nginx (sendfile, access log off). Each run: wrk (one thread, keep-alive, round-r
 what any aiohttp server can reach on this machine; the gap between it and `stgs serve` is what our own
 Python costs.
 
-Usage: .venv/bin/python -m bench.serve_floor DASH_DIR [--rounds 4] [--clients 64] [--seconds 6]
+`--gunicorn` adds a fourth: the same app under gunicorn's aiohttp worker (2 workers), the measurement behind
+running our own worker processes (server/workers.py). gunicorn is not a dependency of the project; install it
+in the venv for this (`.venv/bin/pip install gunicorn`).
+
+Usage: .venv/bin/python -m bench.serve_floor DASH_DIR [--rounds 4] [--clients 64] [--seconds 6] [--gunicorn]
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import importlib.util
 import os
 import shutil
 import statistics
@@ -38,6 +43,17 @@ from bench.serve import (
 from stgs.tree import SEGMENT_SUFFIXES
 
 SERVERS = ("stgs serve", "aiohttp floor", "nginx")
+GUNICORN = "gunicorn aiohttp worker"
+CHECKOUT = Path(__file__).resolve().parents[1]
+"""Where `python -m bench.serve_floor` finds the bench package (benchmarks are not installed)."""
+
+
+def gunicorn_app():
+    """The factory gunicorn calls: the app `stgs serve` builds, for the folder in $STGS_BENCH_ROOT."""
+    from stgs.server.app import build_app
+    from stgs.server.config import ServeConfig
+
+    return build_app(ServeConfig(root=Path(os.environ["STGS_BENCH_ROOT"]), access_log=False))
 
 
 def floor_server(root: Path, port: int) -> None:
@@ -58,7 +74,7 @@ def floor_server(root: Path, port: int) -> None:
             response = web.StreamResponse(headers={"Content-Type": "video/iso.segment",
                                                    "Content-Length": str(st.st_size)})
             await response.prepare(request)
-            await send_file_body(request, fd, st.st_size)
+            await send_file_body(request, fd, 0, st.st_size)
             await response.write_eof()
             return response
         finally:
@@ -82,10 +98,17 @@ def start(name: str, dash: Path, port: int, tmp: Path) -> tuple[list[subprocess.
         wait_for(port)
         return [proc], worker_pids(proc.pid)
     if name == "aiohttp floor":
-        procs = [subprocess.Popen([sys.executable, __file__, str(dash), "--floor-server", str(port)], **quiet)
-                 for _ in range(2)]
+        procs = [subprocess.Popen([sys.executable, "-m", "bench.serve_floor", str(dash), "--floor-server", str(port)],
+                                  cwd=CHECKOUT, **quiet) for _ in range(2)]
         wait_for(port)
         return procs, [proc.pid for proc in procs]
+    if name == GUNICORN:
+        proc = subprocess.Popen([sys.executable, "-m", "gunicorn", "bench.serve_floor:gunicorn_app()",
+                                 "--worker-class", "aiohttp.GunicornWebWorker", "--workers", "2",
+                                 "--bind", f"127.0.0.1:{port}"], cwd=CHECKOUT,
+                                env=dict(os.environ, STGS_BENCH_ROOT=str(dash)), **quiet)
+        wait_for(port)
+        return [proc], child_pids(proc.pid)
     conf = tmp / "nginx.conf"
     conf.write_text(NGINX_CONF.format(tmp=tmp, port=port, root=dash, workers=2))
     proc = subprocess.Popen([shutil.which("nginx") or "/usr/sbin/nginx", "-c", str(conf), "-g", "daemon off;"], **quiet)
@@ -117,6 +140,7 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=4)
     parser.add_argument("--clients", type=int, default=64)
     parser.add_argument("--seconds", type=int, default=6)
+    parser.add_argument("--gunicorn", action="store_true", help="also gunicorn's aiohttp worker")
     parser.add_argument("--floor-server", type=int, metavar="PORT", help=argparse.SUPPRESS)
     args = parser.parse_args()
     dash = args.dash.resolve()
@@ -126,14 +150,17 @@ def main() -> int:
     paths = sorted(str(p.relative_to(dash)) for p in dash.rglob("*") if p.suffix in SEGMENT_SUFFIXES)
     if not paths:
         raise SystemExit(f"{dash}: no segments (expected a folder written by stgs pack)")
-    results: dict[str, list[tuple[float, float]]] = {name: [] for name in SERVERS}
+    servers = (*SERVERS, GUNICORN) if args.gunicorn else SERVERS
+    if args.gunicorn and importlib.util.find_spec("gunicorn") is None:
+        raise SystemExit("gunicorn is not installed (.venv/bin/pip install gunicorn)")
+    results: dict[str, list[tuple[float, float]]] = {name: [] for name in servers}
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
         tmp.chmod(0o755)  # nginx's workers run as another user
         script = tmp / "paths.lua"
         script.write_text(WRK_SCRIPT.format(paths=", ".join(f'"/{p}"' for p in paths)))
         for r in range(args.rounds):
-            for name in SERVERS[r % 3:] + SERVERS[:r % 3]:
+            for name in servers[r % len(servers):] + servers[:r % len(servers)]:
                 results[name].append(measure(name, dash, script, paths[0], tmp, args.clients, args.seconds))
                 us, rps = results[name][-1]
                 print(f"round {r + 1} {name}: {us:.0f} us CPU per request, {rps:.0f} requests/s", flush=True)

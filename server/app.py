@@ -1,21 +1,21 @@
 """`stgs serve ROOT`: an aiohttp service for the DASH trees `stgs pack` writes.
 
-Files are sent zero-copy (sendfile): plain GETs by our WholeFileResponse,
-anything with Range or conditions by aiohttp's FileResponse (206/416, ETag and
-Last-Modified with 304), with the DASH content types, cache
+Files are sent zero-copy (sendfile) by one response class, FileTransfer,
+which decides first (200; 206/416 for ranges; 304/412 for conditions on ETag
+and Last-Modified) and does I/O after, with the DASH content types, cache
 lifetimes (segments immutable, manifests short), CORS for browser players and
 Prometheus metrics. Only files with a known extension, inside ROOT after
 resolving symlinks, and not hidden are served; anything else is 404.
 
 Per request the Python work is what limits throughput (docs/BENCHMARKS.md), so
-`stgs serve` runs the app with SceneRunner, which answers plain whole-file
-GET/HEADs before aiohttp's router and middleware (WholeFileFastPath); the
+`stgs serve` runs the app with SceneRunner, which answers file GET/HEADs
+before aiohttp's router and middleware (FileFastPath); the
 file's stat/open run on the event loop rather than through a thread hop; and
 `workers` processes can share the port (SO_REUSEPORT), their metrics summed
 through prometheus_client's multiprocess mode.
 
 This module is the assembly (routes, cleanup contexts, SceneRunner, the
-loopback helper); the parts are in `config`, `files`, `responses`,
+loopback helper); the parts are in `config`, `files`, `decide`, `responses`,
 `metrics`, `catalogue` and `workers`.
 """
 
@@ -44,7 +44,7 @@ from stgs.server.config import (
 )
 from stgs.server.files import BeneathOpener
 from stgs.server.metrics import Metrics, flush_metrics, observe
-from stgs.server.responses import WholeFileFastPath, serve_file
+from stgs.server.responses import FileFastPath, serve_file
 
 
 class InlineExecutor(ThreadPoolExecutor):
@@ -113,7 +113,7 @@ def build_app(cfg: ServeConfig) -> web.Application:
 
 
 class SceneRunner(web.AppRunner):
-    """The AppRunner of a build_app app with WholeFileFastPath in front of the app: how `stgs serve` runs."""
+    """The AppRunner of a build_app app with FileFastPath in front of the app: how `stgs serve` runs."""
 
     _opener: BeneathOpener | None = None
 
@@ -123,7 +123,7 @@ class SceneRunner(web.AppRunner):
         assert server is not None
         on_the_loop = self.app[CONFIG_KEY].io_threads == 0
         self._opener = BeneathOpener.for_root(self.app[ROOT_KEY]) if on_the_loop else None
-        server.request_handler = WholeFileFastPath(self.app, server.request_handler, self._opener)
+        server.request_handler = FileFastPath(self.app, server.request_handler, self._opener)
 
     async def cleanup(self) -> None:
         await super().cleanup()
@@ -137,7 +137,7 @@ async def loopback(root: Path, middlewares: tuple = ()) -> AsyncIterator[str]:
     """Serve `root` on a free loopback port inside the running event loop; yields the base URL (ends in /).
 
     For the demo, benchmarks and tests; `middlewares` run before the server's own (e.g. a test-only delay), and
-    then every request takes the app's route, the whole-file fast path included.
+    then every request takes the app's route, the file fast path included.
     """
     app = build_app(ServeConfig(root=root, port=0, access_log=False, io_threads=None))
     for i, middleware in enumerate(middlewares):

@@ -1,8 +1,7 @@
-"""File responses: whole files (our sendfile fast path) and ranges/conditionals (aiohttp's FileResponse), both
-inside a transfer slot and reported to the metrics; the route handler and the fast path in front of the router.
-
-The fast path and the route decide the same way (`file_response`): a GET/HEAD with a Range or a condition goes
-to FileResponse (206/416, 304, 412), anything else to WholeFileResponse."""
+"""File responses: one class (`FileTransfer`) answers every GET/HEAD of a file, whole, ranged or conditional: it
+opens and stats the file, lets `decide` pick 200/206/304/412/416 and the span, and only then does I/O (the
+body by os.sendfile), inside a transfer slot and reported to the metrics. The route handler and the fast path in
+front of the router both answer with it."""
 
 from __future__ import annotations
 
@@ -17,7 +16,8 @@ from aiohttp import web
 from aiohttp.abc import AbstractStreamWriter
 
 from stgs.server.config import CONFIG_KEY, HEADERS_KEY, METRICS_KEY, ROOT_KEY, SLOTS_KEY
-from stgs.server.files import BeneathOpener, file_validators, open_and_stat, resolve_path, servable_parts
+from stgs.server.decide import decide
+from stgs.server.files import BeneathOpener, open_and_stat, resolve_path, servable_parts
 
 if TYPE_CHECKING:
     from stgs.server.metrics import Metrics
@@ -25,7 +25,7 @@ if TYPE_CHECKING:
 
 def is_file_response(response: web.StreamResponse | None) -> bool:
     """File responses report themselves to the metrics once their transfer ends."""
-    return isinstance(response, (SlottedFileResponse, WholeFileResponse))
+    return isinstance(response, FileTransfer)
 
 
 def body_bytes(request: web.BaseRequest, response: web.StreamResponse) -> int:
@@ -54,29 +54,13 @@ async def counted_transfer(app: web.Application, request: web.BaseRequest, respo
         metrics.answered(request.method, response.status, time.perf_counter() - start, body_bytes(request, response))
 
 
-class SlottedFileResponse(web.FileResponse):
-    """aiohttp's FileResponse (Range, conditions), sent inside a transfer slot and reported to the metrics."""
+class FileTransfer(web.StreamResponse):
+    """The answer to a GET/HEAD of a servable file; what a player sends for every segment.
 
-    def __init__(self, app: web.Application, path: str, headers: dict[str, str]):
-        super().__init__(path, headers=headers)
-        self._app = app
-
-    async def prepare(self, request: web.BaseRequest) -> AbstractStreamWriter | None:
-        return await counted_transfer(self._app, request, self, super().prepare)
-
-
-CONDITIONAL_HEADERS = ("Range", "If-Range", "If-None-Match", "If-Modified-Since", "If-Match",
-                       "If-Unmodified-Since")
-"""Requests with any of these go through aiohttp's FileResponse (206/416, 304, 412)."""
-
-
-class WholeFileResponse(web.StreamResponse):
-    """200 with a whole file, for GET/HEAD without Range or conditions: what a player sends for every segment.
-
-    The same answer FileResponse gives such a request (same ETag, Last-Modified, Accept-Ranges), with less
-    Python per request, which is what limits this server (docs/BENCHMARKS.md): the file is opened and stat'ed
-    once, and the body goes out by os.sendfile straight on the socket, in one call when the socket's buffer
-    takes it; asyncio's loop.sendfile sends whatever is left.
+    The answer aiohttp's FileResponse gives (same ETag, Last-Modified, Accept-Ranges, ranges and conditions),
+    with less Python per request, which is what limits this server (docs/BENCHMARKS.md): the file is opened and
+    stat'ed once, and the body goes out by os.sendfile straight on the socket, in one call when the socket's
+    buffer takes it; asyncio's loop.sendfile sends whatever is left.
     """
 
     def __init__(self, app: web.Application, path: str, headers: dict[str, str],
@@ -106,17 +90,21 @@ class WholeFileResponse(web.StreamResponse):
             self.set_status(404)
             return await super().prepare(request)
         try:
-            self.headers.update(file_validators(st.st_size, st.st_mtime_ns, st.st_mtime))
+            answer = decide(request, st.st_size, st.st_mtime_ns, st.st_mtime)
+            if answer.status != 200:
+                self.set_status(answer.status)
+            self.headers.update(answer.headers)
             writer = await super().prepare(request)
-            if request.method != "HEAD" and st.st_size:
-                await send_file_body(request, fd, st.st_size)
+            if request.method != "HEAD" and answer.count:
+                await send_file_body(request, fd, answer.offset, answer.count)
                 await super().write_eof()
             return writer
         finally:
             os.close(fd)
 
 
-async def send_file_body(request: web.BaseRequest, fd: int, size: int) -> None:
+async def send_file_body(request: web.BaseRequest, fd: int, offset: int, count: int) -> None:
+    """Send bytes [offset, offset + count) of the file."""
     transport = request.transport
     if transport is None or transport.is_closing():
         raise ConnectionResetError("connection lost")
@@ -124,8 +112,8 @@ async def send_file_body(request: web.BaseRequest, fd: int, size: int) -> None:
     if transport.get_write_buffer_size() == 0:  # the headers are out: the socket is ours until the body is
         sock = transport.get_extra_info("socket")
         try:
-            while sent < size:
-                n = os.sendfile(sock.fileno(), fd, sent, size - sent)
+            while sent < count:
+                n = os.sendfile(sock.fileno(), fd, offset + sent, count - sent)
                 if n == 0:
                     break
                 sent += n
@@ -133,9 +121,9 @@ async def send_file_body(request: web.BaseRequest, fd: int, size: int) -> None:
             pass
         except OSError as exc:  # peer gone (EPIPE, ECONNRESET)
             raise ConnectionResetError(str(exc)) from exc
-    if sent < size:
+    if sent < count:
         with open(fd, "rb", closefd=False) as f:
-            await asyncio.get_running_loop().sendfile(transport, f, sent, size - sent)
+            await asyncio.get_running_loop().sendfile(transport, f, offset + sent, count - sent)
 
 
 async def serve_file(request: web.Request) -> web.StreamResponse:
@@ -143,18 +131,15 @@ async def serve_file(request: web.Request) -> web.StreamResponse:
     path = resolve_path(app[ROOT_KEY], request.path)
     if path is None:
         raise web.HTTPNotFound()
-    headers = app[HEADERS_KEY][os.path.splitext(path)[1]]
-    if any(name in request.headers for name in CONDITIONAL_HEADERS):
-        return SlottedFileResponse(app, path, headers)
-    return WholeFileResponse(app, path, headers)
+    return FileTransfer(app, path, app[HEADERS_KEY][os.path.splitext(path)[1]])
 
 
-class WholeFileFastPath:
-    """The server's request handler in front of the app's: whole-file GET/HEADs of servable files, what a player
-    sends for every segment, are answered here, past aiohttp's router and middleware (a fifth of the server's
+class FileFastPath:
+    """The server's request handler in front of the app's: GET/HEADs of servable files, what a player sends for
+    every segment, are answered here, past aiohttp's router and middleware (a fifth of the server's
     CPU per request, docs/BENCHMARKS.md); every other request goes on to the app. The answer is the one the
-    app's serve_file route gives (same WholeFileResponse), so only the app's own middleware is skipped, and it
-    only counts what WholeFileResponse reports itself.
+    app's serve_file route gives (same FileTransfer), so only the app's own middleware is skipped, and it
+    only counts what FileTransfer reports itself.
 
     With an `opener` (openat2) the file is opened here, in one syscall that also keeps the path inside ROOT; a
     path it refuses (missing, a symlink on the way) goes to the app, whose route answers 404 or follows a symlink
@@ -169,18 +154,18 @@ class WholeFileFastPath:
         self._opener = opener
 
     async def __call__(self, request: web.BaseRequest) -> web.StreamResponse:
-        if request.method in ("GET", "HEAD") and not any(name in request.headers for name in CONDITIONAL_HEADERS):
-            response = self._whole_file(request.path)
+        if request.method in ("GET", "HEAD"):
+            response = self._file(request.path)
             if response is not None:
                 return response
         return await self._app_handler(request)
 
-    def _whole_file(self, url_path: str) -> WholeFileResponse | None:
+    def _file(self, url_path: str) -> FileTransfer | None:
         if self._opener is None:
             path = resolve_path(self._root, url_path)
             if path is None:
                 return None
-            return WholeFileResponse(self._app, path, self._headers[os.path.splitext(path)[1]])
+            return FileTransfer(self._app, path, self._headers[os.path.splitext(path)[1]])
         parts = servable_parts(url_path)
         if parts is None:
             return None
@@ -193,5 +178,5 @@ class WholeFileFastPath:
         if not stat.S_ISREG(st.st_mode):
             os.close(fd)
             return None
-        return WholeFileResponse(self._app, f"{self._root}/{relative}", self._headers[os.path.splitext(relative)[1]],
-                                 (fd, st))
+        return FileTransfer(self._app, f"{self._root}/{relative}", self._headers[os.path.splitext(relative)[1]],
+                            (fd, st))

@@ -1,5 +1,9 @@
 """Running the app: SceneRunner (the fast path in front of the app), one process or several on one port
-(SO_REUSEPORT), graceful shutdown on SIGINT/SIGTERM."""
+(SO_REUSEPORT), graceful shutdown on SIGINT/SIGTERM.
+
+Why our own processes rather than gunicorn's aiohttp worker: gunicorn runs the app through aiohttp's router,
+without the fast path, and served 28 % fewer requests/s for 8 % more CPU per request (`bench/serve_floor.py
+--gunicorn`, docs/BENCHMARKS.md), besides adding a dependency."""
 
 from __future__ import annotations
 

@@ -57,7 +57,7 @@ def scene_files(root: Path) -> list[str]:
 
 
 class SceneTestServer(TestServer):
-    """aiohttp's TestServer running the app as `stgs serve` does: SceneRunner, the whole-file fast path first."""
+    """aiohttp's TestServer running the app as `stgs serve` does: SceneRunner, the file fast path first."""
 
     async def _make_runner(self, **kwargs) -> SceneRunner:
         return SceneRunner(self.app, **kwargs)
@@ -132,13 +132,55 @@ async def test_byte_ranges(client, root):
     assert resp.headers["Content-Range"] == f"bytes */{size}"
 
 
+def etag_of(st: os.stat_result) -> str:
+    return f"{st.st_mtime_ns:x}-{st.st_size:x}"
+
+
 async def test_conditional_requests(client, root):
     rel = scene_files(root)[-1]
+    data = (root / "scene1" / rel).read_bytes()
     first = await client.get(f"/scene1/{rel}")
     etag, modified = first.headers["ETag"], first.headers["Last-Modified"]
-    assert (await client.get(f"/scene1/{rel}", headers={"If-None-Match": etag})).status == 304
-    assert (await client.get(f"/scene1/{rel}", headers={"If-Modified-Since": modified})).status == 304
-    assert (await client.get(f"/scene1/{rel}", headers={"If-None-Match": '"other"'})).status == 200
+    assert etag == f'"{etag_of((root / "scene1" / rel).stat())}"'
+    past, future = "Mon, 01 Jan 2001 00:00:00 GMT", "Fri, 01 Jan 2100 00:00:00 GMT"
+    cases = [({"If-None-Match": etag}, 304, b""), ({"If-None-Match": f"W/{etag}"}, 304, b""),
+             ({"If-None-Match": '"other", ' + etag}, 304, b""), ({"If-None-Match": "*"}, 304, b""),
+             ({"If-Modified-Since": modified}, 304, b""), ({"If-None-Match": '"other"'}, 200, data),
+             ({"If-Modified-Since": past}, 200, data),
+             ({"If-None-Match": '"other"', "If-Modified-Since": modified}, 200, data),  # the tag decides
+             ({"If-Match": etag}, 200, data), ({"If-Match": "*"}, 200, data), ({"If-Match": '"other"'}, 412, b""),
+             ({"If-Match": f"W/{etag}"}, 412, b""),  # If-Match compares strongly
+             ({"If-Unmodified-Since": past}, 412, b""), ({"If-Unmodified-Since": future}, 200, data),
+             ({"If-Match": '"other"', "If-None-Match": etag}, 412, b""),  # 412 is decided first
+             ({"If-Match": etag, "Range": "bytes=0-3"}, 206, data[:4]),
+             ({"If-None-Match": etag, "Range": "bytes=0-3"}, 304, b"")]
+    for headers, status, body in cases:
+        resp = await client.get(f"/scene1/{rel}", headers=headers)
+        assert (resp.status, await resp.read()) == (status, body), headers
+        if status == 304:
+            assert resp.headers["ETag"] == etag and resp.headers["Last-Modified"] == modified
+
+
+async def test_if_range_applies_a_range_only_to_the_current_file(client, root):
+    rel = scene_files(root)[-1]
+    data = (root / "scene1" / rel).read_bytes()
+    first = await client.get(f"/scene1/{rel}")
+    etag, modified = first.headers["ETag"], first.headers["Last-Modified"]
+    for if_range, status, body in [(etag, 206, data[2:5]), (modified, 206, data[2:5]), ('"stale"', 200, data),
+                                   (f"W/{etag}", 200, data), ("Mon, 01 Jan 2001 00:00:00 GMT", 200, data),
+                                   ("not a date", 200, data)]:
+        resp = await client.get(f"/scene1/{rel}", headers={"Range": "bytes=2-4", "If-Range": if_range})
+        assert (resp.status, await resp.read()) == (status, body), if_range
+        assert ("Content-Range" in resp.headers) == (status == 206)
+
+
+async def test_bad_or_multiple_ranges_are_unsatisfiable(client, root):
+    rel = scene_files(root)[-1]
+    size = (root / "scene1" / rel).stat().st_size
+    for header in ["bytes=0-1,4-5", "bytes=5-2", "items=0-1", "bytes=x-"]:
+        resp = await client.get(f"/scene1/{rel}", headers={"Range": header})
+        assert resp.status == 416 and resp.headers["Content-Range"] == f"bytes */{size}", header
+        assert await resp.read() == b""
 
 
 async def test_cors_preflight(client):
@@ -274,31 +316,35 @@ def recording_app(root: Path, seen: list[str]) -> web.Application:
     return app
 
 
-async def test_the_fast_path_answers_whole_files_as_the_route_does(scene_server, aiohttp_server, root):
-    """SceneRunner answers plain GET/HEADs of files before the app's router and middleware, with the status,
-    headers and bytes the app's route gives; Range, conditions and anything not a servable file reach the app."""
+async def test_the_fast_path_answers_files_as_the_route_does(scene_server, aiohttp_server, root):
+    """SceneRunner answers GET/HEADs of files (whole, ranged, conditional) before the app's router and
+    middleware, with the status, headers and bytes the app's route gives; anything not a servable file reaches
+    the app."""
     seen_fast, seen_routed = [], []
     fast = await scene_server(recording_app(root, seen_fast))
     routed = await aiohttp_server(recording_app(root, seen_routed))
     files = scene_files(root)
+    etag = f'"{etag_of((root / "scene1" / files[-1]).stat())}"'
+    variants = [{}, {"Range": "bytes=0-9"}, {"Range": "bytes=-7"}, {"If-None-Match": etag}, {"If-Match": '"x"'},
+                {"Range": "bytes=99999999-"}]
     async with aiohttp.ClientSession() as session:
         for rel in files:
             for method in ("GET", "HEAD"):
-                answers = []
-                for server in (fast, routed):
-                    async with session.request(method, f"http://{server.host}:{server.port}/scene1/{rel}") as resp:
-                        headers = {k: v for k, v in resp.headers.items() if k != "Date"}
-                        answers.append((resp.status, headers, await resp.read()))
-                assert answers[0] == answers[1], (method, rel)
-        assert seen_fast == [] and len(seen_routed) == 2 * len(files)
+                for headers in variants:
+                    answers = []
+                    for server in (fast, routed):
+                        url = f"http://{server.host}:{server.port}/scene1/{rel}"
+                        async with session.request(method, url, headers=headers) as resp:
+                            kept = {k: v for k, v in resp.headers.items() if k != "Date"}
+                            answers.append((resp.status, kept, await resp.read()))
+                    assert answers[0] == answers[1], (method, rel, headers)
+        assert seen_fast == [] and len(seen_routed) == 2 * len(files) * len(variants)
         base = f"http://{fast.host}:{fast.port}"
-        async with session.get(f"{base}/scene1/{files[-1]}", headers={"Range": "bytes=0-9"}) as resp:
-            assert resp.status == 206 and len(await resp.read()) == 10
         async with session.get(f"{base}/scene1/nope.m4s") as resp:
             assert resp.status == 404
         async with session.get(f"{base}/healthz") as resp:
             assert resp.status == 200
-    assert seen_fast == [f"/scene1/{files[-1]}", "/scene1/nope.m4s", "/healthz"]
+    assert seen_fast == ["/scene1/nope.m4s", "/healthz"]
 
 
 async def test_oversized_headers_are_refused(scene_server, root):
