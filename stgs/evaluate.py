@@ -30,7 +30,7 @@ from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.store import load_gop, read_meta
 from stgs.model.view import FrameRenderer
 from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, MPDError, expand_template, parse_mpd
-from stgs.train.trainer import scale_camera
+from stgs.train.views import scale_camera
 from stgs.tree import MANIFEST, TRAIN_REPORT
 
 GRID_ROWS = 4

@@ -265,7 +265,7 @@ def test_triangulated_points_land_in_the_foreground(panoptic_frame0):
 
 
 def test_initial_points_seed_the_people_at_every_triangulated_time(panoptic_frame0):
-    from stgs.train.trainer import initial_points
+    from stgs.train.seeding import initial_points
 
     ds, cams = panoptic_frame0
     names = [c.name for c in cams]
@@ -324,7 +324,7 @@ def test_region_psnr_scales_the_mask_to_the_render():
 
 
 def test_init_frames_spread_over_the_span():
-    from stgs.train.trainer import init_frames
+    from stgs.train.seeding import init_frames
 
     assert init_frames(list(range(60)), 6) == [0, 12, 24, 35, 47, 59]
     assert init_frames(list(range(10, 70)), 1) == [10]
@@ -390,7 +390,7 @@ def test_rig_sphere_fits_a_dome_and_falls_back_for_a_ring():
 
 def test_times_with_too_few_triangulated_points_fall_back_to_random_points(scene):
     from stgs.train.init import MIN_TRIANGULATED, triangulate
-    from stgs.train.trainer import initial_points
+    from stgs.train.seeding import initial_points
 
     ds = open_dataset(scene)
     names, _ = split(ds)
@@ -409,7 +409,7 @@ def test_times_with_too_few_triangulated_points_fall_back_to_random_points(scene
 
 def test_background_share_is_validated_and_splits_the_capacity(scene):
     from stgs.model.gop import GOPModel, GOPShape
-    from stgs.train.trainer import init_canonical, initial_points
+    from stgs.train.seeding import init_canonical, initial_points
 
     with pytest.raises(StgsError, match="background_share"):
         budget("quick", background_share=1.0)
@@ -430,7 +430,8 @@ def test_background_share_is_validated_and_splits_the_capacity(scene):
 def test_training_keeps_opacity_in_the_streams_range_and_parks_dead_slots(scene, trained, tmp_path):
     from stgs.codec.attributes import OPACITY_LOGIT_RANGE, SPECS, dequantize, encode_attributes
     from stgs.model.gop import GOPModel
-    from stgs.train.trainer import Optimizer, Trainer
+    from stgs.train.ops import Optimizer, prune
+    from stgs.train.trainer import Trainer
 
     lo, hi = OPACITY_LOGIT_RANGE
     trainer = Trainer(scene, tmp_path / "m", budget("quick", **TINY), progress=False)
@@ -448,7 +449,7 @@ def test_training_keeps_opacity_in_the_streams_range_and_parks_dead_slots(scene,
     with torch.no_grad():
         model.opacity_logit.fill_(1.0)
         model.log_scale.copy_(torch.linspace(-6, -2, 256 * 3).reshape(256, 3))
-    assert trainer.prune(model, accum) == 10
+    assert prune(model, accum, trainer.cfg.dead_opacity) == 10
     assert (model.opacity_logit[:10] == lo).all() and (model.opacity_logit[10:] == 1.0).all()
     live_min = torch.linspace(-6, -2, 256 * 3).reshape(256, 3)[10:].amin(0)
     assert torch.equal(model.log_scale[:10], live_min.expand(10, 3))

@@ -1,0 +1,65 @@
+"""Training checkpoints: model, auxiliary transformer, Adam state, opacity accumulator and random generator in
+one safetensors file per stage (no pickle), the stage's progress in its JSON metadata, written atomically."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+from safetensors import safe_open
+from safetensors.torch import load_file, save_file
+
+from stgs.model.gop import GOPModel
+from stgs.train.aux import AuxTransformer
+from stgs.train.ops import Optimizer
+
+
+class Checkpoints:
+    """The checkpoints of one run in `folder`; `resume` says whether loading one is wanted at all."""
+
+    def __init__(self, folder: Path, gen: torch.Generator, resume: bool):
+        self.folder, self.gen, self.resume = folder, gen, resume
+
+    def path(self, name: str) -> Path:
+        return self.folder / f"{name}.safetensors"
+
+    def save(self, name: str, model: GOPModel, opt: Optimizer, extra: dict, aux: AuxTransformer | None = None,
+             accum: torch.Tensor | None = None) -> None:
+        tensors = {f"model.{k}": v.detach().contiguous() for k, v in model.state_dict().items()}
+        if aux is not None:
+            tensors |= {f"aux.{k}": v.detach().contiguous() for k, v in aux.state_dict().items()}
+        for group in opt.opt.param_groups:
+            for i, p in enumerate(group["params"]):
+                for key, t in opt.opt.state.get(p, {}).items():
+                    if torch.is_tensor(t):
+                        tensors[f"adam.{group['name']}.{i}.{key}"] = t.detach().reshape(t.shape).contiguous()
+        if accum is not None:
+            tensors["accum"] = accum.contiguous()
+        tensors["rng"] = self.gen.get_state()
+        path = self.path(name)
+        tmp = path.with_suffix(".tmp")
+        save_file(tensors, str(tmp), metadata={"state": json.dumps(extra)})
+        tmp.replace(path)
+
+    def load(self, name: str, model: GOPModel, opt: Optimizer, aux: AuxTransformer | None = None
+             ) -> tuple[dict, torch.Tensor | None] | None:
+        """Restore `name` into model, aux, opt and the generator; (its extra, its accumulator), or None when
+        not resuming or there is no such checkpoint."""
+        path = self.path(name)
+        if not (self.resume and path.is_file()):
+            return None
+        with safe_open(str(path), "pt") as f:
+            extra = json.loads(f.metadata()["state"])
+        tensors = load_file(str(path))
+        model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
+        if aux is not None:
+            aux.load_state_dict({k[4:]: v for k, v in tensors.items() if k.startswith("aux.")})
+        for group in opt.opt.param_groups:
+            for i, p in enumerate(group["params"]):
+                prefix = f"adam.{group['name']}.{i}."
+                state = {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
+                if state:
+                    opt.opt.state[p] = state
+        self.gen.set_state(tensors["rng"])
+        return extra, tensors.get("accum")

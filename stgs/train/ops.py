@@ -1,0 +1,122 @@
+"""What changes the set or order of the Gaussians during training, and the optimizer-state surgery it needs
+(as gsplat's strategy/ops): relocation of dead Gaussians (3DGS-MCMC), PLAS sorting, pruning at the end.
+
+A Gaussian's parameters are rows of several tensors (GAUSSIAN_AXIS); whatever moves, copies or resets rows
+does the same to those rows of Adam's moments, so the optimizer never carries a row's momentum to another."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from stgs.codec.attributes import OPACITY_LOGIT_RANGE
+from stgs.codec.plas import PLASConfig, plas_order, sort_key
+from stgs.model.gop import GOPModel
+from stgs.train.aux import AuxTransformer
+from stgs.train.config import TrainConfig
+
+GAUSSIAN_AXIS = {"xyz": 0, "log_scale": 0, "rotation": 0, "opacity_logit": 0, "color": 0, "features": 1}
+"""Which axis of each per-Gaussian parameter indexes the Gaussians."""
+
+
+class Optimizer:
+    """Adam over named parameter groups, with per-Gaussian row surgery (permute, reset) for sorting and relocation."""
+
+    def __init__(self, model: GOPModel, cfg: TrainConfig, extent: float, aux: AuxTransformer | None,
+                 canonical_only: bool = False):
+        lr = cfg.lr
+        groups = [("xyz", [model.xyz], lr.position * extent), ("log_scale", [model.log_scale], lr.scale),
+                  ("rotation", [model.rotation], lr.rotation), ("opacity_logit", [model.opacity_logit], lr.opacity),
+                  ("color", [model.color], lr.color)]
+        if not canonical_only:
+            groups += [("features", [model.features], lr.features), ("field", list(model.field.parameters()), lr.field)]
+            if aux is not None:
+                groups.append(("aux", list(aux.parameters()), lr.aux))
+        self.opt = torch.optim.Adam([{"params": p, "lr": r, "name": n} for n, p, r in groups], eps=1e-15)
+        self.model, self.cfg, self.extent = model, cfg, extent
+
+    def set_progress(self, fraction: float) -> None:
+        lr = self.cfg.lr
+        for g in self.opt.param_groups:
+            if g["name"] == "xyz":
+                g["lr"] = log_lerp(lr.position, lr.position_final, fraction) * self.extent
+            elif g["name"] == "field":
+                g["lr"] = log_lerp(lr.field, lr.field_final, fraction)
+
+    def rows(self, name: str, index: torch.Tensor, source: torch.Tensor | None = None) -> None:
+        """Reset (source None) or copy (from rows `source`) the Adam state of Gaussian rows `index`."""
+        param = getattr(self.model, name)
+        state = self.opt.state.get(param)
+        if not state:
+            return
+        axis = GAUSSIAN_AXIS[name]
+        for key in ("exp_avg", "exp_avg_sq"):
+            t = state[key]
+            if source is None:
+                t.index_fill_(axis, index, 0.0)
+            else:
+                t.index_copy_(axis, index, t.index_select(axis, source))
+
+    def permute(self, order: torch.Tensor) -> None:
+        with torch.no_grad():
+            for name, axis in GAUSSIAN_AXIS.items():
+                param = getattr(self.model, name)
+                param.copy_(param.index_select(axis, order))
+                state = self.opt.state.get(param)
+                for key in ("exp_avg", "exp_avg_sq"):
+                    if state:
+                        state[key].copy_(state[key].index_select(axis, order))
+
+
+def log_lerp(a: float, b: float, t: float) -> float:
+    return math.exp(math.log(a) * (1 - t) + math.log(b) * t)
+
+
+@torch.no_grad()
+def relocate(model: GOPModel, opt: Optimizer, avg: torch.Tensor, dead_opacity: float, gen: torch.Generator) -> int:
+    """Move dead Gaussians (average opacity `avg` below `dead_opacity`) onto live ones sampled by opacity,
+    splitting the opacity (3DGS-MCMC); the Adam state of both rows restarts. Returns how many moved."""
+    dead = torch.nonzero(avg < dead_opacity).squeeze(1)
+    alive = avg >= dead_opacity
+    if len(dead) == 0 or not alive.any():
+        return 0
+    probs = torch.where(alive, avg, torch.zeros_like(avg))
+    src = torch.multinomial(probs, len(dead), replacement=True, generator=gen)
+    counts = torch.bincount(src, minlength=len(avg)).float()
+    base = torch.sigmoid(model.opacity_logit)
+    split = 1 - (1 - base[src]).clamp_min(1e-6) ** (1 / (counts[src] + 1))
+    for name, axis in GAUSSIAN_AXIS.items():
+        param = getattr(model, name)
+        param.index_copy_(axis, dead, param.index_select(axis, src))
+        opt.rows(name, dead, None)
+        opt.rows(name, src, None)
+    logit = torch.logit(split.clamp(1e-6, 1 - 1e-6)).clamp(*OPACITY_LOGIT_RANGE)
+    model.opacity_logit[dead] = logit
+    model.opacity_logit[src] = logit
+    model.xyz[dead] += torch.randn(len(dead), 3, generator=gen) * model.log_scale[dead].exp() * 0.5
+    return len(dead)
+
+
+@torch.no_grad()
+def sort(model: GOPModel, opt: Optimizer, accum: torch.Tensor, seed: int) -> None:
+    """PLAS-sort the Gaussians on the model's grid (parameters, Adam state and the opacity accumulator alike)."""
+    order = plas_order(sort_key(model), model.shape.grid_side, PLASConfig(seed=seed))
+    opt.permute(order)
+    accum.copy_(accum[:, order])
+
+
+@torch.no_grad()
+def prune(model: GOPModel, accum: torch.Tensor, dead_opacity: float) -> int:
+    """Park the slots whose average opacity over the GOP stayed below `dead_opacity`; returns how many.
+
+    The stream cannot carry opacity 0 (its floor is sigmoid(-4)), so a parked slot gets the floor opacity
+    and the smallest scale of the live Gaussians: a faint dot about a pixel wide that widens neither the
+    opacity nor the scale range of the packed attributes.
+    """
+    avg = accum[0] / accum[1].clamp_min(1)
+    dead = (avg < dead_opacity) & (accum[1] > 0)
+    model.opacity_logit[dead] = OPACITY_LOGIT_RANGE[0]
+    if not dead.all():
+        model.log_scale[dead] = model.log_scale[~dead].amin(0)
+    return int(dead.sum())

@@ -1,0 +1,117 @@
+"""Where the Gaussians start: triangulated points at a few frames, the rig's walls and floor, jittered copies
+and random frustum points up to the capacity (`initial_points`), and the 3DGS-style attributes they get
+(`init_canonical`). The geometry is in stgs.train.init."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from stgs.camera import Camera, surrounds
+from stgs.data import Dataset
+from stgs.model.gop import GOPModel
+from stgs.train.init import (
+    MIN_TRIANGULATED,
+    background_shell_points,
+    ground_height,
+    random_frustum_points,
+    triangulate,
+)
+
+
+@dataclass
+class InitialPoints:
+    """Where the Gaussians start."""
+
+    points: torch.Tensor
+    """(N, 3) positions."""
+    colors: torch.Tensor
+    """(N, 3) colours."""
+    anchored: torch.Tensor
+    """(N,) bool: seen in the images (triangulated or on the rig's walls and floor) rather than filler
+    (jittered copies, random points), which starts fainter so it cannot veil the scene."""
+    triangulated: int
+    """How many points triangulated."""
+    background: int = 0
+    """How many points went on the rig's walls and floor."""
+
+
+def initial_points(ds: Dataset, names: list[str], frames: list[int], count: int, gen: torch.Generator,
+                   limit: int = 0, background_share: float = 0.0) -> InitialPoints:
+    """`count` starting points, triangulated at each of `frames` (people who move are seeded where they are
+    at each of those times); `background_share` of them on the rig's walls and floor
+    (background_shell_points) when the cameras surround the scene."""
+    cams, images = _training_views(ds, names, frames[0])  # the walls and floor are coloured from the first frame
+    found_at = [triangulate(cams, images, [ds.mask(frames[0], c.name) for c in cams])]
+    for frame in frames[1:]:  # one more frame's images held at a time
+        later_cams, later_images = _training_views(ds, names, frame)
+        found_at.append(triangulate(later_cams, later_images, [ds.mask(frame, c.name) for c in later_cams]))
+    # A time with too few points to describe the scene there (tiny images, no texture) contributes none: a few
+    # points from each of several such times would draw every seeded copy around them instead of random points.
+    found_at = [(p, c) for p, c in found_at if len(p) >= MIN_TRIANGULATED]
+    pts = torch.cat([p for p, _ in found_at]) if found_at else torch.empty(0, 3)
+    col = torch.cat([c for _, c in found_at]) if found_at else torch.empty(0, 3)
+    if limit and len(pts) > limit:
+        keep = torch.randperm(len(pts), generator=gen)[:limit]
+        pts, col = pts[keep], col[keep]
+    if len(pts) < MIN_TRIANGULATED:  # random points instead
+        pts, col = pts[:0], col[:0]
+    found = len(pts)
+    parts, colors, background = [], [], 0
+    if background_share and surrounds(cams):
+        shell, shell_col = background_shell_points(cams, images, int(count * background_share), gen,
+                                                   ground_height(cams, pts))
+        parts.append(shell)
+        colors.append(shell_col)
+        count -= len(shell)
+        background = len(shell)
+    if found >= count:
+        keep = torch.randperm(found, generator=gen)[:count]
+        pts, col = pts[keep], col[keep]
+    parts.append(pts)
+    colors.append(col)
+    anchored = sum(len(p) for p in parts)
+    extra_random = (count - len(pts)) // 2 if found else count - len(pts)
+    jitter_n = count - len(pts) - extra_random
+    if jitter_n:
+        src = torch.randint(found, (jitter_n,), generator=gen)
+        spread = (pts.std(0) * 0.02).clamp_min(1e-3)
+        parts.append(pts[src] + torch.randn(jitter_n, 3, generator=gen) * spread)
+        colors.append(col[src])
+    if extra_random:
+        parts.append(random_frustum_points(cams, extra_random, gen))
+        colors.append(torch.rand(extra_random, 3, generator=gen))
+    points = torch.cat(parts)
+    flags = torch.arange(len(points)) < anchored
+    return InitialPoints(points, torch.cat(colors), flags, found, background)
+
+
+def _training_views(ds: Dataset, names: list[str], frame: int) -> tuple[list[Camera], list[torch.Tensor]]:
+    cams = [c for c in ds.cameras(frame) if c.name in names]
+    return cams, [ds.image(frame, c.name) for c in cams]
+
+
+def init_frames(frames: list[int], count: int) -> list[int]:
+    """`count` of `frames` spread evenly from the first (all of them when there are fewer)."""
+    if count >= len(frames):
+        return list(frames)
+    if count == 1:
+        return [frames[0]]
+    return [frames[round(i * (len(frames) - 1) / (count - 1))] for i in range(count)]
+
+
+def init_canonical(model: GOPModel, init: InitialPoints, opacity: float = 0.1, filler_opacity: float = 0.02) -> None:
+    """3DGS-style initial attributes: scale from the mean distance to the 3 nearest points."""
+    points = init.points
+    with torch.no_grad():
+        model.xyz.copy_(points)
+        d = torch.cdist(points, points)
+        d.fill_diagonal_(float("inf"))
+        nn3 = d.topk(min(3, len(points) - 1), largest=False).values.mean(1) if len(points) > 1 else torch.ones(1)
+        model.log_scale.copy_(torch.log(nn3.clamp(1e-4, 1e2))[:, None].expand(-1, 3))
+        model.rotation.copy_(torch.tensor([1.0, 0.0, 0.0, 0.0]))
+        start = torch.where(init.anchored, opacity, filler_opacity)
+        model.opacity_logit.copy_(torch.log(start / (1 - start)))
+        model.color.copy_(init.colors.clamp(0, 1))
+        model.features.zero_()

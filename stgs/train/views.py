@@ -1,0 +1,54 @@
+"""Training views: the images of some frames at the training scale (uint8), their cameras, the scene's extent."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import torch
+from tqdm import tqdm
+
+from stgs.camera import Camera, resize
+from stgs.data import Dataset
+from stgs.errors import StgsError
+
+
+@dataclass
+class Views:
+    """Training images of some frames (kept as uint8: a quarter of float32) and their cameras."""
+
+    cameras: list[Camera]
+    frames: list[int]
+    images: torch.Tensor
+    """(F, C, H, W, 3) uint8."""
+    dynamic: torch.Tensor | None = None
+    """(C, H, W) bool dynamic-pixel masks."""
+
+    def target(self, f: int, c: int) -> torch.Tensor:
+        return self.images[f, c].float().div_(255.0)
+
+
+def scale_camera(cam: Camera, scale: float) -> Camera:
+    """The camera at `scale` times its image size (the training resolution)."""
+    return resize(cam, max(1, round(cam.width * scale)), max(1, round(cam.height * scale)))
+
+
+def load_views(ds: Dataset, names: list[str], frames: list[int], scale: float, progress: bool) -> Views:
+    by_name = {c.name: c for c in ds.cameras(frames[0])}
+    cams = [scale_camera(by_name[n], scale) for n in names]
+    h, w = cams[0].height, cams[0].width
+    if any((c.height, c.width) != (h, w) for c in cams):
+        raise StgsError(f"{ds.name}: training cameras must share one image size")
+    images = torch.empty(len(frames), len(cams), h, w, 3, dtype=torch.uint8)
+    for i, f in enumerate(tqdm(frames, desc="load frames", unit="frame", disable=not progress)):
+        for j, cam in enumerate(cams):
+            img = ds.image(f, cam.name)
+            if img.shape[:2] != (h, w):
+                img = torch.from_numpy(cv2.resize(img.numpy(), (w, h), interpolation=cv2.INTER_AREA))
+            images[i, j] = (img * 255 + 0.5).clamp(0, 255).to(torch.uint8)
+    return Views(cams, frames, images)
+
+
+def scene_extent(cams: list[Camera]) -> float:
+    centres = torch.stack([c.center for c in cams])
+    return float((centres - centres.mean(0)).norm(dim=1).max()) * 1.1 + 1e-6

@@ -1,0 +1,84 @@
+"""Training ops (stgs.train.ops): whatever moves, copies or resets Gaussians does the same to Adam's moments."""
+
+from __future__ import annotations
+
+import torch
+
+from stgs.model.gop import GOPModel, GOPShape
+from stgs.train.config import budget
+from stgs.train.ops import GAUSSIAN_AXIS, Optimizer, relocate, sort
+
+SIDE = 8
+
+
+def stepped_model(seed: int = 0) -> tuple[GOPModel, Optimizer]:
+    """A model whose every per-Gaussian parameter and Adam moment differs from row to row."""
+    torch.manual_seed(seed)
+    model = GOPModel(GOPShape(SIDE * SIDE, gop_size=4, window=2))
+    with torch.no_grad():
+        for name in GAUSSIAN_AXIS:
+            getattr(model, name).copy_(torch.randn_like(getattr(model, name)))
+    opt = Optimizer(model, budget("quick", grid_side=SIDE, gop_size=4, window=2), 1.0, None)
+    for _ in range(2):
+        opt.opt.zero_grad()
+        loss = sum((getattr(model, name) ** 3 * torch.randn_like(getattr(model, name))).sum() for name in GAUSSIAN_AXIS)
+        loss.backward()
+        opt.opt.step()
+    return model, opt
+
+
+def rows(model: GOPModel, opt: Optimizer, name: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(parameter, exp_avg, exp_avg_sq) with the Gaussians on axis 0."""
+    param = getattr(model, name)
+    state = opt.opt.state[param]
+    axis = GAUSSIAN_AXIS[name]
+    return tuple(t.detach().movedim(axis, 0).clone() for t in (param, state["exp_avg"], state["exp_avg_sq"]))
+
+
+def test_sort_permutes_parameters_moments_and_accumulator_together():
+    model, opt = stepped_model()
+    before = {name: rows(model, opt, name) for name in GAUSSIAN_AXIS}
+    accum = torch.stack([torch.arange(SIDE * SIDE, dtype=torch.float32), torch.ones(SIDE * SIDE)])
+    sort(model, opt, accum, seed=0)
+    order = accum[0].long()  # where each slot's Gaussian came from
+    assert not torch.equal(order, torch.arange(SIDE * SIDE))  # the sort did move rows
+    assert sorted(order.tolist()) == list(range(SIDE * SIDE))
+    for name in GAUSSIAN_AXIS:
+        for was, now in zip(before[name], rows(model, opt, name), strict=True):
+            assert torch.equal(now, was[order]), name
+
+
+def test_relocation_copies_live_rows_onto_dead_ones_and_restarts_both_moments():
+    model, opt = stepped_model(1)
+    opacity_before = torch.sigmoid(model.opacity_logit.detach()).clone()
+    before = {name: rows(model, opt, name) for name in GAUSSIAN_AXIS}
+    avg = torch.full((SIDE * SIDE,), 0.5)
+    dead = torch.tensor([3, 10, 40])
+    avg[dead] = 0.001
+    moved = relocate(model, opt, avg, dead_opacity=0.005, gen=torch.Generator().manual_seed(0))
+    assert moved == 3
+    after = {name: rows(model, opt, name) for name in GAUSSIAN_AXIS}
+    # each dead slot now holds a copy of one live Gaussian (colour is never touched after the copy)
+    sources = [int((before["color"][0] == after["color"][0][d]).all(dim=1).nonzero()[0]) for d in dead]
+    assert all(avg[s] == 0.5 for s in sources)
+    touched = set(dead.tolist()) | set(sources)
+    for name in GAUSSIAN_AXIS:
+        _, m1, m2 = after[name]
+        for i in range(SIDE * SIDE):
+            if i in touched:
+                assert not m1[i].any() and not m2[i].any(), (name, i)
+            else:
+                assert torch.equal(m1[i], before[name][1][i]) and torch.equal(m2[i], before[name][2][i]), (name, i)
+    # the source's opacity is split so that n + 1 copies composite as the one did
+    opacity = torch.sigmoid(model.opacity_logit.detach())
+    for s in set(sources):
+        copies = sources.count(s) + 1
+        assert torch.allclose(1 - (1 - opacity[s]) ** copies, opacity_before[s].clamp(max=1 - 1e-6), atol=1e-4)
+
+
+def test_relocation_without_live_gaussians_moves_nothing():
+    model, opt = stepped_model(2)
+    before = {name: rows(model, opt, name) for name in GAUSSIAN_AXIS}
+    assert relocate(model, opt, torch.zeros(SIDE * SIDE), 0.005, torch.Generator()) == 0
+    for name in GAUSSIAN_AXIS:
+        assert all(torch.equal(a, b) for a, b in zip(before[name], rows(model, opt, name), strict=True))
