@@ -10,9 +10,6 @@ with float32 accumulation on AMX tiles where the CPU and kernel allow it
 
 from __future__ import annotations
 
-import ctypes
-from ctypes import c_int, c_int64, c_void_p
-
 import torch
 
 from stgs.limits import MAX_BF16_WINDOW, MAX_WINDOW
@@ -24,32 +21,15 @@ from stgs.model.gop import (
     frame_time,
     positional_encoding,
 )
+from stgs.native.abi import ptr
 from stgs.native.build import NativeUnavailableError, available, load
 
 PRECISIONS = ("fp32", "bf16")
 """Arithmetic of the native deformation: float32, or bf16 inputs/weights with float32 accumulation."""
 
-_CONFIGURED: set[int] = set()
-
-
-def _library() -> ctypes.CDLL:
-    lib = load()
-    if id(lib) not in _CONFIGURED:
-        lib.stgs_deform.argtypes = ([c_int64, c_int, c_int] + [c_void_p] * 15
-                                    + [c_int, c_int] + [c_void_p] * 6 + [c_int])
-        lib.stgs_deform.restype = None
-        lib.stgs_deform_bf16.argtypes = ([c_int64, c_int, c_int] + [c_void_p] * 7 + [c_int] + [c_void_p] * 8
-                                         + [c_int, c_int] + [c_void_p] * 6 + [c_int])
-        lib.stgs_deform_bf16.restype = c_int
-        lib.stgs_deform_bf16_available.argtypes = []
-        lib.stgs_deform_bf16_available.restype = c_int
-        _CONFIGURED.add(id(lib))
-    return lib
-
-
 def bf16_available() -> bool:
     """True when the native bf16 deformation can run here (AMX-BF16 CPU, kernel grants AMX state)."""
-    return available() and _library().stgs_deform_bf16_available() == 1
+    return available() and load().stgs_deform_bf16_available() == 1
 
 
 def check_precision(precision: str) -> None:
@@ -147,27 +127,24 @@ def deform_native(model: GOPModel, frame: int, camera_center: torch.Tensor,
     pe_bias = weights.pe_bias(frame, model)
     out = Gaussians(torch.empty(n, 3), torch.empty(n, 4), torch.empty(n, 3), torch.empty(n),
                     torch.empty(n, 3))
-    view_ptr = k_ptr = guard_ptr = None
+    view = intr = limits = None
     if viewmat is not None:
         view = viewmat.detach().to(torch.float64).contiguous()
         intr = K.detach().to(torch.float64).contiguous()
-        view_ptr, k_ptr = view.data_ptr(), intr.data_ptr()
         if guard is not None:
             limits = torch.tensor(guard, dtype=torch.float64)
-            guard_ptr = limits.data_ptr()
-    outputs = [out.means.data_ptr(), out.quats.data_ptr(), out.scales.data_ptr(), out.opacities.data_ptr(),
-               out.colors.data_ptr(), guard_ptr, torch.get_num_threads()]
-    inputs = [n, model.shape.window, frame, feats.data_ptr(), *(t.data_ptr() for t in canon)]
-    lib = _library()
+    outputs = [ptr(out.means), ptr(out.quats), ptr(out.scales), ptr(out.opacities), ptr(out.colors), ptr(limits),
+               torch.get_num_threads()]
+    inputs = [n, model.shape.window, frame, ptr(feats), *(ptr(t) for t in canon)]
+    camera = [ptr(center), ptr(view), ptr(intr), width, height]
+    lib = load()
     if precision == "fp32":
-        lib.stgs_deform(*inputs, weights.temporal_feat.data_ptr(), pe_bias.data_ptr(), weights.geo1.data_ptr(),
-                        weights.geo2.data_ptr(), weights.app1.data_ptr(), weights.app2.data_ptr(),
-                        center.data_ptr(), view_ptr, k_ptr, width, height, *outputs)
+        lib.stgs_deform(*inputs, ptr(weights.temporal_feat), ptr(pe_bias), ptr(weights.geo1), ptr(weights.geo2),
+                        ptr(weights.app1), ptr(weights.app2), *camera, *outputs)
         return out
     temporal, geo1, geo2, app1, app2 = weights.amx()
-    status = lib.stgs_deform_bf16(*inputs, temporal.data_ptr(), temporal.shape[0], pe_bias.data_ptr(),
-                                  geo1.data_ptr(), geo2.data_ptr(), app1.data_ptr(), app2.data_ptr(),
-                                  center.data_ptr(), view_ptr, k_ptr, width, height, *outputs)
+    status = lib.stgs_deform_bf16(*inputs, ptr(temporal), temporal.shape[0], ptr(pe_bias), ptr(geo1), ptr(geo2),
+                                  ptr(app1), ptr(app2), *camera, *outputs)
     if status != 0:
         raise NativeUnavailableError("the bf16 deformation kernel refused to run (no AMX state for this process)")
     return out

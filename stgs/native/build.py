@@ -1,4 +1,4 @@
-"""Build and load the native CPU kernels (C++ with OpenMP, loaded through ctypes).
+"""Build and load the native CPU kernels (C++ with OpenMP, loaded through cffi by stgs.native.abi).
 
 The library is compiled once per source/flag/compiler combination into a cache
 folder (``$STGS_NATIVE_CACHE``, else ``$XDG_CACHE_HOME/stgs/native``, else
@@ -10,7 +10,6 @@ reference, slower.
 
 from __future__ import annotations
 
-import ctypes
 import hashlib
 import os
 import shutil
@@ -18,16 +17,20 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from typing import Any
 
-SOURCES = ("splat.cpp", "deform.cpp", "deform_amx.cpp")
-HEADERS = ("fastmath.h", "deform.h")
+SOURCES = ("project.cpp", "binning.cpp", "forward.cpp", "backward.cpp", "deform.cpp", "deform_amx.cpp")
+"""The splatter by stage (projection, binning, forward, backward), then the deformation field."""
+HEADERS = ("stgs_abi.h", "splat.h", "splat_avx512.h", "fastmath.h", "deform.h")
+"""stgs_abi.h is the C ABI (every export, read by stgs.native.abi); the others are internal."""
 CSRC = Path(__file__).with_name("csrc")
 ARCH = os.environ.get("STGS_NATIVE_ARCH", "native")
 """-march target; e.g. STGS_NATIVE_ARCH=x86-64-v3 builds the portable (no AVX-512) kernels."""
-FLAGS = ["-O3", f"-march={ARCH}", "-fopenmp", "-fPIC", "-shared", "-std=c++17",
+FLAGS = ["-O3", f"-march={ARCH}", "-fopenmp", "-fPIC", "-shared", "-std=c++17", "-fvisibility=hidden",
          "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math", "-Wall", "-Wextra"]
 """-ffp-contract=off keeps forward and backward recomputations bit-identical;
--fno-trapping-math lets floor and float->int conversions vectorise (no FP traps are used)."""
+-fno-trapping-math lets floor and float->int conversions vectorise (no FP traps are used);
+-fvisibility=hidden leaves the declarations of stgs_abi.h as the library's only exports."""
 
 
 class NativeUnavailableError(RuntimeError):
@@ -94,12 +97,13 @@ def build(verbose: bool = False) -> Path:
     return target
 
 
-_LIB: ctypes.CDLL | None = None
+_LIB: Any = None
 _ERROR: str | None = None
 
 
-def load() -> ctypes.CDLL:
-    """The loaded native library (built on first use); raises NativeUnavailableError."""
+def load() -> Any:
+    """The loaded native library, its functions typed by csrc/stgs_abi.h (built on first use); raises
+    NativeUnavailableError."""
     global _LIB, _ERROR
     if _LIB is not None:
         return _LIB
@@ -109,7 +113,9 @@ def load() -> ctypes.CDLL:
         _ERROR = "disabled by STGS_NATIVE=0"
         raise NativeUnavailableError(_ERROR)
     try:
-        _LIB = ctypes.CDLL(str(build()))
+        from stgs.native.abi import ffi
+
+        _LIB = ffi().dlopen(str(build()))
     except (NativeUnavailableError, OSError) as exc:
         _ERROR = str(exc)
         raise NativeUnavailableError(_ERROR) from exc

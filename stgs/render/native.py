@@ -1,37 +1,16 @@
-"""ctypes bindings of the native splatter (stgs/native/csrc/splat.cpp) and its autograd glue."""
+"""The native splatter's stages from Python (typed by csrc/stgs_abi.h through stgs.native.abi) and its autograd
+glue: projection, binning alone, forward (with its per-pixel bookkeeping), backward."""
 
 from __future__ import annotations
 
-import ctypes
-from ctypes import c_int, c_int64, c_void_p
+from typing import Any
 
 import torch
 
+from stgs.native.abi import ptr
 from stgs.native.build import load
 from stgs.render.project import Projected
-
-_CONFIGURED: set[int] = set()
-
-
-def library() -> ctypes.CDLL:
-    lib = load()
-    if id(lib) not in _CONFIGURED:
-        lib.stgs_project.argtypes = [c_int64] + [c_void_p] * 10 + [c_int]
-        lib.stgs_project.restype = None
-        lib.stgs_raster_forward.argtypes = [c_int64] + [c_void_p] * 7 + [c_int, c_int, c_void_p, c_int, c_int]
-        lib.stgs_raster_forward.restype = c_void_p
-        lib.stgs_raster_backward.argtypes = [c_void_p, c_int64] + [c_void_p] * 7 + [c_int]
-        lib.stgs_raster_backward.restype = None
-        lib.stgs_raster_pairs.argtypes = [c_void_p]
-        lib.stgs_raster_pairs.restype = c_int64
-        lib.stgs_raster_free.argtypes = [c_void_p]
-        lib.stgs_raster_free.restype = None
-        _CONFIGURED.add(id(lib))
-    return lib
-
-
-def ptr(t: torch.Tensor) -> int:
-    return t.data_ptr()
+from stgs.render.stages import TILE, Bins
 
 
 def f32(t: torch.Tensor) -> torch.Tensor:
@@ -46,25 +25,49 @@ def project_native(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tenso
     view = viewmat.detach().to(torch.float64).contiguous()
     intr = K.detach().to(torch.float64).contiguous()
     out = Projected(torch.empty(n, 2), torch.empty(n, 3), torch.empty(n), torch.empty(n, 2))
-    library().stgs_project(n, ptr(means), ptr(quats), ptr(scales), ptr(opacities), ptr(view),
-                           ptr(intr), ptr(out.means2d), ptr(out.conics), ptr(out.depths),
-                           ptr(out.extents), torch.get_num_threads())
+    load().stgs_project(n, ptr(means), ptr(quats), ptr(scales), ptr(opacities), ptr(view), ptr(intr),
+                        ptr(out.means2d), ptr(out.conics), ptr(out.depths), ptr(out.extents),
+                        torch.get_num_threads())
     return out
 
 
 class RasterHandle:
-    """Owns the binning the forward pass left for the backward pass."""
+    """Owns the native context a binning or forward pass left (its tile lists; after a forward for the
+    backward pass, the per-pixel bookkeeping too)."""
 
-    def __init__(self, handle: int):
-        self.handle = handle
+    def __init__(self, handle: Any, width: int, height: int):
+        self.handle, self.width, self.height = handle, width, height
 
     def pairs(self) -> int:
-        return library().stgs_raster_pairs(self.handle)
+        return load().stgs_raster_pairs(self.handle)
+
+    def bins(self) -> Bins:
+        """The tile lists (stage 2's output)."""
+        tiles_x, tiles_y = -(-self.width // TILE), -(-self.height // TILE)
+        tile_start = torch.empty(tiles_x * tiles_y + 1, dtype=torch.int64)
+        ids = torch.empty(self.pairs(), dtype=torch.int32)
+        load().stgs_raster_tiles(self.handle, ptr(tile_start), ptr(ids))
+        return Bins(tile_start, ids, tiles_x, tiles_y)
+
+    def pixels(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(final transmittance, 1-based rank of the last contributor) per pixel, of a for_backward forward."""
+        trans_final = torch.full((self.height, self.width), float("nan"))
+        n_contrib = torch.full((self.height, self.width), -1, dtype=torch.int32)
+        load().stgs_raster_pixels(self.handle, ptr(trans_final), ptr(n_contrib))
+        return trans_final, n_contrib
 
     def __del__(self) -> None:
-        if self.handle:
-            library().stgs_raster_free(self.handle)
-            self.handle = 0
+        if self.handle is not None:
+            load().stgs_raster_free(self.handle)
+            self.handle = None
+
+
+def bin_native(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor, depths: torch.Tensor,
+               extents: torch.Tensor, width: int, height: int) -> RasterHandle:
+    """Stage 2 alone on float32 contiguous inputs: a handle whose `bins()` are the tile lists."""
+    handle = load().stgs_raster_bin(means2d.shape[0], ptr(means2d), ptr(conics), ptr(opacities), ptr(depths),
+                                    ptr(extents), width, height, torch.get_num_threads())
+    return RasterHandle(handle, width, height)
 
 
 def raster_forward(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor,
@@ -74,10 +77,10 @@ def raster_forward(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch
     """Native compositing of float32 contiguous inputs; returns the image and its handle (which the
     backward pass can use only when `for_backward`)."""
     out = torch.empty(height, width, 3)
-    handle = library().stgs_raster_forward(
+    handle = load().stgs_raster_forward(
         means2d.shape[0], ptr(means2d), ptr(conics), ptr(opacities), ptr(colors), ptr(depths),
         ptr(extents), ptr(background), width, height, ptr(out), int(for_backward), torch.get_num_threads())
-    return out, RasterHandle(handle)
+    return out, RasterHandle(handle, width, height)
 
 
 class NativeComposite(torch.autograd.Function):
@@ -99,6 +102,6 @@ class NativeComposite(torch.autograd.Function):
         n = ctx.num_gaussians
         grads = [torch.zeros(n, 2), torch.zeros(n, 3), torch.zeros(n), torch.zeros(n, 3), torch.zeros(3)]
         grad_out = f32(grad_out)
-        library().stgs_raster_backward(ctx.handle.handle, n, ptr(background), ptr(grad_out),
-                                       *(ptr(g) for g in grads), torch.get_num_threads())
+        load().stgs_raster_backward(ctx.handle.handle, n, ptr(background), ptr(grad_out),
+                                    *(ptr(g) for g in grads), torch.get_num_threads())
         return (*grads, None, None, None, None)

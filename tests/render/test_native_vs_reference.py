@@ -77,21 +77,6 @@ def test_gradients_match_reference(scene):
         assert (a - b).abs().max().item() <= 1e-3 * peak, f"{name}: absolute gradient error"
 
 
-def test_native_projection_matches_torch_projection():
-    args = [a.float() for a in random_scene(500, 5)]
-    args[1][:9] = 0.0  # zero quaternions: identity rotation
-    args[1][9:20] *= 1e30  # huge ones: normalised without overflow
-    args[0][20:31, 2] = -1.0  # behind the camera
-    args[3][31:40] = 0.001  # alpha below 1/255 everywhere: no extent
-    view, K = pinhole(64, 48, 50.0)
-    ref = project(*[a.double() for a in args[:4]], view, K)  # same float32 inputs, in float64
-    nat = project_native(*args[:4], view, K)
-    assert torch.allclose(nat.means2d.double(), ref.means2d, rtol=1e-6, atol=1e-5)
-    assert torch.allclose(nat.conics.double(), ref.conics, rtol=1e-6, atol=1e-6)
-    assert torch.equal(nat.extents[:, 0] < 0, ref.extents[:, 0] < 0)
-    assert torch.allclose(nat.extents.double(), ref.extents, rtol=1e-5, atol=1e-4)
-
-
 @pytest.mark.parametrize("seed", [0, 1])
 def test_tiling_never_changes_the_image(seed):
     """Opacity-aware extents are conservative: culling by tile equals compositing everything everywhere."""

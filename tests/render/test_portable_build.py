@@ -1,4 +1,5 @@
-"""The portable kernels (built without AVX-512) against the reference, in a separate process.
+"""The portable kernels (built without AVX-512) against the reference and, stage by stage, against their torch
+twins, in separate processes.
 
 This machine has AVX-512, so the default build runs the AVX-512 tile kernels;
 the `#pragma omp simd` versions that other CPUs get are built here with
@@ -53,3 +54,9 @@ def test_portable_kernels_match_reference(tmp_path):
                             cwd=root, timeout=300)
     assert result.returncode == 0 and "portable ok" in result.stdout, result.stderr[-3000:]
     assert list(tmp_path.glob("libstgs_native-*.so")), "the portable library was built"
+    # Every stage of the portable build against its torch twin too (the tile lists id for id).
+    stages = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "no:xdist",
+                             "tests/render/test_stages.py"], capture_output=True, text=True, env=env, cwd=root,
+                            timeout=300)
+    assert stages.returncode == 0, stages.stdout[-3000:]
+    assert " passed" in stages.stdout and "skipped" not in stages.stdout

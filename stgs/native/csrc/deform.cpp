@@ -12,6 +12,7 @@
 #include <cstring>
 
 #include "deform.h"
+#include "stgs_abi.h"
 #include "fastmath.h"
 
 #if defined(__AVX512F__)

@@ -13,6 +13,7 @@
 #include <cstring>
 
 #include "deform.h"
+#include "stgs_abi.h"
 #include "fastmath.h"
 
 #if defined(__AMX_TILE__) && defined(__AMX_BF16__) && defined(__AVX512BF16__)

@@ -1,0 +1,250 @@
+// Stage 4, backward: gradients of the composited image with respect to the projected
+// Gaussians (means2d, conics, opacities, colours) and the background, walking each tile's
+// list back to front from the forward's bookkeeping. Its torch twin is autograd through
+// stgs.render.stages.composite_tiles. AVX-512 beside the portable kernel.
+
+#include <omp.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <vector>
+
+#if defined(__AVX512F__)
+// GCC 12's AVX-512 headers trip -Wmaybe-uninitialized on their own internals.
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+#include <immintrin.h>
+#endif
+
+#include "splat.h"
+#include "splat_avx512.h"
+#include "stgs_abi.h"
+
+namespace stgs::splat {
+namespace {
+
+void backward_tile(const RasterCtx& ctx, int tile, const float* bg, const float* grad_out,
+                   float* grads, double* grad_bg) {
+  const TileBox box = tile_box(ctx, tile);
+  // trans: transmittance after the contributions still to be undone; acc_*:
+  // colour composited behind the current Gaussian (background included).
+  TileState st;
+  alignas(64) float d_r[kTilePixels], d_g[kTilePixels], d_b[kTilePixels];
+  int32_t max_last = 0;
+  for (int p = 0; p < kTilePixels; ++p) {
+    const int u = p % kTile, v = p / kTile;
+    const bool in = u < box.w && v < box.h;
+    const int64_t pix = int64_t(box.y0 + v) * ctx.width + (box.x0 + u);
+    st.trans[p] = in ? ctx.trans_final[pix] : 1.0f;
+    st.last[p] = in ? ctx.n_contrib[pix] : 0;
+    d_r[p] = in ? grad_out[3 * pix] : 0.0f;
+    d_g[p] = in ? grad_out[3 * pix + 1] : 0.0f;
+    d_b[p] = in ? grad_out[3 * pix + 2] : 0.0f;
+    st.acc_r[p] = st.trans[p] * bg[0];
+    st.acc_g[p] = st.trans[p] * bg[1];
+    st.acc_b[p] = st.trans[p] * bg[2];
+    if (in) {
+      grad_bg[0] += double(st.trans[p]) * d_r[p];
+      grad_bg[1] += double(st.trans[p]) * d_g[p];
+      grad_bg[2] += double(st.trans[p]) * d_b[p];
+    }
+    max_last = std::max(max_last, st.last[p]);
+  }
+  const int64_t begin = ctx.tile_start[tile];
+  alignas(64) float alpha[kTile], falloff[kTile], power[kTile];
+  for (int32_t k = max_last - 1; k >= 0; --k) {
+    const int32_t g = ctx.ids[begin + k];
+    const Splat& s = ctx.splats[g];
+    const Rect& r = s.rect;
+    const int v0 = std::max(r.v0, box.y0), v1 = std::min(r.v1, box.y0 + box.h - 1);
+    float gmx = 0, gmy = 0, ga = 0, gb = 0, gc = 0, go = 0, gr = 0, gg = 0, gbl = 0;
+    for (int v = v0; v <= v1; ++v) {
+      const int row = v - box.y0;
+      const float dy = float(v) + 0.5f - s.my;
+      row_alpha(s, box.x0, dy, r.u0, r.u1, alpha, falloff, power);
+      const TileState::Row px = st.row(row);
+      float *trans = px.trans, *ar = px.r, *ag = px.g, *ab = px.b;
+      const int32_t* last = px.last;
+      const float* dr = d_r + row * kTile;
+      const float* dg = d_g + row * kTile;
+      const float* db = d_b + row * kTile;
+#pragma omp simd reduction(+ : gmx, gmy, ga, gb, gc, go, gr, gg, gbl)
+      for (int i = 0; i < kTile; ++i) {
+        const float a = alpha[i];
+        const bool took = k < last[i] && a >= kAlphaMin;
+        const float one_minus = 1.0f - a;
+        const float t_before = took ? trans[i] / one_minus : trans[i];
+        const float w = took ? a * t_before : 0.0f;
+        gr += w * dr[i];
+        gg += w * dg[i];
+        gbl += w * db[i];
+        const float g_alpha = took ? dr[i] * (s.r * t_before - ar[i] / one_minus) +
+                                         dg[i] * (s.g * t_before - ag[i] / one_minus) +
+                                         db[i] * (s.bl * t_before - ab[i] / one_minus)
+                                   : 0.0f;
+        ar[i] += s.r * w;
+        ag[i] += s.g * w;
+        ab[i] += s.bl * w;
+        trans[i] = t_before;
+        // No gradient through the 0.99 clamp, nor through the power clip at 0.
+        const bool open_alpha = s.o * falloff[i] <= kAlphaMax;
+        go += open_alpha ? g_alpha * falloff[i] : 0.0f;
+        const float g_power = (open_alpha && power[i] <= 0.0f) ? g_alpha * s.o * falloff[i] : 0.0f;
+        const float dx = float(box.x0 + i) + 0.5f - s.mx;
+        gmx += g_power * (s.a * dx + s.b * dy);
+        gmy += g_power * (s.b * dx + s.c * dy);
+        ga += g_power * (-0.5f * dx * dx);
+        gb += g_power * (-dx * dy);
+        gc += g_power * (-0.5f * dy * dy);
+      }
+    }
+    float* out = &grads[int64_t(g) * kGradStride];
+    out[0] += gmx; out[1] += gmy;
+    out[2] += ga; out[3] += gb; out[4] += gc;
+    out[5] += go;
+    out[6] += gr; out[7] += gg; out[8] += gbl;
+  }
+}
+
+#if defined(__AVX512F__)
+inline float hsum(__m512 v) { return _mm512_reduce_add_ps(v); }
+
+void backward_tile_avx512(const RasterCtx& ctx, int tile, const float* bg, const float* grad_out,
+                          float* grads, double* grad_bg) {
+  const TileBox box = tile_box(ctx, tile);
+  __m512 trans[kTile], ar[kTile], ag[kTile], ab[kTile], dr[kTile], dg[kTile], db[kTile];
+  __m512i last[kTile];
+  int32_t max_last = 0;
+  for (int v = 0; v < kTile; ++v) {
+    alignas(64) float t[kTile] = {0}, r[kTile] = {0}, g[kTile] = {0}, b[kTile] = {0};
+    alignas(64) int32_t l[kTile] = {0};
+    for (int u = 0; u < kTile; ++u) t[u] = 1.0f;
+    if (v < box.h) {
+      for (int u = 0; u < box.w; ++u) {
+        const int64_t pix = int64_t(box.y0 + v) * ctx.width + (box.x0 + u);
+        t[u] = ctx.trans_final[pix];
+        l[u] = ctx.n_contrib[pix];
+        r[u] = grad_out[3 * pix];
+        g[u] = grad_out[3 * pix + 1];
+        b[u] = grad_out[3 * pix + 2];
+        grad_bg[0] += double(t[u]) * r[u];
+        grad_bg[1] += double(t[u]) * g[u];
+        grad_bg[2] += double(t[u]) * b[u];
+        max_last = std::max(max_last, l[u]);
+      }
+    }
+    trans[v] = _mm512_load_ps(t);
+    last[v] = _mm512_load_si512(l);
+    dr[v] = _mm512_load_ps(r);
+    dg[v] = _mm512_load_ps(g);
+    db[v] = _mm512_load_ps(b);
+    ar[v] = _mm512_mul_ps(trans[v], _mm512_set1_ps(bg[0]));
+    ag[v] = _mm512_mul_ps(trans[v], _mm512_set1_ps(bg[1]));
+    ab[v] = _mm512_mul_ps(trans[v], _mm512_set1_ps(bg[2]));
+  }
+  const __m512 px = pixel_centres(box.x0);
+  const int64_t begin = ctx.tile_start[tile];
+  for (int32_t k = max_last - 1; k >= 0; --k) {
+    if (k >= kPrefetch) prefetch_splat(ctx, begin + k - kPrefetch);
+    const int32_t g = ctx.ids[begin + k];
+    const Splat& s = ctx.splats[g];
+    const Rect& r = s.rect;
+    const SplatVec sv(s);
+    const __mmask16 inside = span_mask(box.x0, r.u0, r.u1);
+    const __m512i rank = _mm512_set1_epi32(k);
+    const int v0 = std::max(r.v0, box.y0), v1 = std::min(r.v1, box.y0 + box.h - 1);
+    __m512 gmx = _mm512_setzero_ps(), gmy = gmx, ga = gmx, gb = gmx, gc = gmx, go = gmx;
+    __m512 gr = gmx, gg = gmx, gbl = gmx;
+    for (int v = v0; v <= v1; ++v) {
+      const int row = v - box.y0;
+      // Pixels whose compositing reached this Gaussian (rank < last) inside its span.
+      const __mmask16 reached = _mm512_mask_cmp_epi32_mask(inside, rank, last[row], _MM_CMPINT_LT);
+      if (!reached) continue;
+      const float dy = float(v) + 0.5f - s.my;
+      const RowEval e = eval_row(sv, px, row_power(sv, px, dy), inside);
+      const __mmask16 took = _mm512_mask_cmp_ps_mask(reached, e.alpha, sv.amin, _CMP_GE_OQ);
+      if (!took) continue;
+      const __m512 inv = _mm512_div_ps(sv.one, _mm512_sub_ps(sv.one, e.alpha));
+      const __m512 t_before = _mm512_mask_mul_ps(trans[row], took, trans[row], inv);
+      const __m512 w = _mm512_maskz_mul_ps(took, e.alpha, t_before);
+      gr = _mm512_fmadd_ps(w, dr[row], gr);
+      gg = _mm512_fmadd_ps(w, dg[row], gg);
+      gbl = _mm512_fmadd_ps(w, db[row], gbl);
+      __m512 g_alpha = _mm512_mul_ps(dr[row], _mm512_fmsub_ps(sv.r, t_before, _mm512_mul_ps(ar[row], inv)));
+      g_alpha = _mm512_fmadd_ps(dg[row], _mm512_fmsub_ps(sv.g, t_before, _mm512_mul_ps(ag[row], inv)), g_alpha);
+      g_alpha = _mm512_fmadd_ps(db[row], _mm512_fmsub_ps(sv.bl, t_before, _mm512_mul_ps(ab[row], inv)), g_alpha);
+      g_alpha = _mm512_maskz_mov_ps(took, g_alpha);
+      ar[row] = _mm512_fmadd_ps(sv.r, w, ar[row]);
+      ag[row] = _mm512_fmadd_ps(sv.g, w, ag[row]);
+      ab[row] = _mm512_fmadd_ps(sv.bl, w, ab[row]);
+      trans[row] = t_before;
+      // No gradient through the 0.99 clamp, nor through the power clip at 0.
+      const __m512 raw_alpha = _mm512_mul_ps(sv.o, e.falloff);
+      const __mmask16 open = _mm512_mask_cmp_ps_mask(took, raw_alpha, sv.amax, _CMP_LE_OQ);
+      go = _mm512_mask3_fmadd_ps(g_alpha, e.falloff, go, open);
+      const __mmask16 flows = _mm512_mask_cmp_ps_mask(open, e.power, _mm512_setzero_ps(), _CMP_LE_OQ);
+      const __m512 g_power = _mm512_maskz_mul_ps(flows, g_alpha, raw_alpha);
+      const __m512 dyv = _mm512_set1_ps(dy);
+      gmx = _mm512_fmadd_ps(g_power, _mm512_fmadd_ps(sv.a, e.dx, _mm512_mul_ps(_mm512_set1_ps(s.b), dyv)), gmx);
+      gmy = _mm512_fmadd_ps(g_power, _mm512_fmadd_ps(_mm512_set1_ps(s.b), e.dx, _mm512_mul_ps(sv.c, dyv)), gmy);
+      ga = _mm512_fmadd_ps(g_power, _mm512_mul_ps(sv.half, _mm512_mul_ps(e.dx, e.dx)), ga);
+      gb = _mm512_fnmadd_ps(g_power, _mm512_mul_ps(e.dx, dyv), gb);
+      gc = _mm512_fmadd_ps(g_power, _mm512_set1_ps(-0.5f * dy * dy), gc);
+    }
+    float* o = &grads[int64_t(g) * kGradStride];
+    o[0] += hsum(gmx); o[1] += hsum(gmy);
+    o[2] += hsum(ga); o[3] += hsum(gb); o[4] += hsum(gc);
+    o[5] += hsum(go);
+    o[6] += hsum(gr); o[7] += hsum(gg); o[8] += hsum(gbl);
+  }
+}
+
+constexpr auto kBackwardTile = backward_tile_avx512;
+#else
+constexpr auto kBackwardTile = backward_tile;
+#endif  // __AVX512F__
+
+}  // namespace
+}  // namespace stgs::splat
+
+using namespace stgs::splat;
+
+extern "C" {
+
+// Gradients of the composited image with respect to the forward's inputs.
+// The forward's inputs are read from the copies the context keeps (ctx.splats).
+void stgs_raster_backward(void* handle, int64_t n, const float* bg, const float* grad_out,
+                          float* grad_xy, float* grad_conic, float* grad_opac, float* grad_color,
+                          float* grad_bg, int nthreads) {
+  const auto* ctx = static_cast<const RasterCtx*>(handle);
+  if (!ctx->for_backward) return;  // the forward kept nothing to differentiate (bindings never ask)
+  const int tiles = ctx->tiles_x * ctx->tiles_y;
+  std::vector<float> partial(size_t(nthreads) * n * kGradStride, 0.0f);
+  std::vector<double> partial_bg(size_t(nthreads) * 3, 0.0);
+#pragma omp parallel num_threads(nthreads)
+  {
+    const int tid = omp_get_thread_num();
+    float* mine = partial.data() + size_t(tid) * n * kGradStride;
+    // static: which thread sums which tile must not vary between runs, or seeded training is not reproducible
+#pragma omp for schedule(static, 1)
+    for (int t = 0; t < tiles; ++t)
+      kBackwardTile(*ctx, t, bg, grad_out, mine, &partial_bg[3 * tid]);
+  }
+#pragma omp parallel for num_threads(nthreads) schedule(static)
+  for (int64_t i = 0; i < n; ++i) {
+    float sum[kGradStride] = {0};
+    for (int t = 0; t < nthreads; ++t)
+      for (int j = 0; j < kGradStride; ++j) sum[j] += partial[(size_t(t) * n + i) * kGradStride + j];
+    grad_xy[2 * i] = sum[0]; grad_xy[2 * i + 1] = sum[1];
+    grad_conic[3 * i] = sum[2]; grad_conic[3 * i + 1] = sum[3]; grad_conic[3 * i + 2] = sum[4];
+    grad_opac[i] = sum[5];
+    grad_color[3 * i] = sum[6]; grad_color[3 * i + 1] = sum[7]; grad_color[3 * i + 2] = sum[8];
+  }
+  for (int ch = 0; ch < 3; ++ch) {
+    double s = 0;
+    for (int t = 0; t < nthreads; ++t) s += partial_bg[3 * t + ch];
+    grad_bg[ch] = float(s);
+  }
+}
+
+}  // extern "C"

@@ -1,0 +1,352 @@
+// Stage 2, binning: each projected Gaussian's pixel rect, the on-screen ones sorted by
+// depth (stable radix sort on the float32 keys, index tie-break), and each 16x16 tile's list
+// of the Gaussians whose ellipse can reach alpha >= 1/255 at one of its pixel centres, front
+// to back. Its torch twin is stgs.render.stages.bin_tiles (the same lists, id for id).
+
+#include <omp.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <mutex>
+#include <vector>
+
+#if defined(__AVX512F__)
+// GCC 12's AVX-512 headers trip -Wmaybe-uninitialized on their own internals.
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+#include <immintrin.h>
+#endif
+
+#include "splat.h"
+#include "stgs_abi.h"
+
+namespace stgs::splat {
+namespace {
+
+// One freed context is kept for the next forward pass. A frame at 640x360 with
+// 65k Gaussians needs ~15 MB of buffers; fresh ones are mapped and page-faulted
+// in on every call (measured: 3-4 ms of a 40 ms frame), reused ones are not.
+constexpr size_t kSpareMaxBytes = size_t(256) << 20;
+std::mutex spare_mutex;
+RasterCtx* spare_ctx = nullptr;
+
+}  // namespace
+
+RasterCtx* acquire_ctx() {
+  std::lock_guard<std::mutex> lock(spare_mutex);
+  RasterCtx* ctx = spare_ctx;
+  spare_ctx = nullptr;
+  return ctx != nullptr ? ctx : new RasterCtx();
+}
+
+void release_ctx(RasterCtx* ctx) {
+  if (ctx->bytes() <= kSpareMaxBytes) {
+    std::lock_guard<std::mutex> lock(spare_mutex);
+    if (spare_ctx == nullptr) {
+      spare_ctx = ctx;
+      return;
+    }
+  }
+  delete ctx;
+}
+
+namespace {
+
+// Stable LSD radix sort of ids by non-negative float keys (bit patterns are monotone), 8-bit
+// digits. Each thread histograms and scatters a contiguous run of the input; the offsets put
+// thread t's entries of a bucket after those of the threads before it, so the sort stays stable.
+void radix_sort_by_depth(std::vector<int32_t>& ids, const float* depth, Scratch& scratch, int nthreads) {
+  const int64_t n = int64_t(ids.size());
+  nthreads = int(std::max<int64_t>(1, std::min<int64_t>(nthreads, n / 16384 + 1)));
+  scratch.ids_tmp.resize(n);
+  scratch.keys.resize(n);
+  scratch.keys_tmp.resize(n);
+  scratch.counts.assign(size_t(nthreads) * 256, 0);
+  int32_t* id_src = ids.data();
+  int32_t* id_dst = scratch.ids_tmp.data();
+  uint32_t* key_src = scratch.keys.data();
+  uint32_t* key_dst = scratch.keys_tmp.data();
+  int64_t* const counts = scratch.counts.data();
+#pragma omp parallel num_threads(nthreads) firstprivate(id_src, id_dst, key_src, key_dst)
+  {
+    const int t = omp_get_thread_num();
+    const int64_t lo = n * t / nthreads, hi = n * (t + 1) / nthreads;
+    for (int64_t i = lo; i < hi; ++i) std::memcpy(&key_src[i], &depth[id_src[i]], 4);
+    for (int shift = 0; shift < 32; shift += 8) {
+      int64_t* mine = counts + 256 * t;
+      std::fill(mine, mine + 256, 0);
+      for (int64_t i = lo; i < hi; ++i) ++mine[(key_src[i] >> shift) & 255u];
+#pragma omp barrier
+#pragma omp single
+      {
+        int64_t total = 0;
+        for (int bucket = 0; bucket < 256; ++bucket)
+          for (int u = 0; u < nthreads; ++u) {
+            const int64_t c = counts[256 * u + bucket];
+            counts[256 * u + bucket] = total;
+            total += c;
+          }
+      }  // implicit barrier
+      for (int64_t i = lo; i < hi; ++i) {
+        const int64_t dst = mine[(key_src[i] >> shift) & 255u]++;
+        id_dst[dst] = id_src[i];
+        key_dst[dst] = key_src[i];
+      }
+#pragma omp barrier
+      std::swap(id_src, id_dst);  // firstprivate: each thread swaps its own copies
+      std::swap(key_src, key_dst);
+    }
+  }
+  // Four passes: the sorted ids are back in ids.
+}
+
+// Inclusive pixel range whose centres lie within [m - h, m + h], clipped to [0, size).
+void pixel_range(float m, float h, int size, int32_t& lo, int32_t& hi) {
+  const double first = std::ceil(double(m) - double(h) - 0.5);
+  const double last = std::floor(double(m) + double(h) - 0.5);
+  lo = int32_t(std::max(0.0, std::min(first, double(size))));
+  hi = int32_t(std::max(-1.0, std::min(last, double(size - 1))));
+}
+
+// Which tiles of its rect a Gaussian reaches. The rect (the ellipse's bounding
+// box) overestimates rotated and anisotropic ellipses, and every extra tile
+// costs the compositor a pass over its rows, so each row of tiles gets the
+// columns holding a pixel centre where the power can reach s.min_power (where
+// alpha can reach 1/255), i.e. the ellipse q(d) <= level = -2 min_power.
+// Margins keep this a superset of what the compositor's float arithmetic
+// touches; degenerate conics keep the whole rect.
+struct EllipseReach {
+  double a, inv_a, b, det, level, y_reach, dy_left;
+  bool exact;  // false: use the rect's columns
+};
+
+EllipseReach ellipse_reach(const Splat& s) {
+  EllipseReach e{s.a, 1.0 / double(s.a), s.b, 0.0, 0.0, 0.0, 0.0, false};
+  const double c = s.c;
+  e.det = e.a * c - e.b * e.b;
+  e.level = -2.0 * double(s.min_power) * (1.0 + 1e-3) + 1e-3;
+  const bool narrow = s.rect.u0 / kTile == s.rect.u1 / kTile;  // one column: nothing to cull
+  if (narrow || !(e.det > 0.0 && e.a > 0.0 && c > 0.0 && e.level > 0.0)) return e;
+  e.y_reach = std::sqrt(e.level * e.a / e.det);
+  // Over a band of rows the ellipse's left edge is convex in dy with its minimum at the
+  // leftmost point, dy = b x_reach / c; the right edge mirrors it.
+  e.dy_left = e.b * std::sqrt(e.level * c / e.det) / c;
+  e.exact = true;
+  return e;
+}
+
+// Tile columns of tile row ty, packed as tx0 | tx1 << 16 (tx0 > tx1: none).
+uint32_t tile_columns(const Splat& s, const EllipseReach& e, int ty) {
+  const Rect& r = s.rect;
+  const auto pack = [](int tx0, int tx1) { return uint32_t(tx0) | (uint32_t(tx1) << 16); };
+  if (!e.exact) return pack(r.u0 / kTile, r.u1 / kTile);
+  const double y0 = std::max(double(std::max(ty * kTile, r.v0)) + 0.5 - double(s.my), -e.y_reach);
+  const double y1 = std::min(double(std::min(ty * kTile + kTile - 1, r.v1)) + 0.5 - double(s.my), e.y_reach);
+  if (y0 > y1) return pack(1, 0);
+  const auto edge = [&](double dy, double side) {
+    return (-e.b * dy + side * std::sqrt(std::max(0.0, e.a * e.level - e.det * dy * dy))) * e.inv_a;
+  };
+  const double first = std::ceil(double(s.mx) + edge(std::clamp(e.dy_left, y0, y1), -1.0) - 0.5 - 1e-2);
+  const double last = std::floor(double(s.mx) + edge(std::clamp(-e.dy_left, y0, y1), 1.0) - 0.5 + 1e-2);
+  const int u0 = int(std::max(double(r.u0), first)), u1 = int(std::min(double(r.u1), last));
+  return u0 > u1 ? pack(1, 0) : pack(u0 / kTile, u1 / kTile);
+}
+
+#if defined(__AVX512F__)
+// tile_columns of up to 8 tile rows (ty .. ty + rows - 1) at once, one double lane per row:
+// the same operations in the same order, so the same spans bit for bit, without the scalar
+// version's per-row branches and square-root latency chains.
+void tile_columns_x8(const Splat& s, const EllipseReach& e, int ty, int rows, uint32_t* out) {
+  const Rect& r = s.rect;
+  const __mmask8 lanes = __mmask8((1u << rows) - 1u);
+  const __m256i tyv = _mm256_add_epi32(_mm256_set1_epi32(ty), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7));
+  const __m256i top = _mm256_slli_epi32(tyv, 4);  // ty * kTile
+  const __m256i bottom = _mm256_add_epi32(top, _mm256_set1_epi32(kTile - 1));
+  const __m512d row_lo = _mm512_cvtepi32_pd(_mm256_max_epi32(top, _mm256_set1_epi32(r.v0)));
+  const __m512d row_hi = _mm512_cvtepi32_pd(_mm256_min_epi32(bottom, _mm256_set1_epi32(r.v1)));
+  const __m512d half = _mm512_set1_pd(0.5), my = _mm512_set1_pd(double(s.my));
+  const __m512d reach = _mm512_set1_pd(e.y_reach);
+  const __m512d y0 = _mm512_max_pd(_mm512_sub_pd(_mm512_add_pd(row_lo, half), my), _mm512_set1_pd(-e.y_reach));
+  const __m512d y1 = _mm512_min_pd(_mm512_sub_pd(_mm512_add_pd(row_hi, half), my), reach);
+  const __m512d neg_b = _mm512_set1_pd(-e.b), det = _mm512_set1_pd(e.det), inv_a = _mm512_set1_pd(e.inv_a);
+  const __m512d a_level = _mm512_set1_pd(e.a * e.level), mx = _mm512_set1_pd(double(s.mx));
+  const auto root = [&](__m512d dy) {
+    const __m512d det_dy2 = _mm512_mul_pd(_mm512_mul_pd(det, dy), dy);
+    return _mm512_sqrt_pd(_mm512_max_pd(_mm512_sub_pd(a_level, det_dy2), _mm512_setzero_pd()));
+  };
+  const __m512d dl = _mm512_min_pd(_mm512_max_pd(_mm512_set1_pd(e.dy_left), y0), y1);
+  const __m512d dr = _mm512_min_pd(_mm512_max_pd(_mm512_set1_pd(-e.dy_left), y0), y1);
+  const __m512d left = _mm512_mul_pd(_mm512_sub_pd(_mm512_mul_pd(neg_b, dl), root(dl)), inv_a);
+  const __m512d right = _mm512_mul_pd(_mm512_add_pd(_mm512_mul_pd(neg_b, dr), root(dr)), inv_a);
+  const __m512d first = _mm512_roundscale_pd(
+      _mm512_sub_pd(_mm512_sub_pd(_mm512_add_pd(mx, left), half), _mm512_set1_pd(1e-2)), _MM_FROUND_TO_POS_INF);
+  const __m512d last = _mm512_roundscale_pd(
+      _mm512_add_pd(_mm512_sub_pd(_mm512_add_pd(mx, right), half), _mm512_set1_pd(1e-2)), _MM_FROUND_TO_NEG_INF);
+  const __m256i u0 = _mm512_cvttpd_epi32(_mm512_max_pd(_mm512_set1_pd(double(r.u0)), first));
+  const __m256i u1 = _mm512_cvttpd_epi32(_mm512_min_pd(_mm512_set1_pd(double(r.u1)), last));
+  const __mmask8 none = _mm512_cmp_pd_mask(y0, y1, _CMP_GT_OQ) | _mm256_cmpgt_epi32_mask(u0, u1);
+  const __m256i packed = _mm256_or_si256(_mm256_srai_epi32(u0, 4), _mm256_slli_epi32(_mm256_srai_epi32(u1, 4), 16));
+  _mm256_mask_storeu_epi32(out, lanes, _mm256_mask_blend_epi32(none, packed, _mm256_set1_epi32(1)));
+}
+#endif
+
+// Appends a Gaussian's tile rows (ty0 | ty1 << 16) and each row's columns to spans.
+void append_spans(const Splat& s, std::vector<uint32_t>& spans) {
+  const EllipseReach e = ellipse_reach(s);
+  const int ty0 = s.rect.v0 / kTile, ty1 = s.rect.v1 / kTile;
+  const size_t at = spans.size();
+  spans.resize(at + 1 + size_t(std::max(0, ty1 - ty0 + 1)));
+  uint32_t* out = &spans[at];
+  *out++ = uint32_t(ty0) | (uint32_t(ty1) << 16);
+#if defined(__AVX512F__)
+  if (e.exact) {
+    for (int ty = ty0; ty <= ty1; ty += 8) tile_columns_x8(s, e, ty, std::min(8, ty1 - ty + 1), out + (ty - ty0));
+    return;
+  }
+#endif
+  for (int ty = ty0; ty <= ty1; ++ty) *out++ = tile_columns(s, e, ty);
+}
+
+// Fills ctx.tile_start / ctx.ids from Gaussians in depth order. Each thread bins
+// a contiguous run of the depth order, and its entries go after those of the
+// threads before it, so every tile's list stays front to back. The counting
+// pass records each Gaussian's tile rows and each row's columns, so the
+// filling pass reads them in order instead of the scattered Splat records.
+void bin_by_tile(RasterCtx& ctx, const std::vector<int32_t>& ordered, int nthreads) {
+  const int tiles = ctx.tiles_x * ctx.tiles_y;
+  const int64_t n = int64_t(ordered.size());
+  nthreads = int(std::max<int64_t>(1, std::min<int64_t>(nthreads, n / 4096 + 1)));
+  // Per thread, each tile row's counts as differences (+1 at a span's first column, -1 past its
+  // last): two stores per row instead of a loop over its columns, whose varying trip counts
+  // mispredicted.
+  const int stride = ctx.tiles_x + 1;
+  std::vector<int64_t>& diffs = ctx.scratch.counts;
+  diffs.assign(size_t(nthreads) * ctx.tiles_y * stride, 0);
+  std::vector<std::vector<uint32_t>>& columns = ctx.scratch.columns;
+  columns.resize(nthreads);
+#pragma omp parallel num_threads(nthreads)
+  {
+    const int t = omp_get_thread_num();
+    int64_t* mine = &diffs[size_t(t) * ctx.tiles_y * stride];
+    // A local vector: the vector objects of columns share a cache line, which updating them from
+    // both threads on every Gaussian bounced between the cores.
+    std::vector<uint32_t> spans = std::move(columns[t]);
+    spans.clear();
+    spans.reserve(size_t(2 * (n / nthreads + 1)));
+    const int64_t end = n * (t + 1) / nthreads;
+    for (int64_t i = n * t / nthreads; i < end; ++i) {
+      if (i + 8 < end) __builtin_prefetch(&ctx.splats[ordered[i + 8]]);
+      const size_t at = spans.size();
+      append_spans(ctx.splats[ordered[i]], spans);
+      const uint32_t rows = spans[at];
+      const uint32_t* cols = &spans[at + 1];
+      for (int ty = int(rows & 0xffffu); ty <= int(rows >> 16); ++ty, ++cols) {
+        ++mine[ty * stride + int(*cols & 0xffffu)];  // an empty row (1, 0) adds and removes at 1
+        --mine[ty * stride + int(*cols >> 16) + 1];
+      }
+    }
+    columns[t] = std::move(spans);
+  }
+  ctx.tile_start.assign(tiles + 1, 0);
+  std::vector<int64_t>& offsets = ctx.scratch.offsets;
+  offsets.resize(size_t(nthreads) * tiles);
+  std::vector<int64_t> running(nthreads);
+  int64_t total = 0;
+  for (int tile = 0; tile < tiles; ++tile) {
+    ctx.tile_start[tile] = total;
+    const int ty = tile / ctx.tiles_x, tx = tile % ctx.tiles_x;
+    for (int t = 0; t < nthreads; ++t) {
+      running[t] = (tx == 0 ? 0 : running[t]) + diffs[(size_t(t) * ctx.tiles_y + ty) * stride + tx];
+      offsets[size_t(t) * tiles + tile] = total;
+      total += running[t];
+    }
+  }
+  ctx.tile_start[tiles] = total;
+  ctx.ids.resize(total);
+#pragma omp parallel num_threads(nthreads)
+  {
+    const int t = omp_get_thread_num();
+    int64_t* next = &offsets[size_t(t) * tiles];
+    const uint32_t* span = columns[t].data();
+    // Locals, so that the stores into ids (which may alias them as far as the compiler knows) do
+    // not force a reload of the span and the list pointer on every entry.
+    int32_t* const ids = ctx.ids.data();
+    const int tiles_x = ctx.tiles_x;
+    for (int64_t i = n * t / nthreads; i < n * (t + 1) / nthreads; ++i) {
+      const int32_t g = ordered[i];
+      const uint32_t rows = *span++;
+      const int ty0 = int(rows & 0xffffu), ty1 = int(rows >> 16);
+      for (int ty = ty0; ty <= ty1; ++ty) {
+        const uint32_t cols = *span++;
+        int64_t* const row_next = next + ty * tiles_x;
+        for (int tx = int(cols & 0xffffu), tx1 = int(cols >> 16); tx <= tx1; ++tx) ids[row_next[tx]++] = g;
+      }
+    }
+  }
+}
+
+}  // namespace
+
+void bin_gaussians(RasterCtx& ctx, int64_t n, const float* xy, const float* conic, const float* opac,
+                   const float* color, const float* depth, const float* extent, int width, int height,
+                   int nthreads) {
+  ctx.width = width;
+  ctx.height = height;
+  ctx.tiles_x = (width + kTile - 1) / kTile;
+  ctx.tiles_y = (height + kTile - 1) / kTile;
+  ctx.splats.resize(n);
+#pragma omp parallel for num_threads(nthreads) schedule(static)
+  for (int64_t i = 0; i < n; ++i) {
+    Splat& s = ctx.splats[i];
+    const bool coloured = color != nullptr;
+    s = {xy[2 * i], xy[2 * i + 1], conic[3 * i], conic[3 * i + 1], conic[3 * i + 2], opac[i],
+         coloured ? color[3 * i] : 0.0f, coloured ? color[3 * i + 1] : 0.0f, coloured ? color[3 * i + 2] : 0.0f,
+         0.0f, {0, -1, 0, -1}, 0.0f};
+    if (!(extent[2 * i] >= 0.0f)) continue;
+    s.min_power = -std::log(255.0f * opac[i]) - 1e-3f;
+    s.log2_o = std::log2(opac[i]);
+    pixel_range(xy[2 * i], extent[2 * i], width, s.rect.u0, s.rect.u1);
+    pixel_range(xy[2 * i + 1], extent[2 * i + 1], height, s.rect.v0, s.rect.v1);
+  }
+  std::vector<int32_t>& visible = ctx.scratch.visible;
+  visible.clear();
+  visible.reserve(n);
+  for (int64_t i = 0; i < n; ++i) {
+    const Rect& r = ctx.splats[i].rect;
+    if (r.u0 <= r.u1 && r.v0 <= r.v1) visible.push_back(int32_t(i));
+  }
+  radix_sort_by_depth(visible, depth, ctx.scratch, nthreads);
+  bin_by_tile(ctx, visible, nthreads);
+}
+
+}  // namespace stgs::splat
+
+using namespace stgs::splat;
+
+extern "C" {
+
+// Binning alone (no compositing): a context whose tile lists stgs_raster_tiles copies out.
+void* stgs_raster_bin(int64_t n, const float* xy, const float* conic, const float* opac, const float* depth,
+                      const float* extent, int width, int height, int nthreads) {
+  RasterCtx* ctx = acquire_ctx();
+  bin_gaussians(*ctx, n, xy, conic, opac, nullptr, depth, extent, width, height, nthreads);
+  ctx->for_backward = false;
+  return ctx;
+}
+
+// Copies a context's tile offsets (tiles + 1) and tile lists (stgs_raster_pairs entries).
+void stgs_raster_tiles(void* handle, int64_t* tile_start, int32_t* ids) {
+  const auto* ctx = static_cast<const RasterCtx*>(handle);
+  std::memcpy(tile_start, ctx->tile_start.data(), ctx->tile_start.size() * sizeof(int64_t));
+  std::memcpy(ids, ctx->ids.data(), ctx->ids.size() * sizeof(int32_t));
+}
+
+// Number of (tile, Gaussian) pairs the last forward binned: a cost statistic.
+int64_t stgs_raster_pairs(void* handle) {
+  return int64_t(static_cast<RasterCtx*>(handle)->ids.size());
+}
+
+void stgs_raster_free(void* handle) { release_ctx(static_cast<RasterCtx*>(handle)); }
+
+}  // extern "C"

@@ -1,0 +1,92 @@
+// The C ABI of the native library: every function Python calls, and nothing else.
+//
+// Each kernel source includes this header, so a definition whose signature drifts from
+// its declaration here does not compile ("conflicting declaration of C function"); the
+// Python bindings (stgs/native/abi.py) hand the text between the ABI markers to cffi,
+// which checks every call's argument count and pointer types against it. Pointers are
+// C-contiguous arrays; shapes are in the comments; nthreads is the OpenMP team size.
+#pragma once
+
+#include <stdint.h>
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+// Built with -fvisibility=hidden: these declarations are the library's only exports.
+#pragma GCC visibility push(default)
+
+// STGS_ABI_BEGIN
+
+// --- splatter (project.cpp, binning.cpp, forward.cpp, backward.cpp) ---
+
+// Projection of n Gaussians in double precision: means (n,3), quats (n,4) wxyz,
+// scales (n,3), opac (n); viewmat 4x4 and K 3x3 row-major. Writes means2d (n,2),
+// conics (n,3), depths (n) (-1: culled), extents (n,2) (-1: culled).
+void stgs_project(int64_t n, const float* means, const float* quats, const float* scales,
+                  const float* opac, const double* viewmat, const double* K, float* means2d,
+                  float* conics, float* depths, float* extents, int nthreads);
+
+// Binning alone: returns a context (free it with stgs_raster_free) whose tile lists
+// stgs_raster_tiles copies out.
+void* stgs_raster_bin(int64_t n, const float* xy, const float* conic, const float* opac,
+                      const float* depth, const float* extent, int width, int height, int nthreads);
+
+// A context's tile offsets, tile_start (tiles + 1), and tile lists, ids (stgs_raster_pairs).
+void stgs_raster_tiles(void* handle, int64_t* tile_start, int32_t* ids);
+
+// Bins and composites into out (height, width, 3); returns the context. With
+// for_backward the context keeps what stgs_raster_backward and stgs_raster_pixels read.
+void* stgs_raster_forward(int64_t n, const float* xy, const float* conic, const float* opac,
+                          const float* color, const float* depth, const float* extent,
+                          const float* bg, int width, int height, float* out, int for_backward,
+                          int nthreads);
+
+// Per pixel (height * width): final transmittance and the 1-based rank, in its tile's
+// list, of the last Gaussian composited (0: none). Only after a for_backward forward.
+void stgs_raster_pixels(void* handle, float* trans_final, int32_t* n_contrib);
+
+// Gradients of the image with respect to the forward's xy (n,2), conic (n,3), opac (n),
+// color (n,3) and bg (3), given grad_out (height, width, 3).
+void stgs_raster_backward(void* handle, int64_t n, const float* bg, const float* grad_out,
+                          float* grad_xy, float* grad_conic, float* grad_opac, float* grad_color,
+                          float* grad_bg, int nthreads);
+
+// (tile, Gaussian) pairs the context binned: a cost statistic.
+int64_t stgs_raster_pairs(void* handle);
+
+void stgs_raster_free(void* handle);
+
+// --- deformation (deform.cpp, deform_amx.cpp) ---
+
+// The deformation field of one frame in float32 for n Gaussians (DESIGN.md; weights packed
+// by stgs/model/native_deform.py). With viewmat, Gaussians that cannot reach the image (or,
+// with guard, lie outside the guard band) get opacity 0.
+void stgs_deform(int64_t n, int window, int frame, const float* feats, const float* xyz,
+                 const float* log_scale, const float* rotation, const float* opacity_logit,
+                 const float* color, const float* temporal_t, const float* pe_bias,
+                 const float* geo1_t, const float* geo2_t, const float* app1_t,
+                 const float* app2_t, const float* camera_center, const double* viewmat,
+                 const double* K, int width, int height, float* out_means, float* out_quats,
+                 float* out_scales, float* out_opac, float* out_colors, const double* guard,
+                 int nthreads);
+
+// 1 when stgs_deform_bf16 can run in this process (AMX built and permitted).
+int stgs_deform_bf16_available(void);
+
+// stgs_deform in bf16 with AMX tile weights; 0, or -1 when AMX is unavailable.
+int stgs_deform_bf16(int64_t n, int window, int frame, const float* feats, const float* xyz,
+                     const float* log_scale, const float* rotation, const float* opacity_logit,
+                     const float* color, const void* temporal_w, int t_chunks, const float* pe_bias,
+                     const void* geo1_w, const void* geo2_w, const void* app1_w, const void* app2_w,
+                     const float* camera_center, const double* viewmat, const double* K, int width,
+                     int height, float* out_means, float* out_quats, float* out_scales, float* out_opac,
+                     float* out_colors, const double* guard, int nthreads);
+
+// STGS_ABI_END
+
+#pragma GCC visibility pop
+
+#ifdef __cplusplus
+}  // extern "C"
+#endif
