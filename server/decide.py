@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from aiohttp import web
 from aiohttp.helpers import ETAG_ANY, ETag
 
-from stgs.server.files import file_validators
+from stgs.server.files import etag_of, file_validators
 
 CONDITIONAL_HEADERS = ("Range", "If-Range", "If-None-Match", "If-Modified-Since", "If-Match",
                        "If-Unmodified-Since")
@@ -28,10 +28,6 @@ class Answer:
     offset: int = 0
     count: int = 0
     """Body bytes (0 for 304, 412 and 416; HEAD sends none whatever this says)."""
-
-
-def etag_of(size: int, mtime_ns: int) -> str:
-    return f"{mtime_ns:x}-{size:x}"
 
 
 def matches(etag: str, tags: tuple[ETag, ...], weak: bool) -> bool:

@@ -59,12 +59,17 @@ def resolve_symlinked(root: Path, candidate: Path) -> str | None:
     return str(real)
 
 
+def etag_of(size: int, mtime_ns: int) -> str:
+    """A file version's entity tag, unquoted (aiohttp's FileResponse's form)."""
+    return f"{mtime_ns:x}-{size:x}"
+
+
 @functools.lru_cache(maxsize=4096)
 def file_validators(size: int, mtime_ns: int, mtime: float) -> dict[str, str]:
     """Content-Length, ETag, Last-Modified and Accept-Ranges of a whole file, as aiohttp's FileResponse writes
     them (its property setters validate and format on every call; a segment's values repeat on every request)."""
     modified = time.strftime("%a, %d %b %Y %H:%M:%S GMT", time.gmtime(math.ceil(mtime)))
-    return {"Content-Length": str(size), "ETag": f'"{mtime_ns:x}-{size:x}"', "Last-Modified": modified,
+    return {"Content-Length": str(size), "ETag": f'"{etag_of(size, mtime_ns)}"', "Last-Modified": modified,
             "Accept-Ranges": "bytes"}
 
 

@@ -16,21 +16,32 @@ REFERENCE_TILE = 32
 """Tile edge of the reference (bigger tiles: fewer Python iterations, more dense work)."""
 
 
-def composite_tile(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor,
-                   colors: torch.Tensor, pix: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
-    """Composite depth-sorted Gaussians (K, ...) over pixel centres pix (P, 2) -> (P, 3)."""
+def tile_weights(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor, pix: torch.Tensor,
+                 inside: torch.Tensor | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """DESIGN.md's front-to-back loop for depth-sorted Gaussians (K, ...) over pixel centres pix (P, 2):
+    (alpha, weight of each contribution, added, final transmittance), the first three (K, P), the last (P,).
+    `inside` (K, P), where given, zeroes alpha outside it (the native kernel's pixel rects)."""
     d = pix[None, :, :] - means2d[:, None, :]
     dx, dy = d[..., 0], d[..., 1]
     a, b, c = (conics[:, i, None] for i in range(3))
     # The quadratic form is non-negative; the clamp only guards float rounding.
     power = (-0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy)).clamp(max=0.0)
     alpha = (opacities[:, None] * torch.exp(power)).clamp(max=ALPHA_MAX)
-    alpha = torch.where(alpha >= ALPHA_MIN, alpha, torch.zeros_like(alpha))
+    keep = alpha >= ALPHA_MIN if inside is None else (alpha >= ALPHA_MIN) & inside
+    alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
     trans_after = torch.cumprod(1.0 - alpha, dim=0)
     added = trans_after >= T_MIN  # a prefix along K: transmittance never rises
     trans_before = torch.cat([torch.ones_like(trans_after[:1]), trans_after[:-1]], dim=0)
     weights = alpha * trans_before * added
     trans_final = torch.where(added, 1.0 - alpha, torch.ones_like(alpha)).prod(dim=0)
+    return alpha, weights, added, trans_final
+
+
+def composite_tile(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor,
+                   colors: torch.Tensor, pix: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
+    """Composite depth-sorted Gaussians (K, ...) over pixel centres pix (P, 2) -> (P, 3)."""
+    _, weights, _, trans_final = tile_weights(means2d, conics, opacities, pix)
     return weights.T @ colors + trans_final[:, None] * background[None, :]
 
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import torch
 
-from stgs.render.project import ALPHA_MAX, ALPHA_MIN, T_MIN
+from stgs.render.reference import tile_weights
 
 TILE = 16
 """The native kernel's tile edge in pixels."""
@@ -154,19 +154,11 @@ def composite_tiles(means2d: torch.Tensor, conics: torch.Tensor, opacities: torc
         r = rect[ids]
         inside = ((px[None] >= r[:, 0, None]) & (px[None] <= r[:, 1, None])
                   & (py[None] >= r[:, 2, None]) & (py[None] <= r[:, 3, None]))
-        dx = px.to(dtype)[None] + 0.5 - means2d[ids, 0, None].to(dtype)
-        dy = py.to(dtype)[None] + 0.5 - means2d[ids, 1, None].to(dtype)
-        a, b, c = (conics[ids, i, None].to(dtype) for i in range(3))
-        power = (-0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy)).clamp(max=0.0)
-        alpha = (opacities[ids, None].to(dtype) * torch.exp(power)).clamp(max=ALPHA_MAX)
-        alpha = torch.where(inside & (alpha >= ALPHA_MIN), alpha, torch.zeros_like(alpha))
-        trans_after = torch.cumprod(1.0 - alpha, dim=0)
-        added = (trans_after >= T_MIN) & (alpha > 0)
-        trans_before = torch.cat([torch.ones_like(trans_after[:1]), trans_after[:-1]], dim=0)
-        weights = alpha * trans_before * added
-        left = torch.where(added, 1.0 - alpha, torch.ones_like(alpha)).prod(dim=0)
+        pix = torch.stack([px, py], -1).to(dtype) + 0.5
+        alpha, weights, added, left = tile_weights(means2d[ids].to(dtype), conics[ids].to(dtype),
+                                                   opacities[ids].to(dtype), pix, inside)
         rank = torch.arange(1, len(ids) + 1, dtype=torch.int32)[:, None]
-        last = (rank * added).amax(dim=0) if len(ids) else torch.zeros(len(px), dtype=torch.int32)
+        last = (rank * (added & (alpha > 0))).amax(dim=0) if len(ids) else torch.zeros(len(px), dtype=torch.int32)
         colour = weights.T @ colors[ids].to(dtype) + left[:, None] * background[None, :].to(dtype)
         image[y0:y1, x0:x1] = colour.reshape(y1 - y0, x1 - x0, 3)
         trans_final[y0:y1, x0:x1] = left.reshape(y1 - y0, x1 - x0)
