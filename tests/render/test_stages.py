@@ -131,10 +131,10 @@ def test_backward_stage_matches_autograd_through_its_twin(scene):
 
 
 def test_the_library_exports_exactly_the_abi_header():
-    from stgs.native.abi import declarations, ffi
-    from stgs.native.build import library_path
+    from stgs.native.abi import declarations
+    from stgs.native.build import library_path, load
 
-    declared = {name for name in dir(ffi().dlopen(str(library_path()))) if name.startswith("stgs_")}
+    declared = {name for name in dir(load()) if name.startswith("stgs_")}
     assert declared == {line.split("(")[0].split()[-1].lstrip("*") for line in declarations().splitlines()
                         if "stgs_" in line and "(" in line and not line.lstrip().startswith("//")}
     if shutil.which("nm"):
