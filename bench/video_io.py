@@ -1,33 +1,37 @@
 #!/usr/bin/env python3
-"""Feature-video decoding by the ffmpeg binary through a pipe (stgs.codec.video.iter_frames, what the project
-uses) against PyAV in-process: the measurement behind choosing one route for encode and decode.
+"""Feature-video encode and decode: the project's route (PyAV in-process, stgs.codec.video) against the ffmpeg
+binary through a pipe (Debian's ffmpeg, the route the project used before): the measurement behind the choice.
 
-Per grid side, one GOP of E = 62 smooth 12-bit gray frames (the shape a PLAS-sorted feature video has) is
-encoded once with the packager's settings (stgs.codec.video.encode_gop, QP 20, preset ultrafast to keep this
-quick: the decoder's work barely depends on the preset); then each route decodes it `--rounds` times, order
-alternating: time to the first frame (what a frame-by-frame player waits for at a GOP boundary) and to the
-last. Both decoders run with their default threading and produce the same uint16 frames (checked).
+Per grid side, one GOP of E = 62 smooth 12-bit gray frames (the shape a PLAS-sorted feature video has):
+- encode: the packager's settings (constant QP, closed GOP, one x265 thread) by each route, `--rounds` times,
+  order alternating; segment size and PSNR of the decoded frames against the input (the two routes link
+  different libx265 builds);
+- decode: the project's encode decoded by each route, `--rounds` times, order alternating: time to the first
+  frame (what a frame-by-frame player waits for at a GOP boundary) and to the last; both give the same uint16
+  frames (checked). Decoders run with their default threading.
 
-PyAV is not a dependency of the project; install it in the venv to run this (`.venv/bin/pip install av`).
+Needs Debian's ffmpeg binary on PATH (bin/test installs it).
 
-Usage: .venv/bin/python -m bench.video_io [--sides 256 512 1024] [--rounds 3]
+Usage: .venv/bin/python -m bench.video_io [--sides 256 512 1024] [--rounds 3] [--qp 20] [--preset medium]
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import os
+import shutil
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
 
 import numpy as np
 
-from stgs.codec.video import VideoTiming, encode_gop, iter_frames
+from stgs.codec.video import PIXEL_FORMAT, VideoTiming, encode_gop, iter_frames, x265_params
 
 FRAMES = 62
+TIMING = VideoTiming.for_gop(FRAMES, 60, 30.0)
 
 
 def smooth_frames(side: int, seed: int = 0) -> np.ndarray:
@@ -42,67 +46,104 @@ def smooth_frames(side: int, seed: int = 0) -> np.ndarray:
     return np.clip(big * 4095 + rng.normal(0, 20, big.shape), 0, 4095).astype(np.uint16)
 
 
-def decode_pipe(path: str, side: int) -> tuple[float, float, np.ndarray]:
+def encode_pipe(frames: np.ndarray, qp: int, preset: str, tmp: str) -> bytes:
+    """The packager's encode by the ffmpeg binary: raw frames on stdin, a fragmented MP4 out."""
+    e, h, w = frames.shape
+    path = os.path.join(tmp, "pipe.mp4")
+    rate = f"{TIMING.rate.numerator}/{TIMING.rate.denominator}"
+    subprocess.run(["ffmpeg", "-v", "error", "-nostdin", "-threads", "1", "-f", "rawvideo", "-pix_fmt", PIXEL_FORMAT,
+                    "-s", f"{w}x{h}", "-framerate", rate, "-i", "pipe:", "-c:v", "libx265", "-pix_fmt", PIXEL_FORMAT,
+                    "-preset", preset, "-x265-params", x265_params(qp, e), "-tag:v", "hvc1",
+                    "-movflags", "+frag_keyframe+empty_moov+default_base_moof", "-fflags", "+bitexact",
+                    "-video_track_timescale", str(TIMING.timescale), "-y", path],
+                   input=frames.astype("<u2").tobytes(), check=True)
+    with open(path, "rb") as f:
+        return f.read()
+
+
+def decode_pipe(data: bytes, side: int, tmp: str) -> tuple[float, float, np.ndarray]:
+    path = os.path.join(tmp, "decode.mp4")
+    with open(path, "wb") as f:
+        f.write(data)
+    frame_bytes = side * side * 2
     start = time.perf_counter()
     first = 0.0
     out = []
-    for frame in iter_frames(path, FRAMES, side, side):
+    proc = subprocess.Popen(["ffmpeg", "-v", "error", "-nostdin", "-i", path, "-f", "rawvideo", "-pix_fmt",
+                             PIXEL_FORMAT, "-fps_mode", "passthrough", "pipe:"], stdout=subprocess.PIPE)
+    while len(chunk := proc.stdout.read(frame_bytes)) == frame_bytes:
+        if not out:
+            first = time.perf_counter() - start
+        out.append(np.frombuffer(chunk, "<u2").reshape(side, side))
+    proc.wait()
+    return first, time.perf_counter() - start, np.stack(out)
+
+
+def decode_pyav(data: bytes, side: int, tmp: str) -> tuple[float, float, np.ndarray]:
+    start = time.perf_counter()
+    first = 0.0
+    out = []
+    for frame in iter_frames(data, FRAMES, side, side):
         if not out:
             first = time.perf_counter() - start
         out.append(frame)
     return first, time.perf_counter() - start, np.stack(out)
 
 
-def decode_pyav(path: str, side: int) -> tuple[float, float, np.ndarray]:
-    import av
-
-    start = time.perf_counter()
-    first = 0.0
-    out = []
-    with av.open(path) as container:
-        stream = container.streams.video[0]
-        stream.thread_type = "AUTO"
-        for frame in container.decode(stream):
-            if not out:
-                first = time.perf_counter() - start
-            out.append(frame.to_ndarray(format="gray12le"))
-    return first, time.perf_counter() - start, np.stack(out)
-
-
-ROUTES = {"ffmpeg pipe": decode_pipe, "PyAV": decode_pyav}
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(np.mean((a.astype(np.float64) - b) ** 2))
+    return 10 * np.log10(4095.0**2 / max(mse, 1e-12))
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sides", type=int, nargs="+", default=[256, 512, 1024])
     parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--qp", type=int, default=20)
+    parser.add_argument("--preset", default="medium")
     args = parser.parse_args()
-    if importlib.util.find_spec("av") is None:
-        raise SystemExit("PyAV is not installed (.venv/bin/pip install av)")
-    rows = []
+    if shutil.which("ffmpeg") is None:
+        raise SystemExit("the ffmpeg binary is not on PATH (Debian: apt-get install ffmpeg)")
+    encodes, decodes = [], []
     with tempfile.TemporaryDirectory() as tmp:
         for side in args.sides:
             frames = smooth_frames(side)
-            data = encode_gop(frames, 20, VideoTiming.for_gop(FRAMES, 60, 30.0), preset="ultrafast")
-            path = os.path.join(tmp, f"gop{side}.mp4")
-            with open(path, "wb") as f:
-                f.write(data)
-            times: dict[str, list[tuple[float, float]]] = {name: [] for name in ROUTES}
+            enc_routes = {"PyAV (project)": lambda f: encode_gop(f, args.qp, TIMING, args.preset),
+                          "ffmpeg pipe": lambda f: encode_pipe(f, args.qp, args.preset, tmp)}
+            times: dict[str, list[float]] = {name: [] for name in enc_routes}
+            data: dict[str, bytes] = {}
+            for r in range(args.rounds):
+                for name in enc_routes if r % 2 == 0 else list(enc_routes)[::-1]:
+                    start = time.perf_counter()
+                    data[name] = enc_routes[name](frames)
+                    times[name].append(time.perf_counter() - start)
+            for name in enc_routes:
+                _, _, decoded = decode_pyav(data[name], side, tmp)
+                encodes.append((side, name, statistics.median(times[name]), len(data[name]), psnr(decoded, frames)))
+                print(f"side {side}: encode {name} {encodes[-1][2]:.2f} s, {len(data[name]) / 1024:.0f} KB, "
+                      f"{encodes[-1][4]:.2f} dB", flush=True)
+            segment = data["PyAV (project)"]
+            dec_routes = {"PyAV (project)": decode_pyav, "ffmpeg pipe": decode_pipe}
+            runs: dict[str, list[tuple[float, float]]] = {name: [] for name in dec_routes}
             decoded = {}
             for r in range(args.rounds):
-                for name in ROUTES if r % 2 == 0 else list(ROUTES)[::-1]:
-                    first, total, decoded[name] = ROUTES[name](path, side)
-                    times[name].append((first, total))
-            if not np.array_equal(decoded["ffmpeg pipe"], decoded["PyAV"]):
+                for name in dec_routes if r % 2 == 0 else list(dec_routes)[::-1]:
+                    first, total, decoded[name] = dec_routes[name](segment, side, tmp)
+                    runs[name].append((first, total))
+            if not np.array_equal(decoded["ffmpeg pipe"], decoded["PyAV (project)"]):
                 raise SystemExit(f"side {side}: the two routes decode different frames")
-            for name, runs in times.items():
-                rows.append((side, len(data), name, statistics.median(f for f, _ in runs),
-                             statistics.median(t for _, t in runs)))
-                print(f"side {side}: {name} first frame {rows[-1][3] * 1e3:.1f} ms, all {FRAMES} "
-                      f"{rows[-1][4] * 1e3:.0f} ms", flush=True)
+            for name, timing in runs.items():
+                decodes.append((side, len(segment), name, statistics.median(f for f, _ in timing),
+                                statistics.median(t for _, t in timing)))
+                print(f"side {side}: decode {name} first frame {decodes[-1][3] * 1e3:.1f} ms, all {FRAMES} "
+                      f"{decodes[-1][4] * 1e3:.0f} ms", flush=True)
+    print(f"\n| grid side | route | encode s (QP {args.qp}, {args.preset}) | segment KB | PSNR dB |")
+    print("|---|---|---|---|---|")
+    for side, name, seconds, size, db in encodes:
+        print(f"| {side} | {name} | {seconds:.2f} | {size / 1024:.0f} | {db:.2f} |")
     print(f"\n| grid side | segment KB | route | first frame ms | all {FRAMES} frames ms | ms per frame |")
     print("|---|---|---|---|---|---|")
-    for side, size, name, first, total in rows:
+    for side, size, name, first, total in decodes:
         print(f"| {side} | {size / 1024:.0f} | {name} | {first * 1e3:.1f} | {total * 1e3:.0f} | "
               f"{total * 1e3 / FRAMES:.2f} |")
     return 0

@@ -1,7 +1,9 @@
 # Idempotent setup shared by bin/stgs and bin/test (sourced, not executed):
-# ffmpeg with libx265 (Debian's package when missing and root), a virtualenv
-# with the pinned requirements, this project installed in it (editable), and
-# the native CPU kernels built. A second run costs a few hundred milliseconds.
+# a virtualenv with the pinned requirements (PyAV brings its own FFmpeg with
+# libx265 for the project's video I/O), this project installed in it
+# (editable), and the native CPU kernels built; for bin/test also Debian's
+# ffmpeg binary (when missing and root), which the tests use as an independent
+# reader of what the project writes (its DASH demuxer, raw decodes). A second run costs a few hundred milliseconds.
 
 STGS_ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 STGS_VENV=${STGS_VENV:-$STGS_ROOT/.venv}
@@ -54,7 +56,6 @@ stgs_ensure_native() {
 }
 
 stgs_bootstrap() {
-  stgs_ensure_ffmpeg
   stgs_ensure_venv
   stgs_ensure_native
 }

@@ -1,14 +1,16 @@
-"""Where rendered frames go: numbered PNGs in a folder, an MP4 (H.264 through ffmpeg), or nowhere."""
+"""Where rendered frames go: numbered PNGs in a folder, an MP4 (H.264, PyAV), or nowhere."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
+from fractions import Fraction
 from pathlib import Path
 
+import av
 import numpy as np
 
-from stgs.codec.ffmpeg import FFmpegError, Writer, require_ffmpeg
 from stgs.errors import StgsError
 from stgs.fsio import DIR_MODE, FILE_MODE, atomic_write_bytes, encode_png, to_uint8
 
@@ -43,50 +45,66 @@ class PngSink(NullSink):
 
 
 class Mp4Sink(NullSink):
-    """An H.264 MP4 at the presentation's frame rate; a dropped frame repeats the previous one, so time holds.
-
-    ffmpeg writes a temp file beside the target, renamed into place on close().
-    """
+    """An H.264 MP4 at the presentation's frame rate (libx264 in-process through PyAV); a dropped frame repeats the
+    previous one, so time holds. Written to a temp file beside the target, renamed into place on close()."""
 
     def __init__(self, path: Path, fps: float, width: int, height: int):
-        require_ffmpeg()
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         fd, self.tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".mp4", dir=self.path.parent)
         os.close(fd)
         self.size = (width, height)
-        self.last: bytes | None = None
-        self.encoder = Writer(["-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{width}x{height}",
-                               "-framerate", f"{fps:g}", "-i", "pipe:", "-vf", "pad=ceil(iw/2)*2:ceil(ih/2)*2",
-                               "-c:v", "libx264", "-preset", "veryfast", "-crf", "18", "-pix_fmt", "yuv420p",
-                               "-movflags", "+faststart", self.tmp])
-
-    def _send(self, data: bytes) -> None:
+        self.last: np.ndarray | None = None
         try:
-            self.encoder.write(data)
-        except FFmpegError as exc:
+            self.container = av.open(self.tmp, "w", format="mp4", options={"movflags": "+faststart"})
+            self.stream = self.container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001),
+                                                    options={"preset": "veryfast", "crf": "18"})
+            # yuv420p needs even sides: the encoder's picture is padded by one row/column where needed
+            self.stream.width, self.stream.height = width + width % 2, height + height % 2
+            self.stream.pix_fmt = "yuv420p"
+        except av.FFmpegError as exc:
             self.abort()
-            raise StgsError(f"{self.path}: {exc}") from None
+            raise StgsError(f"{self.path}: cannot start the H.264 encode ({exc.strerror or exc})") from None
+        self.count = 0
+
+    def _send(self, rgb: np.ndarray) -> None:
+        width, height = self.stream.width, self.stream.height
+        if rgb.shape[:2] != (height, width):
+            rgb = np.pad(rgb, ((0, height - rgb.shape[0]), (0, width - rgb.shape[1]), (0, 0)), mode="edge")
+        frame = av.VideoFrame.from_ndarray(rgb, format="rgb24").reformat(format="yuv420p")
+        frame.pts = self.count
+        self.count += 1
+        try:
+            self.container.mux(self.stream.encode(frame))
+        except (av.FFmpegError, OSError) as exc:
+            self.abort()
+            raise StgsError(f"{self.path}: the H.264 encode failed ({getattr(exc, 'strerror', None) or exc})") \
+                from None
 
     def write(self, frame: int, image) -> None:
-        data = np.ascontiguousarray(to_uint8(image)).tobytes()
-        self.last = data
-        self._send(data)
+        self.last = np.ascontiguousarray(to_uint8(image))
+        self._send(self.last)
 
     def repeat(self, frame: int) -> None:
-        self._send(self.last if self.last is not None else bytes(self.size[0] * self.size[1] * 3))
+        width, height = self.size
+        self._send(self.last if self.last is not None else np.zeros((height, width, 3), np.uint8))
 
     def close(self) -> None:
         try:
-            self.encoder.close()
-        except FFmpegError as exc:
+            self.container.mux(self.stream.encode(None))
+            self.container.close()
+        except (av.FFmpegError, OSError) as exc:
             self.abort()
-            raise StgsError(f"{self.path}: {exc}") from None
+            raise StgsError(f"{self.path}: the H.264 encode failed ({getattr(exc, 'strerror', None) or exc})") \
+                from None
         os.chmod(self.tmp, FILE_MODE)
         os.replace(self.tmp, self.path)
 
     def abort(self) -> None:
-        self.encoder.abort()
+        container = getattr(self, "container", None)
+        if container is not None:
+            with contextlib.suppress(av.FFmpegError, OSError):
+                container.close()
         if os.path.exists(self.tmp):
             os.unlink(self.tmp)
 

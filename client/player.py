@@ -4,7 +4,7 @@ Three asyncio tasks share one event loop:
 - the fetcher runs the fetch schedule (stgs.client.schedule) GOP after GOP: keyframe, then the feature segment of
   the Representation the ABR rule picks, while the buffer has room;
 - the decoder turns downloaded GOPs into ready GOP models in a worker thread
-  (JPEG XL via OpenImageIO, video via ffmpeg), at most `max_decoded` at a time
+  (JPEG XL via OpenImageIO, video via PyAV), at most `max_decoded` at a time
   (the GOP playing and the next one), so a GOP boundary does not wait on
   decoding when the network keeps up;
 - the player renders each GOP's frames (worker thread) and keeps the clock.

@@ -23,7 +23,6 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from stgs.codec.ffmpeg import require_ffmpeg
 from stgs.codec.mp4 import hevc_codecs
 from stgs.codec.plas import PLASConfig
 from stgs.codec.video import PRESETS, VideoTiming
@@ -95,7 +94,6 @@ class Packer:
 
     def __init__(self, model_dir: Path, out: Path, cfg: PackConfig, progress: bool = True):
         cfg.validate()
-        require_ffmpeg()
         self.model_dir, self.out, self.cfg, self.progress = Path(model_dir), Path(out), cfg, progress
         self.meta: SceneMeta = read_meta(self.model_dir)
         self.side = self.meta.shape.grid_side

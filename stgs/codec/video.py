@@ -1,26 +1,45 @@
-"""Feature video: 12-bit gray HEVC (libx265) through ffmpeg (stgs.codec.ffmpeg), one closed GOP per segment.
+"""Feature video: 12-bit gray HEVC (libx265), encoded and decoded in-process with PyAV, one closed GOP per segment.
 
 Encoding settings (constant QP, closed GOP, IDR at the first frame, no scene
-cuts, keyint = E, one x265 thread pool per encode, bit-exact muxing) make each
-GOP's segment decodable alone after the init segment, and make a re-encode of
-the same frames produce the same bytes.
+cuts, keyint = E, one x265 thread, bit-exact muxing) make each GOP's segment
+decodable alone after the init segment, and make a re-encode of the same
+frames produce the same bytes. Decoding yields one frame at a time and
+refuses, before decoding a single picture, a stream whose size or pixel
+format is not the one announced; libavcodec's own `max_pixels` bounds what an
+in-band parameter set can make it allocate.
+
+Why PyAV and not the ffmpeg binary through a pipe: measured (bench/video_io.py,
+docs/BENCHMARKS.md "Video I/O"), the binary costs a process start before the
+first frame (150 against 26 ms at a 1024² grid) and a pipe copy per frame
+(all 62 frames: 590 against 303 ms). The binary's one advantage, that a
+decoder crash takes down only a child, is weighed in docs/CLIENT.md.
 """
 
 from __future__ import annotations
 
-import os
-import tempfile
+import ctypes
+import ctypes.util
+import io
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 from fractions import Fraction
 
+import av
 import numpy as np
 
-from stgs.codec import ffmpeg
 from stgs.errors import StgsError
 
 PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow")
 """x265 presets, fastest first."""
+PIXEL_FORMAT = "gray12le"
+"""The feature video's pixels: one 12-bit channel, stored little-endian in 16 bits."""
+CODEC_TAG = "hvc1"
+"""Parameter sets in the init segment's sample description only (what MSE and the DASH profile expect)."""
+
+
+class VideoError(ValueError):
+    """A feature segment that does not decode to the frames announced."""
 
 
 @dataclass(frozen=True)
@@ -61,54 +80,132 @@ def encode_gop(frames: np.ndarray, qp: int, timing: VideoTiming, preset: str = "
         raise ValueError("encode_gop takes (E, H, W) uint16 frames")
     if preset not in PRESETS:
         raise StgsError(f"unknown x265 preset {preset!r}; choose from {', '.join(PRESETS)}")
+    with _filled_heap:
+        return _encode(frames, qp, timing, preset, crf)
+
+
+def _encode(frames: np.ndarray, qp: int, timing: VideoTiming, preset: str, crf: bool) -> bytes:
     e, h, w = frames.shape
-    with tempfile.TemporaryDirectory() as tmp:
-        out_path = os.path.join(tmp, "gop.mp4")
-        args = ["-threads", "1", "-f", "rawvideo", "-pix_fmt", "gray12le", "-s", f"{w}x{h}",
-                "-framerate", f"{timing.rate.numerator}/{timing.rate.denominator}", "-i", "pipe:",
-                "-f", "mp4", "-c:v", "libx265", "-pix_fmt", "gray12le", "-preset", preset,
-                "-x265-params", x265_params(qp, e, crf), "-tag:v", "hvc1",
-                "-movflags", "+frag_keyframe+empty_moov+default_base_moof", "-fflags", "+bitexact",
-                "-flags:v", "+bitexact", "-map_metadata", "-1", "-video_track_timescale", str(timing.timescale),
-                "-frag_duration", "2000000000", "-y", out_path]
+    out = io.BytesIO()
+    muxer = {"movflags": "+frag_keyframe+empty_moov+default_base_moof", "fflags": "+bitexact",
+             "video_track_timescale": str(timing.timescale), "frag_duration": "2000000000"}
+    try:
+        with av.open(out, "w", format="mp4", options=muxer) as container:
+            stream = container.add_stream("libx265", rate=timing.rate, options={
+                "preset": preset, "x265-params": x265_params(qp, e, crf), "flags": "+bitexact"})
+            stream.width, stream.height, stream.pix_fmt = w, h, PIXEL_FORMAT
+            stream.codec_tag = CODEC_TAG
+            stream.codec_context.thread_count = 1
+            stream.time_base = 1 / timing.rate
+            packets = []
+            for i, plane in enumerate(np.ascontiguousarray(frames)):
+                frame = av.VideoFrame.from_ndarray(plane, format=PIXEL_FORMAT)
+                frame.pts, frame.time_base = i, 1 / timing.rate
+                packets += stream.encode(frame)
+            packets += stream.encode(None)
+            container.mux(_decode_timestamps(packets, e))
+    except av.FFmpegError as exc:
+        raise RuntimeError(f"feature video encode failed: {exc}") from exc
+    return out.getvalue()
+
+
+class _FilledHeap:
+    """While any encode runs, glibc's malloc fills every block it hands out with one fixed byte (M_PERTURB).
+
+    The libx265 in PyAV's wheel reads memory it never wrote (valgrind shows thousands of such reads per encode),
+    so without this an encode's bytes depend on what the process's heap held before: the first encode in a
+    fresh process is reproducible, later ones are not. With the heap filled, every encode of the same frames
+    gives the same bytes whatever ran before (tests/codec/test_video.py). The setting is process-wide and costs a
+    memset per allocation, so it is switched off when the last concurrent encode ends. Without glibc (no
+    mallopt) encodes still work, but repeated packs may differ in bytes."""
+
+    M_PERTURB = -6
+    FILL = 0xA5
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.active = 0
         try:
-            ffmpeg.run(args, np.ascontiguousarray(frames, dtype="<u2").tobytes())
-        except ffmpeg.FFmpegError as exc:
-            raise RuntimeError(f"ffmpeg encode failed: {exc}") from exc
-        with open(out_path, "rb") as f:
-            return f.read()
+            self.mallopt = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
+        except (OSError, AttributeError):
+            self.mallopt = None
+
+    def _set(self, value: int) -> None:
+        if self.mallopt is not None:
+            self.mallopt(self.M_PERTURB, value)
+
+    def __enter__(self) -> None:
+        with self.lock:
+            if self.active == 0:
+                self._set(self.FILL)
+            self.active += 1
+
+    def __exit__(self, *exc) -> None:
+        with self.lock:
+            self.active -= 1
+            if self.active == 0:
+                self._set(0)
 
 
-def iter_frames(path: str, frames: int, height: int, width: int) -> Iterator[np.ndarray]:
-    """The frames of the feature video at `path` ((H, W) uint16 each), decoded one at a time; raises ValueError
-    for a video that does not decode, ends inside a frame, or holds more than `frames` frames (the extra frame is
-    never read whole)."""
-    frame_bytes = height * width * 2
-    args = ["-i", path, "-f", "rawvideo", "-pix_fmt", "gray12le", "-fps_mode", "passthrough", "pipe:"]
+_filled_heap = _FilledHeap()
+
+
+def _decode_timestamps(packets: list[av.Packet], count: int) -> list[av.Packet]:
+    """Packets in decode order with their decode timestamps and durations set from their presentation timestamps.
+
+    libx265 in PyAV's FFmpeg build sometimes returns garbage decode timestamps (seen as -2.8e17 from the second
+    encoder of a process on); the presentation timestamps are the frame numbers we gave. The i-th decoded packet
+    gets the i-th smallest pts, less the reorder delay that keeps every dts at or before its pts."""
+    pts = [p.pts for p in packets]
+    if sorted(pts) != list(range(count)):
+        raise RuntimeError(f"the encoder returned presentation timestamps {pts}, expected 0..{count - 1}")
+    delay = max(0, max(rank - p for rank, p in enumerate(pts)))
+    for rank, packet in enumerate(packets):
+        packet.dts, packet.duration = rank - delay, 1
+    return packets
+
+
+def _coded_pixels(width: int, height: int) -> int:
+    """Pixels of the largest picture HEVC codes for a width x height frame (sides padded to whole 64-pixel CTUs)."""
+    return -(-width // 64) * 64 * (-(-height // 64) * 64)
+
+
+def iter_frames(data: bytes, frames: int, height: int, width: int, threads: int = 0) -> Iterator[np.ndarray]:
+    """The frames of the feature video `data` (init + media segment), (H, W) uint16 each, decoded one at a time
+    with `threads` decoder threads (0: libavcodec's choice). Raises VideoError for a video that does not decode,
+    is not `width`x`height` 12-bit gray, or holds a number of frames other than `frames` (a frame past those is
+    never converted)."""
     count = 0
-    with ffmpeg.FrameReader(args, frame_bytes) as reader:
-        try:
-            for data in reader:
+    try:
+        with av.open(io.BytesIO(data), "r", format="mp4") as container:
+            if len(container.streams.video) != 1:
+                raise VideoError(f"feature segment holds {len(container.streams.video)} video streams, expected 1")
+            stream = container.streams.video[0]
+            ctx = stream.codec_context
+            if (ctx.width, ctx.height) != (width, height):
+                raise VideoError(f"feature segment is {ctx.width}x{ctx.height}, expected {width}x{height}")
+            ctx.options = {"max_pixels": str(_coded_pixels(width, height))}
+            ctx.thread_count = threads
+            ctx.thread_type = "AUTO"
+            for frame in container.decode(stream):
+                if (frame.width, frame.height, frame.format.name) != (width, height, PIXEL_FORMAT):
+                    raise VideoError(f"feature frame {count} is {frame.width}x{frame.height} {frame.format.name}, "
+                                     f"expected {width}x{height} {PIXEL_FORMAT}")
                 if count == frames:
-                    raise ValueError(f"feature segment holds more than the {frames} frames of {width}x{height} "
+                    raise VideoError(f"feature segment holds more than the {frames} frames of {width}x{height} "
                                      "announced")
                 count += 1
-                yield np.frombuffer(data, dtype="<u2").reshape(height, width).astype(np.uint16)
-        except ffmpeg.FFmpegError as exc:
-            raise ValueError(f"feature segment does not decode: {exc}") from None
+                yield frame.to_ndarray()
+    except av.FFmpegError as exc:
+        raise VideoError(f"feature segment does not decode: {exc.strerror or exc}") from None
     if count != frames:
-        raise ValueError(f"feature segment decodes to {count} frames, expected {frames} of {width}x{height}")
+        raise VideoError(f"feature segment decodes to {count} frames, expected {frames} of {width}x{height}")
 
 
-def decode_segment(init: bytes, media: bytes, frames: int, height: int, width: int) -> np.ndarray:
-    """init + one media segment -> (frames, H, W) uint16, decoded frame by frame (at most one frame beyond those
-    announced is ever requested from ffmpeg, so a hostile segment cannot make the decoder allocate more)."""
-    with tempfile.TemporaryDirectory() as tmp:
-        path = os.path.join(tmp, "segment.mp4")
-        with open(path, "wb") as f:
-            f.write(init)
-            f.write(media)
-        out = np.empty((frames, height, width), np.uint16)
-        for i, frame in enumerate(iter_frames(path, frames, height, width)):
-            out[i] = frame  # iter_frames stops before a frame past `frames`
+def decode_segment(init: bytes, media: bytes, frames: int, height: int, width: int, threads: int = 0) -> np.ndarray:
+    """init + one media segment -> (frames, H, W) uint16, decoded frame by frame into one array (see iter_frames
+    for what is refused)."""
+    out = np.empty((frames, height, width), np.uint16)
+    for i, frame in enumerate(iter_frames(init + media, frames, height, width, threads)):
+        out[i] = frame  # iter_frames stops before a frame past `frames`
     return out

@@ -8,7 +8,7 @@ the dataset has masks. Readers:
 - `PanopticReader`: the Panoptic / Dynamic 3D Gaussians layout
   (`train_meta.json`, `ims/<cam>/<frame>.jpg`, `seg/<cam>/<frame>.png`);
 - `N3DVReader`: Neural 3D Video (LLFF `poses_bounds.npy` + `cam*.mp4`),
-  frames extracted once with ffmpeg and downscaled by 2 (the custom);
+  frames decoded once (PyAV) and downscaled by 2 (the custom);
 - `SynthReader`: the ground truth inside a `stgs synth` model dir.
 
 `split(dataset, holdout)` gives the train / validation camera names.

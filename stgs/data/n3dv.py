@@ -3,8 +3,9 @@
 poses_bounds.npy is (cameras, 17): a 3x5 matrix per camera, columns
 [down, right, back | centre | (height, width, focal)] in LLFF's axes, then
 near/far bounds. Cameras are sorted by name, matched to the rows in order.
-Frames are extracted once per camera with ffmpeg, downscaled by `downscale`
-(2 by custom), as lossless PNGs into a cache folder; cam00 is held out.
+Frames are decoded once per camera (PyAV, the project's one video route),
+downscaled by `downscale` (2 by custom) with area averaging, and kept as
+lossless PNGs in a cache folder; cam00 is held out.
 """
 
 from __future__ import annotations
@@ -15,12 +16,12 @@ import shutil
 import tempfile
 from pathlib import Path
 
+import av
+import cv2
 import numpy as np
 import torch
 
 from stgs.camera import Camera
-from stgs.codec import ffmpeg
-from stgs.codec.ffmpeg import require_ffmpeg
 from stgs.data.images import read_rgb
 from stgs.errors import StgsError
 
@@ -59,7 +60,6 @@ class N3DVReader:
             raise StgsError(f"{self.root}: {len(videos)} cam*.mp4 video(s) but {len(poses)} camera pose(s) in {POSES}")
         if not videos:
             raise StgsError(f"{self.root}: no cam*.mp4 videos")
-        require_ffmpeg()
         self.camera_names = [v.stem for v in videos]
         self.default_holdout = list(holdout) if holdout is not None else ["cam00"][: len(videos) - 1]
         self._videos = dict(zip(self.camera_names, videos, strict=True))
@@ -78,12 +78,15 @@ class N3DVReader:
 
     @staticmethod
     def _frame_count(video: Path) -> int:
-        args = ["-select_streams", "v:0", "-count_packets", "-show_entries", "stream=nb_read_packets",
-                "-of", "csv=p=0", str(video)]
+        """Frames of the video's first stream, counted from its packets (nothing is decoded)."""
         try:
-            return int(ffmpeg.run(args, tool="ffprobe").decode().strip().split(",")[0])
-        except (ffmpeg.FFmpegError, ValueError) as exc:
-            raise StgsError(f"{video}: not a readable video ({str(exc)[:200]})") from None
+            with av.open(str(video)) as container:
+                if not container.streams.video:
+                    raise StgsError(f"{video}: holds no video stream")
+                stream = container.streams.video[0]
+                return sum(1 for packet in container.demux(stream) if packet.size)
+        except av.FFmpegError as exc:
+            raise StgsError(f"{video}: not a readable video ({exc.strerror or exc})") from None
 
     def cameras(self, frame: int) -> list[Camera]:
         return list(self._cams)
@@ -96,13 +99,17 @@ class N3DVReader:
         self.frames_dir.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{camera}.", dir=self.frames_dir))
         cam = self._cams[self.camera_names.index(camera)]
-        args = ["-i", str(self._videos[camera]), "-vf", f"scale={cam.width}:{cam.height}:flags=area",
-                "-start_number", "0", str(tmp / "%05d.png")]
         try:
-            ffmpeg.run(args)
-        except ffmpeg.FFmpegError as exc:
+            with av.open(str(self._videos[camera])) as container:
+                for i, frame in enumerate(container.decode(video=0)):
+                    rgb = frame.to_ndarray(width=cam.width, height=cam.height, format="bgr24",
+                                           interpolation="AREA")
+                    if not cv2.imwrite(str(tmp / f"{i:05d}.png"), rgb):
+                        raise StgsError(f"{tmp}: cannot write frame {i}")
+        except (av.FFmpegError, StgsError) as exc:
             shutil.rmtree(tmp, ignore_errors=True)
-            raise StgsError(f"{self._videos[camera]}: ffmpeg could not extract frames ({str(exc)[:200]})") from None
+            why = exc.strerror if isinstance(exc, av.FFmpegError) else exc
+            raise StgsError(f"{self._videos[camera]}: could not extract frames ({why})") from None
         try:
             tmp.rename(out)
         except OSError:  # another process extracted it first
