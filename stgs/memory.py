@@ -1,13 +1,27 @@
-"""Process-wide tuning of the C allocator for loops that allocate large tensors every iteration."""
+"""Process-wide tuning of glibc's allocator (mallopt): large allocations for training loops, a filled heap for
+reproducible encodes. Elsewhere than glibc both are no-ops that say so."""
 
 from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import threading
+from collections.abc import Callable
 
 M_TRIM_THRESHOLD = -1
 M_TOP_PAD = -2
 M_MMAP_THRESHOLD = -3
+M_PERTURB = -6
+
+
+def _mallopt() -> Callable[[int, int], int] | None:
+    """glibc's mallopt, or None where the C library has none."""
+    try:
+        mallopt = ctypes.CDLL(ctypes.util.find_library("c")).mallopt
+    except (OSError, AttributeError, TypeError):
+        return None
+    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+    return mallopt
 
 
 def reuse_large_allocations() -> bool:
@@ -17,11 +31,48 @@ def reuse_large_allocations() -> bool:
     fresh mmaps page-fault on first touch, which made zero-filling them ~5x slower. Returns False
     (and changes nothing) where the C library is not glibc.
     """
-    name = ctypes.util.find_library("c")
-    try:
-        mallopt = ctypes.CDLL(name).mallopt
-    except (OSError, AttributeError, TypeError):
+    mallopt = _mallopt()
+    if mallopt is None:
         return False
-    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
     settings = ((M_MMAP_THRESHOLD, 1 << 30), (M_TRIM_THRESHOLD, 2 ** 31 - 1), (M_TOP_PAD, 256 << 20))
     return all(mallopt(param, value) == 1 for param, value in settings)
+
+
+class FilledHeap:
+    """A context in which glibc's malloc fills the blocks it hands out with one fixed byte (M_PERTURB; blocks
+    from the per-thread cache, at most 1 KiB, are not filled).
+
+    For native code that reads memory it never wrote (the libx265 in PyAV's wheel: valgrind shows thousands of
+    such reads per encode): its output then depends on its inputs alone, not on what the process's heap held
+    before. The setting is process-wide and costs a memset per allocation, so it is on only while at least one
+    context is open (contexts may overlap across threads). `available` is False where there is no mallopt:
+    the context then changes nothing."""
+
+    FILL = 0xA5
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._open = 0
+        self._mallopt = _mallopt()
+        self.available = self._mallopt is not None
+
+    def _set(self, value: int) -> None:
+        if self._mallopt is not None:
+            self._mallopt(M_PERTURB, value)
+
+    def __enter__(self) -> FilledHeap:
+        with self._lock:
+            if self._open == 0:
+                self._set(self.FILL)
+            self._open += 1
+        return self
+
+    def __exit__(self, *exc) -> None:
+        with self._lock:
+            self._open -= 1
+            if self._open == 0:
+                self._set(0)
+
+
+filled_heap = FilledHeap()
+"""The process's one FilledHeap (its on/off count must be shared by every user)."""

@@ -17,10 +17,7 @@ decoder crash takes down only a child, is weighed in docs/CLIENT.md.
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import io
-import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 from fractions import Fraction
@@ -29,6 +26,7 @@ import av
 import numpy as np
 
 from stgs.errors import StgsError
+from stgs.memory import filled_heap
 
 PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow")
 """x265 presets, fastest first."""
@@ -80,7 +78,7 @@ def encode_gop(frames: np.ndarray, qp: int, timing: VideoTiming, preset: str = "
         raise ValueError("encode_gop takes (E, H, W) uint16 frames")
     if preset not in PRESETS:
         raise StgsError(f"unknown x265 preset {preset!r}; choose from {', '.join(PRESETS)}")
-    with _filled_heap:
+    with filled_heap:  # libx265 reads memory it never wrote: see stgs.memory.FilledHeap
         return _encode(frames, qp, timing, preset, crf)
 
 
@@ -107,47 +105,6 @@ def _encode(frames: np.ndarray, qp: int, timing: VideoTiming, preset: str, crf: 
     except av.FFmpegError as exc:
         raise RuntimeError(f"feature video encode failed: {exc}") from exc
     return out.getvalue()
-
-
-class _FilledHeap:
-    """While any encode runs, glibc's malloc fills every block it hands out with one fixed byte (M_PERTURB).
-
-    The libx265 in PyAV's wheel reads memory it never wrote (valgrind shows thousands of such reads per encode),
-    so without this an encode's bytes depend on what the process's heap held before: the first encode in a
-    fresh process is reproducible, later ones are not. With the heap filled, every encode of the same frames
-    gives the same bytes whatever ran before (tests/codec/test_video.py). The setting is process-wide and costs a
-    memset per allocation, so it is switched off when the last concurrent encode ends. Without glibc (no
-    mallopt) encodes still work, but repeated packs may differ in bytes."""
-
-    M_PERTURB = -6
-    FILL = 0xA5
-
-    def __init__(self) -> None:
-        self.lock = threading.Lock()
-        self.active = 0
-        try:
-            self.mallopt = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
-        except (OSError, AttributeError):
-            self.mallopt = None
-
-    def _set(self, value: int) -> None:
-        if self.mallopt is not None:
-            self.mallopt(self.M_PERTURB, value)
-
-    def __enter__(self) -> None:
-        with self.lock:
-            if self.active == 0:
-                self._set(self.FILL)
-            self.active += 1
-
-    def __exit__(self, *exc) -> None:
-        with self.lock:
-            self.active -= 1
-            if self.active == 0:
-                self._set(0)
-
-
-_filled_heap = _FilledHeap()
 
 
 def _decode_timestamps(packets: list[av.Packet], count: int) -> list[av.Packet]:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from client.output import Mp4Sink, NullSink, PngSink, open_sink
+from stgs.client.output import Mp4Sink, NullSink, PngSink, open_sink
 from stgs.errors import StgsError
 
 
