@@ -168,6 +168,12 @@ class Presentation:
         """URL of a document beside the MPD (stats.json, cameras.json)."""
         return urljoin(self.url, name)
 
+    def decoded_gop_bytes(self) -> int:
+        """Memory one decoded GOP holds at its peak: the E decoded 12-bit frames of 4S x 4S and the E x N x 16
+        float32 features made from them (the canonical attributes are small beside these)."""
+        e, side = self.shape.num_features, self.grid_side
+        return e * (4 * side) ** 2 * 2 + e * side * side * 16 * 4
+
     def max_keyframe_bytes(self) -> int:
         return self._cap(self.keyframe_rep.bandwidth)
 

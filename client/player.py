@@ -25,7 +25,9 @@ from __future__ import annotations
 import asyncio
 import json
 import math
+import os
 import time
+import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -81,6 +83,24 @@ def _stats_sizes(stats: object, k: int, rep_ids: list[str]) -> list[float] | Non
     return sizes if all(math.isfinite(s) and s > 0 for s in sizes) else None
 
 
+def physical_memory() -> int | None:
+    """Bytes of RAM of this machine, or None where the OS does not say."""
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def check_decode_memory(gop_bytes: int, max_decoded: int, ram: int | None = None) -> None:
+    """Refuse, before fetching anything, a presentation whose decoded GOPs (`max_decoded` of them at once) need
+    more memory than the machine has."""
+    ram = physical_memory() if ram is None else ram
+    need = gop_bytes * max_decoded
+    if ram is not None and need > ram:
+        raise PlaybackError(f"decoding needs {need / 2**30:.1f} GiB ({max_decoded} GOPs of "
+                            f"{gop_bytes / 2**30:.1f} GiB at once); this machine has {ram / 2**30:.1f} GiB")
+
+
 class Session:
     """One playback of a Presentation (see the module docstring)."""
 
@@ -89,6 +109,8 @@ class Session:
         self.cfg, self.pres, self.dl, self.stats, self.cameras, self.on_gop = cfg, pres, dl, stats, cameras, on_gop
         self.T = pres.segment_seconds
         self.G = pres.shape.gop_size
+        if cfg.decode:
+            check_decode_memory(pres.decoded_gop_bytes(), cfg.max_decoded)
         span = pres.span(cfg.start_s, cfg.duration_s, cfg.buffer_s)
         self.k0, self.frames, self.gops, self.capacity_s = span.first_gop, span.frames, span.gops, span.buffer_s
         self.first_frame = self.k0 * self.G
@@ -274,14 +296,8 @@ class Session:
         rec.play_start_s = self.clock.due(k) - self.t_start
         return result
 
-    async def run(self) -> dict:
-        loop = asyncio.get_running_loop()
-        downloaded = {k: loop.create_future() for k in self.gops}
-        ready = {k: loop.create_future() for k in self.gops}
-        slots = asyncio.Semaphore(self.cfg.max_decoded)
-        tasks = [asyncio.create_task(self.fetch_loop(downloaded)),
-                 asyncio.create_task(self.decode_loop(downloaded, ready, slots))]
-        sink, error = NullSink(), None
+    async def play_loop(self, ready: dict[int, asyncio.Future], slots: asyncio.Semaphore) -> None:
+        sink = NullSink()
         try:
             for k in self.gops:
                 gop = await self.wait_ready(k, ready[k])
@@ -295,14 +311,31 @@ class Session:
                 del gop
                 slots.release()
             sink.close()
-        except BaseException as exc:
+        except BaseException:  # an error here or in another task (cancelled): no half-written output
             sink.abort()
+            raise
+
+    async def run(self) -> dict:
+        """Fetch, decode and play as three tasks of one task group: whatever ends one of them (an error the
+        schedule could not recover from, or one nobody expected) cancels the others; the log is written either
+        way and the playback ends with one PlaybackError."""
+        loop = asyncio.get_running_loop()
+        downloaded = {k: loop.create_future() for k in self.gops}
+        ready = {k: loop.create_future() for k in self.gops}
+        slots = asyncio.Semaphore(self.cfg.max_decoded)
+        error: BaseException | None = None
+        try:
+            async with asyncio.TaskGroup() as group:
+                group.create_task(self.fetch_loop(downloaded))
+                group.create_task(self.decode_loop(downloaded, ready, slots))
+                group.create_task(self.play_loop(ready, slots))
+        except BaseExceptionGroup as failed:
+            error = playback_failure(failed)
+            raise error from None
+        except BaseException as exc:  # cancelled from outside, interrupted
             error = exc
             raise
         finally:
-            for t in tasks:
-                t.cancel()
-            await asyncio.gather(*tasks, return_exceptions=True)
             for fut in [*downloaded.values(), *ready.values()]:
                 if fut.done() and not fut.cancelled():
                     fut.exception()  # retrieved: no "exception never retrieved" warnings
@@ -327,7 +360,35 @@ class Session:
                             abr=self.schedule.rule.name, wasted_bytes=self.schedule.wasted_bytes,
                             retries=self.schedule.retries + self.dl.retries,
                             error=error, gops_planned=len(self.gops),
-                            extra={"realtime": self.cfg.realtime, "decode": self.cfg.decode})
+                            extra={"realtime": self.cfg.realtime, "decode": self.cfg.decode,
+                                   "error_detail": getattr(error, "detail", None)})
+
+
+class InternalError(PlaybackError):
+    """A failure no part of the player expected (a defect, or a resource the machine ran out of); `detail` holds
+    the traceback for the playback log."""
+
+    def __init__(self, exc: BaseException):
+        super().__init__(f"playback failed unexpectedly: {type(exc).__name__}: {str(exc)[:300] or '(no message)'} "
+                         "(details in the playback log)")
+        self.detail = "".join(traceback.format_exception(exc))
+
+
+def playback_failure(failed: BaseExceptionGroup) -> BaseException:
+    """The one error a failed task group ends the playback with: a PlaybackError a task raised, else an
+    interruption (KeyboardInterrupt, SystemExit) as is, else any other error as an InternalError."""
+    leaves = []
+
+    def flatten(group: BaseExceptionGroup) -> None:
+        for exc in group.exceptions:
+            flatten(exc) if isinstance(exc, BaseExceptionGroup) else leaves.append(exc)
+
+    flatten(failed)
+    for kind in (PlaybackError, KeyboardInterrupt, SystemExit):
+        for exc in leaves:
+            if isinstance(exc, kind):
+                return exc
+    return InternalError(leaves[0])
 
 
 async def _optional_json(dl: Downloader, url: str) -> object | None:

@@ -13,13 +13,15 @@ from pathlib import Path
 
 from aiohttp import web
 
+from stgs.limits import MAX_MPD_BYTES
 from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, MPDError, parse_mpd
 from stgs.server.config import CORS_HEADERS, ROOT_KEY
 from stgs.tree import MANIFEST
 
 
 def scene_summary(name: str, manifest: Path) -> dict:
-    mpd = parse_mpd(manifest.read_bytes())
+    with manifest.open("rb") as f:
+        mpd = parse_mpd(f.read(MAX_MPD_BYTES + 1))  # parse_mpd refuses more
     video = mpd.adaptation_set(FEATURE_SCHEME)
     keyframes = mpd.adaptation_set(KEYFRAME_SCHEME)
     seconds = video.segment_template.seconds
@@ -31,7 +33,8 @@ def scene_summary(name: str, manifest: Path) -> dict:
 
 
 def catalogue(root: Path) -> list[dict]:
-    """Every packaged scene at root or one folder below, skipping unreadable manifests."""
+    """Every packaged scene at root or one folder below; one whose manifest does not parse is listed with an
+    `error` instead of its summary."""
     candidates = [(".", root / MANIFEST)]
     candidates += [(d.name, d / MANIFEST) for d in sorted(root.iterdir())
                    if d.is_dir() and not d.name.startswith(".")]
@@ -40,8 +43,12 @@ def catalogue(root: Path) -> list[dict]:
         if manifest.is_file():
             try:
                 scenes.append(scene_summary(name, manifest))
-            except (MPDError, OSError, IndexError, ZeroDivisionError):
-                logging.getLogger("stgs.server").warning("skipping %s: not a StreamSTGS manifest", manifest)
+            except (MPDError, OSError, IndexError, ArithmeticError) as exc:
+                # listed as bad (one broken scene must not take the catalogue down with it)
+                logging.getLogger("stgs.server").warning("%s: not a playable StreamSTGS manifest (%s)", manifest, exc)
+                prefix = "" if name == "." else f"{name}/"
+                scenes.append({"name": name, "manifest": f"/{prefix}{MANIFEST}",
+                               "error": f"not a playable StreamSTGS manifest: {str(exc)[:200]}"})
     return scenes
 
 

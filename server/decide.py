@@ -3,10 +3,12 @@ any byte is read (as aiohttp's FileResponse does): 200, 206, 304, 412 or 416, wi
 
 RFC 9110 order: If-Match / If-Unmodified-Since (412), then If-None-Match / If-Modified-Since (304), then
 If-Range and Range (206 or 416; a Range that If-Range rules out gives the whole file). aiohttp's request parses
-the headers; only If-Range's entity-tag form is compared here (aiohttp reads If-Range as a date only)."""
+the validators; If-Range's entity-tag form and the Range header are read here (aiohttp reads If-Range as a date
+only, and answers a zero-length suffix, another unit or several ranges against RFC 9110)."""
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 from aiohttp import web
@@ -74,21 +76,44 @@ def range_applies(request: web.BaseRequest, etag: str, mtime: float) -> bool:
     return date is not None and mtime <= date.timestamp()
 
 
+_RANGE_SPEC = re.compile(r"(\d{1,19})-(\d{0,19})|-(\d{1,19})")
+"""One byte-range-spec: first-[last], or -suffix (RFC 9110 §14.1.2); 19 digits keep every number an int64."""
+
+
+def byte_span(header: str, size: int) -> tuple[int, int] | bool | None:
+    """The [start, stop) to send for a Range header: a span; None to ignore the header and send the whole file
+    (another unit, several ranges one of which is satisfiable: we send no multipart); False if unsatisfiable
+    (invalid specs, or none inside the file, or a zero-length suffix)."""
+    unit, sep, specs = header.partition("=")
+    if not sep or unit.strip().lower() != "bytes":
+        return None
+    spans = []
+    for spec in specs.split(","):
+        match = _RANGE_SPEC.fullmatch(spec.strip())
+        if match is None:
+            return False
+        first, last, suffix = match.groups()
+        if suffix is not None:
+            span = (max(0, size - int(suffix)), size) if int(suffix) > 0 else None
+        elif last and int(last) < int(first):
+            return False
+        else:
+            stop = size if not last else min(int(last) + 1, size)
+            span = (int(first), stop) if int(first) < size else None
+        if span is not None and span[0] < span[1]:
+            spans.append(span)
+    if not spans:
+        return False
+    return spans[0] if len(spans) == 1 and len(specs.split(",")) == 1 else None
+
+
 def range_answer(request: web.BaseRequest, size: int, validators: dict[str, str]) -> Answer:
-    unsatisfiable = Answer(416, {"Content-Range": f"bytes */{size}", "Content-Length": "0"})
-    try:
-        span = request.http_range  # one range only; a list of ranges is refused as aiohttp does
-    except ValueError:
-        return unsatisfiable
-    start, stop = span.start, span.stop
-    if start is None:
+    span = byte_span(request.headers["Range"], size)
+    if span is None:
         return Answer(200, validators, 0, size)
-    if start < 0:  # a suffix: the last -start bytes
-        start = max(0, size + start)
-        stop = size
-    stop = size if stop is None else min(stop, size)
-    if start >= size or stop <= start:
-        return unsatisfiable
+    if span is False:
+        return Answer(416, {"Content-Range": f"bytes */{size}", "Content-Length": "0"})
+    start, stop = span
     count = stop - start
     headers = {**validators, "Content-Length": str(count), "Content-Range": f"bytes {start}-{stop - 1}/{size}"}
     return Answer(206, headers, start, count)

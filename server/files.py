@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ctypes
+import errno
 import functools
 import math
 import os
@@ -19,8 +20,8 @@ def servable_parts(url_path: str) -> list[str] | None:
     ".." or hidden names, and a served extension. What the file system then says is the caller's part."""
     if "\x00" in url_path or "\\" in url_path:
         return None
-    parts = [p for p in url_path.split("/") if p]
-    if not parts or any(p[0] == "." for p in parts):  # ".", ".." and hidden names
+    parts = url_path.split("/")[1:]  # an empty part: "//" or a trailing slash, which no file has
+    if not parts or any(not p or p[0] == "." for p in parts):  # ".", ".." and hidden names
         return None
     if os.path.splitext(parts[-1])[1] not in CONTENT_TYPES:
         return None
@@ -73,10 +74,19 @@ def file_validators(size: int, mtime_ns: int, mtime: float) -> dict[str, str]:
             "Accept-Ranges": "bytes"}
 
 
+OPEN_FLAGS = os.O_RDONLY | os.O_CLOEXEC | os.O_NONBLOCK
+"""O_NONBLOCK: opening a FIFO (or a device) put in the tree does not block; it is then refused as not regular.
+Reads and sendfile of a regular file ignore the flag."""
+
+
 def open_and_stat(path: str) -> tuple[int, os.stat_result]:
-    fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    """A descriptor and stat of the regular file at path; OSError (ENOENT) for anything else."""
+    fd = os.open(path, OPEN_FLAGS)
     try:
-        return fd, os.fstat(fd)
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise FileNotFoundError(errno.ENOENT, "not a regular file", path)
+        return fd, st
     except OSError:
         os.close(fd)
         raise
@@ -99,7 +109,7 @@ class BeneathOpener:
         self._syscall = libc.syscall
         self._syscall.restype = ctypes.c_long
         self._syscall.argtypes = [ctypes.c_long, ctypes.c_int, ctypes.c_char_p, ctypes.c_void_p, ctypes.c_size_t]
-        self._how = self.OpenHow(os.O_RDONLY | os.O_CLOEXEC, 0, self.RESOLVE)
+        self._how = self.OpenHow(OPEN_FLAGS, 0, self.RESOLVE)
         self._how_address = ctypes.addressof(self._how)
         self._how_size = ctypes.sizeof(self._how)
         self.root_fd = root_fd

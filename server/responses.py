@@ -33,7 +33,7 @@ def body_bytes(request: web.BaseRequest, response: web.StreamResponse) -> int:
     if request.method == "HEAD":
         return 0
     if is_file_response(response):
-        return (response.content_length or 0) if response.status in (200, 206) else 0
+        return response.body_sent[0]
     body = getattr(response, "body", None)
     return len(body) if isinstance(body, bytes) else 0
 
@@ -69,6 +69,8 @@ class FileTransfer(web.StreamResponse):
         self._app = app
         self._path = path
         self._opened = opened  # (descriptor, stat) of the file the fast path opened; this response closes it
+        self.body_sent = [0]
+        """Body bytes sent so far (what the metrics count, also for a transfer cut short)."""
 
     async def prepare(self, request: web.BaseRequest) -> AbstractStreamWriter | None:
         try:
@@ -96,18 +98,27 @@ class FileTransfer(web.StreamResponse):
             self.headers.update(answer.headers)
             writer = await super().prepare(request)
             if request.method != "HEAD" and answer.count:
-                await send_file_body(request, fd, answer.offset, answer.count)
+                await send_file_body(request, fd, answer.offset, answer.count, self.body_sent)
                 await super().write_eof()
             return writer
         finally:
             os.close(fd)
 
 
-async def send_file_body(request: web.BaseRequest, fd: int, offset: int, count: int) -> None:
-    """Send bytes [offset, offset + count) of the file."""
+class ShortFileError(ConnectionResetError):
+    """The file ended before the span its headers announced (truncated in place during the transfer)."""
+
+
+async def send_file_body(request: web.BaseRequest, fd: int, offset: int, count: int,
+                         progress: list[int] | None = None) -> None:
+    """Send bytes [offset, offset + count) of the file; `progress[0]` counts what has gone out.
+
+    A file that ends early (truncated while it was being sent) aborts the connection: the body would end short
+    of its Content-Length and the next response on a keep-alive connection would be read as the rest of it."""
     transport = request.transport
     if transport is None or transport.is_closing():
         raise ConnectionResetError("connection lost")
+    progress = progress if progress is not None else [0]
     sent = 0
     if transport.get_write_buffer_size() == 0:  # the headers are out: the socket is ours until the body is
         sock = transport.get_extra_info("socket")
@@ -117,13 +128,18 @@ async def send_file_body(request: web.BaseRequest, fd: int, offset: int, count: 
                 if n == 0:
                     break
                 sent += n
+                progress[0] = sent
         except BlockingIOError:
             pass
         except OSError as exc:  # peer gone (EPIPE, ECONNRESET)
             raise ConnectionResetError(str(exc)) from exc
-    if sent < count:
+    if sent < count and os.fstat(fd).st_size >= offset + count:
         with open(fd, "rb", closefd=False) as f:
-            await asyncio.get_running_loop().sendfile(transport, f, offset + sent, count - sent)
+            sent += await asyncio.get_running_loop().sendfile(transport, f, offset + sent, count - sent)
+        progress[0] = sent
+    if sent < count:
+        transport.abort()
+        raise ShortFileError(f"the file ended {count - sent} bytes before the announced span")
 
 
 async def serve_file(request: web.Request) -> web.StreamResponse:

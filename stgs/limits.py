@@ -38,6 +38,8 @@ MAX_INIT_BYTES = 1 << 20
 """Largest init segment of a feature Representation."""
 SEGMENT_SLACK = 1.25
 """A segment may exceed @bandwidth x duration by this factor (the packager's @bandwidth covers the largest)."""
+MAX_DURATION_S = 10 * 366 * 86400.0
+"""Longest duration an MPD may state (ten years: any real presentation, and finite arithmetic after it)."""
 MAX_TEMPLATE_NUMBER_WIDTH = 32
 """Widest `$Number%0Nd$` a segment template may ask for (DASH's widths are a handful of digits)."""
 

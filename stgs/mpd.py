@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 from lxml import etree
 
-from stgs.limits import MAX_MPD_BYTES, MAX_TEMPLATE_NUMBER_WIDTH
+from stgs.limits import MAX_DURATION_S, MAX_MPD_BYTES, MAX_TEMPLATE_NUMBER_WIDTH
 
 NS = "urn:mpeg:dash:schema:mpd:2011"
 PROFILE_LIVE = "urn:mpeg:dash:profile:isoff-live:2011"
@@ -50,7 +50,8 @@ def format_duration(seconds: float) -> str:
     return f"PT{secs}S"
 
 
-_DURATION = re.compile(r"^P(?:(\d+)D)?(?:T(?:(\d+)H)?(?:(\d+)M)?(?:(\d+(?:\.\d+)?)S)?)?$")
+_DURATION = re.compile(r"^P(?:(\d{1,9})D)?(?:T(?:(\d{1,9})H)?(?:(\d{1,9})M)?(?:(\d{1,12}(?:\.\d{1,9})?)S)?)?$")
+"""Days, hours, minutes, seconds: at most 9 digits each (12 for seconds), far beyond any presentation."""
 
 
 def parse_duration(text: str) -> float:
@@ -59,8 +60,10 @@ def parse_duration(text: str) -> float:
     if not match or text.strip() in ("P", "PT"):
         raise MPDError(f"unsupported duration {text!r}")
     days, hours, minutes, secs = match.groups()
-    return (int(days or 0) * 86400 + int(hours or 0) * 3600 + int(minutes or 0) * 60
-            + float(secs or 0.0))
+    seconds = int(days or 0) * 86400 + int(hours or 0) * 3600 + int(minutes or 0) * 60 + float(secs or 0.0)
+    if seconds > MAX_DURATION_S:
+        raise MPDError(f"duration {text!r} is over the {MAX_DURATION_S:.0f}-second limit")
+    return seconds
 
 
 @dataclass
@@ -116,7 +119,7 @@ class SegmentTemplate:
 
     @classmethod
     def from_element(cls, el: etree._Element) -> SegmentTemplate:
-        return cls(_required(el, "media"), _int(el, "timescale", 1), _int(el, "duration"),
+        return cls(_required(el, "media"), _int(el, "timescale", 1, lo=1), _int(el, "duration", lo=1),
                    _int(el, "startNumber", 1), el.get("initialization"))
 
     @property
@@ -273,16 +276,24 @@ def _required(el: etree._Element, attr: str) -> str:
     return value
 
 
-def _int(el: etree._Element, attr: str, default: int | None = None) -> int:
+UINT32_MAX = (1 << 32) - 1
+"""The largest xs:unsignedInt: @bandwidth, @timescale, @duration, @startNumber, @id, @width, @height."""
+
+
+def _int(el: etree._Element, attr: str, default: int | None = None, lo: int = 0, hi: int = UINT32_MAX) -> int:
+    """An integer attribute within lo..hi (the schema's xs:unsignedInt by default)."""
     value = el.get(attr)
     if value is None:
         if default is None:
             raise MPDError(f"{etree.QName(el).localname} lacks @{attr}")
         return default
-    try:
-        return int(value)
-    except ValueError:
-        raise MPDError(f"{etree.QName(el).localname}@{attr} is not an integer: {value!r}") from None
+    where = f"{etree.QName(el).localname}@{attr}"
+    if not re.fullmatch(r"\s*[+-]?\d{1,20}\s*", value):
+        raise MPDError(f"{where} is not an integer of at most 20 digits: {value[:40]!r}")
+    number = int(value)
+    if not lo <= number <= hi:
+        raise MPDError(f"{where} is {number}, outside {lo}..{hi}")
+    return number
 
 
 def _opt_int(el: etree._Element, attr: str) -> int | None:

@@ -150,7 +150,7 @@ def decode_keyframe(data: bytes, shape: GOPShape, gop: int, max_bytes: int) -> K
         dtype = "U8" if shp is None else "F32"
         if not isinstance(entry, dict) or entry.get("dtype") != dtype:
             raise KeyframeError(f"keyframe tensor {name} must be {dtype}")
-        if shp is not None and tuple(entry.get("shape", ())) != shp:
+        if shp is not None and (not isinstance(entry.get("shape"), list) or tuple(entry["shape"]) != shp):
             raise KeyframeError(f"keyframe tensor {name} has shape {entry.get('shape')}, expected {list(shp)}")
     try:
         tensors = load(data)

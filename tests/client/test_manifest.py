@@ -68,6 +68,17 @@ def test_segment_caps_follow_bandwidth():
     ((b"gop_size=30", b"gop_size=x"), "lacks an integer gop_size"),
     ((b'type="static"', b'type="dynamic"'), "only static"),
     ((b"<MPD ", b"<NotMPD "), "not well-formed"),
+    # numeric edge cases: each was a ZeroDivisionError, OverflowError or ValueError traceback
+    ((b'timescale="1024"', b'timescale="0"'), r"SegmentTemplate@timescale is 0, outside 1\.\.4294967295"),
+    ((b'duration="1024"', b'duration="0"'), r"SegmentTemplate@duration is 0, outside 1\.\."),
+    ((b'mediaPresentationDuration="PT2S"', b'mediaPresentationDuration="PT' + b"9" * 400 + b'S"'),
+     "unsupported duration"),
+    ((b'mediaPresentationDuration="PT2S"', b'mediaPresentationDuration="P' + b"9" * 5000 + b'D"'),
+     "unsupported duration"),
+    ((b'mediaPresentationDuration="PT2S"', b'mediaPresentationDuration="P999999999D"'), "over the .*-second limit"),
+    ((b'bandwidth="1758992"', b'bandwidth="' + b"9" * 400 + b'"'), "not an integer of at most 20 digits"),
+    ((b'bandwidth="1758992"', b'bandwidth="99999999999"'), r"Representation@bandwidth is 99999999999, outside"),
+    ((b'bandwidth="1758992"', b'bandwidth="-5"'), r"Representation@bandwidth is -5, outside"),
 ])
 def test_refuses_what_is_not_this_profile(edit, message):
     with pytest.raises(MPDError, match=message):

@@ -3,13 +3,10 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import math
-import shutil
 import struct
 import sys
-from pathlib import Path
 
 import cv2
 import pytest
@@ -18,45 +15,13 @@ from aiohttp import web
 
 from stgs.camera import Camera
 from stgs.client import PlaybackError, PlayConfig, play
-from stgs.client.download import DownloadSettings
 from stgs.client.view import ViewSpec
 from stgs.errors import StgsError
 from stgs.metrics import psnr
 from stgs.model.store import load_model
 from stgs.model.view import FrameRenderer
-from stgs.packager import PackConfig, pack
-from stgs.server.app import loopback
-from stgs.synth import SynthConfig, load_ground_truth, synthesize
-
-# fps = G: one-second GOPs, so a real-time playback of the 3 GOPs takes 3 s.
-SCENE = SynthConfig(grid_side=16, num_gops=3, gop_size=6, fps=6.0, width=64, height=48, num_cameras=2,
-                    fit_steps=60)
-QUICK = DownloadSettings(retries=1, backoff_s=0.05, read_timeout_s=5.0)
-
-
-@pytest.fixture(scope="module")
-def scene(tmp_path_factory) -> Path:
-    base = tmp_path_factory.mktemp("play")
-    synthesize(SCENE, base / "model", progress=False)
-    pack(base / "model", base / "dash", PackConfig(qps=(16, 24, 32), jobs=2), progress=False)
-    return base
-
-
-@contextlib.asynccontextmanager
-async def serving(root: Path, middleware=None):
-    """The real server on a free loopback port; yields the MPD URL."""
-    async with loopback(root, (middleware,) if middleware else ()) as base:
-        yield base + "manifest.mpd"
-
-
-def copy_tree(scene: Path, tmp_path: Path) -> Path:
-    dst = tmp_path / "dash"
-    shutil.copytree(scene / "dash", dst)
-    return dst
-
-
-def segment(root: Path, rel_glob: str) -> Path:
-    return next(root.glob(rel_glob))
+from stgs.synth import load_ground_truth
+from tests.client.conftest import QUICK, SCENE, copy_tree, segment, serving
 
 
 async def test_streamed_frames_at_qp16_match_the_uncompressed_model(scene, tmp_path):

@@ -5,6 +5,8 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import os
+import re
+import shutil
 import subprocess
 import time
 from pathlib import Path
@@ -174,13 +176,40 @@ async def test_if_range_applies_a_range_only_to_the_current_file(client, root):
         assert ("Content-Range" in resp.headers) == (status == 206)
 
 
-async def test_bad_or_multiple_ranges_are_unsatisfiable(client, root):
+async def test_range_edge_cases_follow_rfc_9110(client, root):
     rel = scene_files(root)[-1]
-    size = (root / "scene1" / rel).stat().st_size
-    for header in ["bytes=0-1,4-5", "bytes=5-2", "items=0-1", "bytes=x-"]:
+    data = (root / "scene1" / rel).read_bytes()
+    size = len(data)
+    for header in ["bytes=5-2", "bytes=x-", "bytes=-0", f"bytes={size}-", f"bytes={size}-,{size + 5}-9999999",
+                   "bytes=", "bytes=1-2-3"]:
         resp = await client.get(f"/scene1/{rel}", headers={"Range": header})
         assert resp.status == 416 and resp.headers["Content-Range"] == f"bytes */{size}", header
         assert await resp.read() == b""
+    # another unit is ignored; several ranges (one satisfiable) get the whole file, not a multipart answer
+    for header in ["items=0-1", "bytes=0-0,1-1", f"bytes=0-1,{size}-"]:
+        resp = await client.get(f"/scene1/{rel}", headers={"Range": header})
+        assert (resp.status, await resp.read()) == (200, data), header
+        assert "Content-Range" not in resp.headers
+    resp = await client.get(f"/scene1/{rel}", headers={"Range": "BYTES = 3-5"})
+    assert (resp.status, await resp.read()) == (206, data[3:6])
+
+
+async def test_a_file_path_with_a_trailing_slash_is_not_found(client):
+    for path in ("/scene1/manifest.mpd/", "/scene1/manifest.mpd//", "/scene1/manifest.mpd/."):
+        assert (await client.get(path)).status == 404, path
+    assert (await client.get("/scene1/manifest.mpd")).status == 200
+
+
+@pytest.mark.parametrize("routed", [False, True])
+async def test_a_fifo_inside_root_is_not_served_and_blocks_nothing(aiohttp_client, root, tmp_path, routed):
+    (tmp_path / "s").mkdir()
+    shutil.copy(root / "scene1" / "manifest.mpd", tmp_path / "s" / "manifest.mpd")
+    os.mkfifo(tmp_path / "s" / "pipe.m4s")  # no writer ever opens it: a blocking open would hang the event loop
+    app = build_app(ServeConfig(root=tmp_path))
+    client = await aiohttp_client(app if routed else SceneTestServer(app))
+    resp = await asyncio.wait_for(client.get("/s/pipe.m4s"), timeout=5)
+    assert resp.status == 404
+    assert (await asyncio.wait_for(client.get("/s/manifest.mpd"), timeout=5)).status == 200
 
 
 async def test_cors_preflight(client):
@@ -242,6 +271,24 @@ async def test_catalogue_health_and_metrics(client):
     assert "stgs_http_request_seconds_bucket" in text and "stgs_http_in_flight" in text
     sent = [line for line in text.splitlines() if line.startswith("stgs_http_sent_bytes_total")]
     assert float(sent[0].split()[1]) > 0
+
+
+@pytest.mark.parametrize("edit", [(rb'timescale="\d+"', b'timescale="0"'),
+                                  (rb'mediaPresentationDuration="[^"]+"',
+                                   b'mediaPresentationDuration="PT' + b"9" * 400 + b'S"'),
+                                  (rb"<MPD", b"<MPD\x00")])
+async def test_one_bad_manifest_is_listed_as_bad_not_a_500_for_all(aiohttp_client, root, tmp_path, edit):
+    shutil.copytree(root / "scene1", tmp_path / "good", symlinks=True)
+    (tmp_path / "bad").mkdir()
+    text = (root / "scene1" / "manifest.mpd").read_bytes()
+    (tmp_path / "bad" / "manifest.mpd").write_bytes(re.sub(edit[0], edit[1], text, count=1))
+    client = await aiohttp_client(build_app(ServeConfig(root=tmp_path)))
+    for path in ("/", "/scenes"):
+        resp = await client.get(path)
+        assert resp.status == 200
+        bad, good = (await resp.json())["scenes"]
+        assert bad["name"] == "bad" and "not a playable StreamSTGS manifest" in bad["error"] and "ladder" not in bad
+        assert good["name"] == "good" and good["gops"] == 2 and "error" not in good
 
 
 async def test_a_slow_catalogue_scan_does_not_delay_segment_transfers(client, root, monkeypatch):

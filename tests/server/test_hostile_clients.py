@@ -1,0 +1,80 @@
+"""`stgs serve` against clients and trees that misbehave: files truncated mid-transfer, pipelined requests,
+transfers cut short. The real server (its file fast path included) on loopback, raw sockets as the clients."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import socket
+from pathlib import Path
+
+import aiohttp
+
+from stgs.server.app import loopback
+
+BIG = 64 << 20
+
+
+async def _headers(reader: asyncio.StreamReader) -> tuple[int, dict[str, str]]:
+    head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), timeout=10)
+    lines = head.decode().split("\r\n")
+    status = int(lines[0].split()[1])
+    return status, {k.lower(): v.strip() for k, v in (line.split(":", 1) for line in lines[1:] if ":" in line)}
+
+
+async def _read_to_eof(reader: asyncio.StreamReader, limit_s: float = 20) -> bytes:
+    chunks = []
+    async with asyncio.timeout(limit_s):
+        while chunk := await reader.read(1 << 20):
+            chunks.append(chunk)
+    return b"".join(chunks)
+
+
+async def test_a_file_truncated_mid_transfer_aborts_the_connection(tmp_path: Path):
+    """Two pipelined GETs on one keep-alive connection; the first file shrinks to 2 MB while it is being sent.
+    The server must close the connection, never let the second response appear inside the first body."""
+    scene = tmp_path / "s"
+    scene.mkdir()
+    big, small = scene / "big.m4s", scene / "small.m4s"
+    big.write_bytes(os.urandom(1 << 20) * (BIG >> 20))
+    small.write_bytes(b"SECOND-RESPONSE-BODY")
+    async with loopback(tmp_path) as base:
+        host, port = base.split("//")[1].rstrip("/").split(":")
+        sock = socket.socket()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 64 << 10)  # the server cannot run far ahead
+        sock.connect((host, int(port)))
+        sock.setblocking(False)
+        reader, writer = await asyncio.open_connection(sock=sock)
+        writer.write(b"GET /s/big.m4s HTTP/1.1\r\nHost: x\r\n\r\nGET /s/small.m4s HTTP/1.1\r\nHost: x\r\n\r\n")
+        await writer.drain()
+        status, headers = await _headers(reader)
+        assert status == 200 and int(headers["content-length"]) == BIG
+        first = await reader.readexactly(1 << 20)
+        os.truncate(big, 2 << 20)  # in place, as a careless re-pack or a full disk would
+        rest = await _read_to_eof(reader)  # ends: the server closed the connection
+        writer.close()
+    body = first + rest
+    assert len(body) < BIG
+    assert b"HTTP/1.1 200" not in body and b"SECOND-RESPONSE-BODY" not in body
+
+
+async def test_metrics_count_the_bytes_sent_of_a_transfer_cut_short(tmp_path: Path):
+    scene = tmp_path / "s"
+    scene.mkdir()
+    (scene / "big.m4s").write_bytes(bytes(BIG))
+    async with loopback(tmp_path) as base:
+        host, port = base.split("//")[1].rstrip("/").split(":")
+        reader, writer = await asyncio.open_connection(host, int(port))
+        writer.write(b"GET /s/big.m4s HTTP/1.1\r\nHost: x\r\n\r\n")
+        await _headers(reader)
+        await reader.readexactly(1 << 20)
+        writer.transport.abort()  # the client goes away a megabyte in
+        async with aiohttp.ClientSession() as session:
+            for _ in range(50):  # the server notices the reset on its next write
+                text = await (await session.get(base + "metrics")).text()
+                sent = [line for line in text.splitlines() if line.startswith("stgs_http_sent_bytes_total")]
+                if sent and float(sent[0].split()[1]) > 0:
+                    break
+                await asyncio.sleep(0.1)
+    total = float(sent[0].split()[1])
+    assert (1 << 20) <= total < BIG // 2, total  # what went out, not the 64 MB the headers announced
