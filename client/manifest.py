@@ -15,11 +15,13 @@ from urllib.parse import urljoin
 
 from stgs.limits import (
     MAX_CAPACITY,
+    MAX_FPS,
     MAX_GOP_SIZE,
     MAX_GOPS,
     MAX_PE_FREQS,
     MAX_SEGMENT_BYTES,
     MAX_WINDOW,
+    MIN_FPS,
     SEGMENT_SLACK,
 )
 from stgs.model.gop import GOPShape
@@ -106,8 +108,8 @@ class Presentation:
             self.fps = float(fields["fps"])
         except (KeyError, ValueError):
             raise MPDError("keyframe descriptor lacks fps") from None
-        if not 0 < self.fps <= 1000:
-            raise MPDError(f"keyframe descriptor fps={self.fps} is out of range")
+        if not MIN_FPS <= self.fps <= MAX_FPS:
+            raise MPDError(f"keyframe descriptor fps={self.fps} is outside {MIN_FPS:g}..{MAX_FPS:g}")
         self.segment_seconds = self.keyframes.segment_template.seconds
         if not 0 < self.segment_seconds <= 3600 or self.features.segment_template.seconds != self.segment_seconds:
             raise MPDError("keyframe and feature segments must have one positive duration")

@@ -102,7 +102,7 @@ class Packer:
                             "the packager needs N = S² Gaussians")
         check_output_dir(self.out)
         self.out.mkdir(parents=True, exist_ok=True)
-        self.id = pack_id(self.model_dir, cfg.digest_fields())
+        self.id = pack_id(self.model_dir, self.meta.gop_files, cfg.digest_fields())
         self.version_dir = version_dir(self.id)
         shape = self.meta.shape
         self.timing = VideoTiming.for_gop(shape.num_features, shape.gop_size, self.meta.fps)

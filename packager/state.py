@@ -9,21 +9,46 @@ from pathlib import Path
 
 from stgs.errors import StgsError
 from stgs.fsio import atomic_write_bytes
+from stgs.limits import MAX_MPD_BYTES
+from stgs.mpd import PROFILE_STGS, MPDError, parse_mpd
 from stgs.tree import MANIFEST, MODEL_META, PACK_STATE
 
 
-def pack_id(model_dir: Path, digest_fields: dict) -> str:
-    """A digest of the model and of every setting that determines the output bytes."""
-    digest = hashlib.sha256((Path(model_dir) / MODEL_META).read_bytes())
+def pack_id(model_dir: Path, gop_files: list[str], digest_fields: dict) -> str:
+    """A digest of what is packed (model.json and the bytes of every GOP file, in order) and of every setting
+    that determines the output bytes: a GOP file changed in place gives another id, so no URL under `v-<id>/`
+    (served as immutable) ever changes its content."""
+    model_dir = Path(model_dir)
+    digest = hashlib.sha256((model_dir / MODEL_META).read_bytes())
+    for name in gop_files:
+        digest.update(name.encode() + b"\0")
+        with open(model_dir / name, "rb") as f:
+            while chunk := f.read(1 << 22):
+                digest.update(chunk)
     digest.update(json.dumps(digest_fields, sort_keys=True).encode())
     return digest.hexdigest()[:12]
+
+
+def _ours(out: Path) -> bool:
+    """Whether a non-empty folder holds a tree stgs pack wrote (or began): its state file, or an MPD of the
+    StreamSTGS profile."""
+    try:
+        if json.loads((out / PACK_STATE).read_text()).get("pack_id"):
+            return True
+    except (OSError, ValueError, AttributeError):
+        pass
+    try:
+        with (out / MANIFEST).open("rb") as f:
+            return PROFILE_STGS in parse_mpd(f.read(MAX_MPD_BYTES + 1)).profiles
+    except (OSError, MPDError):
+        return False
 
 
 def check_output_dir(out: Path) -> None:
     if out.exists() and not out.is_dir():
         raise StgsError(f"{out}: exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()) and not ((out / PACK_STATE).exists() or (out / MANIFEST).exists()):
-        raise StgsError(f"{out}: folder is not empty and not a packaged scene; refusing to write into it")
+    if out.is_dir() and any(out.iterdir()) and not _ours(out):
+        raise StgsError(f"{out}: folder is not empty and not a tree stgs pack wrote; refusing to write into it")
 
 
 class PackState:
@@ -36,10 +61,14 @@ class PackState:
         if resume and self.path.is_file():
             try:
                 old = json.loads(self.path.read_text())
-            except json.JSONDecodeError:
+            except (json.JSONDecodeError, UnicodeDecodeError):
                 old = {}
-            if old.get("pack_id") == ident:
+            if isinstance(old, dict) and old.get("pack_id") == ident:
                 self.doc = old
+        self.save()  # before any output: a run killed at its first segment leaves a tree --resume recognises
+
+    def save(self) -> None:
+        atomic_write_bytes(self.path, json.dumps(self.doc, indent=1, sort_keys=True).encode())
 
     def done(self, out: Path, task: str) -> dict | None:
         """The recorded result of `task` if every file it wrote is still intact."""
@@ -57,4 +86,4 @@ class PackState:
             for rel, data in files.items():
                 self.doc["files"][rel] = hashlib.sha256(data).hexdigest()
             self.doc["tasks"][task] = {"files": sorted(files), "result": result}
-            atomic_write_bytes(self.path, json.dumps(self.doc, indent=1, sort_keys=True).encode())
+            self.save()

@@ -16,6 +16,10 @@ MAX_BF16_WINDOW = 8
 """Longest window the AMX bf16 deformation kernel takes (its D_t input is padded to 128 = 8 x 16 lanes)."""
 MAX_PE_FREQS = 16
 """Most positional-encoding frequencies of t."""
+MIN_FPS = 1.0
+"""Slowest frame rate a scene may have (the video timing needs a positive rate at 1/1001 precision)."""
+MAX_FPS = 1000.0
+"""Fastest frame rate a scene may have."""
 MAX_GOPS = 100_000
 """Most GOPs per scene (55 hours at 2-second GOPs)."""
 

@@ -55,6 +55,8 @@ class VideoTiming:
     def for_gop(cls, num_features: int, gop_size: int, fps: float) -> VideoTiming:
         fps_frac = Fraction(fps).limit_denominator(1001)
         rate = Fraction(num_features) * fps_frac / gop_size
+        if rate <= 0:
+            raise ValueError(f"no video timing for {num_features} features per {gop_size} frames at {fps} fps")
         scale = 1
         while rate.numerator * scale < 1000:  # a timescale of at least 1 kHz
             scale *= 2

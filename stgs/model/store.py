@@ -19,7 +19,16 @@ from safetensors.torch import load_file, save
 
 from stgs.errors import StgsError
 from stgs.fsio import atomic_write_bytes
-from stgs.limits import MAX_CAPACITY, MAX_GOP_SIZE, MAX_GOPS, MAX_PE_FREQS, MAX_WINDOW
+from stgs.limits import (
+    MAX_CAPACITY,
+    MAX_DOC_BYTES,
+    MAX_FPS,
+    MAX_GOP_SIZE,
+    MAX_GOPS,
+    MAX_PE_FREQS,
+    MAX_WINDOW,
+    MIN_FPS,
+)
 from stgs.model.gop import FEATURE_DIM, HIDDEN, DeformationField, GOPModel, GOPShape
 from stgs.tree import MODEL_META, gop_file
 
@@ -104,10 +113,14 @@ def read_meta(model_dir: Path) -> SceneMeta:
     path = Path(model_dir) / MODEL_META
     if not path.is_file():
         raise StgsError(f"{model_dir}: not a model dir (no model.json)")
+    if path.stat().st_size > MAX_DOC_BYTES:
+        raise StgsError(f"{path}: over the {MAX_DOC_BYTES}-byte limit of a model.json")
     try:
         doc = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise StgsError(f"{path}: not valid JSON ({exc})") from exc
+        raise StgsError(f"{path}: not valid JSON ({exc})") from None
+    except RecursionError:
+        raise StgsError(f"{path}: JSON nested too deeply") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise StgsError(f"{path}: not a {FORMAT} file")
     if doc.get("version") != VERSION:
@@ -120,8 +133,8 @@ def read_meta(model_dir: Path) -> SceneMeta:
                      window=_int_field(doc, "window", 1, MAX_WINDOW),
                      pe_freqs=_int_field(doc, "pe_freqs", 0, MAX_PE_FREQS))
     fps = doc.get("fps")
-    if not isinstance(fps, (int, float)) or not 0 < fps <= 1000:
-        raise StgsError(f"{path}: 'fps' must be a number in (0, 1000], got {fps!r}")
+    if not isinstance(fps, (int, float)) or isinstance(fps, bool) or not MIN_FPS <= fps <= MAX_FPS:
+        raise StgsError(f"{path}: 'fps' must be a number in {MIN_FPS:g}..{MAX_FPS:g}, got {fps!r}")
     gops = doc.get("gops")
     if not isinstance(gops, list) or not 0 < len(gops) <= MAX_GOPS:
         raise StgsError(f"{path}: 'gops' must be a non-empty list")

@@ -65,7 +65,9 @@ def test_bad_metadata_is_a_clear_error(model_dir):
     path, _ = model_dir
     doc = json.loads((path / "model.json").read_text())
     for key, value, message in [("version", 99, "not supported"), ("capacity", 1 << 40, "capacity"),
-                                ("gop_size", -1, "gop_size"), ("fps", "fast", "fps")]:
+                                ("gop_size", -1, "gop_size"), ("fps", "fast", "fps"),
+                                ("fps", 0.0001, r"'fps' must be a number in 1\.\.1000"),  # looped forever
+                                ("fps", True, "fps"), ("fps", float("nan"), "fps"), ("capacity", 16.0, "capacity")]:
         bad = dict(doc, **{key: value})
         (path / "model.json").write_text(json.dumps(bad))
         with pytest.raises(StgsError, match=message):
@@ -83,6 +85,12 @@ def test_garbage_files_are_clear_errors(model_dir, tmp_path):
         load_model(path)
     (path / "model.json").write_text("{not json")
     with pytest.raises(StgsError, match="not valid JSON"):
+        load_model(path)
+    (path / "model.json").write_text("[" * 100_000)  # a RecursionError traceback before
+    with pytest.raises(StgsError, match="nested too deeply|not valid JSON"):
+        load_model(path)
+    (path / "model.json").write_bytes(b" " * (17 << 20))
+    with pytest.raises(StgsError, match="over the .*-byte limit"):
         load_model(path)
     with pytest.raises(StgsError, match="not a model dir"):
         load_model(tmp_path / "nowhere")

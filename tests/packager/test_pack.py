@@ -140,6 +140,48 @@ def test_interrupted_pack_leaves_no_manifest(scene, tmp_path, monkeypatch):
     assert not [p for p in out.rglob(".*") if p.name != ".pack-state.json"], "temp files left behind"
 
 
+def test_a_pack_killed_at_its_first_segment_resumes(scene, packed, tmp_path, monkeypatch):
+    """Outputs used to come before the first state file: a run killed there left a tree --resume refused."""
+    import stgs.packager.segments as pack_module
+
+    def killed(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pack_module, "encode_gop", killed)
+    out = tmp_path / "dash"
+    with pytest.raises(KeyboardInterrupt):
+        pack(scene, out, PackConfig(qps=QPS, jobs=1), progress=False)
+    assert list(out.rglob("*.stgk")) and (out / ".pack-state.json").is_file()
+    monkeypatch.undo()
+    pack(scene, out, PackConfig(qps=QPS, jobs=2, resume=True), progress=False)
+    assert tree_digest(out) == tree_digest(packed[0])
+
+
+def test_a_gop_file_changed_in_place_changes_the_pack_id(scene, packed, tmp_path):
+    def nudge(d: Path) -> None:
+        tensors = load_file(str(d / "gop_0001.safetensors"))
+        tensors["features"][0, 0, 0] += 0.5
+        save_file(tensors, str(d / "gop_0001.safetensors"))
+
+    model = corrupt_copy(scene, tmp_path, nudge)  # model.json untouched
+    out = tmp_path / "dash"
+    stats = pack(model, out, PackConfig(qps=QPS, jobs=2), progress=False)
+    assert stats["pack_id"] != packed[1]["pack_id"]
+    assert {p.name for p in out.glob("v-*")} == {f"v-{stats['pack_id']}"}
+
+
+@pytest.mark.parametrize("manifest", [b"<MPD xmlns='urn:mpeg:dash:schema:mpd:2011'/>", b"not even xml"])
+def test_a_folder_with_someone_elses_manifest_is_not_overwritten(scene, tmp_path, manifest):
+    out = tmp_path / "site"
+    out.mkdir()
+    (out / "manifest.mpd").write_bytes(manifest)
+    (out / "index.html").write_text("their page")
+    result = stgs("pack", str(scene), str(out), "--qps", "20", "--quiet")
+    assert result.returncode == 2 and "not a tree stgs pack wrote" in result.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["index.html", "manifest.mpd"]
+    assert (out / "manifest.mpd").read_bytes() == manifest
+
+
 def test_different_input_gets_new_segment_names(scene, packed, tmp_path):
     out, _ = packed
     other = tmp_path / "other"
