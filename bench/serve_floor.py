@@ -74,7 +74,7 @@ def floor_server(root: Path, port: int) -> None:
             response = web.StreamResponse(headers={"Content-Type": "video/iso.segment",
                                                    "Content-Length": str(st.st_size)})
             await response.prepare(request)
-            await send_file_body(request, fd, 0, st.st_size)
+            await send_file_body(request, fd, 0, st.st_size, [0], 30.0)
             await response.write_eof()
             return response
         finally:

@@ -46,6 +46,16 @@ _positive_int = _int_at_least(1, "positive")
 _non_negative_int = _int_at_least(0, "0 or more")
 
 
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not 0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a positive number: {text}")
+    return value
+
+
 def _names(text: str) -> list[str]:
     """A comma-separated list of names (blank entries dropped)."""
     return [n.strip() for n in text.split(",") if n.strip()]
@@ -157,7 +167,11 @@ def add_serve(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--host", default="127.0.0.1", help="listen address (default: 127.0.0.1)")
     p.add_argument("--port", type=int, default=8080, help="listen port (default: 8080; 0 picks one)")
     p.add_argument("--max-transfers", type=_positive_int, default=512,
-                   help="file transfers in flight at once (default: 512)")
+                   help="file transfers in flight at once, server-wide (default: 512)")
+    p.add_argument("--max-transfers-per-client", type=_positive_int, default=32,
+                   help="file transfers in flight at once from one client address (default: 32)")
+    p.add_argument("--send-timeout", type=_positive_float, default=30.0,
+                   help="seconds a transfer may go without the client taking a byte (default: 30)")
     p.add_argument("--workers", type=_positive_int, default=1,
                    help="server processes sharing the port (default: 1; up to one per core)")
     p.add_argument("--io-threads", type=_non_negative_int, default=0,
@@ -175,6 +189,7 @@ def run_serve(args: argparse.Namespace) -> int:
     if not 0 <= args.port <= 65535:
         raise UsageError(f"--port must be in 0..65535, got {args.port}")
     run(ServeConfig(root=args.root, host=args.host, port=args.port, max_transfers=args.max_transfers,
+                    max_transfers_per_client=args.max_transfers_per_client, send_timeout=args.send_timeout,
                     workers=args.workers, io_threads=args.io_threads, access_log=not args.quiet))
     return 0
 

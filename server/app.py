@@ -45,6 +45,7 @@ from stgs.server.config import (
 from stgs.server.files import BeneathOpener
 from stgs.server.metrics import Metrics, flush_metrics, observe
 from stgs.server.responses import FileFastPath, serve_file
+from stgs.server.slots import TransferSlots
 
 
 class InlineExecutor(ThreadPoolExecutor):
@@ -67,6 +68,9 @@ async def preflight(request: web.Request) -> web.Response:
 
 
 async def healthz(request: web.Request) -> web.Response:
+    """200 ok, or 503 saturated while every transfer slot is taken and requests wait for one."""
+    if request.app[SLOTS_KEY].saturated:
+        return web.json_response({"status": "saturated"}, status=503, headers={"Cache-Control": "no-store"})
     return web.json_response({"status": "ok"}, headers={"Cache-Control": "no-store"})
 
 
@@ -96,7 +100,7 @@ def build_app(cfg: ServeConfig) -> web.Application:
     app[HEADERS_KEY] = response_headers(cfg)
 
     async def make_slots(app: web.Application) -> None:
-        app[SLOTS_KEY] = asyncio.Semaphore(cfg.max_transfers)
+        app[SLOTS_KEY] = TransferSlots(cfg.max_transfers, cfg.max_transfers_per_client)
 
     app.on_startup.append(make_slots)
     app.cleanup_ctx.append(flush_metrics)

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import asyncio
 from dataclasses import dataclass
 from pathlib import Path
 
 from aiohttp import web
 
+from stgs.server.slots import TransferSlots
 from stgs.tree import KEYFRAME_EXTENSION, KEYFRAME_MIME_TYPE
 
 CONTENT_TYPES = {
@@ -39,7 +39,7 @@ CONFIG_KEY = web.AppKey("config", object)
 METRICS_KEY = web.AppKey("metrics", object)
 
 
-SLOTS_KEY = web.AppKey("slots", asyncio.Semaphore)
+SLOTS_KEY = web.AppKey("slots", TransferSlots)
 
 
 HEADERS_KEY = web.AppKey("headers", dict)
@@ -56,7 +56,11 @@ class ServeConfig:
     port: int = 8080
     """Listen port (0: any free port)."""
     max_transfers: int = 512
-    """File transfers in flight at once; further requests wait for a slot."""
+    """File transfers in flight at once, server-wide; further requests wait for a slot."""
+    max_transfers_per_client: int = 32
+    """File transfers in flight at once from one client address (slow readers cannot take every slot)."""
+    send_timeout: float = 30.0
+    """Seconds a transfer may go without the client taking a byte before its connection is closed."""
     keepalive_timeout: float = 15.0
     """Seconds an idle keep-alive connection stays open."""
     max_header_bytes: int = 8190

@@ -47,7 +47,7 @@ async def counted_transfer(app: web.Application, request: web.BaseRequest, respo
     start = time.perf_counter()
     metrics.handling += 1
     try:
-        async with app[SLOTS_KEY]:
+        async with app[SLOTS_KEY].hold(request.remote or ""):
             return await send(request)
     finally:
         metrics.handling -= 1
@@ -98,7 +98,8 @@ class FileTransfer(web.StreamResponse):
             self.headers.update(answer.headers)
             writer = await super().prepare(request)
             if request.method != "HEAD" and answer.count:
-                await send_file_body(request, fd, answer.offset, answer.count, self.body_sent)
+                await send_file_body(request, fd, answer.offset, answer.count, self.body_sent,
+                                     self._app[CONFIG_KEY].send_timeout)
                 await super().write_eof()
             return writer
         finally:
@@ -109,37 +110,74 @@ class ShortFileError(ConnectionResetError):
     """The file ended before the span its headers announced (truncated in place during the transfer)."""
 
 
-async def send_file_body(request: web.BaseRequest, fd: int, offset: int, count: int,
-                         progress: list[int] | None = None) -> None:
+async def send_file_body(request: web.BaseRequest, fd: int, offset: int, count: int, progress: list[int],
+                         timeout: float) -> None:
     """Send bytes [offset, offset + count) of the file; `progress[0]` counts what has gone out.
 
-    A file that ends early (truncated while it was being sent) aborts the connection: the body would end short
-    of its Content-Length and the next response on a keep-alive connection would be read as the rest of it."""
+    os.sendfile straight on the socket while it takes bytes, waiting for it to become writable in between; a
+    client that takes nothing for `timeout` seconds has its connection aborted (as nginx's send_timeout), and so
+    does a file that ends early (truncated while it was being sent): the body would end short of its
+    Content-Length and the next response on the keep-alive connection would be read as the rest of it."""
     transport = request.transport
     if transport is None or transport.is_closing():
         raise ConnectionResetError("connection lost")
-    progress = progress if progress is not None else [0]
-    sent = 0
-    if transport.get_write_buffer_size() == 0:  # the headers are out: the socket is ours until the body is
-        sock = transport.get_extra_info("socket")
-        try:
-            while sent < count:
-                n = os.sendfile(sock.fileno(), fd, offset + sent, count - sent)
-                if n == 0:
-                    break
-                sent += n
-                progress[0] = sent
-        except BlockingIOError:
-            pass
-        except OSError as exc:  # peer gone (EPIPE, ECONNRESET)
-            raise ConnectionResetError(str(exc)) from exc
-    if sent < count and os.fstat(fd).st_size >= offset + count:
+    loop = asyncio.get_running_loop()
+    if transport.get_write_buffer_size():  # the headers are not out yet: let the transport flush them
+        await _flushed(transport, timeout)
+    sock = transport.get_extra_info("socket")
+    if sock is None:  # not a socket transport (TLS ends in a proxy in front of this server): asyncio's copy loop
         with open(fd, "rb", closefd=False) as f:
-            sent += await asyncio.get_running_loop().sendfile(transport, f, offset + sent, count - sent)
-        progress[0] = sent
-    if sent < count:
-        transport.abort()
-        raise ShortFileError(f"the file ended {count - sent} bytes before the announced span")
+            progress[0] = await asyncio.wait_for(loop.sendfile(transport, f, offset, count), timeout + count / 1e5)
+        return
+    sent, watch = 0, -1
+    try:
+        while sent < count:
+            try:
+                n = os.sendfile(sock.fileno(), fd, offset + sent, count - sent)
+            except BlockingIOError:
+                if watch < 0:  # asyncio lets no one else watch a transport's descriptor: watch a duplicate
+                    watch = os.dup(sock.fileno())
+                if not await _writable(loop, watch, timeout):
+                    transport.abort()
+                    raise ConnectionResetError(f"the client took nothing for {timeout:g} s") from None
+                continue
+            except OSError as exc:  # peer gone (EPIPE, ECONNRESET)
+                transport.abort()
+                raise ConnectionResetError(str(exc)) from exc
+            if n == 0:
+                transport.abort()
+                raise ShortFileError(f"the file ended {count - sent} bytes before the announced span")
+            sent += n
+            progress[0] = sent
+    finally:
+        if watch >= 0:
+            os.close(watch)
+
+
+async def _writable(loop: asyncio.AbstractEventLoop, fd: int, timeout: float) -> bool:
+    """Whether the socket behind descriptor `fd` becomes writable within `timeout` seconds."""
+    ready = loop.create_future()
+    loop.add_writer(fd, lambda: ready.done() or ready.set_result(None))
+    try:
+        await asyncio.wait_for(ready, timeout)
+        return True
+    except TimeoutError:
+        return False
+    finally:
+        loop.remove_writer(fd)
+
+
+async def _flushed(transport: asyncio.WriteTransport, timeout: float) -> None:
+    """Wait until the transport has written out what it buffered (making no progress for `timeout`: abort)."""
+    left, stalled = transport.get_write_buffer_size(), 0.0
+    while left:
+        await asyncio.sleep(0.01)
+        now = transport.get_write_buffer_size()
+        stalled = 0.0 if now < left else stalled + 0.01
+        if stalled >= timeout or transport.is_closing():
+            transport.abort()
+            raise ConnectionResetError("the client took nothing while the headers were sent")
+        left = now
 
 
 async def serve_file(request: web.Request) -> web.StreamResponse:
