@@ -572,6 +572,9 @@ def build_parser(commands: tuple[str, ...] | None = None) -> argparse.ArgumentPa
 
 
 def main(argv: list[str] | None = None, commands: tuple[str, ...] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if commands is None and argv and argv[0] in COMMANDS:
+        commands = (argv[0],)  # only that command's parser: `stgs serve` imports nothing of torch
     args = build_parser(commands).parse_args(argv)
     try:
         return args.run(args)

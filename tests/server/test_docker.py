@@ -72,6 +72,17 @@ def test_server_slice_covers_what_the_server_imports():
     assert needed <= pinned, f"missing from the server image: {sorted(needed - pinned)}"
 
 
+def test_stgs_serve_runs_with_torch_and_numpy_unimportable(tmp_path):
+    """The `stgs serve` command line as the console script runs it, in a process where importing torch, numpy or
+    OpenCV fails: it gets as far as checking its ROOT (the server itself is imported at run time)."""
+    code = ("import sys; sys.modules.update(torch=None, numpy=None, cv2=None); from stgs.cli import main; "
+            "import stgs.server.app, stgs.server.workers, stgs.server.catalogue; "
+            f"sys.exit(main(['serve', {str(tmp_path / 'missing')!r}]))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    assert result.returncode == 2 and result.stderr.strip() == f"stgs: {tmp_path / 'missing'}: not a folder", \
+        result.stderr
+
+
 def test_server_entry_point_needs_no_torch():
     code = ("import sys; from stgs.cli import build_parser; build_parser(('serve',)); import stgs.server.workers; "
             "sys.exit(1 if {'torch', 'numpy', 'cv2'} & set(sys.modules) else 0)")
