@@ -51,6 +51,14 @@ def test_expand_template_rejects_unknown_identifiers():
         expand_template("$Number%5x$.m4s", "a", 1)
 
 
+def test_number_width_is_capped():
+    """$Number%0999999999d$ once took the player to 7.2 GB; a 20-digit width was an OverflowError."""
+    assert expand_template("$Number%032d$", "a", 7) == "0" * 31 + "7"
+    for tag in ("%033d", "%0999999999d", "%099999999999999999999d"):
+        with pytest.raises(MPDError, match="over the limit"):
+            expand_template(f"$Number{tag}$", "a", 1)
+
+
 def sample_mpd() -> MPD:
     kf = AdaptationSet(1, "application", "application/vnd.streamstgs.keyframe",
                        SegmentTemplate("k/$Number%05d$.stgk", 1000, 2000, 0),
