@@ -15,8 +15,8 @@ due GOP was not ready. `realtime` additionally paces frames to that schedule
 and drops a frame when rendering is behind; otherwise frames render as fast
 as they can (never dropped).
 
-The Session is one class of about 300 lines (over the usual size) because its three tasks share
-one state (clock, records, the fetch schedule); what to fetch lives in
+The module is over the usual size (~400 lines) because the Session's three tasks share one state
+(clock, records, the fetch schedule) and one task group; what to fetch lives in
 `stgs.client.schedule`, settings in `stgs.client.config`.
 """
 
