@@ -46,16 +46,6 @@ _positive_int = _int_at_least(1, "positive")
 _non_negative_int = _int_at_least(0, "0 or more")
 
 
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not 0 < value < float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a positive number: {text}")
-    return value
-
-
 def _names(text: str) -> list[str]:
     """A comma-separated list of names (blank entries dropped)."""
     return [n.strip() for n in text.split(",") if n.strip()]
@@ -170,7 +160,7 @@ def add_serve(sub: argparse._SubParsersAction) -> None:
                    help="file transfers in flight at once, server-wide (default: 512)")
     p.add_argument("--max-transfers-per-client", type=_positive_int, default=32,
                    help="file transfers in flight at once from one client address (default: 32)")
-    p.add_argument("--send-timeout", type=_positive_float, default=30.0,
+    p.add_argument("--send-timeout", type=_positive_seconds, default=30.0,
                    help="seconds a transfer may go without the client taking a byte (default: 30)")
     p.add_argument("--workers", type=_positive_int, default=1,
                    help="server processes sharing the port (default: 1; up to one per core)")
@@ -211,14 +201,22 @@ def _size(text: str) -> tuple[int, int]:
     return int(w), int(h)
 
 
-def _seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number of seconds: {text!r}") from None
-    if not math.isfinite(value) or value < 0:
-        raise argparse.ArgumentTypeError(f"must be a non-negative number of seconds: {text!r}")
-    return value
+def _seconds_parser(positive: bool):
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a number of seconds: {text!r}") from None
+        if not math.isfinite(value) or value < 0 or (positive and value == 0):
+            words = "positive" if positive else "non-negative"
+            raise argparse.ArgumentTypeError(f"must be a {words} number of seconds: {text!r}")
+        return value
+
+    return parse
+
+
+_seconds = _seconds_parser(positive=False)
+_positive_seconds = _seconds_parser(positive=True)
 
 
 def add_play(sub: argparse._SubParsersAction) -> None:

@@ -9,8 +9,7 @@ from pathlib import Path
 
 from stgs.errors import StgsError
 from stgs.fsio import atomic_write_bytes
-from stgs.limits import MAX_MPD_BYTES
-from stgs.mpd import PROFILE_STGS, MPDError, parse_mpd
+from stgs.mpd import PROFILE_STGS, MPDError, read_mpd
 from stgs.tree import MANIFEST, MODEL_META, PACK_STATE
 
 
@@ -38,8 +37,7 @@ def _ours(out: Path) -> bool:
     except (OSError, ValueError, AttributeError):
         pass
     try:
-        with (out / MANIFEST).open("rb") as f:
-            return PROFILE_STGS in parse_mpd(f.read(MAX_MPD_BYTES + 1)).profiles
+        return PROFILE_STGS in read_mpd(out / MANIFEST).profiles
     except (OSError, MPDError):
         return False
 

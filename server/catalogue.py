@@ -13,20 +13,22 @@ from pathlib import Path
 
 from aiohttp import web
 
-from stgs.limits import MAX_MPD_BYTES
-from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, MPDError, parse_mpd
+from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, MPDError, read_mpd
 from stgs.server.config import CORS_HEADERS, ROOT_KEY
 from stgs.tree import MANIFEST
 
 
+def manifest_url(name: str) -> str:
+    """The URL path of scene `name`'s MPD ("." is a scene at ROOT itself)."""
+    return f"/{MANIFEST}" if name == "." else f"/{name}/{MANIFEST}"
+
+
 def scene_summary(name: str, manifest: Path) -> dict:
-    with manifest.open("rb") as f:
-        mpd = parse_mpd(f.read(MAX_MPD_BYTES + 1))  # parse_mpd refuses more
+    mpd = read_mpd(manifest)
     video = mpd.adaptation_set(FEATURE_SCHEME)
     keyframes = mpd.adaptation_set(KEYFRAME_SCHEME)
     seconds = video.segment_template.seconds
-    prefix = "" if name == "." else f"{name}/"
-    return {"name": name, "manifest": f"/{prefix}{MANIFEST}", "duration": mpd.duration,
+    return {"name": name, "manifest": manifest_url(name), "duration": mpd.duration,
             "gops": round(mpd.duration / seconds), "gop_seconds": seconds,
             "keyframe_bandwidth": keyframes.representations[0].bandwidth,
             "ladder": [{"id": r.id, "bandwidth": r.bandwidth, "codecs": r.codecs} for r in video.representations]}
@@ -46,8 +48,7 @@ def catalogue(root: Path) -> list[dict]:
             except (MPDError, OSError, IndexError, ArithmeticError) as exc:
                 # listed as bad (one broken scene must not take the catalogue down with it)
                 logging.getLogger("stgs.server").warning("%s: not a playable StreamSTGS manifest (%s)", manifest, exc)
-                prefix = "" if name == "." else f"{name}/"
-                scenes.append({"name": name, "manifest": f"/{prefix}{MANIFEST}",
+                scenes.append({"name": name, "manifest": manifest_url(name),
                                "error": f"not a playable StreamSTGS manifest: {str(exc)[:200]}"})
     return scenes
 

@@ -87,8 +87,8 @@ def byte_span(header: str, size: int) -> tuple[int, int] | bool | None:
     unit, sep, specs = header.partition("=")
     if not sep or unit.strip().lower() != "bytes":
         return None
-    spans = []
-    for spec in specs.split(","):
+    spans, parts = [], specs.split(",")
+    for spec in parts:
         match = _RANGE_SPEC.fullmatch(spec.strip())
         if match is None:
             return False
@@ -104,7 +104,7 @@ def byte_span(header: str, size: int) -> tuple[int, int] | bool | None:
             spans.append(span)
     if not spans:
         return False
-    return spans[0] if len(spans) == 1 and len(specs.split(",")) == 1 else None
+    return spans[0] if len(parts) == 1 else None
 
 
 def range_answer(request: web.BaseRequest, size: int, validators: dict[str, str]) -> Answer:

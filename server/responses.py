@@ -125,10 +125,6 @@ async def send_file_body(request: web.BaseRequest, fd: int, offset: int, count: 
     if transport.get_write_buffer_size():  # the headers are not out yet: let the transport flush them
         await _flushed(transport, timeout)
     sock = transport.get_extra_info("socket")
-    if sock is None:  # not a socket transport (TLS ends in a proxy in front of this server): asyncio's copy loop
-        with open(fd, "rb", closefd=False) as f:
-            progress[0] = await asyncio.wait_for(loop.sendfile(transport, f, offset, count), timeout + count / 1e5)
-        return
     sent, watch = 0, -1
     try:
         while sent < count:

@@ -29,7 +29,7 @@ from stgs.metrics import LPIPS, lpips_backbone_file, psnr, ssim
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.store import load_gop, read_meta
 from stgs.model.view import FrameRenderer
-from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, MPDError, expand_template, parse_mpd
+from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, MPDError, expand_template, read_mpd
 from stgs.train.views import scale_camera
 from stgs.tree import MANIFEST, TRAIN_REPORT
 
@@ -39,7 +39,7 @@ GRID_ROWS = 4
 def packaged_gops(dash: Path) -> dict[str, Callable[[int], GOPModel]]:
     """Representation id -> (GOP index -> the GOP as a player decodes it) for a local DASH tree."""
     try:
-        mpd = parse_mpd((dash / MANIFEST).read_bytes())
+        mpd = read_mpd(dash / MANIFEST)
         kf_set, video = mpd.adaptation_set(KEYFRAME_SCHEME), mpd.adaptation_set(FEATURE_SCHEME)
     except (OSError, MPDError) as exc:
         raise StgsError(f"{dash}: not a packaged scene ({exc})") from None

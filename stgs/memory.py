@@ -54,7 +54,10 @@ class FilledHeap:
         self._lock = threading.Lock()
         self._open = 0
         self._mallopt = _mallopt()
-        self.available = self._mallopt is not None
+
+    @property
+    def available(self) -> bool:
+        return self._mallopt is not None
 
     def _set(self, value: int) -> None:
         if self._mallopt is not None:

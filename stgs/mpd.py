@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from lxml import etree
 
@@ -324,6 +325,12 @@ def parse_mpd(data: bytes) -> MPD:
                [Period.from_element(p) for p in root.findall(_q("Period"))],
                (root.get("profiles") or "").split(","),
                base.text.strip() if base is not None and base.text else None)
+
+
+def read_mpd(path: Path) -> MPD:
+    """Parse the MPD file at `path`, reading no more of it than parse_mpd accepts."""
+    with open(path, "rb") as f:
+        return parse_mpd(f.read(MAX_MPD_BYTES + 1))
 
 
 def expand_template(template: str, representation_id: str, number: int | None = None) -> str:
