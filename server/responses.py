@@ -59,8 +59,8 @@ class FileTransfer(web.StreamResponse):
 
     The answer aiohttp's FileResponse gives (same ETag, Last-Modified, Accept-Ranges, ranges and conditions),
     with less Python per request, which is what limits this server (docs/BENCHMARKS.md): the file is opened and
-    stat'ed once, and the body goes out by os.sendfile straight on the socket, in one call when the socket's
-    buffer takes it; asyncio's loop.sendfile sends whatever is left.
+    stat'ed once, and the body goes out by os.sendfile straight on the socket (send_file_body), in one call
+    when the socket's buffer takes it.
     """
 
     def __init__(self, app: web.Application, path: str, headers: dict[str, str],
