@@ -160,8 +160,12 @@ def add_serve(sub: argparse._SubParsersAction) -> None:
                    help="file transfers in flight at once, server-wide (default: 512)")
     p.add_argument("--max-transfers-per-client", type=_positive_int, default=32,
                    help="file transfers in flight at once from one client address (default: 32)")
+    p.add_argument("--max-connections-per-client", type=_non_negative_int, default=128,
+                   help="open connections one client address may hold (default: 128; 0: no limit)")
     p.add_argument("--send-timeout", type=_positive_seconds, default=30.0,
                    help="seconds a transfer may go without the client taking a byte (default: 30)")
+    p.add_argument("--shutdown-timeout", type=_positive_seconds, default=10.0,
+                   help="on SIGTERM, seconds in-flight transfers get before they are cut (default: 10)")
     p.add_argument("--workers", type=_positive_int, default=1,
                    help="server processes sharing the port (default: 1; up to one per core)")
     p.add_argument("--io-threads", type=_non_negative_int, default=0,
@@ -179,8 +183,10 @@ def run_serve(args: argparse.Namespace) -> int:
     if not 0 <= args.port <= 65535:
         raise UsageError(f"--port must be in 0..65535, got {args.port}")
     run(ServeConfig(root=args.root, host=args.host, port=args.port, max_transfers=args.max_transfers,
-                    max_transfers_per_client=args.max_transfers_per_client, send_timeout=args.send_timeout,
-                    workers=args.workers, io_threads=args.io_threads, access_log=not args.quiet))
+                    max_transfers_per_client=args.max_transfers_per_client,
+                    max_connections_per_client=args.max_connections_per_client, send_timeout=args.send_timeout,
+                    shutdown_timeout=args.shutdown_timeout, workers=args.workers, io_threads=args.io_threads,
+                    access_log=not args.quiet))
     return 0
 
 

@@ -44,6 +44,7 @@ from stgs.server.config import (
 )
 from stgs.server.files import BeneathOpener
 from stgs.server.metrics import Metrics, flush_metrics, observe
+from stgs.server.protocol import ConnectionLimits, GuardedServer
 from stgs.server.responses import FileFastPath, serve_file
 from stgs.server.slots import TransferSlots
 
@@ -117,9 +118,15 @@ def build_app(cfg: ServeConfig) -> web.Application:
 
 
 class SceneRunner(web.AppRunner):
-    """The AppRunner of a build_app app with FileFastPath in front of the app: how `stgs serve` runs."""
+    """The AppRunner of a build_app app with FileFastPath in front of the app and the connection guards of
+    stgs.server.protocol (connections per client, request-head bytes): how `stgs serve` runs."""
 
     _opener: BeneathOpener | None = None
+
+    async def _make_server(self) -> web.Server:
+        cfg = self.app[CONFIG_KEY]
+        limits = ConnectionLimits(per_client=cfg.max_connections_per_client, head_bytes=cfg.max_head_bytes)
+        return GuardedServer.replacing(await super()._make_server(), limits)
 
     async def setup(self) -> None:
         await super().setup()

@@ -67,6 +67,10 @@ class ServeConfig:
     """Longest request line / header field accepted (longer: 400)."""
     max_headers: int = 64
     """Most header fields per request."""
+    max_head_bytes: int = 32_768
+    """Bytes the request line and all header fields of one request may take together (more: 431, closed)."""
+    max_connections_per_client: int = 128
+    """Open connections one client address may hold (more: 503, closed; 0: no limit)."""
     shutdown_timeout: float = 10.0
     """On SIGTERM, seconds in-flight transfers get to finish before they are cut."""
     manifest_max_age: int = 2

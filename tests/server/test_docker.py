@@ -107,3 +107,7 @@ def test_compose_puts_a_caching_proxy_in_front():
     conf = (DOCKER / "nginx-cache.conf").read_text()
     assert "proxy_cache_path" in conf and "proxy_pass http://server:8080" in conf
     assert "proxy_cache stgs;" in conf
+    # the server sees only the proxy's address: its per-client limits are off, the proxy's apply per client
+    server_section = compose.split("  cache:")[0]
+    assert '"--max-connections-per-client", "0"' in server_section
+    assert re.search(r"limit_conn \w+ \d+;", conf) and "limit_conn_zone $binary_remote_addr" in conf

@@ -4,6 +4,7 @@ transfers cut short. The real server (its file fast path included) on loopback, 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import socket
 from pathlib import Path
@@ -117,3 +118,96 @@ async def test_slow_readers_hold_only_their_own_slots_and_healthz_tells_saturati
         assert health.status == 503 and (await health.json())["status"] == "saturated"
         for writer in hogs:
             writer.transport.abort()
+
+
+async def _connect(host: str, port: int, source: str) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+    sock = socket.socket()
+    sock.bind((source, 0))
+    sock.setblocking(False)
+    await asyncio.get_running_loop().sock_connect(sock, (host, port))
+    return await asyncio.open_connection(sock=sock)
+
+
+def _rss_bytes() -> int:
+    return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+async def test_a_header_flood_is_cut_at_the_request_head_bound(tmp_path: Path):
+    """Header fields each under the per-field limit, never finished: 431 and closed once the head passes the
+    bound, instead of half a megabyte held per connection for as long as the client likes."""
+    (tmp_path / "s").mkdir()
+    app = build_app(ServeConfig(root=tmp_path, port=0, access_log=False, max_head_bytes=16_384))
+    async with on_loopback(app, SceneRunner) as base:
+        host, port = base.split("//")[1].rstrip("/").split(":")
+        reader, writer = await asyncio.open_connection(host, int(port))
+        writer.write(b"GET /s/x.m4s HTTP/1.1\r\nHost: x\r\n")
+        field = b"X-Pad: " + b"a" * 8000 + b"\r\n"
+        with contextlib.suppress(ConnectionError):
+            for _ in range(62):
+                writer.write(field)
+                await writer.drain()
+        status, headers = await _headers(reader)
+        assert status == 431 and headers["connection"] == "close"
+        assert await _read_to_eof(reader, limit_s=5) == b""
+        writer.close()
+
+
+async def test_header_floods_from_many_connections_leave_the_server_small(tmp_path: Path):
+    (tmp_path / "s").mkdir()
+    app = build_app(ServeConfig(root=tmp_path, port=0, access_log=False))
+    field = b"X-Pad: " + b"a" * 8000 + b"\r\n"
+
+    async def flood(host: str, port: int, source: str) -> None:
+        reader, writer = await _connect(host, port, source)
+        writer.write(b"GET / HTTP/1.1\r\nHost: x\r\n")
+        with contextlib.suppress(ConnectionError):
+            for _ in range(62):
+                writer.write(field)
+                await writer.drain()
+        await _read_to_eof(reader, limit_s=20)
+        writer.close()
+
+    async with on_loopback(app, SceneRunner) as base:
+        host, port = base.split("//")[1].rstrip("/").split(":")
+        before = _rss_bytes()
+        await asyncio.gather(*(flood(host, int(port), f"127.0.{1 + i // 100}.{1 + i % 100}") for i in range(300)))
+        grown = _rss_bytes() - before
+    assert grown < 48 << 20, f"{grown >> 20} MB"  # unbounded: 300 x 62 x 8 KB = 145 MB
+
+
+async def test_connections_per_client_are_capped_without_touching_other_clients(tmp_path: Path):
+    scene = tmp_path / "s"
+    scene.mkdir()
+    (scene / "small.m4s").write_bytes(b"x" * 100)
+    app = build_app(ServeConfig(root=tmp_path, port=0, access_log=False, max_connections_per_client=4))
+    async with on_loopback(app, SceneRunner) as base:
+        host, port = base.split("//")[1].rstrip("/").split(":")
+        held = [await _connect(host, int(port), "127.0.0.5") for _ in range(4)]
+        reader, writer = await _connect(host, int(port), "127.0.0.5")
+        status, _ = await _headers(reader)
+        assert status == 503 and await _read_to_eof(reader, limit_s=5) == b""
+        writer.close()
+        async with aiohttp.ClientSession() as session:  # another address is served as usual
+            assert (await (await session.get(base + "s/small.m4s")).read()) == b"x" * 100
+        held[0][1].close()
+        await asyncio.sleep(0.2)
+        reader, writer = await _connect(host, int(port), "127.0.0.5")  # a freed place can be taken again
+        writer.write(b"GET /s/small.m4s HTTP/1.1\r\nHost: x\r\n\r\n")
+        status, _ = await _headers(reader)
+        assert status == 200
+        for _, held_writer in [*held[1:], (reader, writer)]:
+            held_writer.close()
+
+
+async def test_a_bad_request_is_answered_without_echo_or_traceback(tmp_path: Path, caplog):
+    (tmp_path / "s").mkdir()
+    app = build_app(ServeConfig(root=tmp_path, port=0, access_log=False))
+    async with on_loopback(app, SceneRunner) as base:
+        host, port = base.split("//")[1].rstrip("/").split(":")
+        reader, writer = await asyncio.open_connection(host, int(port))
+        writer.write(b"G<script>alert(1)</script>ET / HTTP/1.1\r\nHost: x\r\n\r\n")
+        status, _ = await _headers(reader)
+        body = await _read_to_eof(reader, limit_s=5)
+        writer.close()
+    assert status == 400 and body == b"400 Bad Request\n"
+    assert not [r for r in caplog.records if r.exc_info], "a bad request logged a traceback"

@@ -422,7 +422,8 @@ def open_fds() -> int:
 
 
 async def test_200_concurrent_clients_get_every_byte(scene_server, root):
-    server = await scene_server(build_app(ServeConfig(root=root, max_transfers=64)))
+    # one address plays 200 clients: no per-client connection cap
+    server = await scene_server(build_app(ServeConfig(root=root, max_transfers=64, max_connections_per_client=0)))
     files = scene_files(root)
     want = {rel: hashlib.sha256((root / "scene1" / rel).read_bytes()).hexdigest() for rel in files}
     fds_before = open_fds()
@@ -607,6 +608,33 @@ def test_sigterm_shuts_down_cleanly_during_a_transfer(root):
         assert proc.wait(timeout=30) == 0
         assert time.monotonic() - start < 25
         assert received > 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        big.unlink()
+
+
+def test_sigterm_cuts_a_stalled_reader_at_the_shutdown_timeout(root):
+    """A client that asked for a big segment and reads nothing: the server exits shutdown-timeout seconds after
+    SIGTERM, not twice that (aiohttp's graceful wait, then as long again for the cancelled handler)."""
+    import signal
+    import socket
+    import time
+
+    big = root / "scene1" / "stalled_reader_segment.m4s"
+    big.write_bytes(bytes(64 << 20))
+    proc, port = start_server(root, "--shutdown-timeout", "3")
+    try:
+        sock = socket.socket()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        sock.connect(("127.0.0.1", port))
+        sock.sendall(b"GET /scene1/stalled_reader_segment.m4s HTTP/1.1\r\nHost: x\r\n\r\n")
+        time.sleep(0.5)
+        start = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) == 0
+        assert time.monotonic() - start < 4.5
+        sock.close()
     finally:
         if proc.poll() is None:
             proc.kill()
