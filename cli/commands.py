@@ -258,6 +258,14 @@ def add_play(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--log", type=Path, help="JSON playback log (default: playback.json beside --out, else none)")
     p.add_argument("--timeout", type=_seconds, default=10.0, help="seconds without data before a request fails")
     p.add_argument("--retries", type=int, default=3, help="retries per request (default: 3)")
+    urls = p.add_argument_group("URL policy (default: http(s) from the manifest's host and the hosts its BaseURLs "
+                                "name; no link-local addresses; loopback only for a manifest on loopback)")
+    urls.add_argument("--allow-host", action="append", default=[], metavar="HOST",
+                      help="also fetch from this host, e.g. a CDN the server redirects to (repeatable)")
+    urls.add_argument("--allow-any-host", action="store_true", help="fetch from any host (address rules still hold)")
+    urls.add_argument("--allow-loopback", action="store_true", help="allow loopback addresses for a remote manifest")
+    urls.add_argument("--allow-link-local", action="store_true",
+                      help="allow link-local addresses (169.254.0.0/16, fe80::/10; cloud metadata lives there)")
     p.set_defaults(run=run_play)
 
 
@@ -266,6 +274,7 @@ def run_play(args: argparse.Namespace) -> int:
 
     from stgs.client import PlayConfig, play
     from stgs.client.download import DownloadSettings
+    from stgs.client.urlpolicy import UrlPolicySettings
     from stgs.client.view import ViewSpec
 
     if not args.url.startswith(("http://", "https://")):
@@ -283,7 +292,10 @@ def run_play(args: argparse.Namespace) -> int:
     cfg = PlayConfig(url=args.url, abr=args.abr, qp=args.qp, buffer_s=args.buffer, start_s=args.start,
                      duration_s=args.duration, realtime=args.realtime, view=view, out=args.out, log=log,
                      precision=args.precision,
-                     download=DownloadSettings(read_timeout_s=args.timeout, retries=args.retries))
+                     download=DownloadSettings(read_timeout_s=args.timeout, retries=args.retries),
+                     urls=UrlPolicySettings(hosts=tuple(args.allow_host), any_host=args.allow_any_host,
+                                            loopback=True if args.allow_loopback else None,
+                                            link_local=args.allow_link_local))
     summary = asyncio.run(play(cfg))
     print_playback(summary)
     if log is not None:

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from stgs.client.abr import RULES, AbrSettings
 from stgs.client.download import DownloadSettings
+from stgs.client.urlpolicy import UrlPolicySettings
 from stgs.client.view import ViewSpec
 from stgs.errors import FieldError, StgsError
 from stgs.model.native_deform import check_precision
@@ -54,6 +55,8 @@ class PlayConfig:
     """Media seconds per wall second of the playback clock (> 1: scaled-time emulation; decode off only)."""
     abr_settings: AbrSettings = field(default_factory=AbrSettings)
     download: DownloadSettings = field(default_factory=DownloadSettings)
+    urls: UrlPolicySettings = field(default_factory=UrlPolicySettings)
+    """Which hosts and addresses the player may fetch from besides the manifest's (stgs.client.urlpolicy)."""
 
     def validate(self) -> None:
         if self.abr not in RULES:

@@ -13,6 +13,7 @@ import math
 from dataclasses import dataclass
 from urllib.parse import urljoin
 
+from stgs.codec.mp4 import MP4Error, media_timeline, track_timescale
 from stgs.limits import (
     MAX_CAPACITY,
     MAX_FPS,
@@ -169,6 +170,17 @@ class Presentation:
     def sibling_url(self, name: str) -> str:
         """URL of a document beside the MPD (stats.json, cameras.json)."""
         return urljoin(self.url, name)
+
+    def check_feature_segment(self, init: bytes, media: bytes, gop: int) -> None:
+        """Raise MP4Error unless the feature media segment sits at GOP `gop`'s place in the timeline: its tfdt,
+        in the init segment's timescale, is gop x segment duration (manifests/PROFILE.md; a cache or server
+        that answers with another GOP's segment would otherwise play the wrong motion silently)."""
+        _, decode_time = media_timeline(media)
+        seconds = decode_time / track_timescale(init)
+        expected = gop * self.segment_seconds
+        if abs(seconds - expected) >= self.segment_seconds / 2:
+            raise MP4Error(f"the feature segment fetched for GOP {gop} starts at {seconds:.3f} s, expected "
+                           f"{expected:.3f} s (GOP {round(seconds / self.segment_seconds)}'s place)")
 
     def decoded_gop_bytes(self) -> int:
         """Memory one decoded GOP holds at its peak: the E decoded 12-bit frames of 4S x 4S and the E x N x 16

@@ -53,6 +53,7 @@ from stgs.client.schedule import (
     Step,
     Wait,
 )
+from stgs.client.urlpolicy import UrlPolicy
 from stgs.client.view import Trajectory, build_trajectory, parse_scene_cameras
 from stgs.codec.features import features_from_frames
 from stgs.codec.keyframe import Keyframe, KeyframeError, decode_keyframe
@@ -162,15 +163,17 @@ class Session:
                 verdict.append(decision)
             return decision is not None
 
+        start = time.perf_counter()
+        time_left = None if req.time_left is None else req.time_left / self.speed
         try:
             data, sample = await self.dl.fetch_once(req.url, req.kind, req.max_bytes,
-                                                    progress if req.judge is not None else None)
+                                                    progress if req.judge is not None else None, time_left)
         except AbandonError as exc:
             return Abandoned(exc.sample.bytes, exc.sample.seconds * self.speed, verdict[0])
         except TransientError as exc:
-            return Failed(f"{req.url}: {exc}", retryable=True)
+            return Failed(f"{req.url}: {exc}", retryable=True, seconds=(time.perf_counter() - start) * self.speed)
         except FetchError as exc:
-            return Failed(str(exc), retryable=False)
+            return Failed(str(exc), retryable=False, seconds=(time.perf_counter() - start) * self.speed)
         return Done(len(data), sample.seconds * self.speed, sample.ttfb * self.speed, data)
 
     async def fetch_loop(self, downloaded: dict[int, asyncio.Future]) -> None:
@@ -201,6 +204,7 @@ class Session:
     def decode_features(self, item: Fetched, kf: Keyframe) -> ReadyGOP:
         rec, side = self.records[item.index], self.pres.grid_side
         start = time.perf_counter()
+        self.pres.check_feature_segment(item.init, item.media, item.index)
         frames = decode_segment(item.init, item.media, self.pres.shape.num_features, 4 * side, 4 * side)
         mid = time.perf_counter()
         model = kf.to_model(features_from_frames(frames, side, kf.feature_ranges))
@@ -401,9 +405,11 @@ async def _optional_json(dl: Downloader, url: str) -> object | None:
 async def play(cfg: PlayConfig, on_gop: Callable[[int, FrameRenderer], None] | None = None) -> dict:
     """Play the presentation at cfg.url; returns the playback log (also written to cfg.log)."""
     cfg.validate()
-    async with Downloader(cfg.download) as dl:
+    policy = UrlPolicy(cfg.url, cfg.urls)
+    async with Downloader(cfg.download, policy) as dl:
         try:
             pres = Presentation.parse(await dl.fetch(cfg.url, "document", MAX_MPD_BYTES), cfg.url)
+            policy.allow_hosts_of(pres.base)
         except FetchError as exc:
             raise PlaybackError(f"cannot fetch the manifest: {exc}") from None
         except MPDError as exc:

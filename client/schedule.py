@@ -69,6 +69,8 @@ class Request:
     judge: Callable[[int, int | None, float], Decision | None] | None = None
     """For an abandonable download: (bytes so far, Content-Length, media seconds since the request started)
     -> a Decision to drop it, or None to go on."""
+    time_left: float | None = None
+    """Media seconds this attempt may take: what the request's deadline leaves after earlier attempts."""
 
 
 @dataclass(frozen=True)
@@ -93,6 +95,8 @@ class Failed:
     reason: str
     retryable: bool
     """A transient failure (worth retrying) rather than a final answer such as 404."""
+    seconds: float = 0.0
+    """Request start to failure (media seconds)."""
 
 
 @dataclass(frozen=True)
@@ -223,21 +227,31 @@ class FetchSchedule:
         return outcome
 
     def _get(self, request: Request, rec: GOPRecord) -> Generator[Request | Wait, Outcome | None, Outcome]:
-        """One request with its retries; keyframe and media downloads are throughput samples."""
+        """One request with its retries, all within the request's deadline (DownloadSettings.total_timeout_s);
+        keyframe and media downloads are throughput samples."""
         settings = self.download
         outcome: Outcome | None = None
+        spent = 0.0
         for attempt in range(settings.retries + 1):
             if isinstance(outcome, Failed):
+                wait = settings.backoff(attempt)
+                if spent + wait >= settings.total_timeout_s:
+                    outcome = Failed(f"{outcome.reason}; no answer within {settings.total_timeout_s:g} s",
+                                     retryable=True, seconds=spent)
+                    break
                 self.retries += 1
                 rec.events.append(f"retry {attempt} of the {request.kind} of {request.rep}: {outcome.reason}")
-                yield Wait(settings.backoff(attempt))
-            outcome = yield request
+                yield Wait(wait)
+                spent += wait
+            outcome = yield dataclasses.replace(request, time_left=settings.total_timeout_s - spent)
+            spent += outcome.seconds
             rec.requests.append({"kind": request.kind, "rep": request.rep, "outcome": _describe(outcome)})
             if not (isinstance(outcome, Failed) and outcome.retryable):
                 break
         else:
             if settings.retries:
-                outcome = Failed(f"{outcome.reason} (after {settings.retries + 1} attempts)", retryable=True)
+                outcome = Failed(f"{outcome.reason} (after {settings.retries + 1} attempts)", retryable=True,
+                                 seconds=spent)
         if isinstance(outcome, Done) and request.kind in ("keyframe", "media"):
             self.samples.append(ThroughputSample(outcome.nbytes, outcome.seconds))
         return outcome

@@ -11,6 +11,7 @@ from urllib.parse import urlparse
 
 from stgs.client.download import Downloader, FetchError
 from stgs.client.manifest import Presentation
+from stgs.client.urlpolicy import UrlPolicy
 from stgs.errors import StgsError
 from stgs.limits import MAX_INIT_BYTES, MAX_MPD_BYTES
 from stgs.mpd import MPDError
@@ -76,9 +77,11 @@ def _psnr(stats: dict | None, pres: Presentation) -> dict[str, list[float | None
 
 
 async def _remote(url: str) -> Ladder:
-    async with Downloader() as dl:
+    policy = UrlPolicy(url)
+    async with Downloader(policy=policy) as dl:
         try:
             pres = Presentation.parse(await dl.fetch(url, "document", MAX_MPD_BYTES), url)
+            policy.allow_hosts_of(pres.base)
             stats = json.loads(await dl.fetch(pres.sibling_url(STATS), "document", 16 << 20))
             init = {r.rep_id: len(await dl.fetch(pres.init_url(r.rep_id), "init", MAX_INIT_BYTES))
                     for r in pres.ladder}

@@ -128,7 +128,7 @@ class Simulation:
         if status is not None:
             self.now = body_start
             self.advance(self.now)
-            return Failed(f"{req.url}: HTTP {status}", retryable=status in RETRY_STATUS)
+            return Failed(f"{req.url}: HTTP {status}", retryable=status in RETRY_STATUS, seconds=self.now - start)
         end = self.net.finish(body_start, nbytes * 8)
         if req.judge is not None:
             # the player judges a download each time a chunk arrives (none arrive during an outage)

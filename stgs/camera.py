@@ -37,8 +37,15 @@ class Camera:
     def from_json(cls, d: dict) -> Camera:
         K = torch.tensor(d["K"], dtype=torch.float64)
         viewmat = torch.tensor(d["viewmat"], dtype=torch.float64)
+        name = d.get("name")
         if K.shape != (3, 3) or viewmat.shape != (4, 4):
-            raise ValueError(f"camera {d.get('name')!r}: K must be 3x3 and viewmat 4x4")
+            raise ValueError(f"camera {name!r}: K must be 3x3 and viewmat 4x4")
+        if not (torch.isfinite(K).all() and torch.isfinite(viewmat).all()):
+            raise ValueError(f"camera {name!r}: K and viewmat must be finite numbers")
+        if not (K[0, 0] > 0 and K[1, 1] > 0) or K[2].tolist() != [0.0, 0.0, 1.0]:
+            raise ValueError(f"camera {name!r}: K needs positive focal lengths and a last row of 0 0 1")
+        if viewmat[3].tolist() != [0.0, 0.0, 0.0, 1.0]:
+            raise ValueError(f"camera {name!r}: viewmat's last row must be 0 0 0 1")
         return cls(str(d["name"]), K, viewmat, int(d["width"]), int(d["height"]))
 
 

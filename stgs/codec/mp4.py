@@ -3,7 +3,8 @@
 - split a fragmented MP4 (ftyp moov moof mdat [mfra]) into an init segment
   (ftyp + moov) and a media segment (styp + moof + mdat);
 - set a media segment's sequence number (mfhd) and decode time (tfdt) so it
-  sits at its place in the Representation's timeline;
+  sits at its place in the Representation's timeline, and read them back (with
+  the track's timescale) so a client can tell a segment of another GOP;
 - read the hvcC of an init segment and form its RFC 6381 codecs string.
 """
 
@@ -102,6 +103,34 @@ def set_timeline(media: bytes, sequence: int, decode_time: int) -> bytes:
         else:
             raise MP4Error("decode time needs a version-1 tfdt")
     return bytes(out)
+
+
+def media_timeline(media: bytes) -> tuple[int, int]:
+    """(mfhd.sequence_number, tfdt.baseMediaDecodeTime of the first traf) of a media segment."""
+    moof = find_path(media, ["moof"])
+    mfhd = find_path(media, ["mfhd"], moof.body, moof.end)
+    if mfhd.end - mfhd.body < 8:
+        raise MP4Error("mfhd box is truncated")
+    sequence = struct.unpack_from(">I", media, mfhd.body + 4)[0]
+    tfdt = find_path(media, ["traf", "tfdt"], moof.body, moof.end)
+    version = media[tfdt.body] if tfdt.end > tfdt.body else -1
+    if version not in (0, 1) or tfdt.end - tfdt.body < (12 if version == 1 else 8):
+        raise MP4Error("tfdt box is truncated or of an unknown version")
+    decode_time = struct.unpack_from(">Q" if version == 1 else ">I", media, tfdt.body + 4)[0]
+    return sequence, decode_time
+
+
+def track_timescale(init: bytes) -> int:
+    """The mdhd timescale (ticks per second) of an init segment's first track."""
+    mdhd = find_path(init, ["moov", "trak", "mdia", "mdhd"])
+    version = init[mdhd.body] if mdhd.end > mdhd.body else -1
+    offset = {0: 12, 1: 20}.get(version)
+    if offset is None or mdhd.end - mdhd.body < offset + 4:
+        raise MP4Error("mdhd box is truncated or of an unknown version")
+    timescale = struct.unpack_from(">I", init, mdhd.body + offset)[0]
+    if timescale == 0:
+        raise MP4Error("mdhd timescale is 0")
+    return timescale
 
 
 _SAMPLE_ENTRY_SKIPS = {"stsd": 8, "hvc1": 78, "hev1": 78}
