@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import json
 import os
 import random
@@ -39,6 +38,8 @@ import aiohttp
 from bench.serve import free_port, wait_for
 
 SAMPLE_S = 5.0
+SEND_TIMEOUT_S = 30.0
+"""The server's default --send-timeout."""
 
 
 def server_memory(pid: int) -> tuple[float, int]:
@@ -102,12 +103,14 @@ class Soak:
                 await asyncio.sleep(0.05)
 
     async def slow_reader(self, source: str) -> None:
+        """Holds a transfer without reading; the client does not notice the server's cut (it reads nothing), so
+        it starts over just after the server's send timeout."""
         _, writer = await raw(self.port, source, rcvbuf=4096)
         writer.write(f"GET /{self.largest} HTTP/1.1\r\nHost: x\r\n\r\n".encode())
-        with contextlib.suppress(OSError):
-            while not writer.transport.is_closing() and self.running():
-                await asyncio.sleep(1)
-        writer.transport.abort()
+        try:
+            await asyncio.sleep(SEND_TIMEOUT_S + 5)
+        finally:
+            writer.transport.abort()
 
     async def header_flood(self, source: str) -> None:
         reader, writer = await raw(self.port, source)
