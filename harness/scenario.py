@@ -279,7 +279,7 @@ def scenario_from_dict(doc: dict, where: str, base: Path) -> Scenario:
         scene = str((base / scene).resolve())
     abr = doc.get("abr", ["dynamic"])
     abr = [abr] if isinstance(abr, str) else abr
-    if not isinstance(abr, list) or not abr or any(a not in RULES for a in abr):
+    if not isinstance(abr, list) or not abr or any(not isinstance(a, str) or a not in RULES for a in abr):
         raise StgsError(f"{where}: 'abr' must list rules from {', '.join(RULES)}, got {abr!r}")
     qp = _number(doc, "qp", where, integer=True)
     return Scenario(name=str(doc.get("name") or Path(where).stem), scene=scene, abr=list(abr),
