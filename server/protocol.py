@@ -1,4 +1,4 @@
-"""The connection layer of `stgs serve`: aiohttp's Server and RequestHandler with three guards added.
+"""The connection layer of `stgs serve`: aiohttp's Server and RequestHandler with guards added.
 
 - Connections per client: a peer address holds at most `per_client` open connections; one more is answered
   503 and closed at once (as nginx's limit_conn does), so one host cannot pin the server's memory and fds.
@@ -79,9 +79,6 @@ class GuardedServer(web.Server):
                 self._per_peer[peer] = left
             else:
                 del self._per_peer[peer]
-
-    def open_connections(self, peer: str) -> int:
-        return self._per_peer.get(peer, 0)
 
 
 class GuardedRequestHandler(RequestHandler):
