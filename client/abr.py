@@ -14,8 +14,12 @@ anything on features.
 - `BolaRule`: BOLA (Spiteri et al., buffer-based Lyapunov optimisation, as
   in dash.js's BolaRule): utility v_m = ln(size_m / size_0) + 1 of the whole
   GOP (keyframe + features); choose argmax (V·(v_m + γp) − buffer) / size_m.
+  Its target buffer is the highest level a decision is ever made at
+  (capacity − one GOP: the fetcher asks only when a whole GOP fits), so the
+  top rung is reachable.
 - `DynamicRule`: throughput while the buffer is low, BOLA once it is
-  full enough, with hysteresis (dash.js's DYNAMIC strategy).
+  full enough (with hysteresis) and only while BOLA's choice is at least
+  the throughput rule's (dash.js's DYNAMIC strategy).
 - `FixedRule`: one pinned Representation (`qp`).
 - `AbandonRule`: judges a feature download in flight; drops it for the
   lowest rung when it would outlast the buffer (None: no change).
@@ -173,7 +177,8 @@ class BolaRule:
         sizes = [state.keyframe_bits + b for b in state.sizes()]
         utilities = [math.log(s / sizes[0]) + 1 for s in sizes]
         min_buffer = self.settings.bola_min_buffer_s or state.segment_s
-        target = max(state.buffer_capacity_s, min_buffer + state.segment_s)
+        # decisions happen at buffer <= capacity - T (a GOP must fit): a target above that is never reached
+        target = max(state.buffer_capacity_s - state.segment_s, min_buffer + state.segment_s)
         gp = max(utilities[-1] - 1, 1e-9) / (target / min_buffer - 1)
         return sizes, utilities, min_buffer / gp, gp
 
@@ -202,10 +207,16 @@ class DynamicRule:
             self.using_bola = False
         elif not self.using_bola and state.buffer_s >= s.dynamic_bola_on * state.buffer_capacity_s:
             self.using_bola = True
-        inner = (self.bola if self.using_bola else self.throughput).choose(state)
+        throughput = self.throughput.choose(state)
         band = (f">= {s.dynamic_bola_off:g}" if self.using_bola else f"< {s.dynamic_bola_on:g}")
-        return Decision(inner.index, inner.rule, f"dynamic: buffer {state.buffer_s:.2f} s {band} x capacity "
-                        f"{state.buffer_capacity_s:.2f} s; {inner.reason}")
+        where = f"dynamic: buffer {state.buffer_s:.2f} s {band} x capacity {state.buffer_capacity_s:.2f} s"
+        if not self.using_bola:
+            return Decision(throughput.index, throughput.rule, f"{where}; {throughput.reason}")
+        bola = self.bola.choose(state)
+        if bola.index < throughput.index:
+            return Decision(throughput.index, throughput.rule, f"{where}, but bola's rung {bola.index} is below "
+                            f"throughput's; {throughput.reason}")
+        return Decision(bola.index, bola.rule, f"{where}; {bola.reason}")
 
 
 @dataclass

@@ -88,8 +88,8 @@ def test_bola_by_hand():
     # sizes = keyframe + features = 200k, 300k, 500k bits; v_m = ln(size/200k) + 1
     assert sizes == [200_000, 300_000, 500_000]
     assert utilities == pytest.approx([1.0, 1 + math.log(1.5), 1 + math.log(2.5)])
-    # min buffer = one segment (1 s), target = capacity 4 s: gp = (v_max - 1) / (4/1 - 1), V = 1 / gp
-    assert gp == pytest.approx(math.log(2.5) / 3)
+    # min buffer = one segment (1 s), target = capacity - one segment = 3 s: gp = (v_max - 1) / (3/1 - 1)
+    assert gp == pytest.approx(math.log(2.5) / 2)
     assert v == pytest.approx(1 / gp)
 
 
@@ -98,6 +98,29 @@ def test_bola_climbs_as_the_buffer_fills():
     choices = [rule.choose(state(buffer_s=b)).index for b in (0.0, 1.0, 2.0, 3.0, 4.0)]
     assert choices[0] == 0 and choices[-1] == 2  # empty buffer: lowest; full buffer: top
     assert choices == sorted(choices)
+
+
+@pytest.mark.parametrize("capacity", [6.0, 25.0])
+def test_bola_reaches_the_top_rung_at_the_highest_buffer_a_decision_is_made_at(capacity):
+    """The fetcher decides only when a whole GOP fits (buffer <= capacity - T): BOLA's top rung must be
+    reachable there (with the whole capacity as its target it never was: 5.67 s needed at 6 s, 23.08 at 25)."""
+    segment_s = 2.0
+    ladder = [1_330_000, 2_000_000, 3_000_000, 4_500_000, 7_600_000]  # 2.65-8.9 Mbit/s with the keyframe
+    s = AbrState(ladder, segment_s, capacity - segment_s, capacity, [], 1_300_000 * segment_s)
+    assert BolaRule().choose(s).index == len(ladder) - 1
+    low = AbrState(ladder, segment_s, segment_s / 2, capacity, [], 1_300_000 * segment_s)
+    assert BolaRule().choose(low).index == 0
+
+
+def test_dynamic_takes_bola_only_when_it_is_at_least_the_throughput_choice():
+    rule = DynamicRule()  # BOLA band from 0.6 * 4 = 2.4 s down to 0.3 * 4 = 1.2 s
+    fast = kbps_samples((2_000, 4))  # throughput alone picks the top rung
+    rule.choose(state(buffer_s=2.5, samples=fast))
+    assert rule.using_bola
+    assert BolaRule().choose(state(buffer_s=1.5, samples=fast)).index == 1  # BOLA alone would pick less here
+    decision = rule.choose(state(buffer_s=1.5, samples=fast))
+    assert rule.using_bola and decision.index == 2 and decision.rule == "throughput"
+    assert "below throughput's" in decision.reason
 
 
 def test_dynamic_switches_with_hysteresis():
