@@ -25,7 +25,6 @@ import json
 import os
 import random
 import shutil
-import socket
 import subprocess
 import sys
 import tempfile
@@ -36,6 +35,7 @@ from pathlib import Path
 import aiohttp
 
 from bench.serve import free_port, wait_for
+from stgs.loopback import connect_from
 
 SAMPLE_S = 5.0
 SEND_TIMEOUT_S = 30.0
@@ -50,17 +50,7 @@ def server_memory(pid: int) -> tuple[float, int]:
 
 
 async def raw(port: int, source: str, rcvbuf: int | None = None) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
-    sock = socket.socket()
-    if rcvbuf:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
-    sock.bind((source, 0))
-    sock.setblocking(False)
-    try:
-        await asyncio.wait_for(asyncio.get_running_loop().sock_connect(sock, ("127.0.0.1", port)), 10)
-    except BaseException:
-        sock.close()
-        raise
-    return await asyncio.open_connection(sock=sock)
+    return await connect_from(source, "127.0.0.1", port, rcvbuf)
 
 
 class Soak:

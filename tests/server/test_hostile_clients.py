@@ -6,12 +6,11 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
-import socket
 from pathlib import Path
 
 import aiohttp
 
-from stgs.loopback import on_loopback
+from stgs.loopback import connect_from, on_loopback
 from stgs.server.app import SceneRunner, build_app, loopback
 from stgs.server.config import ServeConfig
 
@@ -43,11 +42,8 @@ async def test_a_file_truncated_mid_transfer_aborts_the_connection(tmp_path: Pat
     small.write_bytes(b"SECOND-RESPONSE-BODY")
     async with loopback(tmp_path) as base:
         host, port = base.split("//")[1].rstrip("/").split(":")
-        sock = socket.socket()
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 64 << 10)  # the server cannot run far ahead
-        sock.connect((host, int(port)))
-        sock.setblocking(False)
-        reader, writer = await asyncio.open_connection(sock=sock)
+        # a small receive buffer: the server cannot run far ahead
+        reader, writer = await connect_from(host, host, int(port), rcvbuf=64 << 10)
         writer.write(b"GET /s/big.m4s HTTP/1.1\r\nHost: x\r\n\r\nGET /s/small.m4s HTTP/1.1\r\nHost: x\r\n\r\n")
         await writer.drain()
         status, headers = await _headers(reader)
@@ -85,12 +81,7 @@ async def test_metrics_count_the_bytes_sent_of_a_transfer_cut_short(tmp_path: Pa
 
 async def _stalled_reader(host: str, port: int, source: str, path: str) -> asyncio.StreamWriter:
     """A client at `source` that asks for a big segment and reads nothing of it."""
-    sock = socket.socket()
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-    sock.bind((source, 0))
-    sock.connect((host, port))
-    sock.setblocking(False)
-    _, writer = await asyncio.open_connection(sock=sock)
+    _, writer = await connect_from(source, host, port, rcvbuf=4096)
     writer.write(f"GET {path} HTTP/1.1\r\nHost: x\r\n\r\n".encode())
     await writer.drain()
     return writer
@@ -118,14 +109,6 @@ async def test_slow_readers_hold_only_their_own_slots_and_healthz_tells_saturati
         assert health.status == 503 and (await health.json())["status"] == "saturated"
         for writer in hogs:
             writer.transport.abort()
-
-
-async def _connect(host: str, port: int, source: str) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
-    sock = socket.socket()
-    sock.bind((source, 0))
-    sock.setblocking(False)
-    await asyncio.get_running_loop().sock_connect(sock, (host, port))
-    return await asyncio.open_connection(sock=sock)
 
 
 def _rss_bytes() -> int:
@@ -158,7 +141,7 @@ async def test_header_floods_from_many_connections_leave_the_server_small(tmp_pa
     field = b"X-Pad: " + b"a" * 8000 + b"\r\n"
 
     async def flood(host: str, port: int, source: str) -> None:
-        reader, writer = await _connect(host, port, source)
+        reader, writer = await connect_from(source, host, port)
         writer.write(b"GET / HTTP/1.1\r\nHost: x\r\n")
         with contextlib.suppress(ConnectionError):
             for _ in range(62):
@@ -182,8 +165,8 @@ async def test_connections_per_client_are_capped_without_touching_other_clients(
     app = build_app(ServeConfig(root=tmp_path, port=0, access_log=False, max_connections_per_client=4))
     async with on_loopback(app, SceneRunner) as base:
         host, port = base.split("//")[1].rstrip("/").split(":")
-        held = [await _connect(host, int(port), "127.0.0.5") for _ in range(4)]
-        reader, writer = await _connect(host, int(port), "127.0.0.5")
+        held = [await connect_from("127.0.0.5", host, int(port)) for _ in range(4)]
+        reader, writer = await connect_from("127.0.0.5", host, int(port))
         status, _ = await _headers(reader)
         assert status == 503 and await _read_to_eof(reader, limit_s=5) == b""
         writer.close()
@@ -191,7 +174,7 @@ async def test_connections_per_client_are_capped_without_touching_other_clients(
             assert (await (await session.get(base + "s/small.m4s")).read()) == b"x" * 100
         held[0][1].close()
         await asyncio.sleep(0.2)
-        reader, writer = await _connect(host, int(port), "127.0.0.5")  # a freed place can be taken again
+        reader, writer = await connect_from("127.0.0.5", host, int(port))  # a freed place can be taken again
         writer.write(b"GET /s/small.m4s HTTP/1.1\r\nHost: x\r\n\r\n")
         status, _ = await _headers(reader)
         assert status == 200
