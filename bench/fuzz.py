@@ -209,16 +209,19 @@ def seed_fragment() -> bytes:
 
 TRACE_LINES = st.lists(st.one_of(st.tuples(numbers(), numbers()).map(" ".join), numbers(), st.text(max_size=20)),
                        max_size=20).map("\n".join)
+PACKET_TIMES = st.lists(st.one_of(st.integers(-10, 10**15).map(str), numbers(), st.text(max_size=8)),
+                        max_size=30).map("\n".join)
 
 
-def trace_inputs() -> st.SearchStrategy[tuple[str, str]]:
+def trace_inputs() -> st.SearchStrategy[tuple[str | None, str]]:
     sabre = st.lists(st.fixed_dictionaries({}, optional={"duration_ms": json_values(), "bandwidth_kbps":
                                                          json_values(), "latency_ms": json_values()}),
                      max_size=6).map(json.dumps)
     csv = st.lists(st.tuples(numbers(), numbers()).map(",".join), max_size=10).map(
         lambda rows: "\n".join(["time_s,bandwidth_kbps", *rows]))
     return st.one_of(st.tuples(st.just("sabre"), st.one_of(sabre, st.text(max_size=40))),
-                     st.tuples(st.just("mahimahi"), TRACE_LINES), st.tuples(st.just("csv"), csv))
+                     st.tuples(st.just("pensieve"), TRACE_LINES), st.tuples(st.just("mahimahi"), PACKET_TIMES),
+                     st.tuples(st.just("csv"), csv), st.tuples(st.none(), st.one_of(TRACE_LINES, PACKET_TIMES)))
 
 
 def toml_value() -> st.SearchStrategy[str]:
@@ -269,7 +272,7 @@ def mp4_target(data: bytes) -> None:
     media_timeline(set_timeline(media, 7, 12345))
 
 
-def trace_target(case: tuple[str, str]) -> None:
+def trace_target(case: tuple[str | None, str]) -> None:
     fmt, text = case
     with tempfile.NamedTemporaryFile("w", suffix=".trace") as f:
         f.write(text)

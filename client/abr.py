@@ -1,28 +1,33 @@
 """Adaptive bitrate rules: small objects behind one interface, defaults in one settings place.
 
 A rule gets an `AbrState` (ladder, throughput history, buffer level, the
-next GOP's keyframe and per-Representation segment sizes, and for a download
-in flight its progress) and returns a `Decision`: the ladder rung, the rule
-that decided and the reason with the numbers it used (dash.js's
+next GOP's keyframe and per-Representation segment sizes, the GOPs after it
+as far as stats.json says) and returns a `Decision`: the ladder rung, the
+rule that decided and the reason with the numbers it used (dash.js's
 SwitchRequest). The playback log keeps every decision. The keyframe part of
 every GOP is not adaptive: each rule counts its bits before it spends
-anything on features.
+anything on features. Throughput is measured on bodies (the round trip is
+latency, estimated apart and budgeted per request).
 
 - `ThroughputRule`: EWMA throughput with a fast and a slow half-life (the
-  lower of the two, as dash.js does), times a safety factor, minus the
-  keyframe's bit rate; the highest rung whose next segment fits.
-- `BolaRule`: BOLA (Spiteri et al., buffer-based Lyapunov optimisation, as
-  in dash.js's BolaRule): utility v_m = ln(size_m / size_0) + 1 of the whole
-  GOP (keyframe + features); choose argmax (V·(v_m + γp) − buffer) / size_m.
-  Its target buffer is the highest level a decision is ever made at
-  (capacity − one GOP: the fetcher asks only when a whole GOP fits), so the
-  top rung is reachable.
-- `DynamicRule`: throughput while the buffer is low, BOLA once it is
-  full enough (with hysteresis) and only while BOLA's choice is at least
-  the throughput rule's (dash.js's DYNAMIC strategy).
+  lower of the two, as dash.js does), times a safety factor; the highest
+  rung whose keyframe + features arrive within one GOP after the round trips.
+- `BolaRule`: BOLA (Spiteri et al., buffer-based Lyapunov optimisation):
+  utility v_m = ln(size_m / size_0) + 1 of the whole GOP (keyframe +
+  features); choose argmax (V·(v_m + γp) − buffer) / size_m. Its target
+  buffer is the highest level a decision is ever made at (capacity − one
+  GOP: the fetcher asks only when a whole GOP fits).
+- `BolaERule`: BOLA-E as dash.js runs it: start-up picks by throughput and
+  sets a placeholder buffer so BOLA would agree; the placeholder grows while
+  the fetcher waits for room, shrinks when it would overfill, vanishes at a
+  stall; BOLA-O keeps it from climbing above what the throughput sustains.
+- `InsufficientBufferRule`: a cap: the next GOP must download within a
+  fraction of the buffer at the throughput estimate.
+- `DynamicRule`: dash.js's default collection: throughput while the buffer
+  is low, BOLA-E once it is full enough (with hysteresis) and only while its
+  choice is at least the throughput rule's, then the insufficient-buffer cap.
+- `MpcRule` (client/abr_mpc.py): look-ahead over the next GOPs' exact sizes.
 - `FixedRule`: one pinned Representation (`qp`).
-- `AbandonRule`: judges a feature download in flight; drops it for the
-  lowest rung when it would outlast the buffer (None: no change).
 """
 
 from __future__ import annotations
@@ -32,91 +37,44 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
+from stgs.client.abandon import AbandonRule, abandon_target
+from stgs.client.abr_mpc import MpcRule
+from stgs.client.abr_state import (
+    AbrSettings,
+    AbrState,
+    Decision,
+    InFlight,
+    ThroughputSample,
+    UpcomingGOP,
+    ewma_kbps,
+    latency_s,
+    throughput_kbps,
+)
 from stgs.errors import FieldError
 
-
-@dataclass
-class AbrSettings:
-    """Every ABR default, in one place."""
-
-    safety_factor: float = 0.9
-    """Fraction of the throughput estimate the throughput rule may spend."""
-    fast_half_life_s: float = 3.0
-    """Half-life (seconds of download time) of the fast EWMA."""
-    slow_half_life_s: float = 8.0
-    """Half-life of the slow EWMA."""
-    bola_min_buffer_s: float | None = None
-    """BOLA's minimum buffer (None: one segment)."""
-    dynamic_bola_on: float = 0.6
-    """DYNAMIC switches to BOLA when the buffer reaches this fraction of its capacity."""
-    dynamic_bola_off: float = 0.3
-    """... and back to throughput when it falls below this fraction."""
-    abandon_min_s: float = 0.2
-    """A feature download is never abandoned before it has run this long."""
-
-
-@dataclass(frozen=True)
-class ThroughputSample:
-    bytes: int
-    seconds: float
-
-
-@dataclass(frozen=True)
-class Decision:
-    """What a rule decided: a ladder rung, who decided it and why (dash.js's SwitchRequest)."""
-
-    index: int
-    """Ladder rung (0: lowest)."""
-    rule: str
-    """The rule that decided (DYNAMIC: the one of its two it used)."""
-    reason: str
-    """The numbers the rule used, in words."""
-
-    def to_json(self) -> dict:
-        return {"index": self.index, "rule": self.rule, "reason": self.reason}
-
-
-@dataclass(frozen=True)
-class InFlight:
-    """A feature download in progress, for the abandonment rule."""
-
-    rung: int
-    received: int
-    """Bytes so far."""
-    total: int | None
-    """Content-Length (None: unknown)."""
-    elapsed_s: float
-    """Media seconds since the request started."""
-
-
-@dataclass
-class AbrState:
-    """What a rule sees when it decides the next GOP's feature Representation."""
-
-    bandwidths: Sequence[int]
-    """@bandwidth of each ladder rung (bit/s), ascending."""
-    segment_s: float
-    """Duration of one GOP."""
-    buffer_s: float
-    """Media seconds downloaded ahead of the playhead."""
-    buffer_capacity_s: float
-    """Most media seconds the player buffers."""
-    samples: Sequence[ThroughputSample] = ()
-    """Throughput history of segment downloads, oldest first."""
-    keyframe_bits: float = 0.0
-    """Size of the next GOP's keyframe segment."""
-    segment_bits: Sequence[float] | None = None
-    """Size of the next GOP's media segment per rung (None: @bandwidth x duration)."""
-    current: int | None = None
-    """Rung chosen for the previous GOP."""
-    in_flight: InFlight | None = None
-    """The feature download being judged (AbandonRule only)."""
-
-    def sizes(self) -> list[float]:
-        """Feature bits of the next GOP per rung."""
-        if self.segment_bits is not None:
-            return [float(b) for b in self.segment_bits]
-        return [b * self.segment_s for b in self.bandwidths]
+__all__ = [
+    "RULES",
+    "AbandonRule",
+    "AbrRule",
+    "AbrSettings",
+    "AbrState",
+    "BolaERule",
+    "BolaRule",
+    "Decision",
+    "DynamicRule",
+    "FixedRule",
+    "InFlight",
+    "InsufficientBufferRule",
+    "MpcRule",
+    "ThroughputRule",
+    "ThroughputSample",
+    "UpcomingGOP",
+    "abandon_target",
+    "ewma_kbps",
+    "latency_s",
+    "make_rule",
+    "throughput_kbps",
+]
 
 
 class AbrRule(Protocol):
@@ -126,24 +84,15 @@ class AbrRule(Protocol):
         """The rung for the next GOP (None: no change, which only AbandonRule answers)."""
 
 
-def ewma_kbps(samples: Sequence[ThroughputSample], half_life_s: float) -> float | None:
-    """Duration-weighted EWMA of sample throughputs (kbit/s), zero-bias corrected; None without samples."""
-    estimate, weight = 0.0, 0.0
-    for s in samples:
-        seconds = max(s.seconds, 1e-6)
-        alpha = 0.5 ** (seconds / half_life_s)
-        estimate = alpha * estimate + (1 - alpha) * (s.bytes * 8 / 1e3 / seconds)
-        weight += seconds
-    if weight == 0:
-        return None
-    return estimate / (1 - 0.5 ** (weight / half_life_s))
-
-
-def throughput_kbps(samples: Sequence[ThroughputSample], settings: AbrSettings) -> float | None:
-    """The estimate the throughput rule uses: the lower of the fast and slow EWMAs."""
-    fast = ewma_kbps(samples, settings.fast_half_life_s)
-    slow = ewma_kbps(samples, settings.slow_half_life_s)
-    return None if fast is None else min(fast, slow)
+def highest_fitting(state: AbrState, kbps: float, seconds: float) -> int:
+    """The highest rung whose keyframe + features arrive within `seconds` at `kbps` after the round trips
+    (0 when none does)."""
+    budget = kbps * 1e3 * (seconds - state.latency_s())
+    best = 0
+    for i, bits in enumerate(state.sizes()):
+        if state.keyframe_bits + bits <= budget:
+            best = i
+    return best
 
 
 @dataclass
@@ -155,16 +104,14 @@ class ThroughputRule:
         kbps = throughput_kbps(state.samples, self.settings)
         if kbps is None:
             return Decision(0, self.name, "no throughput sample yet: lowest rung")
-        budget = kbps * 1e3 * self.settings.safety_factor - state.keyframe_bits / state.segment_s
-        sizes = state.sizes()
-        best = 0
-        for i, bits in enumerate(sizes):
-            if bits / state.segment_s <= budget:
-                best = i
+        T, latency = state.segment_s, state.latency_s()
+        spend = kbps * self.settings.safety_factor
+        best = highest_fitting(state, spend, T)
+        budget = spend * (T - latency) / T - state.keyframe_bits / T / 1e3
+        rtt = f" after {latency * 1e3:.0f} ms of round trips" if latency else ""
         return Decision(best, self.name, f"estimate {kbps:.0f} kbit/s x {self.settings.safety_factor:g} - keyframe "
-                        f"{state.keyframe_bits / state.segment_s / 1e3:.0f} = budget {budget / 1e3:.0f} kbit/s; "
-                        f"rung {best} needs "
-                        f"{sizes[best] / state.segment_s / 1e3:.0f}")
+                        f"{state.keyframe_bits / T / 1e3:.0f} = budget {budget:.0f} kbit/s{rtt}; rung {best} needs "
+                        f"{state.sizes()[best] / T / 1e3:.0f}")
 
 
 @dataclass
@@ -182,12 +129,89 @@ class BolaRule:
         gp = max(utilities[-1] - 1, 1e-9) / (target / min_buffer - 1)
         return sizes, utilities, min_buffer / gp, gp
 
-    def choose(self, state: AbrState) -> Decision:
+    def best_at(self, state: AbrState, buffer_s: float) -> tuple[int, float]:
+        """(rung, its score per bit) at a buffer level."""
         sizes, utilities, v, gp = self.parameters(state)
-        scores = [(v * (u + gp) - state.buffer_s) / s for u, s in zip(utilities, sizes, strict=True)]
+        scores = [(v * (u + gp) - buffer_s) / s for u, s in zip(utilities, sizes, strict=True)]
         best = max(range(len(scores)), key=lambda i: (scores[i], i))
+        return best, scores[best]
+
+    def thresholds(self, state: AbrState, rung: int) -> tuple[float, float]:
+        """The buffer levels between which BOLA picks `rung` (dash.js's min/maxBufferLevelForQuality)."""
+        sizes, utilities, v, gp = self.parameters(state)
+
+        def crossing(lo: int, hi: int) -> float:  # buffer above which `hi` scores at least `lo`
+            return v * ((utilities[lo] + gp) * sizes[hi] - (utilities[hi] + gp) * sizes[lo]) / (sizes[hi] - sizes[lo])
+
+        low = max((crossing(i, rung) for i in range(rung) if sizes[i] < sizes[rung]), default=0.0)
+        high = min((crossing(rung, i) for i in range(rung + 1, len(sizes)) if sizes[i] > sizes[rung]),
+                   default=math.inf)
+        return max(low, 0.0), high
+
+    def choose(self, state: AbrState) -> Decision:
+        _, _, v, gp = self.parameters(state)
+        best, score = self.best_at(state, state.buffer_s)
         return Decision(best, self.name, f"buffer {state.buffer_s:.2f} s, V {v:.3g}, gamma*p {gp:.3g}: "
-                        f"best score {scores[best]:.3g} per bit")
+                        f"best score {score:.3g} per bit")
+
+
+@dataclass
+class BolaERule:
+    """BOLA-E (Spiteri, Sitaraman, Sparacio 2019) as dash.js runs it; see the module docstring."""
+
+    settings: AbrSettings = field(default_factory=AbrSettings)
+    name: str = "bola-e"
+    placeholder_s: float = 0.0
+    """Virtual buffer added to the real one."""
+    steady: bool = False
+    """Past start-up (the buffer has held a whole GOP)."""
+    last: int | None = None
+
+    def __post_init__(self) -> None:
+        self.bola = BolaRule(self.settings)
+        self.throughput = ThroughputRule(self.settings)
+
+    def choose(self, state: AbrState) -> Decision:
+        T = state.segment_s
+        tp = self.throughput.choose(state).index
+        if self.steady and state.playing and state.buffer_s <= 1e-9:
+            self.steady, self.placeholder_s = False, 0.0  # a stall: start over
+        if not self.steady:
+            rung = tp
+            self.placeholder_s = max(0.0, self.bola.thresholds(state, rung)[0] - state.buffer_s)
+            self.steady = state.buffer_s >= T
+            reason = (f"start-up: throughput's rung {rung}; placeholder {self.placeholder_s:.2f} s so BOLA agrees")
+        else:
+            self.placeholder_s += state.waited_s
+            virtual = state.buffer_s + self.placeholder_s
+            rung, _ = self.bola.best_at(state, virtual)
+            reason = f"buffer {state.buffer_s:.2f} + placeholder {self.placeholder_s:.2f} s: BOLA's rung {rung}"
+            if self.last is not None and rung > self.last and rung > tp:
+                rung = max(tp, self.last)
+                reason += f", held at {rung} (BOLA-O: above what the throughput sustains)"
+            excess = virtual - self.bola.thresholds(state, rung)[1]
+            if excess > 0:
+                self.placeholder_s = max(0.0, self.placeholder_s - excess)
+        self.last = rung
+        return Decision(rung, self.name, reason)
+
+
+@dataclass
+class InsufficientBufferRule:
+    """Cap: the next GOP must download within `insufficient_buffer_safety` x buffer at the throughput estimate
+    (only once playing, and only with a sample)."""
+
+    settings: AbrSettings = field(default_factory=AbrSettings)
+    name: str = "insufficient-buffer"
+
+    def choose(self, state: AbrState) -> Decision | None:
+        kbps = throughput_kbps(state.samples, self.settings)
+        if kbps is None or not state.playing:
+            return None
+        window = state.buffer_s * self.settings.insufficient_buffer_safety
+        cap = highest_fitting(state, kbps, window)
+        return Decision(cap, self.name, f"buffer {state.buffer_s:.2f} s: rung {cap} is the highest that arrives in "
+                        f"{window:.2f} s at {kbps:.0f} kbit/s")
 
 
 @dataclass
@@ -199,7 +223,8 @@ class DynamicRule:
 
     def __post_init__(self) -> None:
         self.throughput = ThroughputRule(self.settings)
-        self.bola = BolaRule(self.settings)
+        self.bola = BolaERule(self.settings)
+        self.insufficient = InsufficientBufferRule(self.settings)
 
     def choose(self, state: AbrState) -> Decision:
         s = self.settings
@@ -208,15 +233,20 @@ class DynamicRule:
         elif not self.using_bola and state.buffer_s >= s.dynamic_bola_on * state.buffer_capacity_s:
             self.using_bola = True
         throughput = self.throughput.choose(state)
+        bola = self.bola.choose(state)  # every GOP, so its placeholder follows the buffer
         band = (f">= {s.dynamic_bola_off:g}" if self.using_bola else f"< {s.dynamic_bola_on:g}")
         where = f"dynamic: buffer {state.buffer_s:.2f} s {band} x capacity {state.buffer_capacity_s:.2f} s"
         if not self.using_bola:
-            return Decision(throughput.index, throughput.rule, f"{where}; {throughput.reason}")
-        bola = self.bola.choose(state)
-        if bola.index < throughput.index:
-            return Decision(throughput.index, throughput.rule, f"{where}, but bola's rung {bola.index} is below "
-                            f"throughput's; {throughput.reason}")
-        return Decision(bola.index, bola.rule, f"{where}; {bola.reason}")
+            chosen = Decision(throughput.index, throughput.rule, f"{where}; {throughput.reason}")
+        elif bola.index < throughput.index:
+            chosen = Decision(throughput.index, throughput.rule, f"{where}, but bola's rung {bola.index} is below "
+                              f"throughput's; {throughput.reason}")
+        else:
+            chosen = Decision(bola.index, bola.rule, f"{where}; {bola.reason}")
+        cap = self.insufficient.choose(state)
+        if cap is not None and cap.index < chosen.index:
+            return Decision(cap.index, cap.rule, f"{chosen.reason}; capped: {cap.reason}")
+        return chosen
 
 
 @dataclass
@@ -228,27 +258,8 @@ class FixedRule:
         return Decision(self.index, self.name, f"pinned rung {self.index}")
 
 
-@dataclass
-class AbandonRule:
-    """Drop an in-flight feature download that would outlast the buffer when restarting at the lowest rung
-    would not (dash.js's AbandonRequestsRule, in spirit)."""
-
-    settings: AbrSettings = field(default_factory=AbrSettings)
-    name: str = "abandon"
-
-    def choose(self, state: AbrState) -> Decision | None:
-        f = state.in_flight
-        if f is None or f.rung == 0:
-            return None
-        lowest_bytes = state.sizes()[0] / 8
-        if not should_abandon(f.received, f.total, f.elapsed_s, state.buffer_s, lowest_bytes, self.settings):
-            return None
-        rate = f.received / f.elapsed_s
-        return Decision(0, self.name, f"{(f.total - f.received) / rate:.2f} s left at {rate * 8 / 1e3:.0f} kbit/s "
-                        f"> buffer {state.buffer_s:.2f} s; the lowest rung takes {lowest_bytes / rate:.2f} s")
-
-
-RULES = {"throughput": ThroughputRule, "bola": BolaRule, "dynamic": DynamicRule}
+RULES = {"mpc": MpcRule, "dynamic": DynamicRule, "throughput": ThroughputRule, "bola": BolaRule,
+         "bola-e": BolaERule}
 """`--abr` names."""
 
 
@@ -259,14 +270,3 @@ def make_rule(name: str, ladder_qps: Sequence[int | None], qp: int | None, setti
     if qp not in ladder_qps:
         raise FieldError("qp", f"{qp} is not offered: the scene has QPs {', '.join(str(q) for q in ladder_qps)}")
     return FixedRule(list(ladder_qps).index(qp))
-
-
-def should_abandon(received: int, total: int | None, elapsed_s: float, buffer_s: float, lowest_bytes: float,
-                   settings: AbrSettings) -> bool:
-    """Drop an in-flight feature download that would outlast the buffer when restarting at the lowest rung
-    would not (dash.js's AbandonRequestsRule, in spirit)."""
-    if total is None or elapsed_s < settings.abandon_min_s or received >= total or received == 0:
-        return False
-    rate = received / elapsed_s
-    remaining_s = (total - received) / rate
-    return remaining_s > buffer_s and lowest_bytes / rate < remaining_s

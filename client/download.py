@@ -45,6 +45,8 @@ class DownloadSettings:
     """Longest retry delay."""
     connections: int = 4
     """Keep-alive connections to the server."""
+    concurrent: bool = True
+    """Request a GOP's keyframe and features at once (one round trip per GOP instead of two)."""
 
     def backoff(self, attempt: int) -> float:
         """Seconds to wait before retry number `attempt` (1, 2, ...)."""
@@ -92,8 +94,9 @@ class TransientError(Exception):
     """A failure worth retrying: connection error, timeout, truncated body, HTTP 408/429/5xx."""
 
 
-Progress = Callable[[int, int | None, float], bool]
-"""(bytes so far, Content-Length or None, seconds since the request started) -> abandon?"""
+Progress = Callable[[int, int | None, float, float], bool]
+"""(bytes so far, Content-Length or None, seconds since the request started, seconds to the response headers)
+-> abandon?"""
 
 
 @dataclass
@@ -187,7 +190,7 @@ class Downloader:
             body += chunk
             if len(body) > max_bytes:
                 raise FetchError(url, f"body exceeds the {max_bytes}-byte limit")
-            if progress is not None and progress(len(body), length, time.perf_counter() - start):
+            if progress is not None and progress(len(body), length, time.perf_counter() - start, ttfb):
                 resp.close()
                 raise AbandonError(Sample(url, kind, len(body), time.perf_counter() - start, ttfb,
                                           resp.status, abandoned=True))

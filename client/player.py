@@ -34,25 +34,26 @@ from pathlib import Path
 
 import torch
 
-from stgs.client.abr import Decision, make_rule
+from stgs.client.abr import Decision, UpcomingGOP, make_rule
 from stgs.client.clock import PlaybackClock
 from stgs.client.config import PlaybackError, PlayConfig
 from stgs.client.download import AbandonError, Downloader, FetchError, TransientError
-from stgs.client.manifest import Presentation
-from stgs.client.output import NullSink, open_sink
-from stgs.client.playlog import GOPRecord, playback_log
-from stgs.client.schedule import (
+from stgs.client.fetchsteps import (
     Abandoned,
     Done,
     Failed,
     Fetched,
-    FetchSchedule,
     Outcome,
+    Parallel,
     Request,
     ScheduleError,
     Step,
     Wait,
 )
+from stgs.client.manifest import Presentation
+from stgs.client.output import NullSink, open_sink
+from stgs.client.playlog import GOPRecord, playback_log
+from stgs.client.schedule import FetchSchedule
 from stgs.client.urlpolicy import UrlPolicy
 from stgs.client.view import Trajectory, build_trajectory, parse_scene_cameras
 from stgs.codec.features import features_from_frames
@@ -72,16 +73,24 @@ class ReadyGOP:
     """None when the player does not decode (PlayConfig.decode False)."""
 
 
-def _stats_sizes(stats: object, k: int, rep_ids: list[str]) -> list[float] | None:
-    """Bits of GOP k's media segment per rung, from stats.json, or None where it does not say."""
+def stats_gop(stats: object, k: int, rep_ids: list[str]) -> UpcomingGOP | None:
+    """GOP k's keyframe and per-rung media bits and rendered PSNR, from stats.json, or None where it does not
+    say (PSNR None unless every rung has a finite one)."""
     try:
         gop = stats["gops"][k]
         if gop["index"] != k:
             return None
+        keyframe = float(gop["keyframe_bytes"]) * 8
         sizes = [float(gop["representations"][r]["bytes"]) * 8 for r in rep_ids]
     except (KeyError, IndexError, TypeError, ValueError):
         return None
-    return sizes if all(math.isfinite(s) and s > 0 for s in sizes) else None
+    if not all(math.isfinite(s) and s > 0 for s in [keyframe, *sizes]):
+        return None
+    try:
+        psnr = [float(gop["representations"][r]["render_psnr"]) for r in rep_ids]
+    except (KeyError, TypeError, ValueError):
+        psnr = None
+    return UpcomingGOP(keyframe, sizes, psnr if psnr and all(math.isfinite(p) for p in psnr) else None)
 
 
 def physical_memory() -> int | None:
@@ -122,8 +131,8 @@ class Session:
         rep_ids = [r.rep_id for r in pres.ladder]
         self.schedule = FetchSchedule(
             pres, make_rule(cfg.abr, [r.qp for r in pres.ladder], cfg.qp, cfg.abr_settings), self.buffer_level,
-            self.capacity_s, lambda k: _stats_sizes(stats, k, rep_ids) if stats is not None else None,
-            cfg.abr_settings, dl.settings)
+            self.capacity_s, lambda k: stats_gop(stats, k, rep_ids) if stats is not None else None,
+            cfg.abr_settings, dl.settings, clock=lambda: self.now(), playing=lambda: self.clock.t0 is not None)
 
     def now(self) -> float:
         """The playback clock: wall seconds scaled by PlayConfig.speed (media seconds)."""
@@ -146,6 +155,8 @@ class Session:
                 if isinstance(item, Wait):
                     await self.sleep(item.seconds)
                     outcome = None
+                elif isinstance(item, Parallel):
+                    outcome = tuple(await asyncio.gather(*(self.perform(r) for r in item.requests)))
                 else:
                     outcome = await self.perform(item)
         except StopIteration as stop:
@@ -157,8 +168,8 @@ class Session:
         """One attempt at the request (times in media seconds)."""
         verdict: list[Decision] = []
 
-        def progress(received: int, total: int | None, elapsed: float) -> bool:
-            decision = req.judge(received, total, elapsed * self.speed)
+        def progress(received: int, total: int | None, elapsed: float, ttfb: float) -> bool:
+            decision = req.judge(received, total, elapsed * self.speed, ttfb * self.speed)
             if decision is not None:
                 verdict.append(decision)
             return decision is not None
@@ -169,7 +180,8 @@ class Session:
             data, sample = await self.dl.fetch_once(req.url, req.kind, req.max_bytes,
                                                     progress if req.judge is not None else None, time_left)
         except AbandonError as exc:
-            return Abandoned(exc.sample.bytes, exc.sample.seconds * self.speed, verdict[0])
+            sample = exc.sample
+            return Abandoned(sample.bytes, sample.seconds * self.speed, verdict[0], sample.ttfb * self.speed)
         except TransientError as exc:
             return Failed(f"{req.url}: {exc}", retryable=True, seconds=(time.perf_counter() - start) * self.speed)
         except FetchError as exc:

@@ -6,10 +6,16 @@ each `Request` with aiohttp on the wall clock, the simulator
 back what happened (`Done`, `Failed`, `Abandoned`) and the schedule decides
 the rest, so the two cannot drift apart:
 
-- GOP k: its keyframe first (not adaptive, and a throughput sample), then
-  the ABR rule picks the feature rung with that keyframe's exact size in its
-  budget; the rung's init segment once per Representation; the media
-  segment, judged by the abandonment rule while it arrives.
+- GOP k, once there is a throughput sample (or the rung is pinned): the ABR
+  rule picks the feature rung with the keyframe's size in its budget
+  (stats.json's, else the previous keyframe's), the rung's init segment is
+  fetched once per Representation, then the keyframe and the media segment
+  are requested together (`Parallel`: one round trip for both) and the
+  media is judged by the abandonment rule while it arrives. The first GOP
+  of a playback fetches its keyframe first, as its only throughput sample,
+  then decides. A part that fails in the joint request is requested alone.
+- One throughput sample per GOP: keyframe and features together (round
+  trips kept apart as latency); an abandoned transfer is a sample of its own.
 - A transient failure (connection error, timeout, truncated body, HTTP
   408/429/5xx) is retried with exponential backoff (`Wait`), up to
   `DownloadSettings.retries` times.
@@ -40,85 +46,27 @@ from stgs.client.abr import (
     FixedRule,
     InFlight,
     ThroughputSample,
+    UpcomingGOP,
     throughput_kbps,
 )
 from stgs.client.download import DownloadSettings
+from stgs.client.fetchsteps import (
+    Abandoned,
+    Done,
+    Failed,
+    Fetched,
+    Judge,
+    Outcome,
+    Parallel,
+    Request,
+    ScheduleError,
+    Step,
+    Wait,
+)
 from stgs.client.manifest import Presentation
 from stgs.client.playlog import GOPRecord
 from stgs.limits import MAX_INIT_BYTES
 from stgs.tree import KEYFRAME_REP
-
-
-class ScheduleError(Exception):
-    """A GOP cannot be fetched (after the retries and fallbacks the log records)."""
-
-
-@dataclass(frozen=True)
-class Request:
-    """One HTTP GET the driver is to perform."""
-
-    kind: str
-    """keyframe, init or media."""
-    gop: int
-    rep: str
-    """The Representation (KEYFRAME_REP for keyframes)."""
-    url: str
-    """Absolute URL, resolved against the MPD's."""
-    max_bytes: int
-    """The body may not be longer (checked before and while reading)."""
-    judge: Callable[[int, int | None, float], Decision | None] | None = None
-    """For an abandonable download: (bytes so far, Content-Length, media seconds since the request started)
-    -> a Decision to drop it, or None to go on."""
-    time_left: float | None = None
-    """Media seconds this attempt may take: what the request's deadline leaves after earlier attempts."""
-
-
-@dataclass(frozen=True)
-class Wait:
-    """Sleep this many media seconds before the next request (retry backoff)."""
-
-    seconds: float
-
-
-@dataclass(frozen=True)
-class Done:
-    nbytes: int
-    seconds: float
-    """Request start to last byte (media seconds)."""
-    ttfb: float = 0.0
-    data: bytes | None = None
-    """The body (None where the driver only models sizes)."""
-
-
-@dataclass(frozen=True)
-class Failed:
-    reason: str
-    retryable: bool
-    """A transient failure (worth retrying) rather than a final answer such as 404."""
-    seconds: float = 0.0
-    """Request start to failure (media seconds)."""
-
-
-@dataclass(frozen=True)
-class Abandoned:
-    nbytes: int
-    seconds: float
-    decision: Decision
-
-
-Outcome = Done | Failed | Abandoned
-Step = Generator[Request | Wait, Outcome | None, "Fetched"]
-
-
-@dataclass
-class Fetched:
-    """A GOP's downloaded parts (bytes where the driver has them)."""
-
-    index: int
-    rung: int
-    keyframe: bytes | None = None
-    init: bytes | None = None
-    media: bytes | None = None
 
 
 @dataclass
@@ -130,10 +78,14 @@ class FetchSchedule:
     buffer_level: Callable[[], float]
     """The driver's buffer level now (media seconds downloaded ahead of the playhead)."""
     capacity_s: float
-    segment_bits: Callable[[int], list[float] | None] = lambda k: None
-    """GOP k's feature bits per rung, where known (stats.json); None: @bandwidth x duration."""
+    gop_info: Callable[[int], UpcomingGOP | None] = lambda k: None
+    """GOP k's keyframe and per-rung feature bits and PSNR, where the scene says (stats.json)."""
     settings: AbrSettings = field(default_factory=AbrSettings)
     download: DownloadSettings = field(default_factory=DownloadSettings)
+    clock: Callable[[], float] = lambda: 0.0
+    """The driver's clock (media seconds), to tell how long the fetcher waited for room."""
+    playing: Callable[[], bool] = lambda: True
+    """Whether playback has started."""
     samples: list[ThroughputSample] = field(default_factory=list)
     inits: dict[str, bytes | None] = field(default_factory=dict)
     current: int | None = None
@@ -144,31 +96,38 @@ class FetchSchedule:
     def __post_init__(self) -> None:
         self.abandon = AbandonRule(self.settings)
         self.adaptive = not isinstance(self.rule, FixedRule)
+        self._arrived: float | None = None
+        self._last_keyframe_bits: float | None = None
 
     # --- one GOP ---
 
     def fetch_gop(self, k: int, rec: GOPRecord) -> Step:
-        """GOP k: keyframe, the ABR decision, init (once per Representation) and media, with fallbacks."""
-        keyframe = yield from self._get(self._request("keyframe", k, KEYFRAME_REP), rec)
-        if not isinstance(keyframe, Done):
-            raise ScheduleError(f"GOP {k}: {keyframe.reason}")
+        """GOP k: the ABR decision, init (once per Representation), keyframe and media, with fallbacks."""
+        now = self.clock()
+        waited = 0.0 if self._arrived is None else max(0.0, now - self._arrived)
+        info = self.gop_info(k)
+        kf_bits = info.keyframe_bits if info is not None else self._last_keyframe_bits
+        if self.download.concurrent and (not self.adaptive or (self.samples and kf_bits is not None)):
+            state = self._state(k, kf_bits or 0.0, waited, round_trips=1)
+            decision = self._decide(rec, state)
+            keyframe, fetched = yield from self._together(k, decision.index, state, rec)
+        else:
+            keyframe = yield from self._keyframe(k, rec)
+            alone = self._sample(keyframe)
+            state = self._state(k, keyframe.nbytes * 8, waited, round_trips=2, keyframe_fetched=True, extra=[alone])
+            decision = self._decide(rec, state)
+            fetched = yield from self._features(k, decision.index, state, rec, keyframe)
         rec.keyframe_bytes = keyframe.nbytes
-        state = self._state(k, keyframe.nbytes * 8)
-        decision = self.rule.choose(state)
-        self._decided(rec, decision)
-        rec.rule, rec.buffer_s = decision.rule, state.buffer_s
-        rec.estimate_kbps = throughput_kbps(state.samples, self.settings)
-        fetched = yield from self._features(k, decision.index, state, rec)
+        self._last_keyframe_bits = keyframe.nbytes * 8
         fetched.keyframe = keyframe.data
         self.current = fetched.rung
+        self._arrived = self.clock()
         return fetched
 
     def refetch_keyframe(self, k: int, rec: GOPRecord, reason: str) -> Step:
         """GOP k's keyframe once more, after the decoder rejected it (damaged in transit?)."""
         rec.events.append(f"keyframe rejected, downloaded again: {reason}")
-        keyframe = yield from self._get(self._request("keyframe", k, KEYFRAME_REP), rec)
-        if not isinstance(keyframe, Done):
-            raise ScheduleError(f"GOP {k}: {keyframe.reason}")
+        keyframe = yield from self._keyframe(k, rec)
         return Fetched(k, -1, keyframe=keyframe.data)
 
     def fallback(self, k: int, rec: GOPRecord, rung: int, reason: str) -> Step:
@@ -181,28 +140,84 @@ class FetchSchedule:
 
     # --- parts ---
 
-    def _features(self, k: int, rung: int, state: AbrState, rec: GOPRecord) -> Step:
+    def _decide(self, rec: GOPRecord, state: AbrState) -> Decision:
+        decision = self.rule.choose(state)
+        self._decided(rec, decision)
+        rec.rule, rec.buffer_s = decision.rule, state.buffer_s
+        rec.estimate_kbps = throughput_kbps(state.samples, self.settings)
+        return decision
+
+    def _keyframe(self, k: int, rec: GOPRecord) -> Generator[Request | Wait, Outcome | None, Done]:
+        keyframe = yield from self._get(self._request("keyframe", k, KEYFRAME_REP), rec)
+        if not isinstance(keyframe, Done):
+            raise ScheduleError(f"GOP {k}: {keyframe.reason}")
+        return keyframe
+
+    def _together(self, k: int, rung: int, state: AbrState, rec: GOPRecord) -> Step:
+        """Keyframe and media of GOP k in one joint request (after the rung's init segment, if new)."""
         rep = self.pres.ladder[rung].rep_id
         init = yield from self._init(rep, rec)
         if isinstance(init, Failed):
-            failure: Failed | Abandoned = init
-        else:
-            judge = self._judge(rung, state) if self.adaptive and rung > 0 else None
-            media = yield from self._get(self._request("media", k, rep, judge), rec)
+            keyframe = yield from self._keyframe(k, rec)
+            return keyframe, (yield from self._recover(k, rung, init, rec))
+        kf_req = self._attempt(self._request("keyframe", k, KEYFRAME_REP))
+        media_req = self._attempt(self._request("media", k, rep, self._judge(rung, state)))
+        keyframe, media = yield Parallel((kf_req, media_req))
+        for req, outcome in ((kf_req, keyframe), (media_req, media)):
+            rec.requests.append({"kind": req.kind, "rep": req.rep, "outcome": _describe(outcome)})
+        if isinstance(keyframe, Done) and isinstance(media, Done):
+            self.samples.append(self._sample(keyframe, media, joint=True))
+        if isinstance(keyframe, Failed):
+            if keyframe.retryable:
+                keyframe = yield from self._get(kf_req, rec, first=keyframe)
+            if not isinstance(keyframe, Done):
+                raise ScheduleError(f"GOP {k}: {keyframe.reason}")
+        if isinstance(media, Failed) and media.retryable:
+            media = yield from self._get(media_req, rec, first=media)
             if isinstance(media, Done):
-                return self._chosen(k, rung, rec, media)
-            failure = media
+                self.samples.append(self._sample(media))
+        if isinstance(media, Done):
+            return keyframe, self._chosen(k, rung, rec, media)
+        return keyframe, (yield from self._recover(k, rung, media, rec))
+
+    def _features(self, k: int, rung: int, state: AbrState, rec: GOPRecord, keyframe: Done) -> Step:
+        rep = self.pres.ladder[rung].rep_id
+        init = yield from self._init(rep, rec)
+        if isinstance(init, Failed):
+            return (yield from self._recover(k, rung, init, rec))
+        media = yield from self._get(self._request("media", k, rep, self._judge(rung, state)), rec)
+        if isinstance(media, Done):
+            self.samples.append(self._sample(keyframe, media))
+            return self._chosen(k, rung, rec, media)
+        self.samples.append(self._sample(keyframe))
+        return (yield from self._recover(k, rung, media, rec))
+
+    def _recover(self, k: int, rung: int, failure: Failed | Abandoned, rec: GOPRecord) -> Step:
+        """After the rung's init or media failed or was abandoned: the rung the abandonment chose, else the
+        lowest; a failure at the lowest rung ends the playback."""
+        rep = self.pres.ladder[rung].rep_id
+        target = 0
         if isinstance(failure, Abandoned):
-            self.samples.append(ThroughputSample(failure.nbytes, failure.seconds))
+            self.samples.append(ThroughputSample(failure.nbytes, failure.seconds, failure.ttfb))
             rec.abandoned_bytes += failure.nbytes
             self.wasted_bytes += failure.nbytes
             rec.events.append(f"abandoned {rep} after {failure.nbytes} bytes ({failure.seconds:.2f} s)")
             self._decided(rec, failure.decision)
+            target = failure.decision.index
         elif rung == 0:
             raise ScheduleError(f"GOP {k}: {failure.reason}")
         else:
             rec.events.append(f"fallback from {rep}: {failure.reason}")
             self._decided(rec, Decision(0, "fallback", failure.reason))
+        if target > 0:
+            lower = self.pres.ladder[target].rep_id
+            init = yield from self._init(lower, rec)
+            if not isinstance(init, Failed):
+                media = yield from self._get(self._request("media", k, lower), rec)
+                if isinstance(media, Done):
+                    self.samples.append(self._sample(media))
+                    return self._chosen(k, target, rec, media)
+                rec.events.append(f"fallback from {lower}: {media.reason}")
         return (yield from self._lowest(k, rec))
 
     def _lowest(self, k: int, rec: GOPRecord) -> Step:
@@ -213,6 +228,7 @@ class FetchSchedule:
         media = yield from self._get(self._request("media", k, low), rec)
         if not isinstance(media, Done):
             raise ScheduleError(f"GOP {k}: {media.reason}")
+        self.samples.append(self._sample(media))
         return self._chosen(k, 0, rec, media)
 
     def _init(self, rep: str, rec: GOPRecord) -> Generator[Request | Wait, Outcome | None, Outcome | None]:
@@ -226,13 +242,17 @@ class FetchSchedule:
             rec.init_bytes += outcome.nbytes
         return outcome
 
-    def _get(self, request: Request, rec: GOPRecord) -> Generator[Request | Wait, Outcome | None, Outcome]:
+    def _attempt(self, request: Request) -> Request:
+        return dataclasses.replace(request, time_left=self.download.total_timeout_s)
+
+    def _get(self, request: Request, rec: GOPRecord, first: Failed | None = None
+             ) -> Generator[Request | Wait, Outcome | None, Outcome]:
         """One request with its retries, all within the request's deadline (DownloadSettings.total_timeout_s);
-        keyframe and media downloads are throughput samples."""
+        `first`: the failed first attempt made in a joint request."""
         settings = self.download
-        outcome: Outcome | None = None
-        spent = 0.0
-        for attempt in range(settings.retries + 1):
+        outcome: Outcome | None = first
+        spent = 0.0 if first is None else first.seconds
+        for attempt in range(0 if first is None else 1, settings.retries + 1):
             if isinstance(outcome, Failed):
                 wait = settings.backoff(attempt)
                 if spent + wait >= settings.total_timeout_s:
@@ -252,12 +272,17 @@ class FetchSchedule:
             if settings.retries:
                 outcome = Failed(f"{outcome.reason} (after {settings.retries + 1} attempts)", retryable=True,
                                  seconds=spent)
-        if isinstance(outcome, Done) and request.kind in ("keyframe", "media"):
-            self.samples.append(ThroughputSample(outcome.nbytes, outcome.seconds))
         return outcome
 
-    def _request(self, kind: str, k: int, rep: str,
-                 judge: Callable[[int, int | None, float], Decision | None] | None = None) -> Request:
+    @staticmethod
+    def _sample(*parts: Done, joint: bool = False) -> ThroughputSample:
+        """One throughput sample of transfers made one after the other (or at once, `joint`)."""
+        nbytes = sum(p.nbytes for p in parts)
+        if joint:
+            return ThroughputSample(nbytes, max(p.seconds for p in parts), min(p.ttfb for p in parts))
+        return ThroughputSample(nbytes, sum(p.seconds for p in parts), sum(p.ttfb for p in parts))
+
+    def _request(self, kind: str, k: int, rep: str, judge: Judge | None = None) -> Request:
         """The request for a part of GOP k: its URL and its size cap from the manifest."""
         pres = self.pres
         if kind == "keyframe":
@@ -266,10 +291,14 @@ class FetchSchedule:
             return Request(kind, k, rep, pres.init_url(rep), MAX_INIT_BYTES, judge)
         return Request(kind, k, rep, pres.media_url(rep, k), pres.max_media_bytes(rep), judge)
 
-    def _judge(self, rung: int, state: AbrState) -> Callable[[int, int | None, float], Decision | None]:
-        def judge(received: int, total: int | None, elapsed_s: float) -> Decision | None:
-            flight = InFlight(rung, received, total, elapsed_s)
-            return self.abandon.choose(dataclasses.replace(state, buffer_s=self.buffer_level(), in_flight=flight))
+    def _judge(self, rung: int, state: AbrState) -> Judge | None:
+        if not self.adaptive or rung == 0:
+            return None
+
+        def judge(received: int, total: int | None, elapsed_s: float, ttfb_s: float) -> Decision | None:
+            flight = InFlight(rung, received, total, elapsed_s, ttfb_s)
+            return self.abandon.choose(dataclasses.replace(state, buffer_s=self.buffer_level(), in_flight=flight,
+                                                           playing=self.playing()))
 
         return judge
 
@@ -278,10 +307,20 @@ class FetchSchedule:
         rec.rep, rec.qp, rec.feature_bytes, rec.ttfb_s = r.rep_id, r.qp, rec.feature_bytes + media.nbytes, media.ttfb
         return Fetched(k, rung, init=self.inits.get(r.rep_id), media=media.data)
 
-    def _state(self, k: int, keyframe_bits: float) -> AbrState:
+    def _state(self, k: int, keyframe_bits: float, waited_s: float, round_trips: int, keyframe_fetched: bool = False,
+               extra: list[ThroughputSample] | None = None) -> AbrState:
         ladder = self.pres.ladder
+        upcoming = []
+        for j in range(k, min(k + self.settings.mpc_horizon, self.pres.num_gops)):
+            info = self.gop_info(j)
+            if info is None:
+                break
+            upcoming.append(info)
         return AbrState([r.bandwidth for r in ladder], self.pres.segment_seconds, self.buffer_level(),
-                        self.capacity_s, list(self.samples), keyframe_bits, self.segment_bits(k), self.current)
+                        self.capacity_s, [*self.samples, *(extra or [])], keyframe_bits,
+                        upcoming[0].segment_bits if upcoming else None, self.current, round_trips=round_trips,
+                        keyframe_fetched=keyframe_fetched, waited_s=waited_s, upcoming=upcoming,
+                        playing=self.playing())
 
     @staticmethod
     def _decided(rec: GOPRecord, decision: Decision) -> None:

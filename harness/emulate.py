@@ -60,6 +60,8 @@ async def shaping_proxy(upstream: str, network: Network, speed: float = 1.0) -> 
         if not shaped or status != 200:
             return web.Response(status=status, body=body, content_type=None, headers={"Content-Type": ctype})
         await _sleep_until(origin[0] + body_start / speed)
+        body_start = network.queue(body_start, len(body) * 8)
+        await _sleep_until(origin[0] + body_start / speed)
         resp = web.StreamResponse(status=200, headers={"Content-Type": ctype, "Content-Length": str(len(body))})
         await resp.prepare(request)
         try:
@@ -69,7 +71,7 @@ async def shaping_proxy(upstream: str, network: Network, speed: float = 1.0) -> 
                 await resp.write(chunk)
             await resp.write_eof()
         except (ConnectionError, aiohttp.ClientConnectionResetError):
-            pass  # the player abandoned this download
+            network.release((time.perf_counter() - origin[0]) * speed)  # the player abandoned this download
         return resp
 
     app = web.Application()

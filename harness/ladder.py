@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import urlparse
 
+from stgs.client.abr import UpcomingGOP
 from stgs.client.download import Downloader, FetchError
 from stgs.client.manifest import Presentation
 from stgs.client.urlpolicy import UrlPolicy
@@ -33,6 +34,13 @@ class Ladder:
     @property
     def url(self) -> str:
         return self.pres.url
+
+    def gop_info(self, k: int) -> UpcomingGOP:
+        """GOP k's sizes (bits) and per-rung PSNR (None unless every rung has one), as the ABR rules see them."""
+        reps = [r.rep_id for r in self.pres.ladder]
+        psnr = [self.psnr[r][k] for r in reps]
+        return UpcomingGOP(self.keyframe_bytes[k] * 8, [self.media_bytes[r][k] * 8 for r in reps],
+                           None if None in psnr else psnr)
 
 
 def _local_path(base: Path, url: str) -> Path:

@@ -10,6 +10,8 @@ Only named effects apply: with none, every transfer is instant.
   ± offset on it per request (never below zero), from the scenario's seed;
 - faults: matching segment requests are answered with an HTTP error (after
   the round trip), as many times as the fault says.
+- concurrent requests share the link first come, first served: a response
+  ready while another is still flowing starts when that one has arrived.
 """
 
 from __future__ import annotations
@@ -29,6 +31,8 @@ class Network:
         self.fx = effects
         self.rng = random.Random(seed)
         self.fault_left = [f.times for f in effects.faults or ()]
+        self.link_free = 0.0
+        """When the bytes already queued on the link have all arrived."""
 
     def fault(self, path: str) -> int | None:
         """The HTTP error status a request for `path` gets (counting it against its fault), or None."""
@@ -80,6 +84,16 @@ class Network:
             bits -= bps * hold
             t += hold
         return t
+
+    def queue(self, ready: float, bits: float) -> float:
+        """When a response of `bits` ready at `ready` starts to flow (after those queued before it)."""
+        start = max(ready, self.link_free)
+        self.link_free = self.finish(start, bits)
+        return start
+
+    def release(self, t: float) -> None:
+        """A transfer was dropped at time t: nothing it had left occupies the link."""
+        self.link_free = min(self.link_free, t)
 
     def delivered(self, t: float, until: float) -> float:
         """Bits that arrive between t and until."""

@@ -138,11 +138,24 @@ def summary_table(rows: list[dict]) -> str:
 
 
 def sabre_manifest(ladder: Ladder) -> dict:
-    """The scene's ladder as Sabre's manifest JSON: per segment, every rung's whole-GOP bits (keyframe + features),
-    so Sabre budgets the fixed keyframe part as our player does."""
+    """The scene's ladder as Sabre's manifest JSON. Each size is a whole GOP (keyframe + features), so Sabre
+    budgets the fixed keyframe as our player does; segment 0 also carries its rung's init segment (our player
+    fetches it before the first GOP's features). One request per segment matches our player after its first GOP
+    (keyframe and features are asked for together). What Sabre cannot express is listed under `streamstgs`:
+    the init segment a later switch to a new rung costs, and the first GOP's three requests."""
     pres = ladder.pres
     reps = [r.rep_id for r in pres.ladder]
     sizes = [[(ladder.keyframe_bytes[k] + ladder.media_bytes[r][k]) * 8 for r in reps] for k in range(pres.num_gops)]
     T = pres.segment_seconds
     bitrates = [sum(s[i] for s in sizes) / len(sizes) / T / 1e3 for i in range(len(reps))]
-    return {"segment_duration_ms": round(T * 1e3, 3), "bitrates_kbps": bitrates, "segment_sizes_bits": sizes}
+    init_bits = [ladder.init_bytes[r] * 8 for r in reps]
+    if sizes:
+        sizes[0] = [s + i for s, i in zip(sizes[0], init_bits, strict=True)]
+    return {"segment_duration_ms": round(T * 1e3, 3), "bitrates_kbps": bitrates, "segment_sizes_bits": sizes,
+            "streamstgs": {
+                "init_segment_bits": init_bits,
+                "requests_per_segment": 1, "first_segment_requests": 3,
+                "not_expressible": ["the init segment of a rung first used after segment 0 (its bits are in "
+                                    "init_segment_bits, not in that segment)",
+                                    "the first GOP's keyframe is a request of its own (three round trips: "
+                                    "keyframe, init, media)"]}}

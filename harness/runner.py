@@ -20,7 +20,8 @@ from stgs.harness.sim import simulate
 from stgs.tree import MANIFEST
 
 ENGINES = ("sim", "emulate")
-TRACE_SUFFIX = {".json": "sabre", ".csv": "csv", ".log": "mahimahi", ".txt": "mahimahi"}
+TRACE_SUFFIXES = (".json", ".csv", ".log", ".txt", ".up", ".down")
+"""Files a trace folder's batch reads (the format of .log, .txt, .up and .down is sniffed)."""
 
 
 def rules(sc: Scenario) -> list[str]:
@@ -55,13 +56,13 @@ def run_scenario(sc: Scenario, engines: list[str], out: Path, decode: bool = Fal
 
 def run_batch(sc: Scenario, traces: Path, engines: list[str], out: Path, speed: float = 1.0) -> list[dict]:
     """The scenario once per trace file in `traces` (its bandwidth replaced by the trace), per rule and engine."""
-    files = sorted(p for p in Path(traces).iterdir() if p.suffix in TRACE_SUFFIX)
+    files = sorted(p for p in Path(traces).iterdir() if p.suffix in TRACE_SUFFIXES)
     if not files:
-        raise StgsError(f"{traces}: no trace files ({', '.join(TRACE_SUFFIX)}; formats {', '.join(TRACE_FORMATS)})")
+        raise StgsError(f"{traces}: no trace files ({', '.join(TRACE_SUFFIXES)}; formats {', '.join(TRACE_FORMATS)})")
     ladder = load_ladder(sc.scene)
     rows = []
     for f in files:
-        trace = load_trace(f, TRACE_SUFFIX[f.suffix])
+        trace = load_trace(f)
         variant = dataclasses.replace(sc, name=f"{sc.name}-{f.stem}",
                                       effects=dataclasses.replace(sc.effects, bandwidth=trace))
         for rule in rules(variant):

@@ -12,7 +12,7 @@ decode_s = 0.0               # optional: decode time per GOP the simulator assum
 [effects]                    # only the effects named here are simulated
 bandwidth = { kbps = 5000 }                          # constant
 # bandwidth = { steps = [[0, 5000], [4, 800]] }      # (from second, kbit/s)
-# bandwidth = { trace = "traces/bus.log", format = "mahimahi" }   # sabre | mahimahi | csv
+# bandwidth = { trace = "traces/bus.log", format = "mahimahi" }   # sabre | mahimahi | pensieve | csv
 latency_ms = 40              # round trip per request
 jitter_ms = 10               # uniform ± per request
 loss = 0.01                  # packet loss probability: its effect on transfer time
@@ -28,6 +28,7 @@ import bisect
 import csv
 import dataclasses
 import io
+import itertools
 import json
 import math
 import tomllib
@@ -39,7 +40,11 @@ from stgs.errors import StgsError
 from stgs.limits import MAX_TRACE_POINTS
 
 EFFECTS = ("bandwidth", "latency_ms", "jitter_ms", "loss", "outages", "competing", "faults")
-TRACE_FORMATS = ("sabre", "mahimahi", "csv")
+TRACE_FORMATS = ("sabre", "mahimahi", "pensieve", "csv")
+MAHIMAHI_PACKET_BITS = 1500 * 8
+"""A Mahimahi trace line is one delivery opportunity for a 1500-byte packet."""
+MAHIMAHI_BIN_S = 0.1
+"""Mahimahi packet times are turned into a piecewise-constant rate over bins this long."""
 
 
 @dataclass
@@ -88,15 +93,33 @@ def steps(points: list) -> Trace:
     return Trace(list(times), list(rates), math.inf, source="bandwidth steps")
 
 
-def load_trace(path: Path, fmt: str) -> Trace:
-    """A trace file in Sabre JSON, Mahimahi/Pensieve two-column text (seconds, Mbit/s) or CSV with named columns
-    (time_s, bandwidth_kbps, optional latency_ms); it loops over its own length."""
-    if fmt not in TRACE_FORMATS:
-        raise StgsError(f"{path}: unknown trace format {fmt!r}; known: {', '.join(TRACE_FORMATS)}")
+def sniff_format(path: Path, text: str) -> str:
+    """The format of a trace file: by suffix (.json Sabre, .csv CSV), else by its first data line: one integer
+    (Mahimahi packet times) or two numbers (Pensieve)."""
+    suffix = Path(path).suffix
+    if suffix in (".json", ".csv"):
+        return "sabre" if suffix == ".json" else "csv"
+    for line in text.splitlines():
+        if line.strip() and not line.startswith("#"):
+            return "mahimahi" if len(line.split()) == 1 else "pensieve"
+    return "mahimahi"
+
+
+def load_trace(path: Path, fmt: str | None = None) -> Trace:
+    """A trace file (it loops over its own length):
+    - `sabre`: Sabre's JSON list of {duration_ms, bandwidth_kbps, latency_ms};
+    - `mahimahi`: Mahimahi's own format, one line per 1500-byte delivery opportunity with its time in ms
+      (the trace repeats after its last time), turned into a rate per 100-ms bin;
+    - `pensieve`: Pensieve's two columns, seconds and Mbit/s;
+    - `csv`: named columns time_s, bandwidth_kbps (optional latency_ms, not applied).
+    `fmt` None: sniffed (`sniff_format`)."""
     try:
         text = Path(path).read_text()
     except (OSError, UnicodeDecodeError) as exc:
         raise StgsError(f"{path}: cannot read trace ({exc})") from None
+    fmt = fmt or sniff_format(path, text)
+    if fmt not in TRACE_FORMATS:
+        raise StgsError(f"{path}: unknown trace format {fmt!r}; known: {', '.join(TRACE_FORMATS)}")
     try:
         if fmt == "sabre":
             rows = json.loads(text)
@@ -109,12 +132,17 @@ def load_trace(path: Path, fmt: str) -> Trace:
             # latency_ms of a Sabre trace is not applied: only the scenario's own latency_ms effect is
             times = [sum(durations[:i]) for i in range(len(durations))]
             return Trace(times, rates, sum(durations), str(path))
+        lines = [line.split() for line in text.splitlines() if line.strip() and not line.startswith("#")]
+        if len(lines) > MAX_TRACE_POINTS:
+            raise StgsError(f"{path}: more than {MAX_TRACE_POINTS} points")
         if fmt == "mahimahi":
-            pts = [line.split() for line in text.splitlines() if line.strip() and not line.startswith("#")]
-            if any(len(p) != 2 for p in pts):
-                raise ValueError("every line must hold two numbers: seconds and Mbit/s")
-            times = [float(p[0]) for p in pts]
-            rates = [float(p[1]) * 1e3 for p in pts]
+            return _mahimahi(lines, str(path))
+        if fmt == "pensieve":
+            if any(len(p) != 2 for p in lines):
+                hint = " (one number per line is Mahimahi's format)" if lines and len(lines[0]) == 1 else ""
+                raise ValueError(f"every line must hold two numbers: seconds and Mbit/s{hint}")
+            times = [float(p[0]) for p in lines]
+            rates = [float(p[1]) * 1e3 for p in lines]
         else:
             reader = csv.DictReader(io.StringIO(text))
             if not reader.fieldnames or not {"time_s", "bandwidth_kbps"} <= set(reader.fieldnames):
@@ -133,6 +161,31 @@ def load_trace(path: Path, fmt: str) -> Trace:
         times = [t - shift for t in times]
     step = times[-1] - times[-2] if len(times) > 1 else 1.0
     return Trace(times, rates, times[-1] + step, source=str(path))
+
+
+def _mahimahi(lines: list[list[str]], source: str) -> Trace:
+    """Packet delivery times (ms, non-decreasing) -> kbit/s per MAHIMAHI_BIN_S bin, looping after the last time."""
+    if any(len(p) != 1 for p in lines):
+        hint = " (two columns, seconds and Mbit/s, is Pensieve's format)" if lines and len(lines[0]) == 2 else ""
+        raise ValueError(f"every line must hold one integer: a packet's delivery time in ms{hint}")
+    ms = [int(p[0]) for p in lines]
+    if not ms:
+        raise ValueError("no packet times")
+    if any(t < 0 for t in ms) or any(b < a for a, b in itertools.pairwise(ms)):
+        raise ValueError("packet times must be non-negative and non-decreasing")
+    period = ms[-1] / 1e3
+    if period <= 0:
+        raise ValueError("the last packet time must be above 0 ms (it is the trace's length)")
+    bins = math.ceil(period / MAHIMAHI_BIN_S - 1e-9)
+    if bins > MAX_TRACE_POINTS:
+        raise ValueError(f"{period:.0f} s long: more than {MAX_TRACE_POINTS} bins of {MAHIMAHI_BIN_S:g} s")
+    counts = [0] * bins
+    for t in ms:
+        counts[min(int(t / 1e3 / MAHIMAHI_BIN_S), bins - 1)] += 1
+    times = [i * MAHIMAHI_BIN_S for i in range(bins)]
+    widths = [min(MAHIMAHI_BIN_S, period - t) for t in times]
+    kbps = [c * MAHIMAHI_PACKET_BITS / w / 1e3 for c, w in zip(counts, widths, strict=True)]
+    return Trace(times, kbps, period, source)
 
 
 @dataclass
@@ -254,9 +307,10 @@ def parse_bandwidth(spec: object, where: str, base: Path) -> Trace:
         return constant(value)
     if "steps" in spec:
         return steps(spec["steps"])
-    path = base / str(spec["trace"])
-    fmt = str(spec.get("format") or {".json": "sabre", ".csv": "csv"}.get(path.suffix, "mahimahi"))
-    return load_trace(path, fmt)
+    fmt = spec.get("format")
+    if fmt is not None and not isinstance(fmt, str):
+        raise StgsError(f"{where}: a trace's 'format' is one of {', '.join(TRACE_FORMATS)}")
+    return load_trace(base / str(spec["trace"]), fmt)
 
 
 def load_scenario(path: Path) -> Scenario:

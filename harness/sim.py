@@ -20,19 +20,20 @@ import math
 from stgs.client.abr import AbrSettings, make_rule
 from stgs.client.clock import PlaybackClock
 from stgs.client.download import RETRY_STATUS, DownloadSettings
-from stgs.client.playlog import GOPRecord, playback_log
-from stgs.client.schedule import (
+from stgs.client.fetchsteps import (
     Abandoned,
     Done,
     Failed,
     Fetched,
-    FetchSchedule,
     Outcome,
+    Parallel,
     Request,
     ScheduleError,
     Step,
     Wait,
 )
+from stgs.client.playlog import GOPRecord, playback_log
+from stgs.client.schedule import FetchSchedule
 from stgs.harness.ladder import Ladder
 from stgs.harness.network import DELIVERY_CHUNK, Network
 from stgs.harness.scenario import Scenario
@@ -62,8 +63,8 @@ class Simulation:
         self.poll = min(0.05, self.T / 20)
         self.now = 0.0
         self.schedule = FetchSchedule(pres, rule, lambda: self.clock.buffer_level(self.now), span.buffer_s,
-                                      lambda k: [ladder.media_bytes[r.rep_id][k] * 8 for r in pres.ladder],
-                                      self.settings, download or DownloadSettings())
+                                      ladder.gop_info, self.settings, download or DownloadSettings(),
+                                      clock=lambda: self.now, playing=lambda: self.clock.t0 is not None)
         self.error: str | None = None
         self.records = {k: GOPRecord(k) for k in self.gops}
         g = pres.shape.gop_size
@@ -112,35 +113,52 @@ class Simulation:
                 self.now += item.seconds
                 self.advance(self.now)
                 outcome = None
+            elif isinstance(item, Parallel):
+                outcome = self.perform_all(item.requests, rec)
             else:
-                outcome = self.perform(item, rec)
+                outcome = self.perform(item, rec, self.now, self.round_trip(rec))
 
-    def perform(self, req: Request, rec: GOPRecord) -> Outcome:
-        """One request: a round trip, then the body paced by the network (judged per chunk when abandonable)."""
+    def round_trip(self, rec: GOPRecord) -> float:
+        rtt = self.net.round_trip()
+        rec.latency_ms.append(rtt * 1e3)
+        return rtt
+
+    def perform_all(self, requests: tuple[Request, ...], rec: GOPRecord) -> tuple[Outcome, ...]:
+        """Requests sent at once: each after its own round trip, their bodies sharing the link in arrival order."""
+        start = self.now
+        rtts = [self.round_trip(rec) for _ in requests]
+        outcomes: list[Outcome | None] = [None] * len(requests)
+        for i in sorted(range(len(requests)), key=lambda i: rtts[i]):
+            outcomes[i] = self.perform(requests[i], rec, start, rtts[i])
+        return tuple(outcomes)
+
+    def perform(self, req: Request, rec: GOPRecord, start: float, rtt: float) -> Outcome:
+        """One request sent at `start`: a round trip, then the body paced by the network once the link is free
+        (judged per chunk when abandonable)."""
         ladder = self.ladder
         nbytes = (ladder.keyframe_bytes[req.gop] if req.kind == "keyframe" else
                   ladder.init_bytes[req.rep] if req.kind == "init" else ladder.media_bytes[req.rep][req.gop])
-        start = self.now
-        rtt = self.net.round_trip()
-        rec.latency_ms.append(rtt * 1e3)
-        body_start = start + rtt
+        ready = start + rtt
         status = self.net.fault(req.url)
         if status is not None:
-            self.now = body_start
+            self.now = max(self.now, ready)
             self.advance(self.now)
-            return Failed(f"{req.url}: HTTP {status}", retryable=status in RETRY_STATUS, seconds=self.now - start)
-        end = self.net.finish(body_start, nbytes * 8)
+            return Failed(f"{req.url}: HTTP {status}", retryable=status in RETRY_STATUS, seconds=ready - start)
+        body_start = self.net.queue(ready, nbytes * 8)
+        end = self.net.link_free
         if req.judge is not None:
             # the player judges a download each time a chunk arrives (none arrive during an outage)
             for received in range(DELIVERY_CHUNK, nbytes, DELIVERY_CHUNK):
-                self.now = self.net.finish(body_start, received * 8)
+                t = self.net.finish(body_start, received * 8)
+                self.now = max(self.now, t)
                 self.advance(self.now)
-                decision = req.judge(received, nbytes, self.now - start)
+                decision = req.judge(received, nbytes, t - start, body_start - start)
                 if decision is not None:
-                    return Abandoned(received, self.now - start, decision)
-        self.now = end
+                    self.net.release(t)
+                    return Abandoned(received, t - start, decision, body_start - start)
+        self.now = max(self.now, end)
         self.advance(self.now)
-        return Done(nbytes, end - start, rtt)
+        return Done(nbytes, end - start, body_start - start)
 
     def fetch(self, k: int) -> None:
         rec = self.records[k]

@@ -10,15 +10,19 @@ from stgs.client.abr import (
     AbandonRule,
     AbrSettings,
     AbrState,
+    BolaERule,
     BolaRule,
     Decision,
     DynamicRule,
     FixedRule,
     InFlight,
+    InsufficientBufferRule,
+    MpcRule,
     ThroughputRule,
     ThroughputSample,
+    UpcomingGOP,
+    abandon_target,
     ewma_kbps,
-    should_abandon,
     throughput_kbps,
 )
 
@@ -124,27 +128,56 @@ def test_dynamic_takes_bola_only_when_it_is_at_least_the_throughput_choice():
 
 
 def test_dynamic_switches_with_hysteresis():
-    rule = DynamicRule()  # BOLA from 0.6 * 4 = 2.4 s, back to throughput below 0.3 * 4 = 1.2 s
+    rule = DynamicRule()  # BOLA-E from 0.6 * 4 = 2.4 s, back to throughput below 0.3 * 4 = 1.2 s
     slow = kbps_samples((150, 4))  # throughput alone would pick the lowest rung
-    assert rule.choose(state(buffer_s=2.0, samples=slow)).index == 0 and not rule.using_bola
-    assert rule.choose(state(buffer_s=4.0, samples=slow)).index == 2 and rule.using_bola
+    assert rule.choose(state(buffer_s=2.0, samples=slow)).rule == "throughput" and not rule.using_bola
+    assert rule.choose(state(buffer_s=4.0, samples=slow)).rule == "bola-e" and rule.using_bola
     rule.choose(state(buffer_s=1.5, samples=slow))
-    assert rule.using_bola  # between the thresholds: keeps BOLA
-    assert rule.choose(state(buffer_s=1.0, samples=slow)).index == 0 and not rule.using_bola
+    assert rule.using_bola  # between the thresholds: keeps BOLA-E
+    assert rule.choose(state(buffer_s=1.0, samples=slow)).rule == "throughput" and not rule.using_bola
 
 
 def test_fixed_rule_ignores_everything():
     assert FixedRule(1).choose(state(buffer_s=0.0, samples=kbps_samples((1, 10)))).index == 1
 
 
-def test_abandon_only_when_the_download_would_outlast_the_buffer():
+def test_abandon_only_when_the_download_would_outlast_the_buffer_and_a_gop():
     settings = AbrSettings()
-    # 100 kB of 1 MB in 1 s (100 kB/s): 9 s to go, buffer 2 s -> abandon (the lowest rung, 50 kB, takes 0.5 s)
-    assert should_abandon(100_000, 1_000_000, 1.0, 2.0, 50_000, settings)
-    assert not should_abandon(100_000, 1_000_000, 1.0, 10.0, 50_000, settings)  # the buffer outlasts it
-    assert not should_abandon(100_000, 1_000_000, 0.1, 2.0, 50_000, settings)  # too early to judge
-    assert not should_abandon(100_000, None, 1.0, 2.0, 50_000, settings)  # size unknown
-    assert not should_abandon(100_000, 1_000_000, 1.0, 2.0, 950_000, settings)  # restarting is no faster
+    sizes = [400_000.0, 800_000.0, 8_000_000.0]  # bits; the flight is the top rung's 1 MB
+
+    def verdict(received=100_000, total=1_000_000, elapsed=1.0, ttfb=0.0, buffer=2.0, segment=1.0, rung=2):
+        return abandon_target(InFlight(rung, received, total, elapsed, ttfb), sizes, buffer, segment, settings)
+
+    # 100 kB in 1 s (800 kbit/s): 9 s to go > buffer 2 s; rung 1 (0.1 MB, 1 s) is not sustainable (> 0.9 s)
+    assert verdict() == (0, pytest.approx(9.0), pytest.approx(0.5))
+    assert verdict(buffer=10.0) is None  # the buffer outlasts it
+    assert verdict(elapsed=0.1) is None  # too early to judge
+    assert verdict(total=None) is None  # size unknown
+    assert verdict(received=900_000, total=1_000_000) is None  # 0.11 s left: within the buffer
+    assert verdict(segment=20.0) is None  # the whole transfer (10 s) keeps up with a 20-s GOP
+    assert verdict(rung=0) is None  # nothing lower to fall to
+
+
+def test_abandon_measures_the_body_not_the_round_trip():
+    """A high-latency link: 32 kB of 100 kB arrive in 0.2 s after a 0.2-s round trip. Measured from the request
+    (the old rule) that is 80 kB/s, 0.85 s to go at start-up (buffer 0): dropped. From the first byte it is
+    160 kB/s, 0.425 s to go, 0.825 s in all: the download keeps up with a 1-s GOP and goes on."""
+    settings = AbrSettings()
+    sizes = [100_000.0, 400_000.0, 800_000.0]
+    flight = InFlight(2, 32_000, 100_000, 0.4, 0.2)
+    assert abandon_target(flight, sizes, 0.0, 1.0, settings) is None
+    # and where the body itself is slow, it is dropped
+    slow = InFlight(2, 16_000, 100_000, 1.2, 0.2)  # 16 kB/s: 5.25 s to go
+    assert abandon_target(slow, sizes, 0.0, 1.0, settings)[0] == 0
+
+
+def test_abandon_restarts_at_a_sustainable_rung_not_always_the_lowest():
+    settings = AbrSettings()
+    sizes = [100_000.0, 400_000.0, 800_000.0, 16_000_000.0]  # bits
+    # 1 Mbit/s observed on the top rung's 2 MB: 15.8 s to go; rung 2 (0.8 Mbit) takes 0.05 + 0.8 s <= 0.9 s
+    flight = InFlight(3, 25_000, 2_000_000, 0.25, 0.05)
+    target, remaining, restart = abandon_target(flight, sizes, 1.0, 1.0, settings)
+    assert target == 2 and restart == pytest.approx(0.85) and remaining == pytest.approx(15.8)
 
 
 def test_decisions_carry_the_rule_and_the_numbers_it_used():
@@ -154,7 +187,7 @@ def test_decisions_carry_the_rule_and_the_numbers_it_used():
     assert "estimate 1000 kbit/s" in d.reason and "keyframe 300" in d.reason and "budget 600" in d.reason
     assert ThroughputRule().choose(state()).reason == "no throughput sample yet: lowest rung"
     dyn = DynamicRule().choose(state(buffer_s=4.0, samples=kbps_samples((150, 4))))
-    assert dyn.rule == "bola" and dyn.reason.startswith("dynamic: buffer 4.00 s") and "V " in dyn.reason
+    assert dyn.rule == "bola-e" and dyn.reason.startswith("dynamic: buffer 4.00 s") and "placeholder" in dyn.reason
     assert FixedRule(1).choose(state()).to_json() == {"index": 1, "rule": "fixed", "reason": "pinned rung 1"}
 
 
@@ -168,6 +201,101 @@ def test_abandonment_is_a_rule_with_a_reason():
     drop = AbrState(**{**judged.__dict__, "in_flight": InFlight(2, 100_000, 1_000_000, 1.0)})
     d = rule.choose(drop)
     assert d.index == 0 and d.rule == "abandon"
-    assert d.reason == "9.00 s left at 800 kbit/s > buffer 2.00 s; the lowest rung takes 0.50 s"
-    lowest_in_flight = AbrState(**{**judged.__dict__, "in_flight": InFlight(0, 100_000, 1_000_000, 1.0)})
-    assert rule.choose(lowest_in_flight) is None  # nothing lower to fall to
+    assert d.reason == "9.00 s left at 800 kbit/s > buffer 2.00 s and one GOP; rung 0 takes 0.50 s"
+
+
+def test_throughput_is_measured_on_the_body_and_round_trips_are_budgeted():
+    # 125 kB in 1.1 s of which 0.1 s was the round trip: 1000 kbit/s of bandwidth, not 909
+    sample = ThroughputSample(125_000, 1.1, 0.1)
+    assert sample.kbps == pytest.approx(1000.0)
+    assert ewma_kbps([sample], 3.0) == pytest.approx(1000.0)
+    rule = ThroughputRule()
+    # 900 kbit/s to spend: keyframe 300 kbit + rung 2 (400 kbit) = 700 kbit fits 1 s; after one 0.1-s round trip
+    # 0.9 s x 900 = 810 kbit still does; after two 0.15-s ones (0.7 s x 900 = 630 kbit) only rung 1 (500) does
+    assert rule.choose(state(samples=[sample], keyframe_bits=300_000)).index == 2
+    slow_rtt = [ThroughputSample(125_000, 1.15, 0.15)]
+    high = AbrState(LADDER, 1.0, 0.0, 4.0, slow_rtt, 300_000, round_trips=2)
+    decision = rule.choose(high)
+    assert decision.index == 1 and "300 ms of round trips" in decision.reason
+    assert rule.choose(AbrState(LADDER, 1.0, 0.0, 4.0, slow_rtt, 300_000, round_trips=1)).index == 2
+
+
+def test_bola_e_starts_where_the_throughput_is_then_follows_its_placeholder():
+    rule = BolaERule()
+    fast = kbps_samples((2_000, 4))
+    first = rule.choose(state(buffer_s=0.0, samples=fast))
+    # start-up: the throughput rule's rung (top), and a placeholder that makes BOLA agree at this buffer
+    assert first.index == 2 and "start-up" in first.reason
+    low, _ = rule.bola.thresholds(state(samples=fast), 2)
+    assert rule.placeholder_s == pytest.approx(low) and low > 0
+    assert BolaRule().choose(state(buffer_s=rule.placeholder_s, samples=fast)).index == 2
+    # steady (the buffer has held a GOP): the placeholder carries BOLA where the real buffer alone would not
+    rule.steady = True
+    steady = rule.choose(AbrState(LADDER, 1.0, 1.0, 4.0, fast, 100_000.0, waited_s=0.0))
+    assert steady.index == 2 and BolaRule().choose(state(buffer_s=1.0, samples=fast)).index < 2
+    # a stall (buffer empty while playing): back to start-up, placeholder gone
+    rule.choose(AbrState(LADDER, 1.0, 0.0, 4.0, kbps_samples((150, 4)), 100_000.0))
+    assert rule.placeholder_s == 0.0 and not rule.steady
+
+
+def test_bola_e_holds_below_an_unsustainable_climb():
+    """BOLA-O: BOLA alone would climb to the top on a full buffer; with throughput for rung 0 only and the last
+    choice at 0 it stays at 0."""
+    rule = BolaERule(steady=True, last=0)
+    slow = kbps_samples((150, 4))
+    decision = rule.choose(state(buffer_s=3.0, samples=slow))
+    assert BolaRule().choose(state(buffer_s=3.0, samples=slow)).index == 2
+    assert decision.index == 0 and "BOLA-O" in decision.reason
+
+
+def test_insufficient_buffer_caps_what_cannot_arrive_in_time():
+    rule = InsufficientBufferRule()
+    fast = kbps_samples((1_000, 4))
+    # 0.5 x 1.2 s = 0.6 s at 1000 kbit/s = 600 kbit: keyframe 100 + rung 2 (400) fits
+    assert rule.choose(state(buffer_s=1.2, samples=fast)).index == 2
+    # 0.5 x 0.5 s -> 250 kbit: keyframe 100 + rung 0 (100) only
+    assert rule.choose(state(buffer_s=0.5, samples=fast)).index == 0
+    assert rule.choose(state(buffer_s=0.5)) is None  # no sample: no opinion
+    not_playing = AbrState(LADDER, 1.0, 0.0, 4.0, fast, 100_000.0, playing=False)
+    assert rule.choose(not_playing) is None  # start-up is not a shortage
+    dyn = DynamicRule().choose(state(buffer_s=0.5, samples=fast))
+    assert dyn.index == 0 and dyn.rule == "insufficient-buffer" and "capped" in dyn.reason
+
+
+def mpc_state(buffer_s, samples, upcoming, current=None, capacity=6.0) -> AbrState:
+    return AbrState(LADDER, 1.0, buffer_s, capacity, samples, upcoming[0].keyframe_bits, upcoming[0].segment_bits,
+                    current, upcoming=upcoming)
+
+
+def test_mpc_plans_over_the_next_gops_exact_sizes():
+    samples = [ThroughputSample(125_000, 1.0)] * 5  # 1000 kbit/s, steady (no prediction error)
+    quiet = UpcomingGOP(100_000, [100_000, 200_000, 400_000])
+    # the top rung fits every quiet GOP (500 kbit in 0.5 s): top
+    assert MpcRule(AbrSettings(mpc_utility="bitrate")).choose(mpc_state(1.0, samples, [quiet] * 5)).index == 2
+    # the GOPs after the next are huge at every rung: with 1 s of buffer the plan saves now to avoid the stall
+    huge = UpcomingGOP(100_000, [1_500_000, 3_000_000, 6_000_000])
+    ahead = MpcRule(AbrSettings(mpc_utility="bitrate")).choose(mpc_state(1.0, samples, [quiet, huge, huge]))
+    assert ahead.index < 2
+    # a rule that only sees the next GOP (the throughput rule) keeps the top rung
+    assert ThroughputRule().choose(mpc_state(1.0, samples, [quiet, huge, huge])).index == 2
+
+
+def test_mpc_maximises_rendered_quality_not_bits():
+    samples = [ThroughputSample(125_000, 1.0)] * 5
+    # rung 2 costs twice rung 1's bits but renders no better (a saturated ladder): PSNR utility keeps rung 1,
+    # bit-rate utility takes rung 2
+    flat = UpcomingGOP(100_000, [100_000, 200_000, 400_000], [30.0, 36.0, 36.0])
+    assert MpcRule().choose(mpc_state(3.0, samples, [flat] * 5, current=1)).index == 1
+    assert MpcRule(AbrSettings(mpc_utility="bitrate")).choose(mpc_state(3.0, samples, [flat] * 5,
+                                                                         current=1)).index == 2
+
+
+def test_mpc_bounds_the_throughput_by_its_past_errors():
+    rule = MpcRule()
+    steady = [ThroughputSample(125_000, 1.0)] * 3
+    assert rule.predict_kbps(AbrState(LADDER, 1.0, 1.0, 6.0, steady)) == pytest.approx((1000.0, 1000.0))
+    # the next sample came in at half the prediction: error 100 %, the robust estimate halves
+    dropped = [*steady, ThroughputSample(62_500, 1.0)]
+    harmonic, robust = rule.predict_kbps(AbrState(LADDER, 1.0, 1.0, 6.0, dropped))
+    assert harmonic == pytest.approx(4 / (3 / 1000 + 1 / 500)) and robust == pytest.approx(harmonic / 2)
+    assert MpcRule().choose(AbrState(LADDER, 1.0, 0.0, 6.0, [])).index == 0

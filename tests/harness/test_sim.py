@@ -68,6 +68,34 @@ def test_a_step_down_moves_the_throughput_rule_down_on_the_next_gop():
     assert qps[first_slow] > qps[first_slow - 1]  # the next decision after the drop picks a lower rung
 
 
+def test_the_first_gop_does_not_abandon_itself_on_a_high_latency_link():
+    """4 Mbit/s, 200-ms round trips: every rung the throughput rule picks arrives within a GOP. Measured from the
+    request (round trip included) the first download looked slow and, with an empty buffer before start-up, was
+    dropped after 0.2 s; measured on its body it goes on."""
+    ladder = hand_ladder(gops=6)
+    for rule in ("throughput", "dynamic", "mpc"):
+        log = simulate(ladder, scenario({"bandwidth": {"kbps": 4000}, "latency_ms": 200}), rule)
+        assert [g["abandoned_bytes"] for g in log["gops"]] == [0] * 6, rule
+        assert log["gops"][0]["qp"] < 32, rule  # GOP 0 above the lowest rung: the keyframe's sample was believed
+        assert log["stalls"]["count"] == 0, rule
+
+
+def test_keyframe_and_features_share_one_round_trip():
+    """After the first GOP, keyframe and features are asked for together: a GOP costs one round trip, not two."""
+    ladder = hand_ladder(gops=4)
+    effects = {"bandwidth": {"kbps": 4000}, "latency_ms": 100}
+    log = simulate(ladder, scenario(effects, qp=32), "throughput")
+    # GOP 0: the pinned rung's init segment, then keyframe + media together: 2 round trips + 1.108 Mbit / 4 Mbit/s
+    assert log["gops"][0]["download_s"] == pytest.approx(0.2 + 1.108 / 4)
+    # later GOPs: one round trip, then 1.1 Mbit
+    assert [g["download_s"] for g in log["gops"][1:]] == pytest.approx([0.1 + 1.1 / 4] * 3)
+    assert [r["kind"] for r in log["gops"][1]["requests"]] == ["keyframe", "media"]
+    # an adaptive rule's first GOP fetches its keyframe first (its only throughput sample): 3 round trips there
+    adaptive = simulate(ladder, scenario(effects), "throughput")
+    assert [r["kind"] for r in adaptive["gops"][0]["requests"]] == ["keyframe", "init", "media"]
+    assert [r["kind"] for r in adaptive["gops"][2]["requests"]][-2:] == ["keyframe", "media"]
+
+
 def test_only_declared_effects_are_applied():
     ladder = hand_ladder()
     sc = scenario({"bandwidth": {"kbps": 2000}})
@@ -99,12 +127,23 @@ def test_trace_formats_and_looping(tmp_path):
     (tmp_path / "t.json").write_text(json.dumps([{"duration_ms": 1000, "bandwidth_kbps": 300, "latency_ms": 20},
                                                  {"duration_ms": 500, "bandwidth_kbps": 900, "latency_ms": 20}]))
     (tmp_path / "t.log").write_text("0 1.5\n1 0.5\n")
+    # Mahimahi: 1500-byte delivery opportunities in ms; 3 packets in 0-100 ms, none in 100-200, 1 at 250 (the end)
+    (tmp_path / "mm.down").write_text("0\n40\n40\n250\n")
     (tmp_path / "t.csv").write_text("time_s,bandwidth_kbps\n0,2000\n2,400\n")
     sabre = load_trace(tmp_path / "t.json", "sabre")
     assert sabre.segment(0.2) == pytest.approx((300, 0.8)) and sabre.segment(1.2)[0] == 900
     assert sabre.segment(1.6)[0] == 300  # looped: period 1.5 s
-    mm = load_trace(tmp_path / "t.log", "mahimahi")
-    assert mm.segment(0.5)[0] == 1500 and mm.segment(1.5)[0] == 500 and mm.segment(2.5)[0] == 1500
+    pensieve = load_trace(tmp_path / "t.log", "pensieve")
+    assert pensieve.segment(0.5)[0] == 1500 and pensieve.segment(1.5)[0] == 500 and pensieve.segment(2.5)[0] == 1500
+    assert load_trace(tmp_path / "t.log").kbps == pensieve.kbps  # two columns are sniffed as Pensieve's
+    mm = load_trace(tmp_path / "mm.down")  # one integer per line: Mahimahi's
+    assert mm.period == pytest.approx(0.25) and mm.times == pytest.approx([0, 0.1, 0.2])
+    assert mm.kbps == pytest.approx([3 * 12_000 / 0.1 / 1e3, 0, 12_000 / 0.05 / 1e3])
+    assert mm.segment(0.26)[0] == pytest.approx(360)  # looped after its last packet time
+    with pytest.raises(StgsError, match="Pensieve's format"):
+        load_trace(tmp_path / "t.log", "mahimahi")
+    with pytest.raises(StgsError, match="Mahimahi's format"):
+        load_trace(tmp_path / "mm.down", "pensieve")
     c = load_trace(tmp_path / "t.csv", "csv")
     assert c.segment(1.0)[0] == 2000 and c.segment(3.0)[0] == 400 and c.segment(4.5)[0] == 2000
     assert steps([[0, 5], [1, 7]]).segment(100)[0] == 7  # steps hold their last value
@@ -114,14 +153,19 @@ def test_sabre_export():
     ladder = hand_ladder(gops=3)
     doc = sabre_manifest(ladder)
     assert doc["segment_duration_ms"] == 1000
-    assert doc["segment_sizes_bits"][0] == [(125_000 + m) * 8 for m in (12_500, 25_000, 50_000, 100_000, 200_000)]
-    assert doc["bitrates_kbps"][0] == pytest.approx((125_000 + 12_500) * 8 / 1e3)
+    media = (12_500, 25_000, 50_000, 100_000, 200_000)
+    # segment 0 carries its rung's init segment (1,000 bytes), as our player fetches it before GOP 0's features
+    assert doc["segment_sizes_bits"][0] == [(125_000 + m + 1_000) * 8 for m in media]
+    assert doc["segment_sizes_bits"][1] == [(125_000 + m) * 8 for m in media]
+    assert doc["bitrates_kbps"][0] == pytest.approx((125_000 + 12_500) * 8 / 1e3)  # media only, as @bandwidth
+    extra = doc["streamstgs"]
+    assert extra["init_segment_bits"] == [8_000] * 5 and extra["requests_per_segment"] == 1
 
 
 @pytest.mark.parametrize("body,message", [
     ('scene = "x"\n[effects]\nwind = 3\n', "unknown effect(s) ['wind']"),
     ('scene = "x"\n[effects]\nbandwidth = { kbps = -5 }\n', "'kbps' must be >= 0"),
-    ('scene = "x"\n[effects]\nbandwidth = { trace = "bad.log" }\n', "malformed mahimahi trace"),
+    ('scene = "x"\n[effects]\nbandwidth = { trace = "bad.log" }\n', "malformed pensieve trace"),
     ('scene = "x"\n[effects]\nbandwidth = { trace = "empty.csv" }\n', "the trace is empty"),
     ('scene = "x"\n[effects]\nbandwidth = { steps = [[0, 0]] }\n', None),
     ('scene = "x"\nabr = ["magic"]\n', "'abr' must list rules"),
@@ -272,8 +316,9 @@ def test_player_and_simulator_make_the_same_requests_and_decisions(packed, name,
         assert [g["qp"] for g in sim["gops"]] == [16, 32, 16]
         assert "HTTP 404" in sim["gops"][1]["decisions"][1]["reason"]
     elif name == "retries":
-        assert trace[2][1] == [("keyframe", "keyframes", "failed"), ("keyframe", "keyframes", "failed"),
-                               ("keyframe", "keyframes", "done"), ("media", "qp32", "done")]
+        # keyframe and features are asked for together; the keyframe alone again after each backoff
+        assert trace[2][1] == [("keyframe", "keyframes", "failed"), ("media", "qp32", "done"),
+                               ("keyframe", "keyframes", "failed"), ("keyframe", "keyframes", "done")]
         assert sim["retries"] == 2
     else:
         assert trace[1][1] == [("keyframe", "keyframes", "done"), ("media", "qp16", "failed"),

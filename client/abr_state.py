@@ -1,0 +1,175 @@
+"""What every ABR rule shares: the settings tree, throughput samples and estimators, the state a rule sees and the
+Decision it returns (dash.js's SwitchRequest)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+
+@dataclass
+class AbrSettings:
+    """Every ABR default, in one place."""
+
+    safety_factor: float = 0.9
+    """Fraction of the throughput estimate the throughput rule may spend."""
+    fast_half_life_s: float = 3.0
+    """Half-life (seconds of download time) of the fast EWMA."""
+    slow_half_life_s: float = 8.0
+    """Half-life of the slow EWMA."""
+    bola_min_buffer_s: float | None = None
+    """BOLA's minimum buffer (None: one segment)."""
+    dynamic_bola_on: float = 0.6
+    """DYNAMIC switches to BOLA when the buffer reaches this fraction of its capacity."""
+    dynamic_bola_off: float = 0.3
+    """... and back to throughput when it falls below this fraction."""
+    insufficient_buffer_safety: float = 0.5
+    """The insufficient-buffer rule lets the next GOP's download take at most this fraction of the buffer."""
+    abandon_min_s: float = 0.2
+    """A feature download is never abandoned before its body has arrived for this long."""
+    mpc_horizon: int = 5
+    """GOPs the look-ahead rule plans over."""
+    mpc_history: int = 5
+    """GOP samples in the look-ahead rule's harmonic-mean throughput and its error bound."""
+    mpc_utility: str = "psnr"
+    """What the look-ahead rule maximises per GOP: rendered `psnr` (stats.json; bit rate where unknown) or `bitrate`."""
+    mpc_rebuffer_psnr: float = 10.0
+    """dB a second of stall costs the PSNR utility (about the dB span of a QP 16-40 ladder)."""
+    mpc_rebuffer_bitrate: float = 4.3
+    """Mbit/s-GOPs a second of stall costs the bit-rate utility (Pensieve's linear QoE)."""
+    mpc_switch_weight: float = 1.0
+    """Weight of |utility change| between consecutive GOPs."""
+
+
+@dataclass(frozen=True)
+class ThroughputSample:
+    """One GOP's (or request's) transfer: bytes, seconds from request to last byte, and the time to first byte."""
+
+    bytes: int
+    seconds: float
+    ttfb: float = 0.0
+
+    @property
+    def body_s(self) -> float:
+        """Seconds the bytes took to arrive, the round trip excluded."""
+        return max(self.seconds - self.ttfb, 1e-6)
+
+    @property
+    def kbps(self) -> float:
+        """Throughput of the body (the round trip is latency, not bandwidth)."""
+        return self.bytes * 8 / 1e3 / self.body_s
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What a rule decided: a ladder rung, who decided it and why (dash.js's SwitchRequest)."""
+
+    index: int
+    """Ladder rung (0: lowest)."""
+    rule: str
+    """The rule that decided (DYNAMIC: the one of its two it used)."""
+    reason: str
+    """The numbers the rule used, in words."""
+
+    def to_json(self) -> dict:
+        return {"index": self.index, "rule": self.rule, "reason": self.reason}
+
+
+@dataclass(frozen=True)
+class InFlight:
+    """A feature download in progress, for the abandonment rule."""
+
+    rung: int
+    received: int
+    """Bytes so far."""
+    total: int | None
+    """Content-Length (None: unknown)."""
+    elapsed_s: float
+    """Media seconds since the request started."""
+    ttfb_s: float = 0.0
+    """Media seconds from the request to its first byte."""
+
+
+@dataclass(frozen=True)
+class UpcomingGOP:
+    """What the packaged scene says of a GOP ahead (stats.json): its sizes and per-rung rendered quality."""
+
+    keyframe_bits: float
+    segment_bits: Sequence[float]
+    """Feature bits per rung."""
+    psnr: Sequence[float] | None = None
+    """Rendered PSNR per rung (None: unknown)."""
+
+
+@dataclass
+class AbrState:
+    """What a rule sees when it decides the next GOP's feature Representation."""
+
+    bandwidths: Sequence[int]
+    """@bandwidth of each ladder rung (bit/s), ascending."""
+    segment_s: float
+    """Duration of one GOP."""
+    buffer_s: float
+    """Media seconds downloaded ahead of the playhead."""
+    buffer_capacity_s: float
+    """Most media seconds the player buffers."""
+    samples: Sequence[ThroughputSample] = ()
+    """Throughput history (one sample per GOP: keyframe and features together), oldest first."""
+    keyframe_bits: float = 0.0
+    """Size of the next GOP's keyframe segment."""
+    segment_bits: Sequence[float] | None = None
+    """Size of the next GOP's media segment per rung (None: @bandwidth x duration)."""
+    current: int | None = None
+    """Rung chosen for the previous GOP."""
+    in_flight: InFlight | None = None
+    """The feature download being judged (AbandonRule only)."""
+    round_trips: int = 1
+    """Round trips a GOP costs (2 when its keyframe is fetched before the features are asked for)."""
+    keyframe_fetched: bool = False
+    """The next GOP's keyframe is already here (its bits and one round trip are spent)."""
+    waited_s: float = 0.0
+    """Seconds the fetcher waited for buffer room since the previous GOP arrived (BOLA-E's placeholder)."""
+    upcoming: Sequence[UpcomingGOP] = ()
+    """The GOPs after the next one, as far as the scene says (the look-ahead rule)."""
+    playing: bool = True
+    """Playback has started (False: the next GOP decides the start-up delay)."""
+
+    def sizes(self) -> list[float]:
+        """Feature bits of the next GOP per rung."""
+        if self.segment_bits is not None:
+            return [float(b) for b in self.segment_bits]
+        return [b * self.segment_s for b in self.bandwidths]
+
+    def latency_s(self) -> float:
+        """Estimated seconds of round trips per GOP."""
+        return latency_s(self.samples) * self.round_trips
+
+
+def ewma_kbps(samples: Sequence[ThroughputSample], half_life_s: float) -> float | None:
+    """Duration-weighted EWMA of sample throughputs (kbit/s, round trips excluded), zero-bias corrected; None
+    without samples."""
+    estimate, weight = 0.0, 0.0
+    for s in samples:
+        seconds = s.body_s
+        alpha = 0.5 ** (seconds / half_life_s)
+        estimate = alpha * estimate + (1 - alpha) * s.kbps
+        weight += seconds
+    if weight == 0:
+        return None
+    return estimate / (1 - 0.5 ** (weight / half_life_s))
+
+
+def throughput_kbps(samples: Sequence[ThroughputSample], settings: AbrSettings) -> float | None:
+    """The estimate the throughput rule uses: the lower of the fast and slow EWMAs."""
+    fast = ewma_kbps(samples, settings.fast_half_life_s)
+    slow = ewma_kbps(samples, settings.slow_half_life_s)
+    return None if fast is None else min(fast, slow)
+
+
+LATENCY_SAMPLES = 4
+
+
+def latency_s(samples: Sequence[ThroughputSample]) -> float:
+    """Mean time to first byte of the last few samples (0 without samples)."""
+    recent = list(samples)[-LATENCY_SAMPLES:]
+    return sum(s.ttfb for s in recent) / len(recent) if recent else 0.0
