@@ -233,8 +233,9 @@ def add_play(sub: argparse._SubParsersAction) -> None:
                        "feature QP, the next GOP is downloaded and decoded while the current one plays, and "
                        "every frame is deformed and splatted on the CPU. Writes a JSON playback log.")
     p.add_argument("url", help="URL of the scene's manifest.mpd (http:// or https://)")
-    p.add_argument("--abr", choices=sorted(RULES), default="dynamic",
-                   help="ABR rule (default: dynamic = throughput while the buffer is low, BOLA when full)")
+    p.add_argument("--abr", choices=sorted(RULES), default="mpc",
+                   help="ABR rule (default: mpc = look-ahead over the next GOPs' sizes and PSNR from stats.json; "
+                   "dynamic = dash.js's throughput / BOLA-E collection)")
     p.add_argument("--qp", type=int, help="pin the feature Representation of this QP (no adaptation)")
     p.add_argument("--buffer", type=_seconds, help="seconds to buffer ahead (default: three GOPs)")
     p.add_argument("--start", type=_seconds, default=0.0, help="start at the GOP holding this time (seconds)")
@@ -485,12 +486,13 @@ def run_demo(args: argparse.Namespace) -> int:
 def add_bench(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmarks (accuracy vs time), printed as a Markdown table",
                        description="Run a benchmark suite and print Markdown for docs/BENCHMARKS.md.")
-    p.add_argument("suite", choices=["render", "synth", "pack", "serve", "play", "sim", "train"],
+    p.add_argument("suite", choices=["render", "synth", "pack", "serve", "play", "sim", "abr", "train"],
                    help="render: splatter and deform per backend and Gaussian count; "
                    "synth: fit fidelity vs fit iterations; pack: rate, distortion and codec time per "
                    "QP and x265 preset, PLAS vs no sort, PLAS time; serve: stgs serve vs nginx with wrk; "
                    "play: the player's per-GOP download and pre-decode, per-frame deform and splat; "
-                   "sim: simulated vs emulated QoE and playbacks per second; train: held-out quality vs "
+                   "sim: simulated vs emulated QoE and playbacks per second; abr: every ABR rule over trace "
+                   "sets at 6 s and 25 s of buffer, and the ladder floor; train: held-out quality vs "
                    "training time of finished stgs train runs (--runs)")
     p.add_argument("--sizes", default="16384,65536,147456",
                    help="comma-separated Gaussian counts (default: 16384,65536,147456)")
@@ -508,7 +510,8 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sides", default="128,256,384", help="pack: PLAS grid sides S (default: 128,256,384)")
     p.add_argument("--scene", help="pack, play: synthetic scene preset to pack (default: demo for pack, "
                    "large (65,536 Gaussians, 2-second GOPs) for play)")
-    p.add_argument("--dash", type=Path, help="serve, play, sim: a packaged scene (default: synthesise and pack one)")
+    p.add_argument("--dash", type=Path,
+                   help="serve, play, sim, abr: a packaged scene (default: synthesise and pack one)")
     p.add_argument("--clients", default="1,16,64,256", help="serve: concurrent clients (default: 1,16,64,256)")
     p.add_argument("--seconds", type=_positive_int, default=8, help="serve: seconds per measurement (default: 8)")
     p.add_argument("--runs", help="train: comma-separated model dirs written by stgs train (and stgs eval)")
@@ -547,7 +550,7 @@ def run_bench(args: argparse.Namespace) -> int:
     suite = bench_suite(args.suite)
     if args.suite == "train":
         return suite.main([Path(d) for d in args.runs.split(",") if d], args.plot or Path("docs/train_curves.png"))
-    if args.suite == "sim":
+    if args.suite in ("sim", "abr"):
         return suite.main(args.dash)
     if args.suite == "serve":
         return suite.main(args.dash, _int_list(args.clients, "--clients"), args.seconds)

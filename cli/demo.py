@@ -111,7 +111,7 @@ def run(out: Path, progress: bool = True) -> int:
     path = out / "orbit_path.json"
     atomic_write_bytes(path, json.dumps([orbit_camera(f, frames, cfg.width, cfg.height).to_json()
                                          for f in range(frames)]).encode())
-    log = asyncio.run(stream(out / "dash", {"abr": "dynamic", "out": orbit, "log": out / "playback.json",
+    log = asyncio.run(stream(out / "dash", {"abr": "mpc", "out": orbit, "log": out / "playback.json",
                                             "view": ViewSpec(path=str(path))}, probe))
     save_png(out / "contact_sheet.png", image_grid(video_frames(orbit, SHEET_COLUMNS * SHEET_ROWS), SHEET_COLUMNS))
     save_png(out / "compare.png", image_grid(probe.compare, 3))

@@ -48,13 +48,16 @@ class AbandonRule:
     name: str = "abandon"
 
     def choose(self, state: AbrState) -> Decision | None:
-        f = state.in_flight
-        if f is None:
+        if state.in_flight is None:
             return None
-        verdict = abandon_target(f, state.sizes(), state.buffer_s, state.segment_s, self.settings)
+        return self.judge(state.in_flight, state.sizes(), state.buffer_s, state.segment_s)
+
+    def judge(self, f: InFlight, sizes: list[float], buffer_s: float, segment_s: float) -> Decision | None:
+        """The decision for one flight (what `choose` does, without building a state per chunk)."""
+        verdict = abandon_target(f, sizes, buffer_s, segment_s, self.settings)
         if verdict is None:
             return None
         target, remaining_s, restart_s = verdict
         rate = f.received * 8 / (f.elapsed_s - f.ttfb_s)
         return Decision(target, self.name, f"{remaining_s:.2f} s left at {rate / 1e3:.0f} kbit/s > buffer "
-                        f"{state.buffer_s:.2f} s and one GOP; rung {target} takes {restart_s:.2f} s")
+                        f"{buffer_s:.2f} s and one GOP; rung {target} takes {restart_s:.2f} s")

@@ -9,11 +9,14 @@ buffer forward with the round trips and a robust throughput (harmonic mean
 of recent GOP samples divided by 1 + the largest recent relative prediction
 error), scores
 
-    Σ_j q_j − μ · (stall + start-up) − w · Σ_j |q_j − q_{j−1}|
+    Σ_j q_j − μ · (stall + start-up + ρ · shortfall) − w · Σ_j |q_j − q_{j−1}|
 
 with q = rendered PSNR (dB; `mpc_utility = "psnr"`, bit rate where the
 scene gives no PSNR) or whole-GOP bit rate (Mbit/s, Pensieve's linear QoE),
-and takes the first rung of the best plan.
+where the shortfall is how far the plan ends below a reservoir of half the
+buffer capacity (ρ = 0.2): a five-GOP horizon is shorter than a 25-s buffer,
+and without it a plan spends the buffer down and stalls at the next fade.
+It takes the first rung of the best plan.
 """
 
 from __future__ import annotations
@@ -95,7 +98,8 @@ class MpcRule:
             buffer = np.minimum(np.maximum(buffer - seconds[:, j], 0.0) + T, state.buffer_capacity_s)
         previous = utility[0, state.current] if state.current is not None else q[:, 0]
         switches = np.abs(q[:, 0] - previous) + np.abs(np.diff(q, axis=1)).sum(axis=1)
-        score = q.sum(axis=1) - mu * stall - s.mpc_switch_weight * switches
+        shortfall = np.maximum(s.mpc_reservoir * state.buffer_capacity_s - buffer, 0.0)
+        score = q.sum(axis=1) - mu * (stall + s.mpc_reservoir_weight * shortfall) - s.mpc_switch_weight * switches
         best = int(np.argmax(score))
         rung = int(plans[best, 0])
         unit = "dB" if psnr else "Mbit/s"

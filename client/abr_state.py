@@ -39,6 +39,11 @@ class AbrSettings:
     """Mbit/s-GOPs a second of stall costs the bit-rate utility (Pensieve's linear QoE)."""
     mpc_switch_weight: float = 1.0
     """Weight of |utility change| between consecutive GOPs."""
+    mpc_reservoir: float = 0.5
+    """Fraction of the buffer capacity a plan should leave filled at its end (the horizon is shorter than a large
+    buffer: without it, the plan spends the buffer down and a fade after the horizon stalls)."""
+    mpc_reservoir_weight: float = 0.2
+    """Each second a plan ends below the reservoir costs this fraction of a second of stall."""
 
 
 @dataclass(frozen=True)
@@ -145,18 +150,26 @@ class AbrState:
         return latency_s(self.samples) * self.round_trips
 
 
+EWMA_NEGLIGIBLE = 1e-3
+"""An EWMA stops reading older samples once they weigh less than this together (the estimate moves < 0.1 %)."""
+
+
 def ewma_kbps(samples: Sequence[ThroughputSample], half_life_s: float) -> float | None:
     """Duration-weighted EWMA of sample throughputs (kbit/s, round trips excluded), zero-bias corrected; None
-    without samples."""
-    estimate, weight = 0.0, 0.0
-    for s in samples:
-        seconds = s.body_s
-        alpha = 0.5 ** (seconds / half_life_s)
-        estimate = alpha * estimate + (1 - alpha) * s.kbps
-        weight += seconds
-    if weight == 0:
+    without samples. Read newest first: each sample weighs (1 − α) times the α of every later one, α = 0.5^(body
+    seconds / half-life); the correction divides by 1 − Π α."""
+    estimate, decay = 0.0, 1.0
+    for s in reversed(samples):
+        body = s.seconds - s.ttfb
+        body = body if body > 1e-6 else 1e-6
+        alpha = 0.5 ** (body / half_life_s)
+        estimate += decay * (1 - alpha) * s.bytes * 8e-3 / body
+        decay *= alpha
+        if decay < EWMA_NEGLIGIBLE:
+            break
+    if decay == 1.0:
         return None
-    return estimate / (1 - 0.5 ** (weight / half_life_s))
+    return estimate / (1 - decay)
 
 
 def throughput_kbps(samples: Sequence[ThroughputSample], settings: AbrSettings) -> float | None:

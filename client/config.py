@@ -25,8 +25,8 @@ class PlayConfig:
 
     url: str
     """URL of the MPD."""
-    abr: str = "dynamic"
-    """ABR rule: throughput, bola or dynamic."""
+    abr: str = "mpc"
+    """ABR rule: mpc, dynamic, throughput, bola or bola-e (client/abr.py)."""
     qp: int | None = None
     """Pin the feature Representation of this QP (no adaptation)."""
     buffer_s: float | None = None

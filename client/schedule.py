@@ -295,10 +295,11 @@ class FetchSchedule:
         if not self.adaptive or rung == 0:
             return None
 
+        sizes, segment_s = state.sizes(), state.segment_s
+
         def judge(received: int, total: int | None, elapsed_s: float, ttfb_s: float) -> Decision | None:
             flight = InFlight(rung, received, total, elapsed_s, ttfb_s)
-            return self.abandon.choose(dataclasses.replace(state, buffer_s=self.buffer_level(), in_flight=flight,
-                                                           playing=self.playing()))
+            return self.abandon.judge(flight, sizes, self.buffer_level(), segment_s)
 
         return judge
 

@@ -3,7 +3,9 @@
 QoE is Pensieve's linear QoE (Mao et al., SIGCOMM 2017), per GOP:
     QoE = (Σ_k q(R_k) − 4.3 · rebuffer_s − Σ_k |q(R_{k+1}) − q(R_k)|) / GOPs
 with R_k the bit rate of GOP k's download (keyframe + features over the
-GOP's duration) and q(R) = R in Mbit/s.
+GOP's duration) and q(R) = R in Mbit/s. The quality QoE is the same formula
+with q = the GOP's rendered PSNR in dB (stats.json) and 10 dB per second of
+stall (`REBUFFER_PENALTY_DB`, the look-ahead rule's default weight).
 """
 
 from __future__ import annotations
@@ -15,12 +17,22 @@ import json
 import math
 from pathlib import Path
 
+from stgs.client.abr import AbrSettings
 from stgs.fsio import atomic_write_bytes, save_figure
 from stgs.harness.ladder import Ladder
 from stgs.harness.scenario import Effects, Trace
 
 REBUFFER_PENALTY = 4.3
 """μ of the linear QoE (Pensieve's value for bit rates in Mbit/s)."""
+REBUFFER_PENALTY_DB = AbrSettings().mpc_rebuffer_psnr
+"""μ of the quality QoE (dB per second of stall)."""
+
+
+def linear_qoe(values: list[float], stall_s: float, mu: float) -> float:
+    """Σ q − μ · stall − Σ |Δq|, per GOP."""
+    if not values:
+        return -math.inf
+    return (sum(values) - mu * stall_s - sum(abs(b - a) for a, b in itertools.pairwise(values))) / len(values)
 
 
 def metrics(log: dict, ladder: Ladder, effects: Effects) -> dict:
@@ -31,7 +43,6 @@ def metrics(log: dict, ladder: Ladder, effects: Effects) -> dict:
     quality = [ladder.psnr[g["rep"]][g["index"]] for g in gops]
     stall = log["stalls"]["total_s"]
     played = len(gops) * T
-    qoe = (sum(rates) - REBUFFER_PENALTY * stall - sum(abs(b - a) for a, b in itertools.pairwise(rates)))
     return {
         "engine": log.get("engine", "play"), "abr": log["abr"], "active_effects": effects.describe(),
         "startup_delay_s": log["startup_delay_s"], "stall_count": log["stalls"]["count"], "stall_s": stall,
@@ -39,7 +50,8 @@ def metrics(log: dict, ladder: Ladder, effects: Effects) -> dict:
         "mean_bitrate_kbps": sum(rates) / len(rates) * 1e3 if rates else 0.0,
         "mean_quality_db": (sum(quality) / len(quality)) if quality and None not in quality else None,
         "switches": log["switches"], "wasted_bytes": log["wasted_bytes"],
-        "qoe": qoe / len(gops) if gops else -math.inf, "qps": [g["qp"] for g in gops],
+        "qoe": linear_qoe(rates, stall, REBUFFER_PENALTY), "qps": [g["qp"] for g in gops],
+        "quality_qoe": linear_qoe(quality, stall, REBUFFER_PENALTY_DB) if None not in quality else None,
         "error": log.get("error"),
     }
 

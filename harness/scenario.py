@@ -2,7 +2,7 @@
 
 ```toml
 scene = "dash/"              # a packaged scene folder, or its MPD URL
-abr = ["throughput", "bola", "dynamic"]
+abr = ["mpc", "dynamic", "throughput"]   # rules: mpc dynamic throughput bola bola-e
 buffer_s = 6.0               # optional (default: three GOPs)
 start_s = 0.0                # optional
 duration_s = 10.0            # optional (default: to the end)
@@ -243,7 +243,7 @@ class Scenario:
     name: str
     scene: str
     """Packaged scene folder or MPD URL."""
-    abr: list[str] = field(default_factory=lambda: ["dynamic"])
+    abr: list[str] = field(default_factory=lambda: ["mpc"])
     buffer_s: float | None = None
     start_s: float = 0.0
     duration_s: float | None = None
@@ -331,7 +331,7 @@ def scenario_from_dict(doc: dict, where: str, base: Path) -> Scenario:
     scene = doc["scene"]
     if not scene.startswith(("http://", "https://")):
         scene = str((base / scene).resolve())
-    abr = doc.get("abr", ["dynamic"])
+    abr = doc.get("abr", ["mpc"])
     abr = [abr] if isinstance(abr, str) else abr
     if not isinstance(abr, list) or not abr or any(not isinstance(a, str) or a not in RULES for a in abr):
         raise StgsError(f"{where}: 'abr' must list rules from {', '.join(RULES)}, got {abr!r}")

@@ -148,8 +148,9 @@ class Simulation:
         end = self.net.link_free
         if req.judge is not None:
             # the player judges a download each time a chunk arrives (none arrive during an outage)
+            t = body_start
             for received in range(DELIVERY_CHUNK, nbytes, DELIVERY_CHUNK):
-                t = self.net.finish(body_start, received * 8)
+                t = self.net.finish(t, DELIVERY_CHUNK * 8)  # the same integral as from body_start, piece by piece
                 self.now = max(self.now, t)
                 self.advance(self.now)
                 decision = req.judge(received, nbytes, t - start, body_start - start)

@@ -1,0 +1,201 @@
+"""ABR rules over trace sets (`stgs bench abr`): QoE, rebuffering, bit rate, PSNR, switches, start-up; the ladder floor.
+
+The scene: a packaged scene (`--dash`, default: the `demo` synthetic scene
+packed at QPs 16-40), its GOPs repeated to 180 s as one long presentation
+(sizes and per-rung rendered PSNR from the packed files and stats.json).
+Trace sets (generated here, written in the public formats and read back
+through `load_trace`, so the readers are exercised too): each trace is a
+per-second log-rate AR(1) process with fades; each set is scaled by one
+constant so that its median trace's mean equals the top rung (keyframe +
+top features). Every rule runs on every trace at 6 s and 25 s of buffer in
+the discrete-event simulator.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import platform
+import random
+import re
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+from stgs.client.abr import AbrSettings
+from stgs.client.manifest import Presentation
+from stgs.harness.ladder import Ladder, load_ladder
+from stgs.harness.report import metrics
+from stgs.harness.scenario import MAHIMAHI_PACKET_BITS, Trace, load_trace, scenario_from_dict
+from stgs.harness.sim import simulate
+from stgs.packager import PackConfig, pack
+from stgs.synth import PRESETS, synthesize
+from stgs.tree import MANIFEST
+
+SECONDS = 180
+TRACES_PER_SET = 16
+TRACE_S = 320
+BUFFERS = (6.0, 25.0)
+FLOOR_QPS = (16, 20, 24, 28, 32, 36, 40)
+
+
+@dataclasses.dataclass(frozen=True)
+class TraceSet:
+    name: str
+    fmt: str
+    """The public format the traces are written in (mahimahi or pensieve)."""
+    phi: float
+    """AR(1) coefficient of the log rate per second."""
+    sigma: float
+    """Innovation of the log rate per second."""
+    fade_p: float
+    """Chance per second that a fade starts."""
+    fade_depth: tuple[float, float]
+    """A fade multiplies the rate by a factor drawn from this range, for 1-4 s."""
+    latency_ms: float
+
+
+SETS = (
+    TraceSet("cellular (LTE-like)", "mahimahi", 0.92, 0.30, 0.03, (0.05, 0.3), 60.0),
+    TraceSet("3G (HSDPA-like)", "pensieve", 0.85, 0.50, 0.05, (0.0, 0.2), 100.0),
+    TraceSet("broadband (FCC-like)", "pensieve", 0.97, 0.10, 0.005, (0.3, 0.6), 20.0),
+)
+RULES = {"throughput": ("throughput", None), "bola": ("bola", None), "bola-e": ("bola-e", None),
+         "dynamic": ("dynamic", None), "mpc (PSNR)": ("mpc", AbrSettings()),
+         "mpc (bit rate)": ("mpc", AbrSettings(mpc_utility="bitrate"))}
+
+
+def generate(ts: TraceSet, seed: int) -> list[float]:
+    """Relative rate per second (mean-1 log-normal AR(1) with fades)."""
+    rng = random.Random(seed)
+    x, fade, factor, out = 0.0, 0, 1.0, []
+    for _ in range(TRACE_S):
+        x = ts.phi * x + ts.sigma * rng.gauss(0, 1)
+        if fade == 0 and rng.random() < ts.fade_p:
+            fade, factor = rng.randint(1, 4), rng.uniform(*ts.fade_depth)
+        rate = math.exp(x) * (factor if fade else 1.0)
+        fade = max(0, fade - 1)
+        out.append(rate)
+    return out
+
+
+def write(rates_kbps: list[float], fmt: str, path: Path) -> None:
+    """Pensieve: seconds, Mbit/s per line. Mahimahi: one line per 1500-byte delivery opportunity (ms)."""
+    if fmt == "pensieve":
+        path.write_text("".join(f"{t} {r / 1e3:.6f}\n" for t, r in enumerate(rates_kbps)))
+        return
+    lines, carry = [], 0.0
+    for second, kbps in enumerate(rates_kbps):
+        for ms in range(1000):
+            carry += kbps  # bits per ms
+            while carry >= MAHIMAHI_PACKET_BITS:
+                carry -= MAHIMAHI_PACKET_BITS
+                lines.append(f"{second * 1000 + ms}\n")
+    lines.append(f"{len(rates_kbps) * 1000}\n")
+    path.write_text("".join(lines))
+
+
+def trace_set(ts: TraceSet, top_kbps: float, folder: Path) -> list[Trace]:
+    relative = [generate(ts, seed) for seed in range(TRACES_PER_SET)]
+    scale = top_kbps / statistics.median(statistics.mean(r) for r in relative)
+    traces = []
+    for i, rel in enumerate(relative):
+        path = folder / f"{ts.name.split()[0]}-{i:02d}.{'down' if ts.fmt == 'mahimahi' else 'log'}"
+        write([r * scale for r in rel], ts.fmt, path)
+        traces.append(load_trace(path))
+    return traces
+
+
+def long_ladder(ladder: Ladder, mpd: str, seconds: int, qps: tuple[int, ...] | None = None) -> Ladder:
+    """The packed scene (`mpd`: its manifest's text) with its GOPs repeated to `seconds`, optionally only the
+    rungs of `qps`."""
+    pres = ladder.pres
+    gops = round(seconds / pres.segment_seconds)
+    keep = [r for r in pres.ladder if qps is None or r.qp in qps]
+    mpd = re.sub(r'mediaPresentationDuration="[^"]*"',
+                 f'mediaPresentationDuration="PT{gops * pres.segment_seconds:g}S"', mpd)
+    for r in pres.ladder:
+        if r not in keep:
+            start = mpd.index(f'<Representation id="{r.rep_id}"')
+            mpd = mpd[:start] + mpd[mpd.index("/>", start) + 2:]
+    long = Presentation.parse(mpd.encode(), ladder.url)
+    n = pres.num_gops
+
+    def rep(values: list) -> list:
+        return [values[k % n] for k in range(gops)]
+
+    ids = [r.rep_id for r in keep]
+    return Ladder(long, rep(ladder.keyframe_bytes), {r: rep(ladder.media_bytes[r]) for r in ids},
+                  {r: ladder.init_bytes[r] for r in ids}, {r: rep(ladder.psnr[r]) for r in ids}, ladder.stats)
+
+
+def run(ladder: Ladder, traces: list[Trace], ts: TraceSet, buffer_s: float, rule: str,
+        settings: AbrSettings | None) -> dict:
+    rows = []
+    for trace in traces:
+        sc = scenario_from_dict({"scene": "unused", "buffer_s": buffer_s, "effects": {"latency_ms": ts.latency_ms}},
+                                ts.name, Path("."))
+        sc = dataclasses.replace(sc, effects=dataclasses.replace(sc.effects, bandwidth=trace))
+        rows.append(metrics(simulate(ladder, sc, rule, settings), ladder, sc.effects))
+    stall = sum(r["stall_s"] for r in rows)
+    played = sum(len(r["qps"]) for r in rows) * ladder.pres.segment_seconds
+    return {"qoe": statistics.mean(r["qoe"] for r in rows),
+            "quality_qoe": statistics.mean(r["quality_qoe"] for r in rows),
+            "rebuffer_pct": 100 * stall / (played + stall), "bitrate": statistics.mean(r["mean_bitrate_kbps"]
+                                                                                      for r in rows),
+            "psnr": statistics.mean(r["mean_quality_db"] for r in rows),
+            "switches": statistics.mean(r["switches"] for r in rows),
+            "startup": statistics.mean(r["startup_delay_s"] for r in rows)}
+
+
+def packed_scene(tmp: Path) -> Path:
+    print(f"synthesising the demo scene and packing it at QPs {', '.join(map(str, FLOOR_QPS))} ...", flush=True)
+    synthesize(PRESETS["demo"], tmp / "model", progress=False)
+    pack(tmp / "model", tmp / "dash", PackConfig(qps=FLOOR_QPS), progress=False)
+    return tmp / "dash"
+
+
+def rd_table(ladder: Ladder) -> None:
+    T, G = ladder.pres.segment_seconds, ladder.pres.shape.gop_size
+    print("| QP | features kbit/s | keyframe + features kbit/s | KB/frame | rendered PSNR dB |")
+    print("|---|---|---|---|---|")
+    kf = statistics.mean(ladder.keyframe_bytes)
+    for r in reversed(ladder.pres.ladder):
+        media = statistics.mean(ladder.media_bytes[r.rep_id])
+        print(f"| {r.qp} | {media * 8 / T / 1e3:.0f} | {(kf + media) * 8 / T / 1e3:.0f} | {(kf + media) / G / 1e3:.1f} "
+              f"| {statistics.mean(ladder.psnr[r.rep_id]):.2f} |")
+
+
+def main(dash: Path | None) -> int:
+    with tempfile.TemporaryDirectory(prefix="stgs-bench-abr-") as tmp:
+        dash = dash or packed_scene(Path(tmp))
+        base = load_ladder(str(dash))
+        qps = tuple(r.qp for r in base.pres.ladder)
+        mpd = (dash / MANIFEST).read_text()
+        ladders = {f"QP {min(qps)}-{max(qps)}": long_ladder(base, mpd, SECONDS)}
+        if max(qps) > 32:
+            ladders[f"QP {min(qps)}-32 (no floor rungs)"] = long_ladder(base, mpd, SECONDS,
+                                                                        tuple(q for q in qps if q <= 32))
+        print(f"\nMachine: {platform.machine()} {platform.processor() or ''}; scene {dash} repeated to {SECONDS} s\n")
+        rd_table(ladders[next(iter(ladders))])
+        for lname, ladder in ladders.items():
+            top = ladder.pres.ladder[-1].rep_id
+            top_kbps = (statistics.mean(ladder.keyframe_bytes) + statistics.mean(ladder.media_bytes[top])) * 8 \
+                / ladder.pres.segment_seconds / 1e3
+            for ts in SETS:
+                traces = trace_set(ts, top_kbps, Path(tmp))
+                for buffer_s in BUFFERS:
+                    print(f"\n**{ts.name}, ladder {lname}, buffer {buffer_s:g} s** ({len(traces)} traces written "
+                          f"as {ts.fmt}, {ts.latency_ms:g} ms round trips, median trace mean {top_kbps:.0f} kbit/s)\n")
+                    print("| rule | QoE (bit rate) | QoE (PSNR) | rebuffer % | mean kbit/s | mean PSNR dB | switches "
+                          "| start-up s | playbacks/s |")
+                    print("|---|---|---|---|---|---|---|---|---|")
+                    for name, (rule, settings) in RULES.items():
+                        start = time.perf_counter()
+                        m = run(ladder, traces, ts, buffer_s, rule, settings)
+                        rate = len(traces) / (time.perf_counter() - start)
+                        print(f"| {name} | {m['qoe']:.3f} | {m['quality_qoe']:.2f} | {m['rebuffer_pct']:.2f} | "
+                              f"{m['bitrate']:.0f} | {m['psnr']:.2f} | {m['switches']:.1f} | {m['startup']:.2f} | "
+                              f"{rate:.1f} |", flush=True)
+    return 0
