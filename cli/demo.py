@@ -1,7 +1,7 @@
 """`stgs demo`: the whole path on the embedded default scene, on this machine, with no downloads.
 
 synthesise (preset "demo") -> pack (five QPs) -> serve on a free loopback
-port -> play a free-viewpoint orbit with the dynamic ABR -> write the video,
+port -> play a free-viewpoint orbit with the look-ahead ABR -> write the video,
 a contact sheet, a truth | streamed | error comparison and a summary.
 
 This is the one place that drives every stage; it imports them lazily.
@@ -130,7 +130,7 @@ def run(out: Path, progress: bool = True) -> int:
     atomic_write_bytes(out / "summary.json", (json.dumps(summary, indent=2) + "\n").encode())
     print(f"scene: {summary['gaussians']} Gaussians, {cfg.num_gops} GOPs x {cfg.gop_size} frames at "
           f"{cfg.fps:g} fps ({cfg.width}x{cfg.height}); synthesised in {synth_s:.0f} s, packed in {pack_s:.0f} s")
-    print(f"streamed with the dynamic ABR: QPs {','.join(map(str, summary['qps']))}, "
+    print(f"streamed with the look-ahead (mpc) ABR: QPs {','.join(map(str, summary['qps']))}, "
           f"{summary['kb_per_frame']:.1f} KB/frame, start-up {summary['startup_delay_s']:.2f} s, "
           f"{log['stalls']['count']} stall(s)")
     print(f"streamed frames vs ground truth: {truth_db:.2f} dB PSNR (uncompressed model: "

@@ -173,12 +173,14 @@ def _mahimahi(lines: list[list[str]], source: str) -> Trace:
         raise ValueError("no packet times")
     if any(t < 0 for t in ms) or any(b < a for a, b in itertools.pairwise(ms)):
         raise ValueError("packet times must be non-negative and non-decreasing")
+    longest_ms = MAX_TRACE_POINTS * MAHIMAHI_BIN_S * 1e3
+    if ms[-1] > longest_ms:
+        raise ValueError(f"a packet time past {longest_ms:.0f} ms: more than {MAX_TRACE_POINTS} bins of "
+                         f"{MAHIMAHI_BIN_S:g} s")
     period = ms[-1] / 1e3
     if period <= 0:
         raise ValueError("the last packet time must be above 0 ms (it is the trace's length)")
     bins = math.ceil(period / MAHIMAHI_BIN_S - 1e-9)
-    if bins > MAX_TRACE_POINTS:
-        raise ValueError(f"{period:.0f} s long: more than {MAX_TRACE_POINTS} bins of {MAHIMAHI_BIN_S:g} s")
     counts = [0] * bins
     for t in ms:
         counts[min(int(t / 1e3 / MAHIMAHI_BIN_S), bins - 1)] += 1

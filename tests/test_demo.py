@@ -21,7 +21,7 @@ def test_demo_streams_the_default_scene_end_to_end(tmp_path):
     assert summary["stalls"]["count"] == 0 and summary["kb_per_frame"] > 0
     assert set(summary["qps"]) <= {16, 20, 24, 28, 32} and len(summary["qps"]) == 2
     log = json.loads((out / "playback.json").read_text())
-    assert log["abr"] == "dynamic" and log["frames"] == 60 and log["error"] is None
+    assert log["abr"] == "mpc" and log["frames"] == 60 and log["error"] is None
     cap = cv2.VideoCapture(str(out / "orbit.mp4"))
     assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 60
     ok, first = cap.read()

@@ -144,6 +144,9 @@ def test_trace_formats_and_looping(tmp_path):
         load_trace(tmp_path / "t.log", "mahimahi")
     with pytest.raises(StgsError, match="Mahimahi's format"):
         load_trace(tmp_path / "mm.down", "pensieve")
+    (tmp_path / "huge.down").write_text("0\n" + "9" * 400 + "\n")  # found by the fuzzer: was an OverflowError
+    with pytest.raises(StgsError, match="packet time past"):
+        load_trace(tmp_path / "huge.down")
     c = load_trace(tmp_path / "t.csv", "csv")
     assert c.segment(1.0)[0] == 2000 and c.segment(3.0)[0] == 400 and c.segment(4.5)[0] == 2000
     assert steps([[0, 5], [1, 7]]).segment(100)[0] == 7  # steps hold their last value
