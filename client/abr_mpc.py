@@ -41,20 +41,21 @@ class MpcRule:
     name: str = "mpc"
     errors: list[float] = field(default_factory=list)
     """Relative errors of past throughput predictions."""
-    _predicted: tuple[int, float] | None = None
+    predicted: tuple[int, float] | None = field(default=None, repr=False)
+    """(samples seen, kbit/s) of the last prediction, to measure its error when the next sample arrives."""
 
     def predict_kbps(self, state: AbrState) -> tuple[float, float] | None:
         """(harmonic-mean kbit/s, robust kbit/s), or None without samples."""
         samples = list(state.samples)
         if not samples:
             return None
-        if self._predicted is not None and self._predicted[0] < len(samples):
+        if self.predicted is not None and self.predicted[0] < len(samples):
             actual = samples[-1].kbps
-            self.errors.append(abs(self._predicted[1] - actual) / max(actual, 1e-9))
+            self.errors.append(abs(self.predicted[1] - actual) / max(actual, 1e-9))
         n = self.settings.mpc_history
         recent = samples[-n:]
         harmonic = len(recent) / sum(1 / max(s.kbps, 1e-9) for s in recent)
-        self._predicted = (len(samples), harmonic)
+        self.predicted = (len(samples), harmonic)
         bound = max(self.errors[-n:], default=0.0)
         return harmonic, harmonic / (1 + bound)
 
