@@ -164,7 +164,7 @@ class FetchSchedule:
         media_req = self._attempt(self._request("media", k, rep, self._judge(rung, state)))
         keyframe, media = yield Parallel((kf_req, media_req))
         for req, outcome in ((kf_req, keyframe), (media_req, media)):
-            rec.requests.append({"kind": req.kind, "rep": req.rep, "outcome": _describe(outcome)})
+            _record(rec, req, outcome)
         if isinstance(keyframe, Done) and isinstance(media, Done):
             self.samples.append(self._sample(keyframe, media, joint=True))
         if isinstance(keyframe, Failed):
@@ -210,26 +210,31 @@ class FetchSchedule:
             rec.events.append(f"fallback from {rep}: {failure.reason}")
             self._decided(rec, Decision(0, "fallback", failure.reason))
         if target > 0:
-            lower = self.pres.ladder[target].rep_id
-            init = yield from self._init(lower, rec)
-            if not isinstance(init, Failed):
-                media = yield from self._get(self._request("media", k, lower), rec)
-                if isinstance(media, Done):
-                    self.samples.append(self._sample(media))
-                    return self._chosen(k, target, rec, media)
-                rec.events.append(f"fallback from {lower}: {media.reason}")
+            fetched = yield from self._plain(k, target, rec)
+            if isinstance(fetched, Fetched):
+                return fetched
+            rec.events.append(f"fallback from {self.pres.ladder[target].rep_id}: {fetched.reason}")
         return (yield from self._lowest(k, rec))
 
     def _lowest(self, k: int, rec: GOPRecord) -> Step:
-        low = self.pres.ladder[0].rep_id
-        init = yield from self._init(low, rec)
+        fetched = yield from self._plain(k, 0, rec)
+        if not isinstance(fetched, Fetched):
+            raise ScheduleError(f"GOP {k}: {fetched.reason}")
+        return fetched
+
+    def _plain(self, k: int, rung: int, rec: GOPRecord) -> Generator[Request | Wait, Outcome | None,
+                                                                      Fetched | Failed | Abandoned]:
+        """GOP k's features at `rung` with nothing to judge: its init (if new), then its media; the failure
+        where one fails."""
+        rep = self.pres.ladder[rung].rep_id
+        init = yield from self._init(rep, rec)
         if isinstance(init, Failed):
-            raise ScheduleError(f"GOP {k}: {init.reason}")
-        media = yield from self._get(self._request("media", k, low), rec)
+            return init
+        media = yield from self._get(self._request("media", k, rep), rec)
         if not isinstance(media, Done):
-            raise ScheduleError(f"GOP {k}: {media.reason}")
+            return media
         self.samples.append(self._sample(media))
-        return self._chosen(k, 0, rec, media)
+        return self._chosen(k, rung, rec, media)
 
     def _init(self, rep: str, rec: GOPRecord) -> Generator[Request | Wait, Outcome | None, Outcome | None]:
         """The init segment of `rep`, downloaded once (its bytes count to the GOP that needed it first);
@@ -265,7 +270,7 @@ class FetchSchedule:
                 spent += wait
             outcome = yield dataclasses.replace(request, time_left=settings.total_timeout_s - spent)
             spent += outcome.seconds
-            rec.requests.append({"kind": request.kind, "rep": request.rep, "outcome": _describe(outcome)})
+            _record(rec, request, outcome)
             if not (isinstance(outcome, Failed) and outcome.retryable):
                 break
         else:
@@ -326,6 +331,10 @@ class FetchSchedule:
     @staticmethod
     def _decided(rec: GOPRecord, decision: Decision) -> None:
         rec.decisions.append(decision.to_json())
+
+
+def _record(rec: GOPRecord, request: Request, outcome: Outcome) -> None:
+    rec.requests.append({"kind": request.kind, "rep": request.rep, "outcome": _describe(outcome)})
 
 
 def _describe(outcome: Outcome | None) -> str:

@@ -132,28 +132,25 @@ def load_trace(path: Path, fmt: str | None = None) -> Trace:
             # latency_ms of a Sabre trace is not applied: only the scenario's own latency_ms effect is
             times = [sum(durations[:i]) for i in range(len(durations))]
             return Trace(times, rates, sum(durations), str(path))
-        lines = [line.split() for line in text.splitlines() if line.strip() and not line.startswith("#")]
-        if len(lines) > MAX_TRACE_POINTS:
-            raise StgsError(f"{path}: more than {MAX_TRACE_POINTS} points")
-        if fmt == "mahimahi":
-            return _mahimahi(lines, str(path))
-        if fmt == "pensieve":
+        if fmt == "csv":
+            reader = csv.DictReader(io.StringIO(text))
+            if not reader.fieldnames or not {"time_s", "bandwidth_kbps"} <= set(reader.fieldnames):
+                raise ValueError("columns time_s and bandwidth_kbps are required")
+            rows = _bounded(list(reader), path)
+            times = [float(r["time_s"]) for r in rows]
+            rates = [float(r["bandwidth_kbps"]) for r in rows]
+        else:
+            lines = _bounded([line.split() for line in text.splitlines()
+                              if line.strip() and not line.startswith("#")], path)
+            if fmt == "mahimahi":
+                return _mahimahi(lines, str(path))
             if any(len(p) != 2 for p in lines):
                 hint = " (one number per line is Mahimahi's format)" if lines and len(lines[0]) == 1 else ""
                 raise ValueError(f"every line must hold two numbers: seconds and Mbit/s{hint}")
             times = [float(p[0]) for p in lines]
             rates = [float(p[1]) * 1e3 for p in lines]
-        else:
-            reader = csv.DictReader(io.StringIO(text))
-            if not reader.fieldnames or not {"time_s", "bandwidth_kbps"} <= set(reader.fieldnames):
-                raise ValueError("columns time_s and bandwidth_kbps are required")
-            rows = list(reader)
-            times = [float(r["time_s"]) for r in rows]
-            rates = [float(r["bandwidth_kbps"]) for r in rows]
     except (ValueError, KeyError, TypeError, json.JSONDecodeError) as exc:
         raise StgsError(f"{path}: malformed {fmt} trace ({exc})") from None
-    if len(times) > MAX_TRACE_POINTS:
-        raise StgsError(f"{path}: more than {MAX_TRACE_POINTS} points")
     if not times:
         raise StgsError(f"{path}: the trace is empty")
     if times[0] != 0:
@@ -161,6 +158,13 @@ def load_trace(path: Path, fmt: str | None = None) -> Trace:
         times = [t - shift for t in times]
     step = times[-1] - times[-2] if len(times) > 1 else 1.0
     return Trace(times, rates, times[-1] + step, source=str(path))
+
+
+def _bounded(points: list, path: Path) -> list:
+    """The trace's points, refused past MAX_TRACE_POINTS before any is parsed."""
+    if len(points) > MAX_TRACE_POINTS:
+        raise StgsError(f"{path}: more than {MAX_TRACE_POINTS} points")
+    return points
 
 
 def _mahimahi(lines: list[list[str]], source: str) -> Trace:
