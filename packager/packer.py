@@ -100,6 +100,10 @@ class Packer:
         if self.side == 0:
             raise StgsError(f"{model_dir}: capacity {self.meta.shape.capacity} is not a square; "
                             "the packager needs N = S² Gaussians")
+        if self.meta.static is not None:
+            raise StgsError(f"{model_dir}: a layered scene (format 2, static layer of "
+                            f"{self.meta.static.capacity} Gaussians) cannot be packed by this build yet; "
+                            "train it with --layers single to stream it")
         check_output_dir(self.out)
         self.out.mkdir(parents=True, exist_ok=True)
         self.id = pack_id(self.model_dir, self.meta.gop_files, cfg.digest_fields())

@@ -16,6 +16,10 @@ MODEL_META = "model.json"
 """Versioned scene metadata, written last."""
 GROUND_TRUTH_DIR = "gt"
 """`stgs synth`'s ground-truth images and cameras inside a model dir."""
+MASKS_DIR = "masks"
+"""Foreground masks (what moves) under the ground truth: `gt/masks/<camera>/<frame:05d>.png`."""
+STATIC_FILE = "static.safetensors"
+"""The static layer of a format-2 model dir."""
 
 
 TRAIN_REPORT = "train_report.json"

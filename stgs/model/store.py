@@ -1,15 +1,18 @@
 """Model dir: save and load a StreamSTGS scene (format in docs/MODEL_FORMAT.md).
 
-A model dir holds `model.json` (versioned metadata) and one safetensors file
-per GOP. safetensors is a flat tensor container that is parsed, never
-executed; every tensor's shape is checked against model.json before a model is
-built, and capacities are capped before anything is allocated.
+A model dir holds `model.json` (versioned metadata), one safetensors file per
+GOP (the dynamic layer) and, in format 2, one for the scene's static layer.
+safetensors is a flat tensor container that is parsed, never executed; every
+tensor's shape is checked against model.json before a model is built, and
+capacities are capped before anything is allocated. A scene without a static
+layer is written as format 1, byte for byte what earlier builds wrote.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,10 +33,36 @@ from stgs.limits import (
     MIN_FPS,
 )
 from stgs.model.gop import FEATURE_DIM, HIDDEN, DeformationField, GOPModel, GOPShape
-from stgs.tree import MODEL_META, gop_file
+from stgs.model.static import SH_DEGREES, StaticLayer
+from stgs.tree import MODEL_META, STATIC_FILE, gop_file
 
 FORMAT = "streamstgs-model"
-VERSION = 1
+VERSION = 2
+"""The newest format this build writes (a scene with a static layer) and reads."""
+VERSIONS = (1, 2)
+"""Formats this build reads: 1 (dynamic GOPs only) and 2 (plus an optional static layer)."""
+
+
+class ModelFormatError(StgsError):
+    """A model dir or one of its tensors does not match the format (the message names the file and field)."""
+
+
+@dataclass(frozen=True)
+class StaticMeta:
+    """What model.json says about the static layer."""
+
+    capacity: int
+    """Gaussians N_s = S_s² of the static layer."""
+    file: str
+    """Its safetensors file."""
+    sha256: str = ""
+    sh_degree: int = 0
+    """0: view-independent colour; 1: plus the linear view-dependent term (stgs.model.static)."""
+
+    @property
+    def grid_side(self) -> int:
+        side = math.isqrt(self.capacity)
+        return side if side * side == self.capacity else 0
 
 
 @dataclass
@@ -48,6 +77,13 @@ class SceneMeta:
     """One safetensors file name per GOP, in order."""
     extra: dict = field(default_factory=dict)
     """Free-form metadata (generator, effects, ground-truth location)."""
+    static: StaticMeta | None = None
+    """The scene's static layer (format 2), or None."""
+
+    @property
+    def version(self) -> int:
+        """The format this scene needs: 2 with a static layer, else 1."""
+        return 2 if self.static is not None else 1
 
     @property
     def num_gops(self) -> int:
@@ -58,11 +94,11 @@ class SceneMeta:
         return self.num_gops * self.shape.gop_size
 
 
-def save_gop(model: GOPModel, path: Path) -> str:
-    """Write one GOP atomically; returns its sha256."""
+def save_gop(model: GOPModel | StaticLayer, path: Path, version: int = 1) -> str:
+    """Write one GOP (or the static layer) atomically; returns its sha256."""
     tensors = {k: v.detach().to(torch.float32).contiguous() for k, v in model.state_dict().items()}
     # One metadata key: safetensors writes several in hash order (re-saves would differ byte-wise).
-    data = save(tensors, metadata={"streamstgs": json.dumps({"format": FORMAT, "version": VERSION})})
+    data = save(tensors, metadata={"streamstgs": json.dumps({"format": FORMAT, "version": version})})
     atomic_write_bytes(path, data)
     return hashlib.sha256(data).hexdigest()
 
@@ -70,7 +106,7 @@ def save_gop(model: GOPModel, path: Path) -> str:
 def write_meta(model_dir: Path, meta: SceneMeta, hashes: list[str]) -> None:
     doc = {
         "format": FORMAT,
-        "version": VERSION,
+        "version": meta.version,
         "capacity": meta.shape.capacity,
         "grid_side": meta.shape.grid_side,
         "gop_size": meta.shape.gop_size,
@@ -83,22 +119,50 @@ def write_meta(model_dir: Path, meta: SceneMeta, hashes: list[str]) -> None:
                  for i, (f, h) in enumerate(zip(meta.gop_files, hashes, strict=True))],
         "extra": meta.extra,
     }
+    if meta.static is not None:
+        doc["static"] = {"file": meta.static.file, "sha256": meta.static.sha256, "capacity": meta.static.capacity,
+                         "grid_side": meta.static.grid_side, "sh_degree": meta.static.sh_degree}
     atomic_write_bytes(model_dir / MODEL_META, (json.dumps(doc, indent=2) + "\n").encode())
 
 
-def save_model(model_dir: Path, gops: list[GOPModel], fps: float, extra: dict | None = None) -> SceneMeta:
-    """Write a whole model dir; model.json is written last."""
+def save_model(model_dir: Path, gops: list[GOPModel], fps: float, extra: dict | None = None,
+               static: StaticLayer | None = None) -> SceneMeta:
+    """Write a whole model dir (format 2 with a static layer, else format 1); model.json is written last."""
     if not gops:
         raise ValueError("save_model: a scene needs at least one GOP")
     shape = gops[0].shape
     if any(g.shape != shape for g in gops):
         raise ValueError("save_model: every GOP of a scene must share one shape (capacity, G, W)")
+    if static is not None:
+        check_static(static.capacity, static.sh_degree, "save_model")
+        _check_finite(static.state_dict(), "save_model: static layer")
     model_dir = Path(model_dir)
+    version = 2 if static is not None else 1
     files = [gop_file(i) for i in range(len(gops))]
-    hashes = [save_gop(g, model_dir / f) for g, f in zip(gops, files, strict=True)]
-    meta = SceneMeta(shape, float(fps), files, dict(extra or {}))
+    hashes = [save_gop(g, model_dir / f, version) for g, f in zip(gops, files, strict=True)]
+    static_meta = None
+    if static is not None:
+        digest = save_gop(static, model_dir / STATIC_FILE, version)
+        static_meta = StaticMeta(static.capacity, STATIC_FILE, digest, static.sh_degree)
+    meta = SceneMeta(shape, float(fps), files, dict(extra or {}), static_meta)
     write_meta(model_dir, meta, hashes)
     return meta
+
+
+def check_static(capacity: int, sh_degree: int, where: str) -> None:
+    """A static layer must be a square PLAS grid of at most MAX_CAPACITY Gaussians with a known colour degree."""
+    side = math.isqrt(capacity) if capacity > 0 else 0
+    if not 0 < capacity <= MAX_CAPACITY or side * side != capacity:
+        raise ModelFormatError(f"{where}: static.capacity must be a square S_s² in 1..{MAX_CAPACITY} "
+                               f"(its images are an S_s x S_s grid), got {capacity}")
+    if sh_degree not in SH_DEGREES:
+        raise ModelFormatError(f"{where}: static.sh_degree must be one of {SH_DEGREES}, got {sh_degree!r}")
+
+
+def _check_finite(tensors: dict[str, torch.Tensor], where: str) -> None:
+    for name, t in tensors.items():
+        if not torch.isfinite(t).all():
+            raise ModelFormatError(f"{where}: tensor '{name}' contains NaN or Inf")
 
 
 def _int_field(doc: dict, key: str, lo: int, hi: int) -> int:
@@ -123,9 +187,10 @@ def read_meta(model_dir: Path) -> SceneMeta:
         raise StgsError(f"{path}: JSON nested too deeply") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise StgsError(f"{path}: not a {FORMAT} file")
-    if doc.get("version") != VERSION:
-        raise StgsError(f"{path}: format version {doc.get('version')!r} is not supported "
-                        f"(this build reads version {VERSION})")
+    version = doc.get("version")
+    if version not in VERSIONS or isinstance(version, bool):
+        raise StgsError(f"{path}: format version {version!r} is not supported "
+                        f"(this build reads versions {', '.join(map(str, VERSIONS))})")
     if doc.get("feature_dim") != FEATURE_DIM or doc.get("hidden") != HIDDEN:
         raise StgsError(f"{path}: feature_dim/hidden must be {FEATURE_DIM}/{HIDDEN}")
     shape = GOPShape(capacity=_int_field(doc, "capacity", 1, MAX_CAPACITY),
@@ -145,7 +210,25 @@ def read_meta(model_dir: Path) -> SceneMeta:
             raise StgsError(f"{path}: gops[{i}].file must be a plain file name")
         files.append(name)
     extra = doc.get("extra", {})
-    return SceneMeta(shape, float(fps), files, extra if isinstance(extra, dict) else {})
+    static = _static_meta(doc, path) if version >= 2 else None
+    return SceneMeta(shape, float(fps), files, extra if isinstance(extra, dict) else {}, static)
+
+
+def _static_meta(doc: dict, path: Path) -> StaticMeta | None:
+    entry = doc.get("static")
+    if entry is None:
+        return None
+    if not isinstance(entry, dict):
+        raise ModelFormatError(f"{path}: 'static' must be an object or null")
+    capacity = entry.get("capacity")
+    if not isinstance(capacity, int) or isinstance(capacity, bool):
+        raise ModelFormatError(f"{path}: static.capacity must be an integer, got {capacity!r}")
+    sh_degree = entry.get("sh_degree", 0)
+    check_static(capacity, sh_degree, str(path))
+    name = entry.get("file")
+    if not isinstance(name, str) or "/" in name or "\\" in name or name.startswith(".") or not name:
+        raise ModelFormatError(f"{path}: static.file must be a plain file name")
+    return StaticMeta(capacity, name, str(entry.get("sha256", "")), sh_degree)
 
 
 def expected_shapes(shape: GOPShape) -> dict[str, tuple[int, ...]]:
@@ -160,33 +243,52 @@ def _capacity_shapes(shape: GOPShape) -> dict[str, tuple[int, ...]]:
             "color": (n, 3), "features": (shape.num_features, n, FEATURE_DIM)}
 
 
-def load_gop(model_dir: Path, meta: SceneMeta, index: int) -> GOPModel:
-    """Load GOP `index`, checking every tensor's name, shape and finiteness."""
-    if not 0 <= index < meta.num_gops:
-        raise StgsError(f"GOP {index} does not exist (scene has {meta.num_gops})")
-    path = Path(model_dir) / meta.gop_files[index]
+def static_shapes(capacity: int, sh_degree: int = 0) -> dict[str, tuple[int, ...]]:
+    """Every tensor the static layer's file must hold, with its shape."""
+    return {k: tuple(v.shape) for k, v in StaticLayer(capacity, sh_degree).state_dict().items()}
+
+
+def _read_checked(path: Path, want: dict[str, tuple[int, ...]], what: str) -> dict[str, torch.Tensor]:
+    """A safetensors file's tensors, refused unless their names and shapes are `want` and every value is finite."""
     if not path.is_file():
-        raise StgsError(f"{path}: missing GOP file")
+        raise ModelFormatError(f"{path}: missing {what} file")
     try:
         tensors = load_file(str(path))
     except (SafetensorError, OSError, ValueError) as exc:
-        raise StgsError(f"{path}: unreadable GOP file ({exc})") from exc
-    want = expected_shapes(meta.shape)
+        raise ModelFormatError(f"{path}: unreadable {what} file ({exc})") from exc
     if set(tensors) != set(want):
         missing, unknown = sorted(set(want) - set(tensors)), sorted(set(tensors) - set(want))
-        raise StgsError(f"{path}: tensors do not match the format (missing {missing}, unknown {unknown})")
+        raise ModelFormatError(f"{path}: tensors do not match the format (missing {missing}, unknown {unknown})")
     for name, t in tensors.items():
         if tuple(t.shape) != want[name]:
-            raise StgsError(f"{path}: tensor '{name}' has shape {tuple(t.shape)}, "
-                            f"model.json implies {want[name]}")
-        if not torch.isfinite(t).all():
-            raise StgsError(f"{path}: tensor '{name}' contains NaN or Inf")
+            raise ModelFormatError(f"{path}: tensor '{name}' has shape {tuple(t.shape)}, "
+                                   f"model.json implies {want[name]}")
+    _check_finite(tensors, str(path))
+    return {k: v.to(torch.float32) for k, v in tensors.items()}
+
+
+def load_gop(model_dir: Path, meta: SceneMeta, index: int) -> GOPModel:
+    """Load GOP `index` (its dynamic layer), checking every tensor's name, shape and finiteness."""
+    if not 0 <= index < meta.num_gops:
+        raise StgsError(f"GOP {index} does not exist (scene has {meta.num_gops})")
+    tensors = _read_checked(Path(model_dir) / meta.gop_files[index], expected_shapes(meta.shape), "GOP")
     model = GOPModel(meta.shape)
-    model.load_state_dict({k: v.to(torch.float32) for k, v in tensors.items()})
+    model.load_state_dict(tensors)
     return model
 
 
+def load_static(model_dir: Path, meta: SceneMeta) -> StaticLayer | None:
+    """The scene's static layer, or None (format 1, or format 2 without one)."""
+    if meta.static is None:
+        return None
+    s = meta.static
+    tensors = _read_checked(Path(model_dir) / s.file, static_shapes(s.capacity, s.sh_degree), "static layer")
+    layer = StaticLayer(s.capacity, s.sh_degree)
+    layer.load_state_dict(tensors)
+    return layer
+
+
 def load_model(model_dir: Path) -> tuple[SceneMeta, list[GOPModel]]:
-    """Read a whole model dir."""
+    """Read a whole model dir's GOPs (the static layer: load_static)."""
     meta = read_meta(model_dir)
     return meta, [load_gop(model_dir, meta, i) for i in range(meta.num_gops)]

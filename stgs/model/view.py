@@ -19,6 +19,7 @@ import torch
 
 from stgs.camera import Camera, orbit
 from stgs.model.gop import Gaussians, GOPModel
+from stgs.model.static import StaticLayer, merge
 from stgs.native.build import available
 from stgs.render import Backend, rasterize
 
@@ -58,14 +59,31 @@ def splat(g: Gaussians, camera: Camera, background: torch.Tensor | None = None,
                      camera.K.to(dtype), camera.width, camera.height, background, backend=backend)
 
 
-class FrameRenderer:
-    """Renders frames of one GOP, using the native deform and splat when they are built."""
+def static_view(static: StaticLayer, camera: Camera) -> Gaussians:
+    """The static layer as `camera` draws it: activated, view-dependent colour evaluated, guard band applied."""
+    g = static.gaussians(camera.center.float())
+    return Gaussians(g.means.detach(), g.quats.detach(), g.scales.detach(),
+                     (g.opacities * in_guard_band(g.means, camera).to(g.opacities.dtype)).detach(), g.colors.detach())
 
-    def __init__(self, model: GOPModel, native: bool | None = None, precision: str = "fp32"):
+
+def camera_key(camera: Camera) -> tuple:
+    """Everything about a camera that changes how a static Gaussian is drawn (pose, intrinsics, size)."""
+    return (camera.viewmat.numpy().tobytes(), camera.K.numpy().tobytes(), camera.width, camera.height)
+
+
+class FrameRenderer:
+    """Renders frames of one GOP (and the scene's static layer, if any), using the native deform and splat
+    when they are built. Only the dynamic layer is deformed; the static layer's per-view work (activation,
+    view-dependent colour, guard band) is kept for the last camera and reused while the camera stays put."""
+
+    def __init__(self, model: GOPModel, native: bool | None = None, precision: str = "fp32",
+                 static: StaticLayer | None = None):
         """precision: arithmetic of the native deformation ("fp32" or "bf16", an accuracy knob)."""
         self.model = model
+        self.static = static
         self.native = available() if native is None else native
         self.precision = precision
+        self._static_view: tuple[tuple, Gaussians] | None = None
         self._weights = None
         if self.native:
             from stgs.model.native_deform import PackedWeights, check_precision
@@ -77,8 +95,15 @@ class FrameRenderer:
 
     @torch.no_grad()
     def gaussians(self, frame: int, camera: Camera) -> Gaussians:
-        """The deformed Gaussians of `frame` seen from `camera`; when native, those off its view or
-        outside its guard band have opacity 0 (`guarded` below)."""
+        """The static layer's Gaussians (if any) followed by the deformed dynamic ones of `frame`, seen from
+        `camera`; when native, those off its view or outside its guard band have opacity 0 (`guarded`)."""
+        dynamic = self.dynamic_gaussians(frame, camera)
+        static = self.static_gaussians(camera)
+        return dynamic if static is None else merge(static, dynamic)
+
+    @torch.no_grad()
+    def dynamic_gaussians(self, frame: int, camera: Camera) -> Gaussians:
+        """The GOP's deformed Gaussians of `frame` (guarded when native)."""
         if not self.native:
             return self.model.deform(frame, camera.center.float())
         from stgs.model.native_deform import deform_native
@@ -86,6 +111,15 @@ class FrameRenderer:
         return deform_native(self.model, frame, camera.center.float(), self._weights,
                              camera.viewmat, camera.K, camera.width, camera.height, self.precision,
                              guard=guard_limits(camera))
+
+    def static_gaussians(self, camera: Camera) -> Gaussians | None:
+        """The static layer as `camera` draws it (always guarded), reused while the camera does not move."""
+        if self.static is None:
+            return None
+        key = camera_key(camera)
+        if self._static_view is None or self._static_view[0] != key:
+            self._static_view = (key, static_view(self.static, camera))
+        return self._static_view[1]
 
     @property
     def guarded(self) -> bool:
