@@ -26,7 +26,7 @@ from stgs.metrics import psnr
 from stgs.packager.packer import PackConfig, Packer
 from stgs.packager.segments import measure
 from stgs.synth import PRESETS, SynthConfig, synthesize
-from stgs.synth.scene import EFFECTS, ProceduralScene
+from stgs.synth.scene import DEFAULT_EFFECTS, ProceduralScene
 
 
 def codec_rows(model_dir: Path, out: Path, qps: list[int], presets: list[str], sort: bool) -> list[dict]:
@@ -109,7 +109,7 @@ def plas_rows(sides: list[int]) -> list[dict]:
     rows = []
     for side in sides:
         n = side * side
-        truth = ProceduralScene(n, EFFECTS, seed=0).at(0.0)
+        truth = ProceduralScene(n, DEFAULT_EFFECTS, seed=0).at(0.0)
         key = torch.cat([truth.means, truth.base_colors, truth.log_scales, truth.quats,
                          truth.opacities[:, None]], 1)
         key = (key - key.mean(0)) / key.std(0).clamp_min(1e-6)

@@ -20,7 +20,7 @@ from stgs.metrics import psnr
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.native.build import available
 from stgs.render import rasterize
-from stgs.synth.scene import EFFECTS, ProceduralScene
+from stgs.synth.scene import DEFAULT_EFFECTS, ProceduralScene
 
 SLOW_MS = 2000.0
 """A first run slower than this counts as the measurement (no warm-up for the slow reference)."""
@@ -47,7 +47,7 @@ def bench_camera(width: int, height: int) -> Camera:
 
 
 def scene_inputs(n: int, dtype: torch.dtype, cam: Camera) -> list[torch.Tensor]:
-    truth = ProceduralScene(n, EFFECTS, seed=0).at(0.5)
+    truth = ProceduralScene(n, DEFAULT_EFFECTS, seed=0).at(0.5)
     args = [truth.means, truth.quats, truth.log_scales.exp(), truth.opacities,
             truth.colors(cam.center)]
     return [a.to(dtype) for a in args]
@@ -79,7 +79,7 @@ def error_cells(img: torch.Tensor, ref64: torch.Tensor | None) -> str:
 def random_model(n: int) -> GOPModel:
     torch.manual_seed(0)
     model = GOPModel(GOPShape(capacity=n, gop_size=60))
-    truth = ProceduralScene(n, EFFECTS, seed=0).at(0.0)
+    truth = ProceduralScene(n, DEFAULT_EFFECTS, seed=0).at(0.0)
     with torch.no_grad():
         for p in model.field.parameters():
             p.normal_(0, 0.05)

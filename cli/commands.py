@@ -75,7 +75,10 @@ def add_synth(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fit-steps", type=int, help="Adam steps of the parameter fit per GOP")
     p.add_argument("--seed", type=int, help="random seed")
     p.add_argument("--effects", type=_effects,
-                   help=f"comma-separated effects to simulate (known: {','.join(EFFECTS)})")
+                   help=f"comma-separated effects to simulate (known: {','.join(EFFECTS)}; static_background "
+                   "makes a layered scene, model format 2)")
+    p.add_argument("--static-grid-side", type=_positive_int,
+                   help="S_s: Gaussians S_s² of the static layer with static_background (default 32)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(run=run_synth)
 
@@ -98,7 +101,8 @@ def run_synth(args: argparse.Namespace) -> int:
 
     cfg = synth_config_from_args(args)
     report = synthesize(cfg, args.out, progress=not args.quiet)
-    print(f"wrote {args.out}: {cfg.grid_side ** 2} Gaussians, {cfg.num_gops} GOPs x "
+    static = (f" + a static layer of {cfg.static_grid_side ** 2}" if "static_background" in cfg.effects else "")
+    print(f"wrote {args.out}: {cfg.grid_side ** 2} Gaussians{static}, {cfg.num_gops} GOPs x "
           f"{cfg.gop_size} frames, effects {','.join(cfg.effects) or 'none'}")
     print(f"fidelity of the model vs ground truth: {report.fidelity_psnr:.2f} dB PSNR "
           f"over {report.fidelity_views} views")

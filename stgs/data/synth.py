@@ -7,10 +7,10 @@ from pathlib import Path
 import torch
 
 from stgs.camera import Camera
-from stgs.data.images import read_rgb
+from stgs.data.images import read_mask, read_rgb
 from stgs.errors import StgsError
 from stgs.synth import load_ground_truth
-from stgs.tree import CAMERAS, GROUND_TRUTH_DIR
+from stgs.tree import CAMERAS, GROUND_TRUTH_DIR, MASKS_DIR
 
 
 class SynthReader:
@@ -41,4 +41,9 @@ class SynthReader:
                         (cam.height, cam.width))
 
     def mask(self, frame: int, camera: str) -> torch.Tensor | None:
-        return None
+        """The foreground mask `stgs synth` wrote (None for a scene written before it wrote masks)."""
+        cam = next((c for c in self._cameras if c.name == camera), None)
+        if cam is None:
+            raise StgsError(f"{self.name}: no camera {camera!r}")
+        path = self.root / GROUND_TRUTH_DIR / MASKS_DIR / self.pattern.format(camera=camera, frame=frame)
+        return read_mask(path, (cam.height, cam.width)) if path.is_file() else None

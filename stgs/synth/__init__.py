@@ -5,7 +5,13 @@ it is, with the ground truth inside it under `gt/`:
 
     OUT/model.json, OUT/gop_0000.safetensors, ...
     OUT/gt/cameras.json, OUT/gt/<camera>/<frame:05d>.png
+    OUT/gt/masks/<camera>/<frame:05d>.png   foreground masks (the ring, the blob, the sparks)
     OUT/synth_report.json   fit errors and rendered fidelity vs the ground truth
+
+With the static_background effect the scene is layered (model format 2): the
+backdrop is the static layer, taken exactly from the truth (it never moves, so
+there is nothing to fit), and the GOPs fit the rest as before. `stgs pack`
+needs a single-layer scene until it can carry a static layer.
 """
 
 from __future__ import annotations
@@ -27,12 +33,13 @@ from stgs.errors import StgsError
 from stgs.fsio import DIR_MODE, atomic_write_bytes, load_png, save_png
 from stgs.metrics import psnr
 from stgs.model.gop import GOPShape
-from stgs.model.store import load_model, save_model
-from stgs.model.view import FrameRenderer
+from stgs.model.static import StaticLayer
+from stgs.model.store import load_model, load_static, save_model
+from stgs.model.view import FrameRenderer, in_guard_band
 from stgs.render import rasterize
 from stgs.synth.fit import fit_gop
-from stgs.synth.scene import EFFECTS, ProceduralScene
-from stgs.tree import CAMERAS, GROUND_TRUTH_DIR, MODEL_META
+from stgs.synth.scene import DEFAULT_EFFECTS, EFFECTS, FOREGROUND, ProceduralScene, TruthFrame
+from stgs.tree import CAMERAS, GROUND_TRUTH_DIR, MASKS_DIR, MODEL_META
 
 SCENE_TARGET = (0.0, 0.55, 0.0)
 
@@ -57,8 +64,10 @@ class SynthConfig:
     """Ground-truth image height."""
     num_cameras: int = 6
     """Ground-truth cameras on a ring around the scene."""
-    effects: tuple[str, ...] = EFFECTS
-    """Effects to simulate; nothing that is not named here is animated."""
+    effects: tuple[str, ...] = DEFAULT_EFFECTS
+    """Effects to simulate; nothing that is not named here is animated (static_background: a layered scene)."""
+    static_grid_side: int = 32
+    """S_s of the static layer (the backdrop's S_s² Gaussians) when static_background is on."""
     fit_steps: int = 300
     """Adam steps of the parameter-space fit per GOP."""
     seed: int = 0
@@ -76,7 +85,8 @@ class SynthConfig:
                    "width and height must be in 8..4096"),
                   (self.num_cameras >= 1, "num_cameras must be >= 1"),
                   (self.fit_steps >= 0, "fit_steps must be >= 0"),
-                  (self.fidelity_stride >= 1, "fidelity_stride must be >= 1")]
+                  (self.fidelity_stride >= 1, "fidelity_stride must be >= 1"),
+                  (self.static_grid_side >= 4, "static_grid_side must be >= 4")]
         for ok, message in checks:
             if not ok:
                 raise StgsError(f"synth config: {message}")
@@ -136,10 +146,49 @@ def ground_truth_cameras(cfg: SynthConfig) -> list[Camera]:
                  height_px=cfg.height, prefix="cam")
 
 
-def render_truth(scene: ProceduralScene, time_s: float, camera: Camera) -> torch.Tensor:
-    t = scene.at(time_s)
-    return rasterize(t.means, t.quats, t.log_scales.exp(), t.opacities, t.colors(camera.center),
+def _draw(frames: list[TruthFrame], camera: Camera, colors: list[torch.Tensor] | None = None) -> torch.Tensor:
+    cat = lambda key: torch.cat([getattr(t, key) for t in frames])  # noqa: E731
+    colors = colors if colors is not None else [t.colors(camera.center) for t in frames]
+    return rasterize(cat("means"), cat("quats"), cat("log_scales").exp(), cat("opacities"), torch.cat(colors),
                      camera.viewmat.float(), camera.K.float(), camera.width, camera.height)
+
+
+def render_truth(scene: ProceduralScene, time_s: float, camera: Camera) -> torch.Tensor:
+    """The true image (the static backdrop, if any, and the objects in one depth order). The backdrop is
+    drawn with the model's guard band (stgs.model.view): beside a camera, a wall Gaussian seen at a grazing
+    angle would otherwise veil the whole image."""
+    frames = [scene.at(time_s)]
+    if scene.static is not None:
+        s = scene.static
+        seen = s.opacities * in_guard_band(s.means, camera).float()
+        frames.append(TruthFrame(s.means, s.log_scales, s.quats, seen, s.base_colors, s.view_axis, s.view_gain))
+    return _draw(frames, camera)
+
+
+def foreground_mask(scene: ProceduralScene, time_s: float, camera: Camera) -> torch.Tensor:
+    """(H, W) bool: where the foreground objects alone cover more than half of a pixel."""
+    t = scene.at(time_s)
+    keep = torch.zeros(scene.capacity, dtype=torch.bool)
+    for name in FOREGROUND:
+        keep[scene.slices[name]] = True
+    fg = TruthFrame(t.means[keep], t.log_scales[keep], t.quats[keep], t.opacities[keep], t.base_colors[keep],
+                    t.view_axis[keep], t.view_gain[keep])
+    return _draw([fg], camera, [torch.ones(int(keep.sum()), 3)])[..., 0] > 0.5
+
+
+def truth_static_layer(scene: ProceduralScene) -> StaticLayer | None:
+    """The backdrop as a static layer: the truth's attributes themselves (it never moves)."""
+    if scene.static is None:
+        return None
+    t = scene.static
+    layer = StaticLayer(len(t.means))
+    with torch.no_grad():
+        layer.xyz.copy_(t.means)
+        layer.log_scale.copy_(t.log_scales)
+        layer.rotation.copy_(t.quats)
+        layer.opacity_logit.copy_(torch.logit(t.opacities.clamp(1e-6, 1 - 1e-6)))
+        layer.color.copy_(t.base_colors)
+    return layer
 
 
 def write_ground_truth(out: Path, scene: ProceduralScene, cfg: SynthConfig, cameras: list[Camera],
@@ -149,6 +198,8 @@ def write_ground_truth(out: Path, scene: ProceduralScene, cfg: SynthConfig, came
     for f in tqdm(range(frames), desc="ground truth", unit="frame", disable=not progress):
         for cam in cameras:
             save_png(gt / cam.name / f"{f:05d}.png", render_truth(scene, f / cfg.fps, cam))
+            mask = foreground_mask(scene, f / cfg.fps, cam)
+            save_png(gt / MASKS_DIR / cam.name / f"{f:05d}.png", mask[..., None].float().expand(-1, -1, 3))
     doc = {"fps": cfg.fps, "num_frames": frames, "pattern": "{camera}/{frame:05d}.png",
            "cameras": [c.to_json() for c in cameras]}
     atomic_write_bytes(gt / CAMERAS, (json.dumps(doc, indent=2) + "\n").encode())
@@ -166,10 +217,11 @@ def load_ground_truth(model_dir: Path) -> tuple[dict, list[Camera]]:
 def measure_fidelity(model_dir: Path, stride: int = 5) -> tuple[float, int]:
     """Mean PSNR of the model's renders vs its stored ground truth, over every stride-th frame."""
     meta, gops = load_model(model_dir)
+    static = load_static(model_dir, meta)
     doc, cameras = load_ground_truth(model_dir)
     values = []
     for k, gop in enumerate(gops):
-        renderer = FrameRenderer(gop)
+        renderer = FrameRenderer(gop, static=static)
         for i in range(0, meta.shape.gop_size, stride):
             f = k * meta.shape.gop_size + i
             for cam in cameras:
@@ -200,7 +252,9 @@ def synthesize(cfg: SynthConfig, out: Path, progress: bool = True) -> SynthRepor
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     shape = GOPShape(capacity=cfg.grid_side ** 2, gop_size=cfg.gop_size, window=cfg.window)
-    scene = ProceduralScene(shape.capacity, tuple(cfg.effects), cfg.seed)
+    layered = "static_background" in cfg.effects
+    scene = ProceduralScene(shape.capacity, tuple(cfg.effects), cfg.seed,
+                            cfg.static_grid_side ** 2 if layered else 0)
     cameras = ground_truth_cameras(cfg)
     report = SynthReport()
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-", dir=out.parent))
@@ -219,7 +273,7 @@ def synthesize(cfg: SynthConfig, out: Path, progress: bool = True) -> SynthRepor
                                "seconds": time.perf_counter() - start})
         extra = {"generator": "stgs.synth", "config": dataclasses.asdict(cfg),
                  "ground_truth": GROUND_TRUTH_DIR}
-        save_model(staging, gops, cfg.fps, extra)
+        save_model(staging, gops, cfg.fps, extra, static=truth_static_layer(scene))
         report.fidelity_psnr, report.fidelity_views = measure_fidelity(staging, cfg.fidelity_stride)
         atomic_write_bytes(staging / "synth_report.json",
                            (json.dumps(report.to_json(), indent=2) + "\n").encode())

@@ -8,7 +8,12 @@ effect animates one aspect, and an effect that is not named is not applied:
 - nonrigid: the blob's surface wobbles radially;
 - color: the blob's colour cycles through hues;
 - appear: the sparks fade in and out;
-- view_dependent: the ring's colour depends on the viewing direction.
+- view_dependent: the ring's colour depends on the viewing direction;
+- static_background: a striped backdrop (a cylinder beyond the cameras) and a
+  floor ring around the ground disc that never change, drawn by their own
+  Gaussians (`static_capacity` of them): a layered scene's static layer.
+
+Foreground (what a dataset's masks mark) is the ring, the blob and the sparks.
 """
 
 from __future__ import annotations
@@ -20,8 +25,14 @@ import torch
 
 from stgs.render.project import normalize_quats
 
-EFFECTS = ("rigid", "nonrigid", "color", "appear", "view_dependent")
+EFFECTS = ("rigid", "nonrigid", "color", "appear", "view_dependent", "static_background")
 """Every effect the generator knows."""
+DEFAULT_EFFECTS = EFFECTS[:5]
+"""The effects of a single-layer scene (static_background adds a static layer)."""
+FOREGROUND = ("ring", "blob", "sparks")
+"""The objects a foreground mask covers."""
+BACKDROP_RADIUS = 5.0
+"""The backdrop cylinder's radius (the cameras ring the scene at 3.2)."""
 
 OBJECT_SHARES = {"ground": 0.30, "ring": 0.25, "blob": 0.30, "sparks": 0.10}
 """Fraction of the capacity per object; the rest stays unused."""
@@ -71,15 +82,19 @@ def hue_to_rgb(hue: torch.Tensor) -> torch.Tensor:
 class ProceduralScene:
     """Ground truth of the synthetic scene for a capacity and a set of effects."""
 
-    def __init__(self, capacity: int, effects: tuple[str, ...], seed: int = 0):
+    def __init__(self, capacity: int, effects: tuple[str, ...], seed: int = 0, static_capacity: int = 0):
         unknown = sorted(set(effects) - set(EFFECTS))
         if unknown:
             raise ValueError(f"unknown effect(s) {unknown}; known: {', '.join(EFFECTS)}")
         if capacity < 16:
             raise ValueError("capacity must be at least 16 Gaussians")
+        if ("static_background" in effects) != (static_capacity > 0):
+            raise ValueError("static_background needs static_capacity > 0 (and static_capacity needs the effect)")
         self.capacity = capacity
         self.effects = frozenset(effects)
         gen = torch.Generator().manual_seed(seed)
+        self.static = _backdrop(static_capacity, gen) if static_capacity else None
+        """The static layer's truth (TruthFrame) with static_background, else None."""
         self.slices: dict[str, slice] = {}
         start = 0
         for name, share in OBJECT_SHARES.items():
@@ -171,3 +186,33 @@ class ProceduralScene:
             opacity[g] = self.rest_opacity[g] * level
         return TruthFrame(means, self.rest_log_scales.clone(), quats, opacity, colors,
                           self.view_axis, self.view_gain)
+
+
+def _backdrop(count: int, gen: torch.Generator) -> TruthFrame:
+    """`count` static Gaussians: 3/4 on a striped cylinder beyond the cameras, 1/4 on a floor ring around the
+    ground disc (radius 1.7 to 3.0)."""
+    wall = count * 3 // 4
+    floor = count - wall
+    theta = 2 * math.pi * torch.rand(wall, generator=gen)
+    y = 2.8 * torch.rand(wall, generator=gen) - 0.2
+    wall_means = torch.stack([BACKDROP_RADIUS * torch.cos(theta), y, BACKDROP_RADIUS * torch.sin(theta)], -1)
+    stripes = (torch.floor(theta * 12 / math.pi) % 2)[:, None]
+    bands = (torch.floor(y * 2.5) % 3)[:, None] / 2
+    wall_colors = 0.2 + 0.5 * stripes * torch.tensor([0.3, 0.6, 0.9]) + 0.25 * bands * torch.tensor([0.9, 0.4, 0.2])
+    spacing = math.sqrt(2 * math.pi * BACKDROP_RADIUS * 2.8 / max(1, wall))
+    r = torch.sqrt(1.7 ** 2 + (3.0 ** 2 - 1.7 ** 2) * torch.rand(floor, generator=gen))
+    phi = 2 * math.pi * torch.rand(floor, generator=gen)
+    floor_means = torch.stack([r * torch.cos(phi), torch.full((floor,), -0.01), r * torch.sin(phi)], -1)
+    floor_colors = 0.3 + 0.3 * (torch.floor(phi * 8 / math.pi) % 2)[:, None] * torch.tensor([0.4, 0.8, 0.5])
+    floor_spacing = math.sqrt(math.pi * (3.0 ** 2 - 1.7 ** 2) / max(1, floor))
+    n = wall + floor
+    # Wall Gaussians are flat in their radial direction (a yaw turns the local x axis onto the tangent).
+    yaw = math.pi / 2 - theta
+    wall_quats = torch.stack([torch.cos(yaw / 2), torch.zeros(wall), torch.sin(yaw / 2), torch.zeros(wall)], -1)
+    quats = torch.cat([wall_quats, torch.tensor([1.0, 0, 0, 0]).expand(floor, 4)])
+    wall_scale = torch.tensor([spacing * 0.7, spacing * 0.7, 0.01])
+    floor_scale = torch.tensor([floor_spacing * 0.7, 0.005, floor_spacing * 0.7])
+    log_scales = torch.cat([wall_scale.log().expand(wall, 3), floor_scale.log().expand(floor, 3)])
+    zeros = torch.zeros(n, 3)
+    return TruthFrame(torch.cat([wall_means, floor_means]), log_scales.clone(), quats.clone(), torch.full((n,), 0.95),
+                      torch.cat([wall_colors, floor_colors]).clamp(0, 1), zeros + torch.tensor([1.0, 0, 0]), zeros)

@@ -111,7 +111,9 @@ def test_synth_reader_and_unknown_folders(tmp_path):
     ds = open_dataset(tmp_path / "s")
     assert ds.num_frames == 2 and ds.camera_names == ["cam00", "cam01", "cam02"]
     assert split(ds) == (["cam00", "cam01"], ["cam02"])
-    assert ds.image(1, "cam01").shape == (12, 16, 3) and ds.mask(0, "cam00") is None
+    assert ds.image(1, "cam01").shape == (12, 16, 3) and ds.mask(0, "cam00").shape == (12, 16)
+    shutil.rmtree(tmp_path / "s" / "gt" / "masks")  # a scene written before synth wrote masks
+    assert ds.mask(0, "cam00") is None
     with pytest.raises(StgsError, match="not a dataset"):
         open_dataset(tmp_path)
     with pytest.raises(StgsError, match=r"no camera\(s\) \['nope'\]"):
