@@ -333,9 +333,19 @@ def add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--gops", type=_positive_int, dest="max_gops", help="train at most this many GOPs")
     p.add_argument("--gop-size", type=_positive_int, help="frames per GOP (default 60)")
     p.add_argument("--start-frame", type=int, help="first frame")
-    p.add_argument("--grid-side", type=_positive_int, help="S: capacity N = S² Gaussians")
+    p.add_argument("--grid-side", type=_positive_int,
+                   help="S: capacity N = S² Gaussians per GOP (layered: of the dynamic layer)")
+    p.add_argument("--layers", choices=["single", "layered"],
+                   help="single (default): every GOP holds every Gaussian, model format 1; layered: a static layer "
+                   "fitted once (stage A) + smaller per-GOP dynamic layers (stage B), model format 2, which "
+                   "`stgs pack` cannot carry yet")
+    p.add_argument("--static-grid-side", type=_positive_int,
+                   help="S_s: Gaussians S_s² of the static layer (layered; default: the budget's)")
+    p.add_argument("--no-migrate", dest="migrate", action="store_false", default=None,
+                   help="layered: static Gaussians the data shows moving stay static (no migration)")
     p.add_argument("--iterations", type=_positive_int, help="iterations per GOP")
-    p.add_argument("--coarse-iterations", type=int, help="iterations of the coarse canonical stage")
+    p.add_argument("--coarse-iterations", type=int,
+                   help="iterations of the coarse canonical stage (layered: of stage A, the static layer)")
     p.add_argument("--position-lr", type=float,
                    help="initial position learning rate × the scene extent (decays 100× over a stage; "
                    "default: the budget's)")
@@ -364,7 +374,7 @@ def add_train(sub: argparse._SubParsersAction) -> None:
 
 TRAIN_OVERRIDES = ("max_gops", "gop_size", "start_frame", "grid_side", "iterations", "coarse_iterations", "scale",
                    "window", "aux", "dynamic", "temporal_weight", "relocate", "seed", "threads", "holdout",
-                   "background_share", "init_frames")
+                   "background_share", "init_frames", "layers", "static_grid_side", "migrate")
 
 
 def train_overrides(args: argparse.Namespace) -> dict:
@@ -387,6 +397,10 @@ def run_train(args: argparse.Namespace) -> int:
         val = f", validation {g['val_psnr']:.2f} dB" if g["val_psnr"] is not None else ""
         print(f"GOP {g['gop']}: {g['iterations']} iterations in {g['seconds']:.0f} s, train {g['train_psnr']:.2f} dB"
               f"{val}, {g['relocated']} relocated, {g['pruned']} pruned")
+    if "static_capacity" in report:
+        print(f"static layer: {report['static_capacity']} Gaussians in {report['static_seconds']:.0f} s "
+              f"(moving pixels from {report['moving_mask_source']}; {report['migrated']} Gaussians migrated to the "
+              "dynamic layers)")
     print(f"wrote {args.out} ({report['capacity']} Gaussians per GOP, {len(report['gops'])} GOP(s))")
     return 0
 

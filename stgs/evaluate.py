@@ -27,7 +27,7 @@ from stgs.errors import FieldError, StgsError
 from stgs.fsio import atomic_write_bytes, image_grid, save_png
 from stgs.metrics import LPIPS, lpips_backbone_file, psnr, ssim
 from stgs.model.gop import GOPModel, GOPShape
-from stgs.model.store import load_gop, read_meta
+from stgs.model.store import load_gop, load_static, read_meta
 from stgs.model.view import FrameRenderer
 from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, MPDError, expand_template, read_mpd
 from stgs.train.views import scale_camera
@@ -89,14 +89,17 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
     sources: dict[str, Callable[[int], GOPModel]] = {"uncompressed": lambda k: load_gop(model_dir, meta, k)}
     if dash is not None:
         sources |= packaged_gops(Path(dash))
+    static = load_static(model_dir, meta)
     lpips = LPIPS.load(lpips_net) if lpips_net else None
     result: dict = {"model_dir": str(model_dir), "dataset": ds.name, "validation_cameras": cams_val,
-                    "frame_stride": stride, "lpips": lpips_info(lpips, lpips_net), "streams": {}}
+                    "frame_stride": stride, "lpips": lpips_info(lpips, lpips_net), "format": meta.version,
+                    "gaussians": {"static": static.capacity if static is not None else 0,
+                                  "dynamic": meta.shape.capacity}, "streams": {}}
     grid_rows: list[torch.Tensor] = []
     for name, load in sources.items():
         per_gop = []
         for k in tqdm(range(meta.num_gops), desc=f"eval {name}", unit="gop", disable=not progress):
-            renderer = FrameRenderer(load(k))
+            renderer = FrameRenderer(load(k), static=static)
             rows = []
             for i in range(0, g, stride):
                 f = start + k * g + i

@@ -32,8 +32,19 @@ class TrainConfig:
 
     budget: str = "quick"
     """Named size this config started from (quick, cpu, paper)."""
+    layers: str = "single"
+    """single: every GOP holds every Gaussian (model format 1); layered: a static layer fitted once over the whole
+    span (stage A) + per-GOP dynamic layers (stage B), model format 2."""
     grid_side: int = 24
-    """S: the scene's capacity is N = S² Gaussians."""
+    """S: the scene's capacity is N = S² Gaussians per GOP (layered: the dynamic layer's S_d)."""
+    static_grid_side: int = 32
+    """S_s of the static layer (layered)."""
+    migrate: bool = True
+    """Layered: static Gaussians the data shows moving seed the dynamic layers (stgs.train.layers)."""
+    migrate_score: float = 0.5
+    """Share of its views in which a static Gaussian lands on moving pixels above which it migrates."""
+    migrate_share: float = 0.5
+    """Most migrated Gaussians, as a share of the dynamic capacity (the rest start from triangulated points)."""
     gop_size: int = 60
     """Frames per GOP (G)."""
     window: int = 3
@@ -49,7 +60,7 @@ class TrainConfig:
     holdout: list[str] | None = None
     """Validation cameras (None: the dataset's convention)."""
     coarse_iterations: int = 1000
-    """Canonical 3DGS stage on frames from all times."""
+    """Canonical 3DGS stage on frames from all times (layered: stage A, the static layer, on static pixels)."""
     iterations: int = 600
     """Iterations per GOP."""
     feature_noise: float = 1e-3
@@ -110,13 +121,20 @@ class TrainConfig:
                    "every-N settings must be >= 1"),
                   (self.max_gops is None or self.max_gops >= 1, "max_gops must be >= 1"),
                   (0 <= self.background_share < 1, "background_share must be in [0, 1)"),
-                  (self.init_frames >= 1, "init_frames must be >= 1")]
+                  (self.init_frames >= 1, "init_frames must be >= 1"),
+                  (self.layers in LAYERS, f"layers must be one of {', '.join(LAYERS)}"),
+                  (self.static_grid_side >= 2, "static_grid_side must be >= 2"),
+                  (0 <= self.migrate_score <= 1 and 0 <= self.migrate_share <= 1,
+                   "migrate_score and migrate_share must be in [0, 1]")]
         checks += [(math.isfinite(rate) and rate > 0, f"lr.{name} must be a positive number, got {rate}")
                    for name, rate in dataclasses.asdict(self.lr).items()]
         for ok, message in checks:
             if not ok:
                 raise StgsError(f"train config: {message}")
 
+
+LAYERS = ("single", "layered")
+"""Training modes: model format 1 or 2."""
 
 BUDGETS = {
     "quick": TrainConfig(coarse_iterations=1000, iterations=600,
@@ -129,14 +147,23 @@ BUDGETS = {
 """quick: CI (tiny, minutes); cpu: a 60-frame Panoptic GOP at 640x360 in about an hour on 2 cores;
 paper: 12k iterations, ~150k Gaussians, for a bigger machine."""
 
+LAYERED = {
+    "quick": {"grid_side": 16, "static_grid_side": 24},
+    "cpu": {"grid_side": 96, "static_grid_side": 160},
+    "paper": {"grid_side": 256, "static_grid_side": 448},
+}
+"""What --layers layered changes in each budget (unless set explicitly): a smaller dynamic layer, a static layer
+that together with it holds about twice the single layer's Gaussians, in about the same wall time."""
+
 SWITCHES = {"aux": "--no-aux", "dynamic": "--no-dynamic-density", "temporal_weight": "--no-temporal-reg",
-            "relocate": "--no-relocate"}
+            "relocate": "--no-relocate", "migrate": "--no-migrate"}
 """Config fields the ablation switches turn off."""
 
 
 def budget(name: str, **overrides) -> TrainConfig:
     if name not in BUDGETS:
         raise StgsError(f"unknown budget {name!r}; choose from {', '.join(BUDGETS)}")
-    cfg = dataclasses.replace(BUDGETS[name], **overrides)
+    layered = LAYERED[name] if overrides.get("layers") == "layered" else {}
+    cfg = dataclasses.replace(BUDGETS[name], **(layered | overrides))
     cfg.validate()
     return cfg

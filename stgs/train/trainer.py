@@ -12,6 +12,12 @@
    relocation of dead Gaussians, pruning by average opacity at the end.
 5. Write a model dir (docs/MODEL_FORMAT.md) + cameras.json + train_report.json.
 
+Layered (cfg.layers, model format 2): step 3 is stage A, which fits the static
+layer on the pixels that do not move (stgs.train.layers); Gaussians the data
+shows moving migrate out of it; step 4 is stage B, which fits each GOP's
+smaller dynamic layer, started from the migrated Gaussians and the GOP's
+triangulated points, drawn over the frozen static layer in one splat.
+
 Checkpoints (safetensors + JSON, no pickle) under OUT/.train/ allow --resume;
 a non-finite loss stops the run with the last good checkpoint kept.
 
@@ -42,14 +48,16 @@ from stgs.errors import StgsError
 from stgs.fsio import atomic_write_bytes
 from stgs.memory import reuse_large_allocations
 from stgs.metrics import psnr, ssim, ssim_map
-from stgs.model.gop import GOPModel, GOPShape, frame_time
+from stgs.model.gop import Gaussians, GOPModel, GOPShape, frame_time
+from stgs.model.static import StaticLayer, merge
 from stgs.model.store import save_gop, save_model
-from stgs.model.view import splat
+from stgs.model.view import splat, static_view
 from stgs.train import losses
 from stgs.train.aux import AuxTransformer
 from stgs.train.checkpoint import Checkpoints
 from stgs.train.config import TrainConfig
 from stgs.train.dynamic import gop_dynamic_masks
+from stgs.train.layers import Migrated, init_dynamic, migrate, motion_scores, moving_masks
 from stgs.train.ops import Optimizer, prune, relocate, sort
 from stgs.train.seeding import init_canonical, init_frames, initial_points
 from stgs.train.views import Views, load_views, scale_camera, scene_extent
@@ -95,6 +103,12 @@ class Trainer:
             raise StgsError(f"{self.ds.name}: {usable} frame(s) from frame {cfg.start_frame} do not fill one "
                             f"GOP of {cfg.gop_size}")
         self.shape = GOPShape(cfg.grid_side ** 2, cfg.gop_size, cfg.window, cfg.pe_freqs)
+        self.layered = cfg.layers == "layered"
+        # Stage A fits the static layer as a GOP model without time (its features are never used).
+        self.static_shape = GOPShape(cfg.static_grid_side ** 2, 2, 1, 0) if self.layered else None
+        self.static: StaticLayer | None = None
+        self.migrated: Migrated | None = None
+        self.layer_info: dict = {}
         self.state = self.out / STATE_DIR
         if self.out.exists() and not self.out.is_dir():
             raise StgsError(f"{self.out}: exists and is not a folder")
@@ -119,34 +133,65 @@ class Trainer:
 
     # --- stages ---
 
-    def coarse(self, views: Views) -> GOPModel:
-        """Canonical 3DGS (no deformation) on frames from all times."""
+    def coarse(self, views: Views, shape: GOPShape, moving: torch.Tensor | None = None,
+               stage: str = "coarse") -> GOPModel:
+        """Canonical 3DGS (no deformation) on frames from all times; with `moving` ((F, C, H, W) bool), on the
+        pixels that do not move only (stage A of layered training)."""
         cfg = self.cfg
-        model = GOPModel(self.shape)
+        model = GOPModel(shape)
         opt = Optimizer(model, cfg, self.extent, None, canonical_only=True)
-        resumed = self.checkpoints.load("coarse", model, opt)
+        resumed = self.checkpoints.load(stage, model, opt)
         start = resumed[0]["iteration"] if resumed else 0
         if resumed:  # the counts the interrupted run found, for the report
             self.triangulated, self.background_points = resumed[0].get("triangulated"), resumed[0].get("background")
         else:
             init = initial_points(self.ds, self.train_names, init_frames(views.frames, cfg.init_frames),
-                                  self.shape.capacity, self.gen, cfg.init_points, cfg.background_share)
+                                  shape.capacity, self.gen, cfg.init_points, cfg.background_share)
             self.triangulated, self.background_points = init.triangulated, init.background
             init_canonical(model, init)
-        bar = tqdm(range(start, cfg.coarse_iterations), desc="coarse canonical", unit="it", disable=not self.progress)
+        desc = "stage A: static layer" if moving is not None else "coarse canonical"
+        bar = tqdm(range(start, cfg.coarse_iterations), desc=desc, unit="it", disable=not self.progress)
         for it in bar:
             opt.set_progress(it / max(1, cfg.coarse_iterations))
             f = int(torch.randint(len(views.frames), (1,), generator=self.gen))
             c = int(torch.randint(len(views.cameras), (1,), generator=self.gen))
             img = splat(model.canonical(), views.cameras[c])
-            loss = losses.photometric(img, views.target(f, c), cfg.lambda_ssim)
-            self._step(opt, loss, "coarse", it, model)
+            mask = ~moving[f, c] if moving is not None else None
+            loss = losses.photometric(img, views.target(f, c), cfg.lambda_ssim, mask)
+            self._step(opt, loss, stage, it, model)
             if cfg.relocate and (it + 1) % cfg.relocate_every == 0 and it < cfg.relocate_until * cfg.coarse_iterations:
                 relocate(model, opt, torch.sigmoid(model.opacity_logit.detach()), cfg.dead_opacity, self.gen)
             if (it + 1) % cfg.checkpoint_every == 0:
-                self.checkpoints.save("coarse", model, opt, self._coarse_state(it + 1))
+                self.checkpoints.save(stage, model, opt, self._coarse_state(it + 1))
         if cfg.coarse_iterations:
-            self.checkpoints.save("coarse", model, opt, self._coarse_state(cfg.coarse_iterations))
+            self.checkpoints.save(stage, model, opt, self._coarse_state(cfg.coarse_iterations))
+        return model
+
+    def stage_a(self, views: Views) -> GOPModel:
+        """The static layer (layered training): fitted on the pixels that do not move, then the Gaussians the
+        data shows moving leave it for the dynamic layers."""
+        cfg = self.cfg
+        moving = moving_masks(self.ds, views, cfg.dynamic_theta)
+        model = self.coarse(views, self.static_shape, moving.masks, "static")
+        scores = motion_scores(model, views, moving.masks)
+        limit = int(cfg.migrate_share * self.shape.capacity) if cfg.migrate else 0
+        self.migrated = migrate(model, scores, cfg.migrate_score, limit, cfg.dead_opacity)
+        self.static = StaticLayer.from_canonical(model)
+        self.layer_info = {"moving_mask_source": moving.source, "migrated": len(self.migrated.index),
+                           "moving_pixel_share": float(moving.masks.float().mean())}
+        return model
+
+    def start_model(self, k: int, coarse: GOPModel | None) -> GOPModel:
+        """GOP k's model before its training: a copy of the coarse stage (single), or the dynamic layer seeded
+        from the migrated Gaussians and the GOP's triangulated points (layered)."""
+        model = GOPModel(self.shape)
+        if coarse is not None:
+            model.load_state_dict(coarse.state_dict())
+        else:
+            frames = init_frames(self.gop_frames(k), self.cfg.init_frames)
+            init = initial_points(self.ds, self.train_names, frames, self.shape.capacity, self.gen,
+                                  self.cfg.init_points, 0.0)
+            init_dynamic(model, init, self.migrated)
         return model
 
     def _step(self, opt: Optimizer, loss: torch.Tensor, stage: str, it: int, model: GOPModel) -> None:
@@ -162,10 +207,12 @@ class Trainer:
             # Train the model the stream carries: the keyframe clips the opacity logit to this range.
             model.opacity_logit.clamp_(*OPACITY_LOGIT_RANGE)
 
-    def train_gop(self, k: int, coarse: GOPModel, views: Views, val: Views | None) -> tuple[GOPModel, GOPReport]:
+    def train_gop(self, k: int, coarse: GOPModel | None, views: Views, val: Views | None
+                  ) -> tuple[GOPModel, GOPReport]:
         cfg = self.cfg
-        model = GOPModel(self.shape)
-        model.load_state_dict(coarse.state_dict())
+        setup = time.perf_counter()
+        model = self.start_model(k, coarse)
+        static = [static_view(self.static, cam) for cam in views.cameras] if self.static is not None else None
         with torch.no_grad():
             model.features.zero_()
             model.features.add_(torch.randn(model.features.shape, generator=self.gen) * 1e-2)
@@ -179,13 +226,13 @@ class Trainer:
             extra, saved_accum = resumed
             start, report = extra["iteration"], GOPReport(**extra["report"])
             accum = saved_accum if saved_accum is not None else accum
-        clock = time.perf_counter() - report.seconds
+        clock = setup - report.seconds  # the dynamic layer's seeding counts as the GOP's training time
         bar = tqdm(range(start, cfg.iterations), desc=f"GOP {k}", unit="it", disable=not self.progress)
         loss_value = math.nan
         window = []  # losses since the last curve point: one view's loss is too noisy to show a trend
         for it in bar:
             opt.set_progress(it / cfg.iterations)
-            loss, img, target, opac = self.gop_loss(model, aux, views)
+            loss, img, target, opac = self.gop_loss(model, aux, views, static)
             self._step(opt, loss, f"GOP {k}", it, model)
             loss_value = loss.item()
             window.append(loss_value)
@@ -219,7 +266,9 @@ class Trainer:
             report.val_psnr, report.val_ssim = self.validate(model, val)
         return model, report
 
-    def gop_loss(self, model: GOPModel, aux: AuxTransformer | None, views: Views):
+    def gop_loss(self, model: GOPModel, aux: AuxTransformer | None, views: Views,
+                 static: list[Gaussians] | None = None):
+        """One iteration's loss; `static`: the frozen static layer as each training camera draws it."""
         cfg = self.cfg
         i = int(torch.randint(len(views.frames), (1,), generator=self.gen))
         c = int(torch.randint(len(views.cameras), (1,), generator=self.gen))
@@ -230,7 +279,7 @@ class Trainer:
         center = cam.center.float()
         h = model.field.hidden(window, t)
         g = model.apply_offsets(model.field.decode(h, model.xyz, center))
-        img = splat(g, cam)
+        img = splat(g if static is None else merge(static[c], g), cam)
         ssim_values = ssim_map(img, target)
         loss = losses.photometric(img, target, cfg.lambda_ssim, ssim_values=ssim_values)
         if cfg.dynamic and views.dynamic is not None:
@@ -239,7 +288,7 @@ class Trainer:
         if aux is not None:
             h_aux = aux(aux.tokens(model, i, window))  # the same noisy window the MLP sees
             g_aux = model.apply_offsets(model.field.decode(h_aux, model.xyz, center))
-            img_aux = splat(g_aux, cam)
+            img_aux = splat(g_aux if static is None else merge(static[c], g_aux), cam)
             loss = loss + cfg.aux_ssim_weight * (1 - losses.ssim(img_aux, target))
             loss = loss + cfg.distill_weight * losses.self_distillation(h, h_aux)
         if cfg.temporal_weight:
@@ -259,7 +308,7 @@ class Trainer:
         """Mean PSNR and SSIM of `limit` (frame, camera) pairs spread over the views."""
         from stgs.model.view import FrameRenderer
 
-        renderer = FrameRenderer(model)
+        renderer = FrameRenderer(model, static=self.static)
         psnrs, ssims = [], []
         pairs = [(f, c) for f in range(len(views.frames)) for c in range(len(views.cameras))]
         step = max(1, len(pairs) // limit)
@@ -278,7 +327,11 @@ class Trainer:
         self.triangulated = self.background_points = None
         coarse_views = load_views(self.ds, self.train_names, all_frames[::step], cfg.scale, self.progress)
         start = time.perf_counter()
-        coarse = self.coarse(coarse_views)
+        if self.layered:
+            self.stage_a(coarse_views)
+            coarse = None
+        else:
+            coarse = self.coarse(coarse_views, self.shape)
         coarse_s = time.perf_counter() - start
         del coarse_views
         reports, gops = [], []
@@ -311,14 +364,17 @@ class Trainer:
         extra = {"generator": "stgs.train", "dataset": self.ds.name, "start_frame": cfg.start_frame,
                  "train_cameras": self.train_names, "validation_cameras": self.val_names,
                  "config": json.loads(json.dumps(dataclasses.asdict(cfg)))}
-        save_model(self.out, gops, self.ds.fps, extra)
+        save_model(self.out, gops, self.ds.fps, extra, static=self.static)
         cams = [scale_camera(c, cfg.scale) for c in self.ds.cameras(cfg.start_frame)]
         doc = {"format": CAMERAS_FORMAT, "version": 1, "cameras": [c.to_json() for c in cams]}
         atomic_write_bytes(self.out / CAMERAS, (json.dumps(doc, indent=1) + "\n").encode())
         report = {"dataset": self.ds.name, "budget": cfg.budget, "gops": reports, "coarse_seconds": coarse_s,
                   "triangulated_points": self.triangulated,
                   "background_points": self.background_points, "capacity": self.shape.capacity,
-                  "train_cameras": self.train_names, "validation_cameras": self.val_names}
+                  "train_cameras": self.train_names, "validation_cameras": self.val_names,
+                  "layers": cfg.layers}
+        if self.static is not None:
+            report |= {"static_capacity": self.static.capacity, "static_seconds": coarse_s} | self.layer_info
         atomic_write_bytes(self.out / TRAIN_REPORT, (json.dumps(report, indent=1) + "\n").encode())
         return report
 

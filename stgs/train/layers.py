@@ -1,0 +1,133 @@
+"""Layered training (model format 2): what moves, which static Gaussians move to the dynamic layer, and where
+each GOP's dynamic layer starts.
+
+- `moving_masks`: per training view, the pixels stage A (the static layer) must not explain: the dataset's
+  foreground masks where it has them (dilated), otherwise a per-pixel temporal-variance mask of the camera's
+  images over the trained span (the dynamic-density test of stgs.train.dynamic).
+- `motion_scores` (measured, where Swift4D's decomposition is learned): for each static Gaussian and each
+  camera that sees its mean, the share of the frames in which it lands on a moving pixel; its score is the
+  least of those over the cameras. Something that moves is on moving pixels from every side; a wall is
+  behind a player from some cameras only (from those the player may hide it all the time), so one camera
+  that sees it clear keeps it static. A Gaussian fewer than MIN_SCORE_CAMERAS cameras see scores 0.
+- `migrate`: Gaussians above the score leave the static layer (their slots are parked, as pruning parks)
+  and seed every GOP's dynamic layer, with their attributes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import torch
+
+from stgs.codec.attributes import OPACITY_LOGIT_RANGE
+from stgs.data import Dataset
+from stgs.model.gop import GOPModel
+from stgs.train.dynamic import dynamic_mask
+from stgs.train.seeding import InitialPoints, init_canonical
+from stgs.train.views import Views
+
+MIN_SCORE_CAMERAS = 2
+"""Cameras that must see a Gaussian before its motion can be told from occlusion."""
+MASK_DILATE_PX = 5
+"""Foreground masks grow by this many pixels (at the training scale): a mask's edge is rarely exact and a
+player's shadow moves with the player."""
+
+
+@dataclass
+class MovingMasks:
+    """(F, C, H, W) bool: the pixels of each training view that move, and where that came from."""
+
+    masks: torch.Tensor
+    source: str
+    """"dataset foreground masks", "temporal variance" or both (per camera, whichever it had)."""
+
+
+def moving_masks(ds: Dataset, views: Views, theta: float) -> MovingMasks:
+    """The moving pixels of every view in `views` (see the module docstring)."""
+    f, c, h, w = views.images.shape[:4]
+    masks = torch.zeros(f, c, h, w, dtype=torch.bool)
+    kernel = np.ones((2 * MASK_DILATE_PX + 1,) * 2, np.uint8)
+    sources = set()
+    for j, cam in enumerate(views.cameras):
+        found = [ds.mask(frame, cam.name) for frame in views.frames]
+        if all(m is not None for m in found):
+            for i, m in enumerate(found):
+                m = cv2.resize(m.numpy().astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST)
+                masks[i, j] = torch.from_numpy(cv2.dilate(m, kernel) > 0)
+            sources.add("dataset foreground masks")
+        elif f >= 2:
+            masks[:, j] = dynamic_mask(views.images[:, j].float().div_(255.0), theta)
+            sources.add("temporal variance")
+    return MovingMasks(masks, " and ".join(sorted(sources)) or "none (one frame)")
+
+
+@torch.no_grad()
+def motion_scores(model: GOPModel, views: Views, moving: torch.Tensor) -> torch.Tensor:
+    """(N,) the least, over the cameras that see a Gaussian's mean, of the share of frames that put it on a
+    moving pixel (0 for a Gaussian fewer than MIN_SCORE_CAMERAS cameras see)."""
+    n = model.shape.capacity
+    least = torch.ones(n)
+    seen = torch.zeros(n)
+    xyz = model.xyz.detach().double()
+    for j, cam in enumerate(views.cameras):
+        cam_pts = xyz @ cam.viewmat[:3, :3].T + cam.viewmat[:3, 3]
+        z = cam_pts[:, 2]
+        uv = cam_pts @ cam.K.T
+        u = torch.floor(uv[:, 0] / z.clamp_min(1e-9)).long()
+        v = torch.floor(uv[:, 1] / z.clamp_min(1e-9)).long()
+        inside = (z > 0.01) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        idx = inside.nonzero().squeeze(1)
+        if len(idx) == 0:
+            continue
+        share = moving[:, j, v[idx], u[idx]].float().mean(0)  # over frames, per visible Gaussian
+        least[idx] = torch.minimum(least[idx], share)
+        seen[idx] += 1
+    return torch.where(seen >= MIN_SCORE_CAMERAS, least, torch.zeros_like(least))
+
+
+@dataclass
+class Migrated:
+    """Static Gaussians that the data shows moving, handed to the dynamic layers."""
+
+    index: torch.Tensor
+    """(M,) their slots in the static layer (parked there)."""
+    attributes: dict[str, torch.Tensor]
+    """Their canonical attributes (xyz, log_scale, rotation, opacity_logit, color), (M, ...) each."""
+    scores: torch.Tensor
+    """(N,) every static Gaussian's motion score."""
+
+
+MIGRATED_ATTRIBUTES = ("xyz", "log_scale", "rotation", "opacity_logit", "color")
+
+
+@torch.no_grad()
+def migrate(model: GOPModel, scores: torch.Tensor, threshold: float, limit: int, dead_opacity: float) -> Migrated:
+    """Move the live Gaussians scoring above `threshold` (at most `limit`, highest first) out of the static
+    layer: their attributes are returned and their slots parked at the stream's floor opacity."""
+    alive = torch.sigmoid(model.opacity_logit) >= dead_opacity
+    candidates = ((scores > threshold) & alive).nonzero().squeeze(1)
+    order = scores[candidates].argsort(descending=True, stable=True)
+    index = candidates[order][:limit].sort().values
+    attributes = {name: getattr(model, name)[index].clone() for name in MIGRATED_ATTRIBUTES}
+    if len(index):
+        model.opacity_logit[index] = OPACITY_LOGIT_RANGE[0]
+        keep = torch.ones(model.shape.capacity, dtype=torch.bool)
+        keep[index] = False
+        if keep.any():
+            model.log_scale[index] = model.log_scale[keep].amin(0)
+    return Migrated(index, attributes, scores)
+
+
+@torch.no_grad()
+def init_dynamic(model: GOPModel, init: InitialPoints, migrated: Migrated | None) -> int:
+    """A GOP's dynamic layer at its start: the migrated Gaussians first (as they were in the static layer),
+    then `init`'s points (3DGS-style attributes) in the remaining slots. Returns how many were migrated in."""
+    init_canonical(model, init)
+    if migrated is None or len(migrated.index) == 0:
+        return 0
+    m = min(len(migrated.index), model.shape.capacity)
+    for name, values in migrated.attributes.items():
+        getattr(model, name)[:m] = values[:m]
+    return m
