@@ -35,12 +35,8 @@ def gop_from_truth(n: int, gop_size: int = 60, seed: int = 0) -> GOPModel:
     truth = ProceduralScene(n, DEFAULT_EFFECTS, seed).at(0.0)
     model = GOPModel(GOPShape(n, gop_size))
     gen = torch.Generator().manual_seed(seed)
+    truth.copy_into(model, 1e-4)
     with torch.no_grad():
-        model.xyz.copy_(truth.means)
-        model.log_scale.copy_(truth.log_scales)
-        model.rotation.copy_(truth.quats)
-        model.opacity_logit.copy_(torch.logit(truth.opacities.clamp(1e-4, 1 - 1e-4)))
-        model.color.copy_(truth.base_colors)
         model.features.copy_(torch.randn(model.features.shape, generator=gen) * 0.1)
         for p in model.field.parameters():
             p.copy_(torch.randn(p.shape, generator=gen) * 0.02)

@@ -84,11 +84,7 @@ def random_model(n: int) -> GOPModel:
         for p in model.field.parameters():
             p.normal_(0, 0.05)
         model.features.normal_(0, 0.1)
-        model.xyz.copy_(truth.means)
-        model.log_scale.copy_(truth.log_scales)
-        model.rotation.copy_(truth.quats)
-        model.opacity_logit.copy_(torch.logit(truth.opacities.clamp(1e-4, 1 - 1e-4)))
-        model.color.copy_(truth.base_colors)
+    truth.copy_into(model, 1e-4)
     return model
 
 

@@ -180,14 +180,8 @@ def truth_static_layer(scene: ProceduralScene) -> StaticLayer | None:
     """The backdrop as a static layer: the truth's attributes themselves (it never moves)."""
     if scene.static is None:
         return None
-    t = scene.static
-    layer = StaticLayer(len(t.means))
-    with torch.no_grad():
-        layer.xyz.copy_(t.means)
-        layer.log_scale.copy_(t.log_scales)
-        layer.rotation.copy_(t.quats)
-        layer.opacity_logit.copy_(torch.logit(t.opacities.clamp(1e-6, 1 - 1e-6)))
-        layer.color.copy_(t.base_colors)
+    layer = StaticLayer(len(scene.static.means))
+    scene.static.copy_into(layer, 1e-6)
     return layer
 
 

@@ -52,6 +52,16 @@ class TruthFrame:
     view_gain: torch.Tensor
     """(N, 3) per-channel gain of the view-dependent term (0 when the effect is off)."""
 
+    @torch.no_grad()
+    def copy_into(self, target: torch.nn.Module, opacity_eps: float) -> None:
+        """Set the canonical attributes (xyz, log_scale, rotation, opacity_logit, color) of a GOP model or a
+        static layer to these Gaussians; opacities are clamped to [eps, 1 - eps] before the logit."""
+        target.xyz.copy_(self.means)
+        target.log_scale.copy_(self.log_scales)
+        target.rotation.copy_(self.quats)
+        target.opacity_logit.copy_(torch.logit(self.opacities.clamp(opacity_eps, 1 - opacity_eps)))
+        target.color.copy_(self.base_colors)
+
     def colors(self, camera_center: torch.Tensor) -> torch.Tensor:
         view = self.means - camera_center.to(self.means.dtype)
         view = view / view.norm(dim=1, keepdim=True).clamp_min(1e-12)
