@@ -25,6 +25,7 @@ from stgs.codec.attributes import OPACITY_LOGIT_RANGE
 from stgs.data import Dataset
 from stgs.model.gop import GOPModel
 from stgs.train.dynamic import dynamic_mask
+from stgs.train.init import in_view
 from stgs.train.seeding import InitialPoints, init_canonical
 from stgs.train.views import Views
 
@@ -70,18 +71,14 @@ def motion_scores(model: GOPModel, views: Views, moving: torch.Tensor) -> torch.
     n = model.shape.capacity
     least = torch.ones(n)
     seen = torch.zeros(n)
-    xyz = model.xyz.detach().double()
+    xyz = model.xyz.detach().double().numpy()
     for j, cam in enumerate(views.cameras):
-        cam_pts = xyz @ cam.viewmat[:3, :3].T + cam.viewmat[:3, 3]
-        z = cam_pts[:, 2]
-        uv = cam_pts @ cam.K.T
-        u = torch.floor(uv[:, 0] / z.clamp_min(1e-9)).long()
-        v = torch.floor(uv[:, 1] / z.clamp_min(1e-9)).long()
-        inside = (z > 0.01) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-        idx = inside.nonzero().squeeze(1)
+        uv, inside = in_view(cam, xyz)
+        idx = torch.from_numpy(inside.nonzero()[0])
         if len(idx) == 0:
             continue
-        share = moving[:, j, v[idx], u[idx]].float().mean(0)  # over frames, per visible Gaussian
+        u, v = (torch.from_numpy(np.floor(uv[inside, k])).long() for k in (0, 1))
+        share = moving[:, j, v, u].float().mean(0)  # over frames, per visible Gaussian
         least[idx] = torch.minimum(least[idx], share)
         seen[idx] += 1
     return torch.where(seen >= MIN_SCORE_CAMERAS, least, torch.zeros_like(least))
