@@ -8,6 +8,15 @@ second (`python -m bench.layers`, prints Markdown rows for docs/BENCHMARKS.md).
 2. Quality per training second: `stgs train` (quick budget) single vs layered vs layered without migration
    on a synthetic scene with a static background, `stgs eval` on its held-out camera (whole frame, inside
    and outside the foreground masks).
+3. With `--models DIR,... --dataset D`: trained scenes' Gaussians per layer (live: opacity above the dead
+   threshold 0.02), deform + splat ms per frame over their first GOP from one camera (`--camera`), and the
+   PSNR of the background far from the players (outside the dataset's masks grown by FAR_PX) at every 10th
+   frame of the cameras they were not trained on: the static layer's own error, without the players' edges
+   and shadows.
+4. With `--sh-model DIR --dataset D`: what the static layer's degree-1 view-dependent colour buys on a trained
+   layered scene. Its static layer is given the fit `stgs train --static-sh 1` runs after stage A (same
+   views, same masks, `--sh-iterations`), its dynamic layers are kept as they are, and `stgs eval` scores
+   both scenes (`--stride`).
 """
 
 from __future__ import annotations
@@ -99,6 +108,95 @@ def train_rows(work: Path, iterations: int, coarse: int) -> list[str]:
     return rows
 
 
+FAR_PX = 20
+"""--models: pixels closer than this to a player's mask do not count as background far from the players."""
+
+
+def far_background_psnr(renderer: FrameRenderer, ds, names: list[str], frames: list[int], start: int) -> float:
+    import cv2
+    import numpy as np
+
+    from stgs.metrics import psnr
+
+    kernel = np.ones((2 * FAR_PX + 1,) * 2, np.uint8)
+    values = []
+    for name in names:
+        for i in frames:
+            cam = next(c for c in ds.cameras(start + i) if c.name == name)
+            mask = ds.mask(start + i, name)
+            near = torch.from_numpy(cv2.dilate(mask.numpy().astype(np.uint8), kernel) > 0)
+            values.append(psnr(renderer.render(i, cam).clamp(0, 1), ds.image(start + i, name), mask=~near))
+    return sum(values) / len(values)
+
+
+def model_rows(dirs: list[Path], dataset: Path, camera: str) -> list[str]:
+    from stgs.data import open_dataset
+    from stgs.model.store import load_model, load_static
+
+    ds = open_dataset(dataset)
+    rows = []
+    for d in dirs:
+        meta, gops = load_model(d)
+        static = load_static(d, meta)
+        start = int(meta.extra.get("config", {}).get("start_frame", 0))
+        cam = next(c for c in ds.cameras(start) if c.name == camera)
+        renderer = FrameRenderer(gops[0], static=static)
+        times = []
+        for i in range(meta.shape.gop_size + 1):
+            t0 = time.perf_counter()
+            renderer.render(i % meta.shape.gop_size, cam)
+            times.append((time.perf_counter() - t0) * 1e3)
+
+        def live(logits: torch.Tensor) -> int:
+            return int((torch.sigmoid(logits.detach()) > 0.02).sum())
+
+        s_total = f"{static.capacity:,} ({live(static.opacity_logit):,})" if static is not None else "-"
+        d_live = live(gops[0].opacity_logit)
+        held = meta.extra.get("validation_cameras") or [camera]
+        far = far_background_psnr(renderer, ds, held, list(range(0, meta.shape.gop_size, 10)), start)
+        rows.append(f"| {d.name} | {s_total} | {meta.shape.capacity:,} ({d_live:,}) | "
+                    f"{statistics.median(times[1:]):.1f} | {far:.2f} |")
+    return rows
+
+
+def sh_rows(model_dir: Path, dataset: Path, iterations: int, stride: int, work: Path) -> list[str]:
+    from stgs.model.store import load_model, load_static, save_model
+    from stgs.train.config import LearningRates, TrainConfig
+    from stgs.train.layers import fit_view_dependent, moving_masks
+    from stgs.train.trainer import Trainer
+    from stgs.train.views import load_views
+    from stgs.tree import CAMERAS, TRAIN_REPORT
+
+    meta, gops = load_model(model_dir)
+    static = load_static(model_dir, meta)
+    if static is None:
+        raise SystemExit(f"{model_dir}: not a layered scene")
+    saved = meta.extra["config"]
+    cfg = TrainConfig(**(saved | {"lr": LearningRates(**saved["lr"])}))
+    trainer = Trainer(dataset, work / "state", cfg, progress=False)
+    views = load_views(trainer.ds, trainer.train_names, trainer.coarse_frames(), cfg.scale, False)
+    moving = moving_masks(trainer.ds, views, cfg.dynamic_theta).masks
+    start = time.perf_counter()
+    shiny = fit_view_dependent(static, views, moving, iterations, cfg.lr.color, cfg.lambda_ssim,
+                               torch.Generator().manual_seed(cfg.seed))
+    seconds = time.perf_counter() - start
+    del views, moving
+    scenes = {"sh 0 (as trained)": (model_dir, 0.0), "sh 1": (work / "sh1", seconds)}
+    save_model(work / "sh1", gops, meta.fps, meta.extra, static=shiny)
+    for name in (CAMERAS, TRAIN_REPORT):
+        (work / "sh1" / name).write_bytes((model_dir / name).read_bytes())
+    stgs = str(Path(sys.executable).with_name("stgs"))
+    rows = []
+    for label, (scene, fit_s) in scenes.items():
+        out = work / f"ev{len(rows)}"
+        subprocess.run([stgs, "eval", str(scene), str(dataset), "--out", str(out), "--stride", str(stride),
+                        "--quiet"], check=True, capture_output=True)
+        s = json.loads((out / "eval.json").read_text())["streams"]["uncompressed"]
+        rows.append(f"| {label} | {fit_s:.0f} | {s['psnr']:.2f} | {s['ssim']:.4f} | "
+                    f"{s['psnr_foreground']:.2f} / {s['psnr_background']:.2f} |")
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--single", type=int, default=16384)
@@ -108,8 +206,26 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=600)
     parser.add_argument("--coarse-iterations", type=int, default=1000)
     parser.add_argument("--skip-train", action="store_true")
+    parser.add_argument("--models", help="comma-separated trained scenes: Gaussians per layer and ms/frame")
+    parser.add_argument("--camera", default="14", help="--models: the camera to render from")
+    parser.add_argument("--sh-model", type=Path, help="a trained layered scene: measure --static-sh 1 on it only")
+    parser.add_argument("--dataset", type=Path, help="the dataset --sh-model was trained on")
+    parser.add_argument("--sh-iterations", type=int, default=500)
+    parser.add_argument("--stride", type=int, default=3, help="--sh-model: evaluate every n-th frame")
     args = parser.parse_args()
     print(f"machine: {platform.processor() or platform.machine()}, torch threads {torch.get_num_threads()}")
+    if args.models:
+        print("| scene | static Gaussians (live) | dynamic Gaussians per GOP (live) | deform + splat ms/frame | "
+              "held-out background far from the players, PSNR |")
+        print("|---|---|---|---|---|")
+        print("\n".join(model_rows([Path(m) for m in args.models.split(",")], args.dataset, args.camera)))
+        return
+    if args.sh_model:
+        print("| static layer | fit s | held-out PSNR | SSIM | foreground / background PSNR |")
+        print("|---|---|---|---|---|")
+        with tempfile.TemporaryDirectory() as tmp:
+            print("\n".join(sh_rows(args.sh_model, args.dataset, args.sh_iterations, args.stride, Path(tmp))))
+        return
     print("| scene | Gaussians (static + dynamic) | ms/frame, still camera | ms/frame, moving camera |")
     print("|---|---|---|---|")
     print("\n".join(render_rows(args.single, args.static, args.dynamic, 640, 360, args.frames)))

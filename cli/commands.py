@@ -343,6 +343,11 @@ def add_train(sub: argparse._SubParsersAction) -> None:
                    help="S_s: Gaussians S_s² of the static layer (layered; default: the budget's)")
     p.add_argument("--no-migrate", dest="migrate", action="store_false", default=None,
                    help="layered: static Gaussians the data shows moving stay static (no migration)")
+    p.add_argument("--static-sh", type=int, choices=[0, 1], dest="static_sh_degree",
+                   help="layered: view-dependent colour of the static layer, 0 (default) none, 1 a degree-1 term "
+                   "fitted after stage A")
+    p.add_argument("--static-sh-iterations", type=int,
+                   help="layered, --static-sh 1: iterations of that fit (default 500)")
     p.add_argument("--iterations", type=_positive_int, help="iterations per GOP")
     p.add_argument("--coarse-iterations", type=int,
                    help="iterations of the coarse canonical stage (layered: of stage A, the static layer)")
@@ -374,7 +379,8 @@ def add_train(sub: argparse._SubParsersAction) -> None:
 
 TRAIN_OVERRIDES = ("max_gops", "gop_size", "start_frame", "grid_side", "iterations", "coarse_iterations", "scale",
                    "window", "aux", "dynamic", "temporal_weight", "relocate", "seed", "threads", "holdout",
-                   "background_share", "init_frames", "layers", "static_grid_side", "migrate")
+                   "background_share", "init_frames", "layers", "static_grid_side", "migrate",
+                   "static_sh_degree", "static_sh_iterations")
 
 
 def train_overrides(args: argparse.Namespace) -> dict:

@@ -11,6 +11,9 @@ each GOP's dynamic layer starts.
   that sees it clear keeps it static. A Gaussian fewer than MIN_SCORE_CAMERAS cameras see scores 0.
 - `migrate`: Gaussians above the score leave the static layer (their slots are parked, as pruning parks)
   and seed every GOP's dynamic layer, with their attributes.
+- `fit_view_dependent` (optional, `static_sh_degree` 1): after stage A, the static layer's colour and its
+  degree-1 view-dependent term are fitted on the same pixels, geometry and opacity frozen (so migration's
+  parked slots stay parked).
 """
 
 from __future__ import annotations
@@ -20,10 +23,15 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from stgs.codec.attributes import OPACITY_LOGIT_RANGE
 from stgs.data import Dataset
+from stgs.errors import StgsError
 from stgs.model.gop import GOPModel
+from stgs.model.static import STATIC_TENSORS, StaticLayer
+from stgs.model.view import splat
+from stgs.train import losses
 from stgs.train.dynamic import dynamic_mask
 from stgs.train.init import in_view
 from stgs.train.seeding import InitialPoints, init_canonical
@@ -128,3 +136,29 @@ def init_dynamic(model: GOPModel, init: InitialPoints, migrated: Migrated | None
     for name, values in migrated.attributes.items():
         getattr(model, name)[:m] = values[:m]
     return m
+
+
+def fit_view_dependent(static: StaticLayer, views: Views, moving: torch.Tensor, iterations: int, lr: float,
+                       lambda_ssim: float, gen: torch.Generator, progress: bool = False) -> StaticLayer:
+    """A degree-1 copy of `static` whose colour and sh1 are fitted for `iterations` on the pixels that do not
+    move (one random training view per iteration); positions, scales, rotations and opacities stay."""
+    layer = StaticLayer(static.capacity, sh_degree=1)
+    with torch.no_grad():
+        for name in STATIC_TENSORS:
+            getattr(layer, name).copy_(getattr(static, name))
+            getattr(layer, name).requires_grad_(name == "color")
+    opt = torch.optim.Adam([layer.color, layer.sh1], lr=lr, eps=1e-15)
+    for _ in tqdm(range(iterations), desc="static layer: view-dependent colour", unit="it", disable=not progress):
+        f = int(torch.randint(len(views.frames), (1,), generator=gen))
+        c = int(torch.randint(len(views.cameras), (1,), generator=gen))
+        cam = views.cameras[c]
+        img = splat(layer.gaussians(cam.center.float()), cam)
+        loss = losses.photometric(img, views.target(f, c), lambda_ssim, ~moving[f, c])
+        if not torch.isfinite(loss):
+            raise StgsError(f"the static layer's view-dependent colour fit diverged (loss {loss.item()}); "
+                            "lower the colour learning rate or fit without it")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+    layer.requires_grad_(True)
+    return layer

@@ -76,15 +76,24 @@ def log_lerp(a: float, b: float, t: float) -> float:
 @torch.no_grad()
 def relocate(model: GOPModel, opt: Optimizer, avg: torch.Tensor, dead_opacity: float, gen: torch.Generator) -> int:
     """Move dead Gaussians (average opacity `avg` below `dead_opacity`) onto live ones sampled by opacity,
-    splitting the opacity (3DGS-MCMC); the Adam state of both rows restarts. Returns how many moved."""
+    splitting the opacity (3DGS-MCMC); the Adam state of both rows restarts. Returns how many moved.
+
+    A live Gaussian gives at most as many copies as keep every share at twice `dead_opacity` or more
+    (`copies_allowed`); the dead slots beyond that wait for the next relocation. Without the cap a faint live
+    set (a small dynamic layer early on) is split into copies born dead, which the next relocation splits
+    again, until every Gaussian is dead."""
     dead = torch.nonzero(avg < dead_opacity).squeeze(1)
     alive = avg >= dead_opacity
     if len(dead) == 0 or not alive.any():
         return 0
     probs = torch.where(alive, avg, torch.zeros_like(avg))
     src = torch.multinomial(probs, len(dead), replacement=True, generator=gen)
-    counts = torch.bincount(src, minlength=len(avg)).float()
     base = torch.sigmoid(model.opacity_logit)
+    keep = _copy_rank(src) < copies_allowed(base, dead_opacity)[src]
+    dead, src = dead[keep], src[keep]
+    if len(dead) == 0:
+        return 0
+    counts = torch.bincount(src, minlength=len(avg)).float()
     split = 1 - (1 - base[src]).clamp_min(1e-6) ** (1 / (counts[src] + 1))
     for name, axis in GAUSSIAN_AXIS.items():
         param = getattr(model, name)
@@ -96,6 +105,22 @@ def relocate(model: GOPModel, opt: Optimizer, avg: torch.Tensor, dead_opacity: f
     model.opacity_logit[src] = logit
     model.xyz[dead] += torch.randn(len(dead), 3, generator=gen) * model.log_scale[dead].exp() * 0.5
     return len(dead)
+
+
+def copies_allowed(opacity: torch.Tensor, dead_opacity: float) -> torch.Tensor:
+    """(N,) how many copies each Gaussian of `opacity` can give while its n + 1 shares (opacity
+    1 − (1 − o)^(1/(n+1)) each) stay at 2·`dead_opacity` or more."""
+    shares = torch.log1p(-opacity.double().clamp(max=1 - 1e-9)) / math.log1p(-2 * dead_opacity)
+    return (shares.floor() - 1).clamp_min(0).long()
+
+
+def _copy_rank(src: torch.Tensor) -> torch.Tensor:
+    """For each entry of `src`, how many earlier entries name the same source (0 for the first)."""
+    order = torch.argsort(src, stable=True)
+    ordered = src[order]
+    rank = torch.empty_like(src)
+    rank[order] = torch.arange(len(src)) - torch.searchsorted(ordered, ordered)
+    return rank
 
 
 @torch.no_grad()

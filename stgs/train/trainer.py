@@ -57,7 +57,7 @@ from stgs.train.aux import AuxTransformer
 from stgs.train.checkpoint import Checkpoints
 from stgs.train.config import TrainConfig
 from stgs.train.dynamic import gop_dynamic_masks
-from stgs.train.layers import Migrated, init_dynamic, migrate, motion_scores, moving_masks
+from stgs.train.layers import Migrated, fit_view_dependent, init_dynamic, migrate, motion_scores, moving_masks
 from stgs.train.ops import Optimizer, prune, relocate, sort
 from stgs.train.seeding import init_canonical, init_frames, initial_points
 from stgs.train.views import Views, load_views, scale_camera, scene_extent
@@ -149,16 +149,27 @@ class Trainer:
                                   shape.capacity, self.gen, cfg.init_points, cfg.background_share)
             self.triangulated, self.background_points = init.triangulated, init.background
             init_canonical(model, init)
+        # Stage A's layer is final (no GOP stage refines it): it gets the GOP stage's regularisers, which
+        # measurably generalise better to cameras not trained on (docs/BENCHMARKS.md, "Layered scenes").
+        regularised = moving is not None
+        sorting = regularised and cfg.smooth_weight > 0
+        if sorting and start == 0:
+            sort(model, opt, torch.zeros(2, shape.capacity), cfg.seed)
         desc = "stage A: static layer" if moving is not None else "coarse canonical"
         bar = tqdm(range(start, cfg.coarse_iterations), desc=desc, unit="it", disable=not self.progress)
         for it in bar:
             opt.set_progress(it / max(1, cfg.coarse_iterations))
             f = int(torch.randint(len(views.frames), (1,), generator=self.gen))
             c = int(torch.randint(len(views.cameras), (1,), generator=self.gen))
-            img = splat(model.canonical(), views.cameras[c])
+            g = model.canonical()
+            img = splat(g, views.cameras[c])
             mask = ~moving[f, c] if moving is not None else None
             loss = losses.photometric(img, views.target(f, c), cfg.lambda_ssim, mask)
+            if regularised:
+                loss = loss + self.canonical_regularisers(model, g.opacities)
             self._step(opt, loss, stage, it, model)
+            if sorting and (it + 1) % cfg.sort_every == 0 and it + 1 < cfg.coarse_iterations:
+                sort(model, opt, torch.zeros(2, shape.capacity), cfg.seed)
             if cfg.relocate and (it + 1) % cfg.relocate_every == 0 and it < cfg.relocate_until * cfg.coarse_iterations:
                 relocate(model, opt, torch.sigmoid(model.opacity_logit.detach()), cfg.dead_opacity, self.gen)
             if (it + 1) % cfg.checkpoint_every == 0:
@@ -179,6 +190,11 @@ class Trainer:
         self.static = StaticLayer.from_canonical(model)
         self.layer_info = {"moving_mask_source": moving.source, "migrated": len(self.migrated.index),
                            "moving_pixel_share": float(moving.masks.float().mean())}
+        if cfg.static_sh_degree:
+            start = time.perf_counter()
+            self.static = fit_view_dependent(self.static, views, moving.masks, cfg.static_sh_iterations,
+                                             cfg.lr.color, cfg.lambda_ssim, self.gen, self.progress)
+            self.layer_info["view_dependent_seconds"] = time.perf_counter() - start
         return model
 
     def start_model(self, k: int, coarse: GOPModel | None) -> GOPModel:
@@ -295,13 +311,20 @@ class Trainer:
             idx = torch.randint(self.shape.capacity, (min(cfg.temporal_sample, self.shape.capacity),),
                                 generator=self.gen)
             loss = loss + cfg.temporal_weight * losses.temporal_huber(model.features[:, idx], cfg.huber_delta)
-        loss = loss + cfg.opacity_weight * losses.opacity_l1(g.opacities)
+        loss = loss + self.canonical_regularisers(model, g.opacities)
         if cfg.smooth_weight:
-            side = self.shape.grid_side
-            loss = loss + cfg.smooth_weight * (losses.grid_smoothness(model.color, side)
-                                               + losses.grid_smoothness(model.log_scale, side)
-                                               + losses.grid_smoothness(model.features[i], side))
+            loss = loss + cfg.smooth_weight * losses.grid_smoothness(model.features[i], self.shape.grid_side)
         return loss, img, target, g.opacities.detach()
+
+    def canonical_regularisers(self, model: GOPModel, opacities: torch.Tensor) -> torch.Tensor:
+        """Opacity L1 and the smoothness of the (PLAS-sorted) colour and scale grids."""
+        cfg = self.cfg
+        loss = cfg.opacity_weight * losses.opacity_l1(opacities)
+        if cfg.smooth_weight:
+            side = model.shape.grid_side
+            loss = loss + cfg.smooth_weight * (losses.grid_smoothness(model.color, side)
+                                               + losses.grid_smoothness(model.log_scale, side))
+        return loss
 
     @torch.no_grad()
     def validate(self, model: GOPModel, views: Views, limit: int = 6) -> tuple[float, float]:
@@ -320,12 +343,16 @@ class Trainer:
 
     # --- the run ---
 
+    def coarse_frames(self) -> list[int]:
+        """The frames of the coarse stage (stage A): at most two GOPs' worth, spread over the trained span."""
+        all_frames = [f for k in range(self.num_gops) for f in self.gop_frames(k)]
+        step = max(1, len(all_frames) // max(1, min(len(all_frames), 2 * self.cfg.gop_size)))
+        return all_frames[::step]
+
     def run(self) -> dict:
         cfg = self.cfg
-        all_frames = [f for k in range(self.num_gops) for f in self.gop_frames(k)]
-        step = max(1, len(all_frames) // max(1, min(len(all_frames), 2 * cfg.gop_size)))
         self.triangulated = self.background_points = None
-        coarse_views = load_views(self.ds, self.train_names, all_frames[::step], cfg.scale, self.progress)
+        coarse_views = load_views(self.ds, self.train_names, self.coarse_frames(), cfg.scale, self.progress)
         start = time.perf_counter()
         if self.layered:
             self.stage_a(coarse_views)

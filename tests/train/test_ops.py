@@ -6,7 +6,7 @@ import torch
 
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.train.config import budget
-from stgs.train.ops import GAUSSIAN_AXIS, Optimizer, relocate, sort
+from stgs.train.ops import GAUSSIAN_AXIS, Optimizer, copies_allowed, relocate, sort
 
 SIDE = 8
 
@@ -82,3 +82,24 @@ def test_relocation_without_live_gaussians_moves_nothing():
     assert relocate(model, opt, torch.zeros(SIDE * SIDE), 0.005, torch.Generator()) == 0
     for name in GAUSSIAN_AXIS:
         assert all(torch.equal(a, b) for a, b in zip(before[name], rows(model, opt, name), strict=True))
+
+
+def test_relocation_onto_a_faint_live_set_never_splits_below_twice_the_dead_opacity():
+    # 4 live Gaussians at opacity 0.1 and 60 dead ones: uncapped, each live one would be split into ~16 copies
+    # of opacity ~0.006, all dead at the next relocation (the collapse the cap prevents)
+    model, opt = stepped_model(3)
+    live = torch.tensor([5, 20, 33, 61])
+    with torch.no_grad():
+        model.opacity_logit.fill_(-6.0)
+        model.opacity_logit[live] = torch.logit(torch.tensor(0.1))
+    avg = torch.sigmoid(model.opacity_logit.detach())
+    dead_opacity = 0.02
+    moved = relocate(model, opt, avg, dead_opacity, torch.Generator().manual_seed(0))
+    opacity = torch.sigmoid(model.opacity_logit.detach())
+    assert 1 <= moved <= len(live)  # opacity 0.1 allows one copy each: 1 − 0.9^(1/2) = 0.051 ≥ 0.04, a third is not
+    assert int((opacity >= 2 * dead_opacity).sum()) == len(live) + moved
+    assert copies_allowed(torch.tensor([0.1, 0.5]), dead_opacity).tolist() == [1, 15]
+    for _ in range(5):  # relocating again and again keeps live Gaussians
+        avg = torch.sigmoid(model.opacity_logit.detach())
+        relocate(model, opt, avg, dead_opacity, torch.Generator().manual_seed(1))
+        assert int((torch.sigmoid(model.opacity_logit.detach()) >= dead_opacity).sum()) >= len(live)
