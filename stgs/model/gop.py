@@ -46,8 +46,13 @@ class GOPShape:
     @property
     def grid_side(self) -> int:
         """S with N = S², or 0 when the capacity is not a square."""
-        side = math.isqrt(self.capacity)
-        return side if side * side == self.capacity else 0
+        return square_side(self.capacity)
+
+
+def square_side(capacity: int) -> int:
+    """S with capacity = S² (a PLAS grid's side), or 0 when the capacity is not a positive square."""
+    side = math.isqrt(capacity) if capacity > 0 else 0
+    return side if side * side == capacity else 0
 
 
 @dataclass

@@ -12,12 +12,10 @@ Gaussians unchanged beside the deformed dynamic layer (stgs.model.view).
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import nn
 
-from stgs.model.gop import Gaussians, GOPModel
+from stgs.model.gop import Gaussians, GOPModel, square_side
 
 SH_DEGREES = (0, 1)
 """Degrees of view-dependent colour a static layer may carry (0: none)."""
@@ -45,8 +43,7 @@ class StaticLayer(nn.Module):
     @property
     def grid_side(self) -> int:
         """S_s with capacity = S_s², or 0 when the capacity is not a square."""
-        side = math.isqrt(self.capacity)
-        return side if side * side == self.capacity else 0
+        return square_side(self.capacity)
 
     def gaussians(self, camera_center: torch.Tensor) -> Gaussians:
         """The activated Gaussians as seen from `camera_center` (the centre matters only with sh1)."""
@@ -59,12 +56,13 @@ class StaticLayer(nn.Module):
                          color)
 
     @classmethod
-    def from_canonical(cls, model: GOPModel) -> StaticLayer:
-        """A static layer holding a GOP model's canonical attributes (the trainer fits it as one)."""
-        layer = cls(model.shape.capacity)
+    def from_canonical(cls, source: GOPModel | StaticLayer, sh_degree: int = 0) -> StaticLayer:
+        """A static layer of `sh_degree` holding the canonical attributes of a GOP model (the trainer fits the
+        static layer as one) or of another static layer (sh1 starts at zero)."""
+        layer = cls(source.xyz.shape[0], sh_degree)
         with torch.no_grad():
             for name in STATIC_TENSORS:
-                getattr(layer, name).copy_(getattr(model, name))
+                getattr(layer, name).copy_(getattr(source, name))
         return layer
 
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,7 +31,7 @@ from stgs.limits import (
     MAX_WINDOW,
     MIN_FPS,
 )
-from stgs.model.gop import FEATURE_DIM, HIDDEN, DeformationField, GOPModel, GOPShape
+from stgs.model.gop import FEATURE_DIM, HIDDEN, DeformationField, GOPModel, GOPShape, square_side
 from stgs.model.static import SH_DEGREES, StaticLayer
 from stgs.tree import MODEL_META, STATIC_FILE, gop_file
 
@@ -61,8 +60,7 @@ class StaticMeta:
 
     @property
     def grid_side(self) -> int:
-        side = math.isqrt(self.capacity)
-        return side if side * side == self.capacity else 0
+        return square_side(self.capacity)
 
 
 @dataclass
@@ -151,8 +149,7 @@ def save_model(model_dir: Path, gops: list[GOPModel], fps: float, extra: dict | 
 
 def check_static(capacity: int, sh_degree: int, where: str) -> None:
     """A static layer must be a square PLAS grid of at most MAX_CAPACITY Gaussians with a known colour degree."""
-    side = math.isqrt(capacity) if capacity > 0 else 0
-    if not 0 < capacity <= MAX_CAPACITY or side * side != capacity:
+    if not 0 < capacity <= MAX_CAPACITY or square_side(capacity) == 0:
         raise ModelFormatError(f"{where}: static.capacity must be a square S_s² in 1..{MAX_CAPACITY} "
                                f"(its images are an S_s x S_s grid), got {capacity}")
     if sh_degree not in SH_DEGREES:

@@ -160,8 +160,7 @@ def render_truth(scene: ProceduralScene, time_s: float, camera: Camera) -> torch
     frames = [scene.at(time_s)]
     if scene.static is not None:
         s = scene.static
-        seen = s.opacities * in_guard_band(s.means, camera).float()
-        frames.append(TruthFrame(s.means, s.log_scales, s.quats, seen, s.base_colors, s.view_axis, s.view_gain))
+        frames.append(dataclasses.replace(s, opacities=s.opacities * in_guard_band(s.means, camera).float()))
     return _draw(frames, camera)
 
 
@@ -171,9 +170,7 @@ def foreground_mask(scene: ProceduralScene, time_s: float, camera: Camera) -> to
     keep = torch.zeros(scene.capacity, dtype=torch.bool)
     for name in FOREGROUND:
         keep[scene.slices[name]] = True
-    fg = TruthFrame(t.means[keep], t.log_scales[keep], t.quats[keep], t.opacities[keep], t.base_colors[keep],
-                    t.view_axis[keep], t.view_gain[keep])
-    return _draw([fg], camera, [torch.ones(int(keep.sum()), 3)])[..., 0] > 0.5
+    return _draw([t.select(keep)], camera, [torch.ones(int(keep.sum()), 3)])[..., 0] > 0.5
 
 
 def truth_static_layer(scene: ProceduralScene) -> StaticLayer | None:

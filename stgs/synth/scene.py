@@ -18,6 +18,7 @@ Foreground (what a dataset's masks mark) is the ring, the blob and the sparks.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -61,6 +62,10 @@ class TruthFrame:
         target.rotation.copy_(self.quats)
         target.opacity_logit.copy_(torch.logit(self.opacities.clamp(opacity_eps, 1 - opacity_eps)))
         target.color.copy_(self.base_colors)
+
+    def select(self, keep: torch.Tensor) -> TruthFrame:
+        """The Gaussians `keep` (a bool mask or indices) selects."""
+        return TruthFrame(*(getattr(self, f.name)[keep] for f in dataclasses.fields(self)))
 
     def colors(self, camera_center: torch.Tensor) -> torch.Tensor:
         view = self.means - camera_center.to(self.means.dtype)

@@ -142,11 +142,9 @@ def fit_view_dependent(static: StaticLayer, views: Views, moving: torch.Tensor, 
                        lambda_ssim: float, gen: torch.Generator, progress: bool = False) -> StaticLayer:
     """A degree-1 copy of `static` whose colour and sh1 are fitted for `iterations` on the pixels that do not
     move (one random training view per iteration); positions, scales, rotations and opacities stay."""
-    layer = StaticLayer(static.capacity, sh_degree=1)
-    with torch.no_grad():
-        for name in STATIC_TENSORS:
-            getattr(layer, name).copy_(getattr(static, name))
-            getattr(layer, name).requires_grad_(name == "color")
+    layer = StaticLayer.from_canonical(static, sh_degree=1)
+    for name in STATIC_TENSORS:
+        getattr(layer, name).requires_grad_(name == "color")
     opt = torch.optim.Adam([layer.color, layer.sh1], lr=lr, eps=1e-15)
     for _ in tqdm(range(iterations), desc="static layer: view-dependent colour", unit="it", disable=not progress):
         f = int(torch.randint(len(views.frames), (1,), generator=gen))

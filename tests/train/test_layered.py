@@ -15,7 +15,7 @@ from stgs.data import open_dataset
 from stgs.errors import StgsError
 from stgs.metrics import psnr
 from stgs.model.gop import GOPModel, GOPShape
-from stgs.model.static import STATIC_TENSORS, StaticLayer
+from stgs.model.static import StaticLayer
 from stgs.model.store import load_static, read_meta
 from stgs.model.view import splat, static_view
 from stgs.synth import SynthConfig, ground_truth_cameras, synthesize, truth_static_layer
@@ -110,10 +110,8 @@ def test_view_dependent_fit_recovers_a_view_dependent_static_layer():
     cams = ground_truth_cameras(SCENE)
     truth = truth_static_layer(ProceduralScene(SCENE.grid_side ** 2, SCENE.effects, SCENE.seed,
                                                SCENE.static_grid_side ** 2))
-    shiny = StaticLayer(truth.capacity, sh_degree=1)
+    shiny = StaticLayer.from_canonical(truth, sh_degree=1)
     with torch.no_grad():
-        for name in STATIC_TENSORS:
-            getattr(shiny, name).copy_(getattr(truth, name))
         shiny.sh1.copy_(torch.randn(shiny.sh1.shape, generator=torch.Generator().manual_seed(0)) * 0.25)
         images = torch.stack([splat(static_view(shiny, cam), cam).clamp(0, 1) for cam in cams])
     train_cams, held = cams[:-2], cams[-2:]
