@@ -258,7 +258,7 @@ def mpd_target(data: bytes) -> None:
     last = pres.ladder[-1].rep_id
     pres.keyframe_url(0), pres.init_url(last), pres.media_url(last, pres.num_gops - 1)
     pres.span(0.0, None, None), pres.span(pres.duration / 2, 1.0, 5.0), pres.gop_at(pres.duration)
-    pres.max_keyframe_bytes(), pres.max_media_bytes(last), pres.decoded_gop_bytes()
+    pres.max_keyframe_bytes(), pres.max_media_bytes(last), pres.decoded_gop_bytes(8)
 
 
 def keyframe_target(data: bytes) -> None:

@@ -234,8 +234,9 @@ def add_play(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("play", help="stream a packaged scene over HTTP and render it on the CPU",
                        description="Stream a StreamSTGS scene from its MPD URL: the ABR rule picks each GOP's "
-                       "feature QP, the next GOP is downloaded and decoded while the current one plays, and "
-                       "every frame is deformed and splatted on the CPU. Writes a JSON playback log.")
+                       "feature QP, the next GOP is downloaded while the current one plays, its feature video is "
+                       "decoded frame by frame just ahead of the renderer, and every frame is deformed and "
+                       "splatted on the CPU. Writes a JSON playback log.")
     p.add_argument("url", help="URL of the scene's manifest.mpd (http:// or https://)")
     p.add_argument("--abr", choices=sorted(RULES), default="mpc",
                    help="ABR rule (default: mpc = look-ahead over the next GOPs' sizes and PSNR from stats.json; "
@@ -259,6 +260,13 @@ def add_play(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
                    help="arithmetic of the deformation network: bf16 is faster on CPUs with AMX and costs "
                    "accuracy (docs/BENCHMARKS.md; default: fp32)")
+    frame = p.add_argument_group("frame path (docs/CLIENT.md, 'Real-time playback')")
+    frame.add_argument("--ring-frames", type=_positive_int, default=8,
+                       help="feature frames decoded ahead of the renderer (default: 8; at least the model's window)")
+    frame.add_argument("--render-threads", type=_positive_int,
+                       help="threads of the deform and splat kernels (default: every usable core)")
+    frame.add_argument("--decode-threads", type=_positive_int,
+                       help="threads of the feature video decoder (default: 1 below eight cores, else 2)")
     p.add_argument("--out", type=Path, help="write frames: a folder of PNGs, or a .mp4 file")
     p.add_argument("--log", type=Path, help="JSON playback log (default: playback.json beside --out, else none)")
     p.add_argument("--timeout", type=_seconds, default=10.0, help="seconds without data before a request fails")
@@ -296,7 +304,8 @@ def run_play(args: argparse.Namespace) -> int:
         log = (args.out.parent if args.out.suffix.lower() == ".mp4" else args.out) / "playback.json"
     cfg = PlayConfig(url=args.url, abr=args.abr, qp=args.qp, buffer_s=args.buffer, start_s=args.start,
                      duration_s=args.duration, realtime=args.realtime, view=view, out=args.out, log=log,
-                     precision=args.precision,
+                     precision=args.precision, ring_frames=args.ring_frames, render_threads=args.render_threads,
+                     decode_threads=args.decode_threads,
                      download=DownloadSettings(read_timeout_s=args.timeout, retries=args.retries),
                      urls=UrlPolicySettings(hosts=tuple(args.allow_host), any_host=args.allow_any_host,
                                             loopback=True if args.allow_loopback else None,

@@ -70,17 +70,18 @@ class TruthProbe:
         self.compare: list[torch.Tensor] = []
         self.lock = threading.Lock()
 
-    def __call__(self, k: int, renderer: FrameRenderer) -> None:
-        local = FrameRenderer(self.local[k])
-        for i in (0, self.gop_size // 2):
-            f = k * self.gop_size + i
-            truth = self.truth.image(f, self.camera.name)
-            streamed = renderer.render(i, self.camera).clamp(0, 1)
-            reference = local.render(i, self.camera).clamp(0, 1)
-            with self.lock:
-                self.rows.append((psnr(streamed, truth), psnr(streamed, reference)))
-                if len(self.compare) < 3 * COMPARE_FRAMES:
-                    self.compare += [truth, streamed, ((streamed - truth).abs() * 10).clamp(0, 1)]
+    def __call__(self, k: int, i: int, renderer: FrameRenderer, window: list[torch.Tensor]) -> None:
+        """The player's frame hook: frames 0 and G/2 of each GOP, at the scene's first camera."""
+        if i not in (0, self.gop_size // 2):
+            return
+        f = k * self.gop_size + i
+        truth = self.truth.image(f, self.camera.name)
+        streamed = renderer.render(i, self.camera, window=window).clamp(0, 1)
+        reference = FrameRenderer(self.local[k]).render(i, self.camera).clamp(0, 1)
+        with self.lock:
+            self.rows.append((psnr(streamed, truth), psnr(streamed, reference)))
+            if len(self.compare) < 3 * COMPARE_FRAMES:
+                self.compare += [truth, streamed, ((streamed - truth).abs() * 10).clamp(0, 1)]
 
 
 async def stream(dash: Path, play_cfg_kwargs: dict, probe: TruthProbe) -> dict:
@@ -89,7 +90,7 @@ async def stream(dash: Path, play_cfg_kwargs: dict, probe: TruthProbe) -> dict:
     from stgs.server.app import loopback
 
     async with loopback(dash) as base:
-        return await play(PlayConfig(url=base + MANIFEST, **play_cfg_kwargs), on_gop=probe)
+        return await play(PlayConfig(url=base + MANIFEST, **play_cfg_kwargs), on_frame=probe)
 
 
 def run(out: Path, progress: bool = True) -> int:

@@ -49,6 +49,12 @@ class PlayConfig:
     """Arithmetic of the native deformation: fp32, or bf16 (faster where the CPU has AMX; costs accuracy)."""
     max_decoded: int = 2
     """Decoded GOP models held at once (the one playing + pre-decoded ones)."""
+    ring_frames: int = 8
+    """Feature frames decoded ahead of the renderer, per GOP (at least the model's window W)."""
+    render_threads: int | None = None
+    """Threads of the deform and splat kernels (None: every usable core; stgs.client.threads)."""
+    decode_threads: int | None = None
+    """libavcodec threads of the feature decoder (None: 1 below eight cores, else 2)."""
     decode: bool = True
     """Decode and render (False: network and buffer only, for emulation and load tests)."""
     speed: float = 1.0
@@ -67,6 +73,11 @@ class PlayConfig:
             raise FieldError("start_s", "must be a non-negative number of seconds")
         if self.duration_s is not None and not self.duration_s > 0:
             raise FieldError("duration_s", "must be a positive number of seconds")
+        if self.ring_frames < 1:
+            raise FieldError("ring_frames", "must be >= 1 (and at least the model's window)")
+        for name in ("render_threads", "decode_threads"):
+            if getattr(self, name) is not None and getattr(self, name) < 1:
+                raise FieldError(name, "must be >= 1")
         if self.max_decoded < 2:
             raise FieldError("max_decoded", "must be >= 2 (the GOP playing and the next)")
         if not (math.isfinite(self.speed) and self.speed > 0) or (self.speed != 1 and self.decode):

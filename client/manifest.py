@@ -182,11 +182,13 @@ class Presentation:
             raise MP4Error(f"the feature segment fetched for GOP {gop} starts at {seconds:.3f} s, expected "
                            f"{expected:.3f} s (GOP {round(seconds / self.segment_seconds)}'s place)")
 
-    def decoded_gop_bytes(self) -> int:
-        """Memory one decoded GOP holds at its peak: the E decoded 12-bit frames of 4S x 4S and the E x N x 16
-        float32 features made from them (the canonical attributes are small beside these)."""
-        e, side = self.shape.num_features, self.grid_side
-        return e * (4 * side) ** 2 * 2 + e * side * side * 16 * 4
+    def decoded_gop_bytes(self, ring_frames: int) -> int:
+        """Memory one decoded GOP holds at its peak: its canonical attributes twice (keyframe and model), a ring
+        of `ring_frames` N x 16 float32 feature frames, and the HEVC decoder's pictures (at most 16 of 4S x 4S
+        16-bit: the largest picture buffer the standard allows)."""
+        side = self.grid_side
+        n = side * side
+        return 2 * n * 14 * 4 + ring_frames * n * 16 * 4 + 16 * (4 * side) ** 2 * 2
 
     def max_keyframe_bytes(self) -> int:
         return self._cap(self.keyframe_rep.bandwidth)

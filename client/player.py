@@ -1,23 +1,26 @@
-"""The playback session: ABR -> fetch -> pre-decode the next GOP -> deform + splat per frame.
+"""The playback session: ABR -> fetch -> decode the keyframe, stream the features -> deform + splat per frame.
 
 Three asyncio tasks share one event loop:
 - the fetcher runs the fetch schedule (stgs.client.schedule) GOP after GOP: keyframe, then the feature segment of
   the Representation the ABR rule picks, while the buffer has room;
-- the decoder turns downloaded GOPs into ready GOP models in a worker thread
-  (JPEG XL via OpenImageIO, video via PyAV), at most `max_decoded` at a time
-  (the GOP playing and the next one), so a GOP boundary does not wait on
-  decoding when the network keeps up;
-- the player renders each GOP's frames (worker thread) and keeps the clock.
+- the decoder (stgs.client.gopdecode) decodes each downloaded GOP's keyframe whole (JPEG XL via OpenImageIO)
+  and starts its feature stream (stgs.codec.stream: PyAV, frame by frame into a bounded ring, in its own
+  thread), at most `max_decoded` GOPs at a time (the one playing and the next); a GOP is ready when its
+  first feature window is decoded, and GOP k+1's features start decoding once GOP k's are all decoded, a
+  few frames before its end, so a boundary does not wait when the decoder keeps up;
+- the player renders each GOP's frames (worker thread, `render_threads` kernel threads), taking each
+  frame's features from the ring, and keeps the clock.
 
 The clock is the presentation's real-time schedule in both modes: GOP k is due
 `(k - k0) * T` after the first frame plus the stalls so far. A stall is time a
 due GOP was not ready. `realtime` additionally paces frames to that schedule
-and drops a frame when rendering is behind; otherwise frames render as fast
-as they can (never dropped).
+and drops a frame whose slot passes before it can be drawn (rendering behind, or its features not yet
+decoded); its features are still consumed in order. Otherwise frames render as fast as they can (never
+dropped). The log has per-frame decode, dequantise, wait, deform and splat times.
 
 The module is over the usual size (~400 lines) because the Session's three tasks share one state
 (clock, records, the fetch schedule) and one task group; what to fetch lives in
-`stgs.client.schedule`, settings in `stgs.client.config`.
+`stgs.client.schedule`, how to decode in `stgs.client.gopdecode`, settings in `stgs.client.config`.
 """
 
 from __future__ import annotations
@@ -50,27 +53,37 @@ from stgs.client.fetchsteps import (
     Step,
     Wait,
 )
+from stgs.client.gopdecode import GOPDecoder, ReadyGOP
 from stgs.client.manifest import Presentation
 from stgs.client.output import NullSink, open_sink
 from stgs.client.playlog import GOPRecord, playback_log
 from stgs.client.schedule import FetchSchedule
+from stgs.client.threads import ThreadBudget, render_threads, usable_cores
 from stgs.client.urlpolicy import UrlPolicy
 from stgs.client.view import Trajectory, build_trajectory, parse_scene_cameras
-from stgs.codec.features import features_from_frames
-from stgs.codec.keyframe import Keyframe, KeyframeError, decode_keyframe
-from stgs.codec.video import decode_segment
+from stgs.codec.video import VideoError
 from stgs.fsio import atomic_write_bytes
 from stgs.limits import MAX_DOC_BYTES, MAX_MPD_BYTES
 from stgs.model.view import FrameRenderer
 from stgs.mpd import MPDError
 from stgs.tree import CAMERAS, STATS
 
+FrameHook = Callable[[int, int, FrameRenderer, list[torch.Tensor]], None]
+"""Called in the render thread after each rendered frame with (GOP, frame in the GOP, the GOP's renderer,
+the frame's feature window): what a caller needs to render the same frame from another camera."""
+
 
 @dataclass
-class ReadyGOP:
-    index: int
-    renderer: FrameRenderer | None
-    """None when the player does not decode (PlayConfig.decode False)."""
+class FrameTiming:
+    """One rendered frame and where its time went (seconds)."""
+
+    image: torch.Tensor
+    start: float
+    """time.perf_counter() when the render began."""
+    wait_s: float
+    """Waiting for the frame's features (the decoder behind the renderer)."""
+    deform_s: float
+    splat_s: float
 
 
 def stats_gop(stats: object, k: int, rep_ids: list[str]) -> UpcomingGOP | None:
@@ -101,6 +114,16 @@ def physical_memory() -> int | None:
         return None
 
 
+def process_peak_rss_mb() -> float | None:
+    """The player process's peak resident memory so far (MB), where the OS reports it."""
+    try:
+        import resource
+    except ImportError:
+        return None
+    kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # kilobytes on Linux
+    return kb / 1024
+
+
 def check_decode_memory(gop_bytes: int, max_decoded: int, ram: int | None = None) -> None:
     """Refuse, before fetching anything, a presentation whose decoded GOPs (`max_decoded` of them at once) need
     more memory than the machine has."""
@@ -115,24 +138,33 @@ class Session:
     """One playback of a Presentation (see the module docstring)."""
 
     def __init__(self, cfg: PlayConfig, pres: Presentation, dl: Downloader, stats: object | None,
-                 cameras: list | None, on_gop: Callable[[int, FrameRenderer], None] | None = None):
-        self.cfg, self.pres, self.dl, self.stats, self.cameras, self.on_gop = cfg, pres, dl, stats, cameras, on_gop
+                 cameras: list | None, on_frame: FrameHook | None = None, requested: float | None = None):
+        """requested: time.perf_counter() of the playback's first request (the manifest's), for the log's
+        time to first frame."""
+        self.cfg, self.pres, self.dl, self.stats, self.cameras, self.on_frame = cfg, pres, dl, stats, cameras, on_frame
         self.T = pres.segment_seconds
         self.G = pres.shape.gop_size
         if cfg.decode:
-            check_decode_memory(pres.decoded_gop_bytes(), cfg.max_decoded)
+            check_decode_memory(pres.decoded_gop_bytes(cfg.ring_frames), cfg.max_decoded)
         span = pres.span(cfg.start_s, cfg.duration_s, cfg.buffer_s)
         self.k0, self.frames, self.gops, self.capacity_s = span.first_gop, span.frames, span.gops, span.buffer_s
         self.first_frame = self.k0 * self.G
         self.records = {k: GOPRecord(k) for k in self.gops}
         self.speed = cfg.speed
         self.t_start = self.now()
+        self.requested = self.t_start / self.speed if requested is None else requested
         self.clock = PlaybackClock(self.T, self.capacity_s, self.k0)
         rep_ids = [r.rep_id for r in pres.ladder]
         self.schedule = FetchSchedule(
             pres, make_rule(cfg.abr, [r.qp for r in pres.ladder], cfg.qp, cfg.abr_settings), self.buffer_level,
             self.capacity_s, lambda k: stats_gop(stats, k, rep_ids) if stats is not None else None,
             cfg.abr_settings, dl.settings, clock=lambda: self.now(), playing=lambda: self.clock.t0 is not None)
+        self.budget = ThreadBudget.for_cores(usable_cores(), cfg.render_threads, cfg.decode_threads)
+        self.decoder = GOPDecoder(cfg, pres, self.schedule, self.records, self.budget, self.drive)
+        self.decoder.epoch = self.t_start / self.speed
+        if cfg.decode and cfg.ring_frames < pres.shape.window:
+            raise PlaybackError(f"a ring of {cfg.ring_frames} feature frames cannot hold one frame's window of "
+                                f"{pres.shape.window}")
 
     def now(self) -> float:
         """The playback clock: wall seconds scaled by PlayConfig.speed (media seconds)."""
@@ -205,48 +237,7 @@ class Session:
             downloaded[k].set_result(item)
             self.clock.fetched_end = k + 1
 
-    # --- decoding ---
-
-    def decode_keyframe(self, item: Fetched) -> Keyframe:
-        start = time.perf_counter()
-        kf = decode_keyframe(item.keyframe, self.pres.shape, item.index, self.pres.max_keyframe_bytes())
-        self.records[item.index].keyframe_decode_s = time.perf_counter() - start
-        return kf
-
-    def decode_features(self, item: Fetched, kf: Keyframe) -> ReadyGOP:
-        rec, side = self.records[item.index], self.pres.grid_side
-        start = time.perf_counter()
-        self.pres.check_feature_segment(item.init, item.media, item.index)
-        frames = decode_segment(item.init, item.media, self.pres.shape.num_features, 4 * side, 4 * side)
-        mid = time.perf_counter()
-        model = kf.to_model(features_from_frames(frames, side, kf.feature_ranges))
-        renderer = FrameRenderer(model, self.cfg.native, self.cfg.precision)
-        rec.feature_decode_s, rec.dequantise_s = mid - start, time.perf_counter() - mid
-        return ReadyGOP(item.index, renderer)
-
-    async def decode_gop(self, item: Fetched) -> ReadyGOP:
-        """Decode one GOP; a rejected keyframe is downloaded once more, features that do not decode fall back to
-        the lowest rung (the schedule decides both)."""
-        k, rec = item.index, self.records[item.index]
-        if not self.cfg.decode:
-            return ReadyGOP(k, None)
-        try:
-            kf = await asyncio.to_thread(self.decode_keyframe, item)
-        except KeyframeError as exc:
-            item.keyframe = (await self.drive(self.schedule.refetch_keyframe(k, rec, str(exc)))).keyframe
-            try:
-                kf = await asyncio.to_thread(self.decode_keyframe, item)
-            except KeyframeError as again:
-                raise PlaybackError(f"keyframe segment of GOP {k}: {again}") from None
-        try:
-            return await asyncio.to_thread(self.decode_features, item, kf)
-        except ValueError as exc:
-            lowest = await self.drive(self.schedule.fallback(k, rec, item.rung, str(exc)))
-        item.rung, item.init, item.media = lowest.rung, lowest.init, lowest.media
-        try:
-            return await asyncio.to_thread(self.decode_features, item, kf)
-        except ValueError as exc:
-            raise PlaybackError(f"feature segment of GOP {k}: {exc}") from None
+    # --- decoding (stgs.client.gopdecode) ---
 
     async def decode_loop(self, downloaded: dict[int, asyncio.Future], ready: dict[int, asyncio.Future],
                           slots: asyncio.Semaphore) -> None:
@@ -254,19 +245,37 @@ class Session:
             try:
                 item = await downloaded[k]
                 await slots.acquire()
-                ready[k].set_result(await self.decode_gop(item))
+                ready[k].set_result(await self.decoder.decode(item))
             except PlaybackError as exc:
                 ready[k].set_exception(exc)
                 return
 
     # --- playing ---
 
-    def render(self, ready: ReadyGOP, i: int, camera) -> tuple[torch.Tensor, float, float]:
+    def render(self, ready: ReadyGOP, i: int, camera, deadline: float | None) -> FrameTiming | None:
+        """Frame i of the GOP, once its features are decoded; None when they are not by `deadline` (seconds
+        on the playback clock; None: wait as long as it takes)."""
         start = time.perf_counter()
-        g = ready.renderer.gaussians(i, camera)
+        timeout = None if deadline is None else max(0.0, (deadline - self.now()) / self.speed)
+        window = ready.features.window(i, self.decoder.window, timeout)
+        if window is None:
+            return None
+        got = time.perf_counter()
+        g = ready.renderer.gaussians(i, camera, window)
         mid = time.perf_counter()
         image = ready.renderer.splat(g, camera, guarded=ready.renderer.guarded).clamp_(0, 1)
-        return image, mid - start, time.perf_counter() - mid
+        timing = FrameTiming(image, start, got - start, mid - got, time.perf_counter() - mid)
+        if self.on_frame is not None:
+            self.on_frame(ready.index, i, ready.renderer, window)
+        return timing
+
+    async def render_frame(self, ready: ReadyGOP, i: int, camera, deadline: float | None) -> FrameTiming | None:
+        """render(), replacing a feature stream that breaks at frame i by the lowest rung's and trying again."""
+        while True:
+            try:
+                return await asyncio.to_thread(self.render, ready, i, camera, deadline)
+            except VideoError as exc:
+                await self.decoder.recover(ready, i, str(exc))
 
     async def play_gop(self, ready: ReadyGOP, trajectory: Trajectory, sink) -> None:
         k, rec, fps = ready.index, self.records[ready.index], self.pres.fps
@@ -277,29 +286,34 @@ class Session:
             if j >= self.frames:
                 break
             rec.presented += 1
+            deadline = None
             if self.cfg.realtime:
                 due = gop_start + i / fps
+                deadline = due + 1 / fps
                 now = self.now()
-                if now >= due + 1 / fps:
-                    rec.dropped += 1
-                    sink.repeat(f)
-                    continue
                 if now < due:
                     await self.sleep(due - now)
-            if ready.renderer is None:
+            frame = None
+            if ready.renderer is not None and (deadline is None or self.now() < deadline):
+                frame = await self.render_frame(ready, i, trajectory.camera(j), deadline)
+            if ready.features is not None:
+                ready.features.release(i + 1)  # drawn or dropped, its features are consumed
+            if frame is None:
+                if ready.renderer is not None:  # rendering (or its features) could not make the frame's slot
+                    rec.dropped += 1
+                    sink.repeat(f)
                 continue
-            start = time.perf_counter()
-            image, deform_s, splat_s = await asyncio.to_thread(self.render, ready, i, trajectory.camera(j))
-            rec.render_ms.append((time.perf_counter() - start) * 1e3)
-            rec.deform_ms.append(deform_s * 1e3)
-            rec.splat_ms.append(splat_s * 1e3)
-            await asyncio.to_thread(sink.write, f, image)
+            rec.render_at_s.append(frame.start - self.decoder.epoch)
+            rec.wait_ms.append(frame.wait_s * 1e3)
+            rec.deform_ms.append(frame.deform_s * 1e3)
+            rec.splat_ms.append(frame.splat_s * 1e3)
+            rec.render_ms.append((frame.wait_s + frame.deform_s + frame.splat_s) * 1e3)
+            await asyncio.to_thread(sink.write, f, frame.image)
         if self.cfg.realtime:  # the last frame stays on screen for its whole interval: GOP k ends at its due + T
             end = gop_start + rec.presented / fps
             if (delay := end - self.now()) > 0:
                 await self.sleep(delay)
-        if self.on_gop is not None and ready.renderer is not None:
-            await asyncio.to_thread(self.on_gop, k, ready.renderer)
+        ready.finish(rec, self.decoder.epoch)
 
     async def wait_ready(self, k: int, fut: asyncio.Future) -> ReadyGOP:
         rec = self.records[k]
@@ -341,10 +355,8 @@ class Session:
         slots = asyncio.Semaphore(self.cfg.max_decoded)
         error: BaseException | None = None
         try:
-            async with asyncio.TaskGroup() as group:
-                group.create_task(self.fetch_loop(downloaded))
-                group.create_task(self.decode_loop(downloaded, ready, slots))
-                group.create_task(self.play_loop(ready, slots))
+            with render_threads(self.budget.render):
+                await self.run_tasks(downloaded, ready, slots)
         except BaseExceptionGroup as failed:
             error = playback_failure(failed)
             raise error from None
@@ -352,6 +364,7 @@ class Session:
             error = exc
             raise
         finally:
+            self.decoder.close()
             for fut in [*downloaded.values(), *ready.values()]:
                 if fut.done() and not fut.cancelled():
                     fut.exception()  # retrieved: no "exception never retrieved" warnings
@@ -359,6 +372,13 @@ class Session:
             if self.cfg.log is not None:
                 atomic_write_bytes(self.cfg.log, (json.dumps(self.log, indent=1) + "\n").encode())
         return self.log
+
+    async def run_tasks(self, downloaded: dict[int, asyncio.Future], ready: dict[int, asyncio.Future],
+                        slots: asyncio.Semaphore) -> None:
+        async with asyncio.TaskGroup() as group:
+            group.create_task(self.fetch_loop(downloaded))
+            group.create_task(self.decode_loop(downloaded, ready, slots))
+            group.create_task(self.play_loop(ready, slots))
 
     def turn_frames(self) -> int:
         if self.cfg.view.orbit_seconds:
@@ -377,6 +397,11 @@ class Session:
                             retries=self.schedule.retries + self.dl.retries,
                             error=error, gops_planned=len(self.gops),
                             extra={"realtime": self.cfg.realtime, "decode": self.cfg.decode,
+                                   "threads": {"render": self.budget.render, "decode": self.budget.decode},
+                                   "ring_frames": self.cfg.ring_frames,
+                                   "process_peak_rss_mb": process_peak_rss_mb(),
+                                   "time_to_first_frame_s": None if self.clock.t0 is None else
+                                   (self.clock.t0 / self.speed - self.requested) * self.speed,
                                    "error_detail": getattr(error, "detail", None)})
 
 
@@ -414,9 +439,10 @@ async def _optional_json(dl: Downloader, url: str) -> object | None:
         return None
 
 
-async def play(cfg: PlayConfig, on_gop: Callable[[int, FrameRenderer], None] | None = None) -> dict:
+async def play(cfg: PlayConfig, on_frame: FrameHook | None = None) -> dict:
     """Play the presentation at cfg.url; returns the playback log (also written to cfg.log)."""
     cfg.validate()
+    requested = time.perf_counter()
     policy = UrlPolicy(cfg.url, cfg.urls)
     async with Downloader(cfg.download, policy) as dl:
         try:
@@ -432,4 +458,4 @@ async def play(cfg: PlayConfig, on_gop: Callable[[int, FrameRenderer], None] | N
         if cfg.view.camera is not None or default_orbit:
             doc = await _optional_json(dl, pres.sibling_url(CAMERAS))
             cameras = parse_scene_cameras(doc) if doc is not None else None
-        return await Session(cfg, pres, dl, stats, cameras, on_gop).run()
+        return await Session(cfg, pres, dl, stats, cameras, on_frame, requested).run()

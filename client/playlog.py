@@ -35,7 +35,20 @@ class GOPRecord:
     """Time to first byte of the feature segment."""
     keyframe_decode_s: float = 0.0
     feature_decode_s: float = 0.0
+    """HEVC decode of the GOP's feature frames (the sum of decode_ms where the player streams them)."""
     dequantise_s: float = 0.0
+    decode_ms: list[float] = field(default_factory=list)
+    """Per feature frame, in decode order: its HEVC decode (the decoder thread, beside the renderer)."""
+    dequantise_ms: list[float] = field(default_factory=list)
+    """Per feature frame: its untiling and dequantisation (0 for a frame released before it was decoded)."""
+    decode_at_s: list[float] = field(default_factory=list)
+    """Per feature frame: when its decode began (seconds since playback began)."""
+    wait_ms: list[float] = field(default_factory=list)
+    """Per rendered frame: how long the renderer waited for the frame's features."""
+    render_at_s: list[float] = field(default_factory=list)
+    """Per rendered frame: when its render began, waiting for features included (seconds since playback began)."""
+    ring_peak: int = 0
+    """Most feature frames the GOP's ring held at once."""
     boundary_wait_s: float = 0.0
     """Time the player waited at this GOP's start for it to be decoded (startup for the first)."""
     stall_s: float = 0.0
@@ -71,7 +84,10 @@ def gop_row(r: GOPRecord) -> dict:
             "estimate_kbps": r.estimate_kbps, "keyframe_bytes": r.keyframe_bytes, "feature_bytes": r.feature_bytes,
             "init_bytes": r.init_bytes, "download_s": r.download_s, "ttfb_s": r.ttfb_s,
             "keyframe_decode_s": r.keyframe_decode_s, "feature_decode_s": r.feature_decode_s,
-            "dequantise_s": r.dequantise_s, "decode_s": r.decode_s, "boundary_wait_s": r.boundary_wait_s,
+            "dequantise_s": r.dequantise_s, "decode_s": r.decode_s, "decode_ms": r.decode_ms,
+            "dequantise_ms": r.dequantise_ms, "decode_at_s": r.decode_at_s, "wait_ms": r.wait_ms,
+            "render_at_s": r.render_at_s, "deform_ms": r.deform_ms,
+            "splat_ms": r.splat_ms, "ring_peak": r.ring_peak, "boundary_wait_s": r.boundary_wait_s,
             "stall_s": r.stall_s, "fetch_start_s": r.fetch_start_s, "fetch_end_s": r.fetch_end_s,
             "play_start_s": r.play_start_s, "presented": r.presented, "render_ms": r.render_ms,
             "deform_ms_mean": mean(r.deform_ms), "splat_ms_mean": mean(r.splat_ms), "dropped": r.dropped,

@@ -7,7 +7,12 @@ buffer_s = 6.0               # optional (default: three GOPs)
 start_s = 0.0                # optional
 duration_s = 10.0            # optional (default: to the end)
 seed = 0                     # optional
-decode_s = 0.0               # optional: decode time per GOP the simulator assumes
+
+[decode]                     # optional: what the player's decoding costs (default: nothing)
+keyframe_ms = 120            # keyframe decode per GOP (`stgs play --log` measures it: keyframe_decode_s)
+frame_ms = 4.5               # feature frame decode + dequantise (decode_ms + dequantise_ms in the log)
+# frame_ms = { qp16 = 6.1, qp24 = 4.5, qp32 = 3.2 }  # or per Representation: decode cost follows the bitrate
+ring_frames = 8              # the player's ring of decoded feature frames
 
 [effects]                    # only the effects named here are simulated
 bandwidth = { kbps = 5000 }                          # constant
@@ -37,6 +42,7 @@ from pathlib import Path
 
 from stgs.client.abr import RULES
 from stgs.errors import StgsError
+from stgs.harness.decode import DecodeSpec, parse_decode
 from stgs.limits import MAX_TRACE_POINTS
 
 EFFECTS = ("bandwidth", "latency_ms", "jitter_ms", "loss", "outages", "competing", "faults")
@@ -254,13 +260,14 @@ class Scenario:
     start_s: float = 0.0
     duration_s: float | None = None
     seed: int = 0
-    decode_s: float = 0.0
+    decode: DecodeSpec = field(default_factory=DecodeSpec)
+    """What the player's decoding costs (stgs.harness.decode)."""
     effects: Effects = field(default_factory=Effects)
     qp: int | None = None
     """Pin one QP instead of adapting (abr ignored)."""
 
 
-SCENARIO_KEYS = {"scene", "abr", "buffer_s", "start_s", "duration_s", "seed", "decode_s", "effects", "qp", "name"}
+SCENARIO_KEYS = {"scene", "abr", "buffer_s", "start_s", "duration_s", "seed", "decode", "effects", "qp", "name"}
 
 
 def _number(doc: dict, key: str, where: str, lo: float = 0.0, integer: bool = False) -> float | None:
@@ -346,5 +353,5 @@ def scenario_from_dict(doc: dict, where: str, base: Path) -> Scenario:
                     buffer_s=_number(doc, "buffer_s", where, 1e-3), start_s=_number(doc, "start_s", where) or 0.0,
                     duration_s=_number(doc, "duration_s", where, 1e-3), seed=int(_number(doc, "seed", where,
                                                                                          integer=True) or 0),
-                    decode_s=_number(doc, "decode_s", where) or 0.0,
+                    decode=parse_decode(doc.get("decode", {}), where),
                     effects=parse_effects(doc.get("effects", {}), where, base), qp=None if qp is None else int(qp))

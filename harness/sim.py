@@ -7,8 +7,9 @@ backoff, the same fallbacks to the lowest rung, the same decisions and
 reasons in the log. The fetcher polls for buffer room every min(50 ms, T/20)
 and playback uses the player's `PlaybackClock` (start-up, due times, stalls).
 Transfers take the time `stgs.harness.network.Network` computes, faults
-included; decoding takes `decode_s` per GOP, one at a time, with at most two
-decoded GOPs held (the playing one and the next), as in the player. The
+included; decoding follows the player's pipeline (stgs.harness.decode: keyframes whole, feature frames one by
+one into a bounded ring, frames dropped when their features are late), with at most two decoded GOPs held
+(the playing one and the next), at the costs the scenario's [decode] table gives. The
 output has the player's log format; `not_modelled` lists what the player
 does that no simulated scenario can trigger.
 """
@@ -34,6 +35,8 @@ from stgs.client.fetchsteps import (
 )
 from stgs.client.playlog import GOPRecord, playback_log
 from stgs.client.schedule import FetchSchedule
+from stgs.errors import StgsError
+from stgs.harness.decode import DecoderModel
 from stgs.harness.ladder import Ladder
 from stgs.harness.network import DELIVERY_CHUNK, Network
 from stgs.harness.scenario import Scenario
@@ -70,7 +73,14 @@ class Simulation:
         g = pres.shape.gop_size
         for k, rec in self.records.items():
             rec.presented = min(g, frames - (k - self.k0) * g)
-        self.decoder_free = 0.0
+        self.decoder = DecoderModel(scenario.decode.ring_frames, pres.shape.window, g, pres.fps)
+        if scenario.decode.ring_frames < pres.shape.window:
+            raise StgsError(f"{scenario.name}: a ring of {scenario.decode.ring_frames} feature frames cannot hold "
+                            f"one frame's window of {pres.shape.window}")
+
+    def decode_costs(self, k: int, rec: GOPRecord) -> tuple[float, float]:
+        """(keyframe, feature frame) decode seconds of GOP k at the rung it was fetched at."""
+        return self.sc.decode.keyframe_ms / 1e3, self.sc.decode.frame_s(rec.rep)
 
     # --- playback timeline ---
 
@@ -83,14 +93,17 @@ class Simulation:
                 return
             # decoding needs a free slot: the GOP two before has finished (the one before has started)
             slot = self.records[k - 1].play_start_s if k - 2 >= self.k0 else 0.0
-            ready = max(rec.fetch_end_s, self.decoder_free, slot) + self.sc.decode_s
+            keyframe_s, frame_s = self.decode_costs(k, rec)
+            plan = self.decoder.plan(rec.fetch_end_s, slot, keyframe_s, frame_s)
+            ready = plan.ready
             start = ready if self.clock.t0 is None else max(ready, self.clock.due(k))
             if start > until:
                 return
-            self.decoder_free = ready
             rec.boundary_wait_s = ready if self.clock.t0 is None else 0.0
             rec.stall_s = self.clock.start(k, ready, ready if self.clock.t0 is None else self.clock.due(k))
             rec.play_start_s = self.clock.due(k)
+            rec.dropped = min(rec.presented, self.decoder.start(plan, rec.play_start_s))
+            rec.keyframe_decode_s, rec.feature_decode_s = keyframe_s, frame_s * self.decoder.features
 
     def wait_for_room(self) -> None:
         for _ in range(MAX_POLLS):

@@ -34,12 +34,6 @@ def quantize_features(features: torch.Tensor, ranges: torch.Tensor) -> torch.Ten
     return torch.round(unit * VIDEO_MAX).to(torch.int32)
 
 
-def dequantize_features(codes: torch.Tensor, ranges: torch.Tensor) -> torch.Tensor:
-    """int codes (E, N, 16) -> float32 features."""
-    lo, hi = ranges[0].float(), ranges[1].float()
-    return codes.float().mul_((hi - lo) / VIDEO_MAX).add_(lo)
-
-
 def tile_frames(codes: torch.Tensor, side: int) -> torch.Tensor:
     """(E, S², 16) codes -> (E, 4S, 4S) frames."""
     e = codes.shape[0]
@@ -54,10 +48,32 @@ def untile_frames(frames: torch.Tensor, side: int) -> torch.Tensor:
     return grid.reshape(e, side * side, FEATURE_DIM)
 
 
+def dequantize_frame(frame: np.ndarray, side: int, ranges: torch.Tensor,
+                     out: torch.Tensor | None = None) -> torch.Tensor:
+    """One decoded (4S, 4S) uint16 12-bit frame -> (S², 16) float32 features (untile + dequantise), written
+    into `out` when given. numpy on the calling thread only: the player runs this in its decoder thread
+    beside the renderer, where torch's intra-op thread pool would compete for the renderer's cores."""
+    if frame.dtype != np.uint16 or frame.shape != (TILES * side, TILES * side):
+        raise ValueError(f"a feature frame must be ({TILES * side}, {TILES * side}) uint16, "
+                         f"got {frame.shape} {frame.dtype}")
+    out = torch.empty(side * side, FEATURE_DIM) if out is None else out
+    if out.shape != (side * side, FEATURE_DIM) or out.dtype != torch.float32 or not out.is_contiguous():
+        raise ValueError(f"dequantize_frame writes into a contiguous float32 ({side * side}, {FEATURE_DIM}) tensor")
+    r = ranges.detach().to(torch.float32).numpy()
+    lo, step = r[0], (r[1] - r[0]) / np.float32(VIDEO_MAX)
+    codes = frame.reshape(TILES, side, TILES, side).transpose(1, 3, 0, 2)  # (y, x, tile_row, tile_col)
+    grid = out.numpy().reshape(side, side, TILES, TILES)
+    np.multiply(codes, step.reshape(TILES, TILES), out=grid)
+    np.add(grid, lo.reshape(TILES, TILES), out=grid)
+    return out
+
+
 def features_from_frames(frames: np.ndarray, side: int, ranges: torch.Tensor) -> torch.Tensor:
-    """Decoded (E, 4S, 4S) uint16 12-bit frames -> (E, S², 16) float32 features (untile + dequantise)."""
+    """Decoded (E, 4S, 4S) uint16 12-bit frames -> (E, S², 16) float32 features (dequantize_frame each)."""
     if frames.dtype != np.uint16 or frames.ndim != 3 or frames.shape[1:] != (TILES * side, TILES * side):
         raise ValueError(f"feature frames must be (E, {TILES * side}, {TILES * side}) uint16, "
                          f"got {frames.shape} {frames.dtype}")
-    # 12-bit codes fit int16, which halves the memory traffic of the untiling copy.
-    return dequantize_features(untile_frames(torch.from_numpy(frames.view(np.int16)), side), ranges)
+    out = torch.empty(frames.shape[0], side * side, FEATURE_DIM)
+    for frame, features in zip(frames, out, strict=True):
+        dequantize_frame(frame, side, ranges, features)
+    return out

@@ -58,20 +58,20 @@ class Keyframe:
     feature_ranges: torch.Tensor
     """(2, 16) range of the feature codes."""
 
-    def to_model(self, features: torch.Tensor) -> GOPModel:
+    def to_model(self, features: torch.Tensor | None) -> GOPModel:
         """The GOP model with these canonical attributes and the given (E, N, 16) features (used as they
-        are, not copied, when already float32 and contiguous)."""
-        if features.shape != (self.shape.num_features, self.shape.capacity, FEATURE_DIM):
-            raise ValueError(f"features must be {(self.shape.num_features, self.shape.capacity, FEATURE_DIM)}, "
-                             f"got {tuple(features.shape)}")
-        # Every tensor is overwritten below, so allocate without initialising: the features alone are
-        # E·N·16 floats (260 MB at N = 65,536), and filling them first cost the player's pre-decode time.
-        with torch.device("meta"):
-            model = GOPModel(self.shape)
-        model.to_empty(device="cpu")
+        are, not copied, when already float32 and contiguous); None: a model that holds no features, for a
+        GOP whose features stream frame by frame (GOPModel.feature_window)."""
+        expected = (self.shape.num_features, self.shape.capacity, FEATURE_DIM)
+        if features is not None and features.shape != expected:
+            raise ValueError(f"features must be {expected}, got {tuple(features.shape)}")
+        # Without features: they alone are E·N·16 floats (260 MB at N = 65,536), and filling them first cost
+        # the player's pre-decode time. (Not torch's meta device: its first use costs half a second.)
+        model = GOPModel(self.shape, features=False)
         model.field.load_state_dict(self.field)
         apply_attributes(model, self.attributes)
-        model.features.data = features.to(torch.float32).contiguous()
+        if features is not None:
+            model.features.data = features.to(torch.float32).contiguous()
         return model
 
 

@@ -127,7 +127,9 @@ class DeformationField(nn.Module):
 class GOPModel(nn.Module):
     """Canonical Gaussians + temporal features + deformation field of one GOP."""
 
-    def __init__(self, shape: GOPShape):
+    def __init__(self, shape: GOPShape, features: bool = True):
+        """features=False: the model holds no temporal features (an empty (0, N, 16) tensor), for a caller that
+        sets them itself or streams them frame by frame (feature_window)."""
         super().__init__()
         self.shape = shape
         n = shape.capacity
@@ -136,11 +138,28 @@ class GOPModel(nn.Module):
         self.rotation = nn.Parameter(torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(n, 1))
         self.opacity_logit = nn.Parameter(torch.full((n,), -10.0))
         self.color = nn.Parameter(torch.zeros(n, 3))
-        self.features = nn.Parameter(torch.zeros(shape.num_features, n, FEATURE_DIM))
+        self.features = nn.Parameter(torch.zeros(shape.num_features if features else 0, n, FEATURE_DIM))
         self.field = DeformationField(shape.window, shape.pe_freqs)
 
-    def window_features(self, frame: int) -> torch.Tensor:
-        """(N, W·16) concatenation of e_frame … e_{frame+W-1}."""
+    def feature_window(self, frame: int, window: list[torch.Tensor] | None = None) -> list[torch.Tensor]:
+        """The W feature frames e_frame … e_{frame+W-1}, (N, 16) float32 contiguous each: `window` checked, or
+        slices of self.features when None."""
+        self.check_frame(frame)
+        w, n = self.shape.window, self.shape.capacity
+        if window is None:
+            if self.features.shape[0] != self.shape.num_features:
+                raise ValueError("this GOP model holds no features (streamed): pass the frame's feature window")
+            feats = self.features.detach().to(torch.float32).contiguous()
+            return [feats[frame + j] for j in range(w)]
+        if len(window) != w or any(f.shape != (n, FEATURE_DIM) or f.dtype != torch.float32
+                                   or not f.is_contiguous() for f in window):
+            raise ValueError(f"a feature window is {w} contiguous float32 ({n}, {FEATURE_DIM}) frames")
+        return window
+
+    def window_features(self, frame: int, window: list[torch.Tensor] | None = None) -> torch.Tensor:
+        """(N, W·16) concatenation of e_frame … e_{frame+W-1} (from `window` when given, see feature_window)."""
+        if window is not None:
+            return torch.cat(self.feature_window(frame, window), dim=1)
         self.check_frame(frame)
         w = self.shape.window
         return self.features[frame:frame + w].permute(1, 0, 2).reshape(self.shape.capacity, -1)
@@ -154,10 +173,11 @@ class GOPModel(nn.Module):
         return Gaussians(self.xyz, self.rotation, torch.exp(self.log_scale),
                          torch.sigmoid(self.opacity_logit), torch.relu(self.color))
 
-    def deform(self, frame: int, camera_center: torch.Tensor) -> Gaussians:
-        """The Gaussians of GOP frame `frame` as seen from `camera_center` (pure torch)."""
+    def deform(self, frame: int, camera_center: torch.Tensor, window: list[torch.Tensor] | None = None) -> Gaussians:
+        """The Gaussians of GOP frame `frame` as seen from `camera_center` (pure torch); `window` as in
+        feature_window."""
         t = frame_time(frame, self.shape.gop_size)
-        return self.apply_offsets(self.field(self.window_features(frame), t, self.xyz, camera_center))
+        return self.apply_offsets(self.field(self.window_features(frame, window), t, self.xyz, camera_center))
 
     def apply_offsets(self, offsets: tuple[torch.Tensor, ...]) -> Gaussians:
         """Canonical Gaussians + the field's offsets (ΔX, ΔS, ΔQ, ΔO, ΔC), activated (DESIGN.md)."""

@@ -21,7 +21,7 @@ from stgs.model.gop import (
     frame_time,
     positional_encoding,
 )
-from stgs.native.abi import ptr
+from stgs.native.abi import ffi, ptr
 from stgs.native.build import NativeUnavailableError, available, load
 
 PRECISIONS = ("fp32", "bf16")
@@ -105,8 +105,12 @@ class PackedWeights:
 def deform_native(model: GOPModel, frame: int, camera_center: torch.Tensor,
                   weights: PackedWeights | None = None, viewmat: torch.Tensor | None = None,
                   K: torch.Tensor | None = None, width: int = 0, height: int = 0,
-                  precision: str = "fp32", guard: tuple[float, float, float] | None = None) -> Gaussians:
+                  precision: str = "fp32", guard: tuple[float, float, float] | None = None,
+                  window: list[torch.Tensor] | None = None) -> Gaussians:
     """GOPModel.deform in C++ (no autograd), in float32 or bf16 (`precision`, see PRECISIONS).
+
+    `window`: the frame's W feature frames e_i ... e_{i+W-1}, (N, 16) each, where the model does not hold
+    its features (a GOP streamed frame by frame, stgs.codec.stream); None reads them from model.features.
 
     With viewmat/K/width/height, Gaussians that cannot put alpha >= 1/255 on
     the image get opacity 0 (the splatter would skip them anyway), and so do
@@ -120,7 +124,7 @@ def deform_native(model: GOPModel, frame: int, camera_center: torch.Tensor,
                          f"{MAX_BF16_WINDOW if precision == 'bf16' else MAX_WINDOW}")
     weights = weights or PackedWeights(model)
     n = model.shape.capacity
-    feats = _c(model.features)
+    frames = model.feature_window(frame, window)
     canon = [_c(t) for t in (model.xyz, model.log_scale, model.rotation, model.opacity_logit,
                              model.color)]
     center = _c(camera_center.reshape(3))
@@ -135,7 +139,8 @@ def deform_native(model: GOPModel, frame: int, camera_center: torch.Tensor,
             limits = torch.tensor(guard, dtype=torch.float64)
     outputs = [ptr(out.means), ptr(out.quats), ptr(out.scales), ptr(out.opacities), ptr(out.colors), ptr(limits),
                torch.get_num_threads()]
-    inputs = [n, model.shape.window, frame, ptr(feats), *(ptr(t) for t in canon)]
+    window_ptrs = ffi().new("float *[]", [ptr(f) for f in frames])
+    inputs = [n, model.shape.window, window_ptrs, *(ptr(t) for t in canon)]
     camera = [ptr(center), ptr(view), ptr(intr), width, height]
     lib = load()
     if precision == "fp32":

@@ -94,23 +94,24 @@ class FrameRenderer:
             raise ValueError(f"deform precision {precision!r} needs the native build")
 
     @torch.no_grad()
-    def gaussians(self, frame: int, camera: Camera) -> Gaussians:
+    def gaussians(self, frame: int, camera: Camera, window: list[torch.Tensor] | None = None) -> Gaussians:
         """The static layer's Gaussians (if any) followed by the deformed dynamic ones of `frame`, seen from
-        `camera`; when native, those off its view or outside its guard band have opacity 0 (`guarded`)."""
-        dynamic = self.dynamic_gaussians(frame, camera)
+        `camera`; when native, those off its view or outside its guard band have opacity 0 (`guarded`).
+        `window`: the frame's feature frames where the model does not hold them (GOPModel.feature_window)."""
+        dynamic = self.dynamic_gaussians(frame, camera, window)
         static = self.static_gaussians(camera)
         return dynamic if static is None else merge(static, dynamic)
 
     @torch.no_grad()
-    def dynamic_gaussians(self, frame: int, camera: Camera) -> Gaussians:
+    def dynamic_gaussians(self, frame: int, camera: Camera, window: list[torch.Tensor] | None = None) -> Gaussians:
         """The GOP's deformed Gaussians of `frame` (guarded when native)."""
         if not self.native:
-            return self.model.deform(frame, camera.center.float())
+            return self.model.deform(frame, camera.center.float(), window)
         from stgs.model.native_deform import deform_native
 
         return deform_native(self.model, frame, camera.center.float(), self._weights,
                              camera.viewmat, camera.K, camera.width, camera.height, self.precision,
-                             guard=guard_limits(camera))
+                             guard=guard_limits(camera), window=window)
 
     def static_gaussians(self, camera: Camera) -> Gaussians | None:
         """The static layer as `camera` draws it (always guarded), reused while the camera does not move."""
@@ -127,9 +128,10 @@ class FrameRenderer:
         return self.native
 
     @torch.no_grad()
-    def render(self, frame: int, camera: Camera, background: torch.Tensor | None = None) -> torch.Tensor:
+    def render(self, frame: int, camera: Camera, background: torch.Tensor | None = None,
+               window: list[torch.Tensor] | None = None) -> torch.Tensor:
         """(H, W, 3) float32 image of `frame` from `camera`."""
-        return self.splat(self.gaussians(frame, camera), camera, background, guarded=self.guarded)
+        return self.splat(self.gaussians(frame, camera, window), camera, background, guarded=self.guarded)
 
     @torch.no_grad()
     def splat(self, g: Gaussians, camera: Camera, background: torch.Tensor | None = None,

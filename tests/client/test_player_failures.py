@@ -13,22 +13,23 @@ import pytest
 
 from stgs.client import PlaybackError, PlayConfig, play, player
 from stgs.client.view import ViewSpec
+from stgs.codec import stream
 from tests.client.conftest import QUICK, copy_tree, segment, serving
 
 SMALL = ViewSpec(width=32, height=24)
 
 
 async def test_a_defect_in_the_decoder_ends_the_playback_with_its_traceback_logged(scene, tmp_path, monkeypatch):
-    def broken(self, item, kf):
-        raise TypeError("unsupported operand")  # stands in for any defect in a worker thread
+    def broken(frame, side, ranges, out=None):
+        raise TypeError("unsupported operand")  # stands in for any defect in the decoder thread
 
-    monkeypatch.setattr(player.Session, "decode_features", broken)
+    monkeypatch.setattr(stream, "dequantize_frame", broken)
     async with serving(scene / "dash") as url:
         with pytest.raises(player.InternalError, match="unexpectedly: TypeError: unsupported operand"):
             await asyncio.wait_for(play(PlayConfig(url, qp=32, download=QUICK, view=SMALL,
                                                    log=tmp_path / "log.json")), timeout=30)
     log = json.loads((tmp_path / "log.json").read_text())
-    assert "TypeError" in log["error"] and "decode_features" in log["error_detail"]
+    assert "TypeError" in log["error"] and "broken" in log["error_detail"]
     assert log["gops_played"] == 0
 
 
@@ -73,6 +74,8 @@ def test_decoding_more_than_the_machine_holds_is_refused_before_fetching():
 
 
 async def test_a_scene_at_the_caps_is_refused_by_memory_not_a_crash(scene, tmp_path):
+    """At the caps (4,194,304 Gaussians) a streamed GOP needs ~4 GiB; a ring of 512 feature frames of 256 MiB
+    each is more than any machine here holds."""
     root = copy_tree(scene, tmp_path)
     mpd = root / "manifest.mpd"
     text = mpd.read_text()
@@ -82,4 +85,4 @@ async def test_a_scene_at_the_caps_is_refused_by_memory_not_a_crash(scene, tmp_p
     mpd.write_text(text)
     async with serving(root) as url:
         with pytest.raises(PlaybackError, match=r"decoding needs .* GiB"):
-            await asyncio.wait_for(play(PlayConfig(url, download=QUICK, view=SMALL)), timeout=30)
+            await asyncio.wait_for(play(PlayConfig(url, download=QUICK, view=SMALL, ring_frames=512)), timeout=30)

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import time
 from pathlib import Path
 
 import pytest
 
 from stgs.client.manifest import Presentation
 from stgs.errors import StgsError
+from stgs.harness.decode import DecoderModel
 from stgs.harness.ladder import Ladder, load_ladder
 from stgs.harness.network import Network
 from stgs.harness.report import metrics, sabre_manifest, timeline
@@ -174,6 +176,10 @@ def test_sabre_export():
     ('scene = "x"\nabr = ["magic"]\n', "'abr' must list rules"),
     ('scene = "x"\n[effects]\nloss = 1.5\n', "'loss' must be below 1"),
     ('scene = \n', "cannot read scenario"),
+    ('scene = "x"\n[decode]\nframe_ms = -1\n', "decode 'frame_ms' (or a table by Representation id) must be"),
+    ('scene = "x"\n[decode]\nframe_ms = { qp16 = "fast" }\n', "decode 'frame_ms.qp16' must be a number"),
+    ('scene = "x"\n[decode]\nring_frames = 0\n', "'ring_frames' must be an integer >= 1"),
+    ('scene = "x"\n[decode]\nthreads = 2\n', "unknown decode key(s) ['threads']"),
 ])
 def test_bad_scenarios_are_one_line(tmp_path, body, message):
     (tmp_path / "bad.log").write_text("0 1 2\n")
@@ -225,6 +231,51 @@ def test_simulation_and_emulation_agree(packed):
         s, e = sim["stalls"]["total_s"], emu["stalls"]["total_s"]
         assert sim["stalls"]["count"] == emu["stalls"]["count"]
         assert abs(s - e) <= max(0.1 * s, 0.05), (effects, s, e)
+
+
+def test_the_per_frame_decode_model_agrees_with_emulation_when_decoding_is_the_bottleneck(packed, monkeypatch):
+    """Each feature frame takes 250 ms to decode against a 167 ms frame interval: the real player falls behind
+    within every GOP (dropped frames) and at every boundary (stalls); the simulator's model of the same
+    pipeline must predict the stall time within 10 %."""
+    from stgs.codec import stream
+    from stgs.harness.emulate import emulate
+
+    cost_s = 0.25
+    real = stream.iter_frames
+
+    def slow(*args, **kwargs):
+        for frame in real(*args, **kwargs):
+            time.sleep(cost_s)  # a decoder this much slower than the machine's
+            yield frame
+
+    monkeypatch.setattr(stream, "iter_frames", slow)
+    ladder = load_ladder(str(packed))
+    _, top = rates(ladder)
+    sc = scenario_from_dict({"scene": str(packed), "abr": ["throughput"], "qp": 32,
+                             "effects": {"bandwidth": {"kbps": 20 * top}},
+                             "decode": {"frame_ms": cost_s * 1e3, "ring_frames": 4}}, "decode-bound", Path("."))
+    sim = simulate(ladder, sc, "throughput")
+    emu = emulate(sc, "throughput", decode=True)
+    s, e = sim["stalls"]["total_s"], emu["stalls"]["total_s"]
+    assert s > 1.0 and sim["stalls"]["count"] == emu["stalls"]["count"] == SCENE.num_gops - 1
+    assert abs(s - e) <= 0.1 * s, (s, e)
+    assert sim["dropped_frames"] > 0 and abs(sim["dropped_frames"] - emu["dropped_frames"]) <= 2
+
+
+def test_the_decode_model_by_hand():
+    """G = 6 frames at 6 fps, W = 3, ring 4, 0.25 s per feature frame, everything downloaded at 0."""
+    model = DecoderModel(ring=4, window=3, gop_size=6, fps=6.0)
+    plan = model.plan(downloaded=0.0, slot=0.0, keyframe_s=0.1, frame_s=0.25)
+    assert plan.ready == pytest.approx(0.1 + 3 * 0.25)  # keyframe, then the first window
+    drops = model.start(plan, plan.ready)
+    # feature frame j is decoded at 0.1 + 0.25 (j + 1) (the ring never fills: frames are released in time);
+    # frame m (window m..m+2) is drawn if 0.1 + 0.25 (m + 3) < 0.85 + (m + 1) / 6: m = 0, 1 only
+    assert drops == 4
+    # the GOP ends at 1.85, when frame 6 is decoded: frame 7 is never decoded
+    assert model.features_free == pytest.approx(1.85)
+    nxt = model.plan(downloaded=0.0, slot=0.0, keyframe_s=0.1, frame_s=0.25)
+    assert nxt.keyframe_done == pytest.approx(0.95)  # after GOP 0 was ready
+    assert nxt.features_start == pytest.approx(1.85) and nxt.ready == pytest.approx(2.6)
 
 
 def test_scaled_time_emulation_agrees_too(packed):

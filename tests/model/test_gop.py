@@ -16,7 +16,7 @@ from stgs.model.native_deform import (
     deform_native,
 )
 from stgs.model.view import FrameRenderer, in_guard_band, splat
-from stgs.native.build import NativeUnavailableError
+from stgs.native.build import NativeUnavailableError, available
 
 
 def random_model(n=300, gop_size=10, window=3, seed=0) -> GOPModel:
@@ -195,3 +195,38 @@ def test_precision_errors_are_clear():
     if not bf16_available():
         with pytest.raises(NativeUnavailableError, match="AMX"):
             check_precision("bf16")
+
+
+@pytest.mark.parametrize("native", [False, True])
+def test_a_model_without_features_deforms_from_a_given_window_exactly(native):
+    """The player's streamed GOPs hold no features: the frame's window of feature frames, passed in, gives the
+    same Gaussians, bit for bit, as the model that holds them all."""
+    if native and not available():
+        pytest.skip("native build unavailable")
+    model = random_model(n=300, gop_size=10, window=3)
+    bare = GOPModel(model.shape, features=False)
+    bare.load_state_dict({k: v for k, v in model.state_dict().items() if k != "features"}, strict=False)
+    assert bare.features.shape == (0, 300, FEATURE_DIM)
+    center = torch.tensor([0.3, -0.2, 2.0])
+    for frame in (0, 4, 9):
+        window = [model.features.detach()[frame + j].clone() for j in range(3)]
+        if native:
+            whole, streamed = deform_native(model, frame, center), deform_native(bare, frame, center, window=window)
+        else:
+            with torch.no_grad():
+                whole, streamed = model.deform(frame, center), bare.deform(frame, center, window)
+        for name in ("means", "quats", "scales", "opacities", "colors"):
+            assert torch.equal(getattr(whole, name), getattr(streamed, name)), (frame, name)
+
+
+def test_a_missing_or_malformed_window_is_a_clear_error():
+    model = random_model(n=30, gop_size=4, window=2)
+    bare = GOPModel(model.shape, features=False)
+    with pytest.raises(ValueError, match="holds no features"):
+        bare.feature_window(0)
+    with pytest.raises(ValueError, match=r"2 contiguous float32 \(30, 16\) frames"):
+        bare.feature_window(0, [torch.zeros(30, 16)])
+    with pytest.raises(ValueError, match=r"2 contiguous float32 \(30, 16\) frames"):
+        bare.feature_window(0, [torch.zeros(30, 16), torch.zeros(30, 16, dtype=torch.float64)])
+    with pytest.raises(ValueError, match="outside the GOP"):
+        bare.feature_window(4, [torch.zeros(30, 16)] * 2)

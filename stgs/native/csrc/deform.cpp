@@ -94,7 +94,7 @@ extern "C" {
 // weight packing). If viewmat is non-null, Gaussians that cannot reach the
 // image (or, with guard non-null, lie outside the guard band) get opacity 0
 // and skip the view-dependent decoders.
-void stgs_deform(int64_t n, int window, int frame, const float* feats, const float* xyz,
+void stgs_deform(int64_t n, int window, const float* const* window_feats, const float* xyz,
                  const float* log_scale, const float* rotation, const float* opacity_logit,
                  const float* color, const float* temporal_t, const float* pe_bias,
                  const float* geo1_t, const float* geo2_t, const float* app1_t,
@@ -116,7 +116,7 @@ void stgs_deform(int64_t n, int window, int frame, const float* feats, const flo
     alignas(64) float out2[kBlock * kOut];
     for (int b = 0; b < rows; ++b)
       for (int w = 0; w < window; ++w)
-        std::memcpy(&xin[b * in_t + w * kFeat], feats + ((frame + w) * n + first + b) * kFeat,
+        std::memcpy(&xin[b * in_t + w * kFeat], window_feats[w] + (first + b) * kFeat,
                     kFeat * sizeof(float));
     matmul_rows<kHidden>(xin, rows, in_t, in_t, temporal_t, h);
     for (int b = 0; b < rows; ++b) {

@@ -138,7 +138,7 @@ int stgs_deform_bf16_available() {
 // five weights are AMX tiles (temporal: t_chunks K chunks x 4 column tiles;
 // geo1/app1: 2/3 chunks x 8; geo2/app2: 4 chunks x 1). Returns 0, or -1 when
 // AMX is not available (nothing is written then).
-int stgs_deform_bf16(int64_t n, int window, int frame, const float* feats, const float* xyz,
+int stgs_deform_bf16(int64_t n, int window, const float* const* window_feats, const float* xyz,
                      const float* log_scale, const float* rotation, const float* opacity_logit,
                      const float* color, const void* temporal_w, int t_chunks, const float* pe_bias,
                      const void* geo1_w, const void* geo2_w, const void* app1_w, const void* app2_w,
@@ -173,7 +173,7 @@ int stgs_deform_bf16(int64_t n, int window, int frame, const float* feats, const
       const int rows = int(std::min<int64_t>(kRows, n - first));
       for (int b = 0; b < rows; ++b)
         for (int w = 0; w < window; ++w)
-          store_bf16(&a_t[b * lt + w * kFeat], _mm512_loadu_ps(feats + ((frame + w) * n + first + b) * kFeat));
+          store_bf16(&a_t[b * lt + w * kFeat], _mm512_loadu_ps(window_feats[w] + (first + b) * kFeat));
       matmul_16x64(a_t, lt, t_chunks, w_t, 4, 0, c, kHidden);
       for (int b = 0; b < kRows; ++b)
         for (int m = 0; m < kHidden; m += 16)
@@ -214,7 +214,7 @@ int stgs_deform_bf16(int64_t n, int window, int frame, const float* feats, const
   }
   return 0;
 #else
-  (void)n, (void)window, (void)frame, (void)feats, (void)xyz, (void)log_scale, (void)rotation;
+  (void)n, (void)window, (void)window_feats, (void)xyz, (void)log_scale, (void)rotation;
   (void)opacity_logit, (void)color, (void)temporal_w, (void)t_chunks, (void)pe_bias, (void)geo1_w;
   (void)geo2_w, (void)app1_w, (void)app2_w, (void)camera_center, (void)viewmat, (void)K, (void)width;
   (void)height, (void)out_means, (void)out_quats, (void)out_scales, (void)out_opac, (void)out_colors;

@@ -60,9 +60,10 @@ void stgs_raster_free(void* handle);
 // --- deformation (deform.cpp, deform_amx.cpp) ---
 
 // The deformation field of one frame in float32 for n Gaussians (DESIGN.md; weights packed
-// by stgs/model/native_deform.py). With viewmat, Gaussians that cannot reach the image (or,
-// with guard, lie outside the guard band) get opacity 0.
-void stgs_deform(int64_t n, int window, int frame, const float* feats, const float* xyz,
+// by stgs/model/native_deform.py). window_feats holds `window` pointers, to the frame's
+// features e_i ... e_{i+W-1} (n x 16 floats each). With viewmat, Gaussians that cannot
+// reach the image (or, with guard, lie outside the guard band) get opacity 0.
+void stgs_deform(int64_t n, int window, const float* const* window_feats, const float* xyz,
                  const float* log_scale, const float* rotation, const float* opacity_logit,
                  const float* color, const float* temporal_t, const float* pe_bias,
                  const float* geo1_t, const float* geo2_t, const float* app1_t,
@@ -75,7 +76,7 @@ void stgs_deform(int64_t n, int window, int frame, const float* feats, const flo
 int stgs_deform_bf16_available(void);
 
 // stgs_deform in bf16 with AMX tile weights; 0, or -1 when AMX is unavailable.
-int stgs_deform_bf16(int64_t n, int window, int frame, const float* feats, const float* xyz,
+int stgs_deform_bf16(int64_t n, int window, const float* const* window_feats, const float* xyz,
                      const float* log_scale, const float* rotation, const float* opacity_logit,
                      const float* color, const void* temporal_w, int t_chunks, const float* pe_bias,
                      const void* geo1_w, const void* geo2_w, const void* app1_w, const void* app2_w,

@@ -1,0 +1,128 @@
+"""Turning a downloaded GOP into a playable one: keyframe decoded whole, features streamed frame by frame.
+
+A GOP is ready to play when its keyframe (five JPEG XL images) is decoded and the first window of its
+feature video (stgs.codec.stream) is in the ring; the rest of the feature video decodes while the GOP
+plays. A keyframe that does not decode is downloaded once more; a feature segment that does not decode,
+at the start or in the middle of the GOP, is replaced by the lowest rung's (the fetch schedule decides
+both), resuming at the frame the renderer needs.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+
+from stgs.client.config import PlaybackError, PlayConfig
+from stgs.client.fetchsteps import Fetched, Step
+from stgs.client.manifest import Presentation
+from stgs.client.playlog import GOPRecord
+from stgs.client.schedule import FetchSchedule
+from stgs.client.threads import ThreadBudget
+from stgs.codec.keyframe import Keyframe, KeyframeError, decode_keyframe
+from stgs.codec.stream import FeatureStream
+from stgs.model.view import FrameRenderer
+
+
+@dataclass
+class ReadyGOP:
+    """A GOP the player can render: its model (no features) and the stream that feeds them."""
+
+    index: int
+    renderer: FrameRenderer | None
+    """None when the player does not decode (PlayConfig.decode False)."""
+    features: FeatureStream | None = None
+    item: Fetched | None = None
+    keyframe: Keyframe | None = None
+
+    def finish(self, rec: GOPRecord, epoch: float) -> None:
+        """Stop the GOP's feature stream and record its per-frame decode times (`epoch`: the perf_counter()
+        playback began at)."""
+        if self.features is not None:
+            self.features.close()
+            rec.decode_at_s += [t - epoch for t in self.features.decode_at]
+            rec.decode_ms += self.features.decode_ms
+            rec.dequantise_ms += self.features.dequantise_ms
+            rec.feature_decode_s = sum(rec.decode_ms) / 1e3
+            rec.dequantise_s = sum(rec.dequantise_ms) / 1e3
+            rec.ring_peak = max(rec.ring_peak, self.features.peak_held)
+
+
+class GOPDecoder:
+    """Decodes the GOPs of one playback in order (one feature decoder thread at a time)."""
+
+    def __init__(self, cfg: PlayConfig, pres: Presentation, schedule: FetchSchedule,
+                 records: dict[int, GOPRecord], budget: ThreadBudget, drive: Callable[[Step], Awaitable[Fetched]]):
+        self.cfg, self.pres, self.schedule, self.records, self.budget = cfg, pres, schedule, records, budget
+        self.drive = drive
+        self.epoch = time.perf_counter()
+        """Where the log's timelines start (the session sets it when playback begins)."""
+        self.window = pres.shape.window
+        self.last: FeatureStream | None = None
+        self.streams: list[FeatureStream] = []
+
+    def close(self) -> None:
+        """Stop every feature stream (the end of a playback, or its failure)."""
+        for stream in self.streams:
+            stream.close()
+
+    def decode_keyframe(self, item: Fetched) -> Keyframe:
+        start = time.perf_counter()
+        kf = decode_keyframe(item.keyframe, self.pres.shape, item.index, self.pres.max_keyframe_bytes())
+        self.records[item.index].keyframe_decode_s = time.perf_counter() - start
+        return kf
+
+    def open_stream(self, item: Fetched, kf: Keyframe, first: int, after: FeatureStream | None) -> FeatureStream:
+        self.pres.check_feature_segment(item.init, item.media, item.index)
+        stream = FeatureStream(item.init + item.media, self.pres.shape.num_features, self.pres.grid_side,
+                               kf.feature_ranges, self.cfg.ring_frames, self.budget.decode, first,
+                               name=f"GOP {item.index} features")
+        self.streams.append(stream)
+        return stream.start(after)
+
+    async def first_window(self, stream: FeatureStream, first: int) -> None:
+        await asyncio.to_thread(stream.window, first, self.window)
+
+    async def decode(self, item: Fetched) -> ReadyGOP:
+        """GOP `item.index` ready to play (its keyframe decoded, its first feature window in the ring)."""
+        k, rec = item.index, self.records[item.index]
+        if not self.cfg.decode:
+            return ReadyGOP(k, None)
+        try:
+            kf = await asyncio.to_thread(self.decode_keyframe, item)
+        except KeyframeError as exc:
+            item.keyframe = (await self.drive(self.schedule.refetch_keyframe(k, rec, str(exc)))).keyframe
+            try:
+                kf = await asyncio.to_thread(self.decode_keyframe, item)
+            except KeyframeError as again:
+                raise PlaybackError(f"keyframe segment of GOP {k}: {again}") from None
+        renderer = await asyncio.to_thread(FrameRenderer, kf.to_model(None), self.cfg.native, self.cfg.precision)
+        try:
+            stream = self.open_stream(item, kf, 0, self.last)
+            self.last = stream
+            await self.first_window(stream, 0)
+        except ValueError as exc:
+            stream = await self.fall_back(item, kf, 0, str(exc))
+        return ReadyGOP(k, renderer, stream, item, kf)
+
+    async def fall_back(self, item: Fetched, kf: Keyframe, first: int, reason: str) -> FeatureStream:
+        """A stream of the lowest rung's segment of GOP `item.index` from frame `first`, after the current
+        rung's did not decode (PlaybackError if that was the lowest, or the lowest does not decode)."""
+        k, rec = item.index, self.records[item.index]
+        lowest = await self.drive(self.schedule.fallback(k, rec, item.rung, reason))
+        if first:
+            rec.events.append(f"the fallback resumes at frame {first} of the GOP")
+        item.rung, item.init, item.media = lowest.rung, lowest.init, lowest.media
+        try:
+            stream = self.open_stream(item, kf, first, None)
+            self.last = stream
+            await self.first_window(stream, first)
+        except ValueError as exc:
+            raise PlaybackError(f"feature segment of GOP {k}: {exc}") from None
+        return stream
+
+    async def recover(self, ready: ReadyGOP, frame: int, reason: str) -> None:
+        """Replace a GOP's feature stream that broke at `frame` by the lowest rung's."""
+        ready.finish(self.records[ready.index], self.epoch)
+        ready.features = await self.fall_back(ready.item, ready.keyframe, frame, reason)

@@ -1,0 +1,148 @@
+"""The player's decoder on the simulator's virtual clock: keyframes whole, features frame by frame into a ring.
+
+Mirrors stgs.client.gopdecode and stgs.codec.stream, real-time playback with instantaneous rendering:
+
+- GOP k's keyframe decodes once it is downloaded and a decode slot is free (at most two GOPs decoded at
+  once) and the previous GOP is ready, in `keyframe_s`;
+- its feature frames decode one after another, `frame_s` each, starting once the keyframe is decoded and
+  GOP k-1's feature decoding has ended; feature frame j waits for room in the ring of `ring` frames, i.e.
+  for frame j - ring to be released; decoding ends after the last frame, or when the GOP's playback ends
+  (the player closes its stream: the frame being decoded finishes, the rest is never decoded);
+- GOP k is ready when its first window (W frames) is decoded: it starts at max(its due time, ready);
+- frame m of the GOP is drawn in its slot [start + m/fps, start + (m+1)/fps) if its window (frames m …
+  m+W-1) is decoded before the slot ends, released when drawn; otherwise it is dropped and released at the
+  slot's end.
+
+With frame_s = 0 a GOP is simply ready keyframe_s after it can be decoded.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from stgs.errors import StgsError
+
+DECODE_KEYS = ("keyframe_ms", "frame_ms", "ring_frames")
+
+
+@dataclass(frozen=True)
+class DecodeSpec:
+    """A scenario's [decode] table: what the simulated player's decoding costs (measure it with `stgs play
+    --log`: its per-GOP keyframe_decode_s and per-frame decode_ms + dequantise_ms)."""
+
+    keyframe_ms: float = 0.0
+    """Keyframe decode per GOP."""
+    frame_ms: float | dict[str, float] = 0.0
+    """Feature frame decode + dequantise: one value, or one per Representation id (decode cost follows the
+    bitrate)."""
+    ring_frames: int = 8
+    """The player's ring of feature frames (PlayConfig.ring_frames)."""
+
+    def frame_s(self, rep: str) -> float:
+        """Seconds per feature frame of Representation `rep`."""
+        if isinstance(self.frame_ms, dict):
+            if rep not in self.frame_ms:
+                raise StgsError(f"[decode] frame_ms gives no cost for Representation {rep!r} "
+                                f"(it lists {', '.join(sorted(self.frame_ms))})")
+            return self.frame_ms[rep] / 1e3
+        return self.frame_ms / 1e3
+
+
+def _milliseconds(value: object, what: str, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+        raise StgsError(f"{where}: {what} must be a number of milliseconds >= 0, got {value!r}")
+    return float(value)
+
+
+def parse_decode(doc: object, where: str) -> DecodeSpec:
+    if not isinstance(doc, dict):
+        raise StgsError(f"{where}: [decode] must be a table")
+    unknown = sorted(set(doc) - set(DECODE_KEYS))
+    if unknown:
+        raise StgsError(f"{where}: unknown decode key(s) {unknown}; known: {', '.join(DECODE_KEYS)}")
+    keyframe = _milliseconds(doc.get("keyframe_ms", 0.0), "decode 'keyframe_ms'", where)
+    frame = doc.get("frame_ms", 0.0)
+    if isinstance(frame, dict):
+        frame = {str(rep): _milliseconds(v, f"decode 'frame_ms.{rep}'", where) for rep, v in frame.items()}
+    else:
+        frame = _milliseconds(frame, "decode 'frame_ms' (or a table by Representation id)", where)
+    ring = doc.get("ring_frames", 8)
+    if isinstance(ring, bool) or not isinstance(ring, int) or ring < 1:
+        raise StgsError(f"{where}: decode 'ring_frames' must be an integer >= 1, got {ring!r}")
+    return DecodeSpec(keyframe, frame, ring)
+
+
+@dataclass(frozen=True)
+class GOPPlan:
+    """GOP k's decoding before it starts: when its keyframe and its first feature window are decoded."""
+
+    keyframe_done: float
+    features_start: float
+    frame_s: float
+    ready: float
+    """When its first window is decoded: the GOP may start."""
+
+
+@dataclass
+class DecoderModel:
+    ring: int
+    """Feature frames the ring holds (PlayConfig.ring_frames)."""
+    window: int
+    """W: feature frames one frame reads."""
+    gop_size: int
+    fps: float
+    keyframe_free: float = 0.0
+    """When the keyframe decoder is next free."""
+    features_free: float = 0.0
+    """When the previous GOP's last feature frame is decoded."""
+
+    @property
+    def features(self) -> int:
+        """E = G + W - 1 feature frames per GOP."""
+        return self.gop_size + self.window - 1
+
+    def plan(self, downloaded: float, slot: float, keyframe_s: float, frame_s: float) -> GOPPlan:
+        """The next GOP's decoding: downloaded at `downloaded`, a decode slot free at `slot`, its keyframe
+        costing `keyframe_s` and its feature frames `frame_s` each (nothing is committed until `start`)."""
+        keyframe_done = max(downloaded, slot, self.keyframe_free) + keyframe_s
+        first = max(keyframe_done, self.features_free)
+        return GOPPlan(keyframe_done, first, frame_s, first + self.window * frame_s)  # the first window fits
+
+    def start(self, plan: GOPPlan, start: float) -> int:
+        """The planned GOP plays from `start`; returns its dropped frames."""
+        period = 1.0 / self.fps
+        end = start + self.gop_size * period  # the player closes the GOP's stream here
+        decoded: list[float] = []
+        released: list[float] = []
+        t = plan.features_start
+        for j in range(self.features):
+            room = t if j < self.ring else max(t, self._release(j - self.ring, start, period, decoded, released))
+            if room >= end:  # closed while decoding the frame before (it finishes) or waiting for room
+                t = max(t, end)
+                break
+            t = room + plan.frame_s
+            decoded.append(t)
+        self.keyframe_free = plan.ready  # the player decodes the next keyframe once this GOP is ready
+        self.features_free = t
+        return sum(1 for m in range(self.gop_size) if not self._drawn(m, start, period, decoded))
+
+    def _drawn(self, m: int, start: float, period: float, decoded: list[float]) -> bool:
+        """Whether frame m's window is decoded before its slot ends."""
+        last = m + self.window - 1
+        return last < len(decoded) and decoded[last] < start + (m + 1) * period
+
+    def _release(self, m: int, start: float, period: float, decoded: list[float], released: list[float]) -> float:
+        """When feature frame m is released (computing the releases up to m in order): frame m's slot
+        ends, or its window is decoded within the slot and it is drawn; feature frames past the GOP's
+        last frame stay until the GOP ends."""
+        while len(released) <= m:
+            i = len(released)
+            if i >= self.gop_size:
+                released.append(start + self.gop_size * period)
+                continue
+            slot_start, slot_end = start + i * period, start + (i + 1) * period
+            # frame i's window is decoded already (i + W - 1 < j when the ring holds W)
+            drawn = self._drawn(i, start, period, decoded)
+            released.append(max(slot_start, decoded[i + self.window - 1]) if drawn else slot_end)
+        return released[m]

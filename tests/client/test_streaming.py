@@ -1,0 +1,119 @@
+"""Features streamed frame by frame through the player: the same pixels as the whole-GOP decode, exact drop
+accounting in real time, seeking, and a feature segment that breaks mid-GOP."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from stgs.client import PlayConfig, play, player
+from stgs.client.view import ViewSpec, parse_scene_cameras
+from stgs.codec.features import features_from_frames
+from stgs.codec.keyframe import decode_keyframe
+from stgs.codec.mp4 import set_timeline, split_fragmented
+from stgs.codec.video import VideoTiming, decode_segment, encode_gop
+from stgs.fsio import to_uint8
+from stgs.model.store import load_model
+from stgs.model.view import FrameRenderer
+from stgs.tree import CAMERAS
+from tests.client.conftest import QUICK, SCENE, copy_tree, segment, serving
+
+G = SCENE.gop_size
+CAM = ViewSpec(camera="cam00")
+
+
+def whole_gop_renderer(root, shape, qp: int, k: int) -> FrameRenderer:
+    """GOP k of the tree decoded the old way: every feature frame at once, then one model."""
+    kf_bytes = segment(root, f"v-*/keyframes/gop_{k:05d}.stgk").read_bytes()
+    kf = decode_keyframe(kf_bytes, shape, k, len(kf_bytes))
+    init = segment(root, f"v-*/features/qp{qp}/init.mp4").read_bytes()
+    media = segment(root, f"v-*/features/qp{qp}/seg_{k:05d}.m4s").read_bytes()
+    side = shape.grid_side
+    frames = decode_segment(init, media, shape.num_features, 4 * side, 4 * side)
+    return FrameRenderer(kf.to_model(features_from_frames(frames, side, kf.feature_ranges)))
+
+
+def assert_frames_equal_whole_decode(scene, root, frames_dir, qp: int, expected: list[int]) -> None:
+    meta, _ = load_model(scene / "model")
+    cameras = parse_scene_cameras(json.loads((root / CAMERAS).read_text()))
+    cam = next(c for c in cameras if c.name == "cam00")  # the camera the player draws from
+    pngs = sorted(frames_dir.glob("*.png"))
+    assert [int(p.stem) for p in pngs] == expected
+    renderers = {}
+    for png in pngs:
+        f = int(png.stem)
+        k = f // G
+        renderers.setdefault(k, whole_gop_renderer(root, meta.shape, qp, k))
+        local = to_uint8(renderers[k].render(f % G, cam).clamp(0, 1))
+        streamed = cv2.cvtColor(cv2.imread(str(png)), cv2.COLOR_BGR2RGB)
+        assert np.array_equal(streamed, local), f"frame {f} at QP {qp}"
+
+
+@pytest.mark.parametrize("qp", [16, 24, 32])
+async def test_streamed_frames_equal_the_whole_gop_decode_bit_for_bit(scene, tmp_path, qp):
+    async with serving(scene / "dash") as url:
+        log = await play(PlayConfig(url, qp=qp, view=CAM, out=tmp_path / "f", download=QUICK, ring_frames=3))
+    assert log["error"] is None and log["ring_frames"] == 3
+    assert_frames_equal_whole_decode(scene, scene / "dash", tmp_path / "f", qp, list(range(SCENE.num_gops * G)))
+    for gop in log["gops"]:
+        assert gop["ring_peak"] <= 3 and len(gop["decode_ms"]) == G + 2  # E = G + W - 1 frames, all decoded
+        assert len(gop["wait_ms"]) == len(gop["deform_ms"]) == len(gop["splat_ms"]) == G
+
+
+async def test_seeking_to_a_middle_gop_starts_with_its_first_frame(scene, tmp_path):
+    async with serving(scene / "dash") as url:
+        log = await play(PlayConfig(url, qp=24, start_s=1.5, view=CAM, out=tmp_path / "f", download=QUICK))
+    assert log["start_gop"] == 1 and [g["index"] for g in log["gops"]] == [1, 2]
+    assert_frames_equal_whole_decode(scene, scene / "dash", tmp_path / "f", 24, list(range(G, 3 * G)))
+
+
+async def test_a_slow_renderer_drops_frames_and_the_count_is_exact(scene, tmp_path, monkeypatch):
+    real = player.Session.render
+    interval = 1 / SCENE.fps
+
+    def slow(self, ready, i, camera, deadline):
+        frame = real(self, ready, i, camera, deadline)
+        time.sleep(1.6 * interval)  # every rendered frame overruns its slot
+        return frame
+
+    monkeypatch.setattr(player.Session, "render", slow)
+    async with serving(scene / "dash") as url:
+        log = await play(PlayConfig(url, qp=32, realtime=True, view=CAM, out=tmp_path / "f", download=QUICK,
+                                    ring_frames=3))
+    rendered = sorted(int(p.stem) for p in (tmp_path / "f").glob("*.png"))
+    frames = SCENE.num_gops * G
+    assert log["frames"] == frames and log["rendered_frames"] == len(rendered)
+    assert log["dropped_frames"] == frames - len(rendered)
+    assert frames / 4 <= log["dropped_frames"] <= frames * 3 / 4  # ~1 in 2.6 frames is dropped
+    for gop in log["gops"]:
+        assert gop["dropped"] + len(gop["render_ms"]) == G
+        assert len(gop["decode_ms"]) == G + 2  # dropped frames' features were consumed too
+    assert rendered[0] == 0  # the first frame of a GOP always has its slot
+
+
+def shortened(media: bytes, init: bytes, shape, fps: float, k: int, qp: int, keep: int) -> bytes:
+    """GOP k's feature segment re-encoded with only its first `keep` frames, at GOP k's place in the timeline."""
+    side = shape.grid_side
+    frames = decode_segment(init, media, shape.num_features, 4 * side, 4 * side)
+    timing = VideoTiming.for_gop(shape.num_features, shape.gop_size, fps)
+    _, short = split_fragmented(encode_gop(frames[:keep], qp, timing, "medium"))  # the packer's preset: its SPS
+    return set_timeline(short, k + 1, k * timing.segment_ticks(shape.num_features))
+
+
+async def test_a_feature_segment_that_ends_mid_gop_falls_back_from_that_frame(scene, tmp_path):
+    root = copy_tree(scene, tmp_path)
+    meta, _ = load_model(scene / "model")
+    seg = segment(root, "v-*/features/qp16/seg_00001.m4s")
+    init = segment(root, "v-*/features/qp16/init.mp4").read_bytes()
+    seg.write_bytes(shortened(seg.read_bytes(), init, meta.shape, SCENE.fps, 1, 16, keep=5))
+    async with serving(root) as url:
+        log = await play(PlayConfig(url, qp=16, view=CAM, out=tmp_path / "f", download=QUICK, ring_frames=3))
+    assert log["error"] is None and log["rendered_frames"] == SCENE.num_gops * G
+    events = log["gops"][1]["events"]
+    assert any("fallback from qp16" in e and "decodes to 5 frames" in e for e in events), events
+    assert any("resumes at frame 3" in e for e in events), events  # frames 3..5 are the first window past 5
+    assert [g["qp"] for g in log["gops"]] == [16, 32, 16]
