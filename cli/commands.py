@@ -523,7 +523,8 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
                    help="render: splatter and deform per backend and Gaussian count; "
                    "synth: fit fidelity vs fit iterations; pack: rate, distortion and codec time per "
                    "QP and x265 preset, PLAS vs no sort, PLAS time; serve: stgs serve vs nginx with wrk; "
-                   "play: the player's per-GOP download and pre-decode, per-frame deform and splat; "
+                   "play: real-time playback (bench/realtime.py: drops, stalls, per-frame decode, wait, deform "
+                   "and splat, start-up, seek, peak memory per QP); "
                    "sim: simulated vs emulated QoE and playbacks per second; abr: every ABR rule over trace "
                    "sets at 6 s and 25 s of buffer, and the ladder floor; train: held-out quality vs "
                    "training time of finished stgs train runs (--runs)")
@@ -541,8 +542,7 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--presets", default="ultrafast,veryfast,medium,slow",
                    help="pack: x265 presets (default: ultrafast,veryfast,medium,slow)")
     p.add_argument("--sides", default="128,256,384", help="pack: PLAS grid sides S (default: 128,256,384)")
-    p.add_argument("--scene", help="pack, play: synthetic scene preset to pack (default: demo for pack, "
-                   "large (65,536 Gaussians, 2-second GOPs) for play)")
+    p.add_argument("--scene", help="pack, play: synthetic scene preset to pack (default: demo)")
     p.add_argument("--dash", type=Path,
                    help="serve, play, sim, abr: a packaged scene (default: synthesise and pack one)")
     p.add_argument("--clients", default="1,16,64,256", help="serve: concurrent clients (default: 1,16,64,256)")
@@ -580,7 +580,7 @@ def run_bench(args: argparse.Namespace) -> int:
         raise UsageError(f"--dash {args.dash}: no {MANIFEST} there")
     if args.suite == "train" and not args.runs:
         raise UsageError("bench train needs --runs DIR[,DIR...] (model dirs of finished stgs train runs)")
-    suite = bench_suite(args.suite)
+    suite = bench_suite("realtime" if args.suite == "play" else args.suite)
     if args.suite == "train":
         return suite.main([Path(d) for d in args.runs.split(",") if d], args.plot or Path("docs/train_curves.png"))
     if args.suite in ("sim", "abr"):
@@ -589,11 +589,11 @@ def run_bench(args: argparse.Namespace) -> int:
         return suite.main(args.dash, _int_list(args.clients, "--clients"), args.seconds)
     from stgs.synth import PRESETS
 
-    scene = args.scene or ("large" if args.suite == "play" else "demo")
+    scene = args.scene or "demo"
     if scene not in PRESETS:
         raise UsageError(f"--scene must be one of {', '.join(sorted(PRESETS))}")
     if args.suite == "play":
-        return suite.main(args.dash, PRESETS[scene], _int_list(args.qps, "--qps"), args.width, args.height)
+        return suite.cli(args.dash, PRESETS[scene], _int_list(args.qps, "--qps"), args.width, args.height)
     if args.suite == "pack":
         from stgs.codec.video import PRESETS as X265_PRESETS
 

@@ -26,12 +26,14 @@ The module is over the usual size (~400 lines) because the Session's three tasks
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import gc
 import json
 import math
 import os
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -112,6 +114,19 @@ def physical_memory() -> int | None:
         return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     except (ValueError, OSError, AttributeError):
         return None
+
+
+@contextlib.contextmanager
+def frozen_heap() -> Iterator[None]:
+    """Playback with every object alive at its start (torch, the libraries, the scene's setup) moved out of
+    the garbage collector's reach: a full collection traversed them all in the middle of playback, once a
+    minute, and its 130 ms dropped four frames (docs/BENCHMARKS.md, "Real-time playback")."""
+    gc.collect()
+    gc.freeze()
+    try:
+        yield
+    finally:
+        gc.unfreeze()
 
 
 def process_peak_rss_mb() -> float | None:
@@ -355,7 +370,7 @@ class Session:
         slots = asyncio.Semaphore(self.cfg.max_decoded)
         error: BaseException | None = None
         try:
-            with render_threads(self.budget.render):
+            with render_threads(self.budget.render), frozen_heap():
                 await self.run_tasks(downloaded, ready, slots)
         except BaseExceptionGroup as failed:
             error = playback_failure(failed)
@@ -398,7 +413,7 @@ class Session:
                             error=error, gops_planned=len(self.gops),
                             extra={"realtime": self.cfg.realtime, "decode": self.cfg.decode,
                                    "threads": {"render": self.budget.render, "decode": self.budget.decode},
-                                   "ring_frames": self.cfg.ring_frames,
+                                   "ring_frames": self.cfg.ring_frames, "fps": self.pres.fps,
                                    "process_peak_rss_mb": process_peak_rss_mb(),
                                    "time_to_first_frame_s": None if self.clock.t0 is None else
                                    (self.clock.t0 / self.speed - self.requested) * self.speed,

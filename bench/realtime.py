@@ -1,0 +1,213 @@
+"""Real-time playback benchmark: does `stgs play --realtime` hold 30 fps with no drop and no stall, per scene,
+QP and deformation precision; start-up, seek and peak memory; a per-frame timeline plot.
+
+    python -m bench.realtime --model /work/runs/s1 --model /tmp/demo/model --seconds 60 --qps 16,24,32 \\
+        --work /tmp/rt --timeline docs/realtime_timeline.png
+
+Each model dir (a trained or `stgs synth` scene, format 1) is looped to `--seconds` of content (its GOPs
+repeated in order: decode and render cost are per GOP, the content repeats) and packed once at the QPs; a
+packaged tree (`--dash`, or `stgs bench play --dash`) is played as it is. The real server serves it on
+loopback and the real `stgs play --realtime` plays it in its own process at the scene's first camera,
+640x360, for the whole duration; then a seek: `--start` at the middle, 4 seconds. Prints Markdown for
+docs/BENCHMARKS.md; the logs stay in --work.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import math
+import platform
+import shutil
+import statistics
+import sys
+from pathlib import Path
+
+from stgs.client.manifest import Presentation
+from stgs.client.view import parse_scene_cameras
+from stgs.model.native_deform import bf16_available
+from stgs.model.store import read_meta
+from stgs.packager import PackConfig, pack
+from stgs.server.app import loopback
+from stgs.tree import CAMERAS, MANIFEST, MODEL_META, STATS
+
+SEEK_SECONDS = 4.0
+
+
+def loop_model(src: Path, dst: Path, seconds: float) -> Path:
+    """A model dir playing `seconds`: src's GOPs repeated in order (files linked, not copied)."""
+    meta = read_meta(src)
+    doc = json.loads((src / MODEL_META).read_text())
+    count = max(meta.num_gops, math.ceil(seconds * meta.fps / meta.shape.gop_size))
+    if dst.exists():
+        shutil.rmtree(dst)
+    dst.mkdir(parents=True)
+    for entry in doc["gops"]:
+        (dst / entry["file"]).symlink_to((src / entry["file"]).resolve())
+    for extra in (CAMERAS, "gt"):
+        if (src / extra).exists():
+            (dst / extra).symlink_to((src / extra).resolve())
+    gops = doc["gops"]
+    doc["gops"] = [{**gops[i % len(gops)], "index": i} for i in range(count)]
+    doc.setdefault("extra", {})["looped_from"] = str(src)
+    (dst / MODEL_META).write_text(json.dumps(doc, indent=1) + "\n")
+    return dst
+
+
+async def play_process(url: str, log: Path, args: list[str]) -> dict:
+    """`stgs play` in its own process (its own peak memory); returns its log."""
+    proc = await asyncio.create_subprocess_exec(sys.executable, "-m", "stgs.cli", "play", url, "--log", str(log),
+                                                *args, stdout=asyncio.subprocess.DEVNULL,
+                                                stderr=asyncio.subprocess.PIPE)
+    _, err = await proc.communicate()
+    if proc.returncode != 0:
+        raise RuntimeError(f"stgs play failed: {err.decode().strip()}")
+    return json.loads(log.read_text())
+
+
+def quantiles(values: list[float]) -> tuple[float, float]:
+    """(median, 95th percentile)."""
+    if not values:
+        return math.nan, math.nan
+    ordered = sorted(values)
+    return statistics.median(ordered), ordered[min(len(ordered) - 1, int(0.95 * len(ordered)))]
+
+
+def frame_stats(log: dict) -> dict[str, tuple[float, float]]:
+    gops = log["gops"]
+
+    def every(key: str) -> list[float]:
+        return [v for g in gops for v in g[key]]
+
+    frame = [d + q for g in gops for d, q in zip(g["decode_ms"], g["dequantise_ms"], strict=True)]
+    return {"decode": quantiles(frame), "wait": quantiles(every("wait_ms")), "deform": quantiles(every("deform_ms")),
+            "splat": quantiles(every("splat_ms")), "render": quantiles(every("render_ms"))}
+
+
+def row(name: str, n: int, qp: int, precision: str, kbps: float, log: dict, seek: dict | None) -> str:
+    s = frame_stats(log)
+    ok = log["dropped_frames"] == 0 and log["stalls"]["count"] == 0 and log["error"] is None
+    cells = [name, f"{n:,}", str(qp), precision, f"{kbps / 1e3:.2f}",
+             f"{log['frames']}", f"**{log['dropped_frames']}**", f"**{log['stalls']['count']}**",
+             "yes" if ok else "no",
+             *(f"{s[k][0]:.1f} / {s[k][1]:.1f}" for k in ("decode", "wait", "deform", "splat")),
+             f"{log['time_to_first_frame_s']:.2f}",
+             f"{seek['time_to_first_frame_s']:.2f}" if seek else "–",
+             f"{log['process_peak_rss_mb']:.0f}"]
+    return "| " + " | ".join(cells) + " |"
+
+
+HEADER = ("| scene | Gaussians | QP | deformation | feature Mbit/s | frames | dropped | stalls | 30 fps held | "
+          "decode + dequantise ms (median / p95) | wait ms | deform ms | splat ms | start-up s | seek s | "
+          "peak RSS MB |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+
+
+def prepare(source: Path, work: Path, seconds: float, qps: list[int]) -> tuple[str, Path]:
+    """(name, packaged tree): a tree as it is, a model dir looped to `seconds` and packed at `qps`."""
+    name = source.resolve().name
+    if (source / MANIFEST).is_file():
+        return name.removesuffix("-dash"), source
+    looped = loop_model(source, work / f"{name}-looped", seconds)
+    print(f"{name}: {read_meta(looped).num_gops} GOPs; packing at QPs {qps} ...", flush=True)
+    pack(looped, work / f"{name}-dash", PackConfig(qps=tuple(qps), resume=True), progress=False)
+    return name, work / f"{name}-dash"
+
+
+async def run_scene(source: Path, work: Path, seconds: float, qps: list[int], precisions: list[str],
+                    size: str) -> tuple[list[str], list[tuple[int, int, str, bool, Path]]]:
+    name, dash = prepare(source, work, seconds, qps)
+    stats = json.loads((dash / STATS).read_text())
+    n = Presentation.parse((dash / MANIFEST).read_bytes(), "http://localhost/" + MANIFEST).shape.capacity
+    seconds = stats["segment_seconds"] * len(stats["gops"])
+    view = ["--size", size]
+    if (dash / CAMERAS).is_file():  # the scene's first camera, else the player's default orbit
+        view += ["--camera", parse_scene_cameras(json.loads((dash / CAMERAS).read_text()))[0].name]
+    rows, verdicts = [], []
+    async with loopback(dash) as base:
+        url = base + MANIFEST
+        await play_process(url, work / "warmup.json", [*view, "--duration", "1"])  # page cache, native build
+        for precision in precisions:
+            for qp in qps:
+                tag = f"{name}-qp{qp}-{precision}"
+                common = [*view, "--realtime", "--qp", str(qp), "--precision", precision]
+                log = await play_process(url, work / f"{tag}.json", common)
+                seek = await play_process(url, work / f"{tag}-seek.json", [*common, "--start", f"{seconds / 2:g}",
+                                                                         "--duration", f"{SEEK_SECONDS:g}"])
+                kbps = stats["representations"][f"qp{qp}"]["bandwidth"] / 1e3
+                rows.append(row(name, n, qp, precision, kbps, log, seek))
+                ok = log["dropped_frames"] == 0 and log["stalls"]["count"] == 0 and log["error"] is None
+                verdicts.append((n, qp, precision, ok, work / f"{tag}.json"))
+                print(rows[-1], flush=True)
+    return rows, verdicts
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--model", type=Path, action="append", default=[], help="model dir (repeatable)")
+    parser.add_argument("--dash", type=Path, action="append", default=[], help="packaged tree (repeatable)")
+    parser.add_argument("--seconds", type=float, default=60.0)
+    parser.add_argument("--qps", default="16,24,32")
+    parser.add_argument("--size", default="640x360")
+    parser.add_argument("--precisions", default="fp32,bf16")
+    parser.add_argument("--work", type=Path, required=True, help="folder for looped models, trees and logs")
+    parser.add_argument("--timeline", type=Path, help="PNG of the per-frame timeline of one run")
+    parser.add_argument("--timeline-log", type=Path, help="the run to plot (default: the largest scene that "
+                        "held 30 fps at the middle QP, else the smallest scene's)")
+    args = parser.parse_args(argv)
+    if not args.model and not args.dash:
+        parser.error("give at least one --model or --dash")
+    qps = [int(q) for q in args.qps.split(",")]
+    precisions = [p for p in args.precisions.split(",") if p != "bf16" or bf16_available()]
+    skipped = sorted(set(args.precisions.split(",")) - set(precisions))
+    args.work.mkdir(parents=True, exist_ok=True)
+    rows, verdicts = [], []
+    for source in [*args.model, *args.dash]:
+        r, v = asyncio.run(run_scene(source, args.work, args.seconds, qps, precisions, args.size))
+        rows += r
+        verdicts += v
+    print(f"\nMachine: {platform.machine()} {platform.processor() or ''}; {args.seconds:g} s per run at {args.size}"
+          + (f"; not run here: {', '.join(skipped)} (no AMX)" if skipped else "") + "\n")
+    print(HEADER)
+    print("\n".join(rows))
+    print("\nLargest scene that held 30 fps (no drop, no stall) for the whole run:\n")
+    print("| QP | deformation | largest Gaussians |\n|---|---|---|")
+    for precision in precisions:
+        for qp in qps:
+            held = [n for n, q, p, ok, _ in verdicts if q == qp and p == precision and ok]
+            print(f"| {qp} | {precision} | {max(held):,} |" if held else f"| {qp} | {precision} | none |")
+    if args.timeline:
+        from bench.timeline import plot_timeline
+
+        chosen = args.timeline_log or pick_timeline(verdicts, qps)
+        plot_timeline(json.loads(chosen.read_text()), args.timeline, title=chosen.stem)
+        print(f"\ntimeline of {chosen.name}: {args.timeline}")
+    return 0
+
+
+def pick_timeline(verdicts: list[tuple[int, int, str, bool, Path]], qps: list[int]) -> Path:
+    middle = qps[len(qps) // 2]
+    held = [(n, path) for n, q, p, ok, path in verdicts if q == middle and p == "fp32" and ok]
+    if held:
+        return max(held)[1]
+    return min((n, path) for n, q, p, _, path in verdicts if q == middle)[1]
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
+
+
+def cli(dash: Path | None, scene, qps: list[int], width: int, height: int) -> int:
+    """`stgs bench play`: a packaged tree as it is, else the SynthConfig `scene` synthesised, looped to 60 s and
+    packed (in a temporary folder)."""
+    import tempfile
+
+    from stgs.synth import synthesize
+
+    with tempfile.TemporaryDirectory(prefix="stgs-bench-play-") as tmp:
+        argv = ["--qps", ",".join(map(str, qps)), "--size", f"{width}x{height}", "--work", tmp]
+        if dash is not None:
+            return main([*argv, "--dash", str(dash)])
+        print(f"synthesising a {scene.grid_side ** 2}-Gaussian scene (minutes) ...", flush=True)
+        synthesize(scene, Path(tmp) / "model", progress=False)
+        return main([*argv, "--model", str(Path(tmp) / "model")])
