@@ -26,14 +26,11 @@ The module is over the usual size (~400 lines) because the Session's three tasks
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import gc
 import json
 import math
-import os
 import time
 import traceback
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -59,6 +56,7 @@ from stgs.client.gopdecode import GOPDecoder, ReadyGOP
 from stgs.client.manifest import Presentation
 from stgs.client.output import NullSink, open_sink
 from stgs.client.playlog import GOPRecord, playback_log
+from stgs.client.resources import check_decode_memory, frozen_heap, process_peak_rss_mb
 from stgs.client.schedule import FetchSchedule
 from stgs.client.threads import ThreadBudget, render_threads, usable_cores
 from stgs.client.urlpolicy import UrlPolicy
@@ -106,47 +104,6 @@ def stats_gop(stats: object, k: int, rep_ids: list[str]) -> UpcomingGOP | None:
     except (KeyError, TypeError, ValueError):
         psnr = None
     return UpcomingGOP(keyframe, sizes, psnr if psnr and all(math.isfinite(p) for p in psnr) else None)
-
-
-def physical_memory() -> int | None:
-    """Bytes of RAM of this machine, or None where the OS does not say."""
-    try:
-        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
-        return None
-
-
-@contextlib.contextmanager
-def frozen_heap() -> Iterator[None]:
-    """Playback with every object alive at its start (torch, the libraries, the scene's setup) moved out of
-    the garbage collector's reach: a full collection traversed them all in the middle of playback, once a
-    minute, and its 130 ms dropped four frames (docs/BENCHMARKS.md, "Real-time playback")."""
-    gc.collect()
-    gc.freeze()
-    try:
-        yield
-    finally:
-        gc.unfreeze()
-
-
-def process_peak_rss_mb() -> float | None:
-    """The player process's peak resident memory so far (MB), where the OS reports it."""
-    try:
-        import resource
-    except ImportError:
-        return None
-    kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # kilobytes on Linux
-    return kb / 1024
-
-
-def check_decode_memory(gop_bytes: int, max_decoded: int, ram: int | None = None) -> None:
-    """Refuse, before fetching anything, a presentation whose decoded GOPs (`max_decoded` of them at once) need
-    more memory than the machine has."""
-    ram = physical_memory() if ram is None else ram
-    need = gop_bytes * max_decoded
-    if ram is not None and need > ram:
-        raise PlaybackError(f"decoding needs {need / 2**30:.1f} GiB ({max_decoded} GOPs of "
-                            f"{gop_bytes / 2**30:.1f} GiB at once); this machine has {ram / 2**30:.1f} GiB")
 
 
 class Session:

@@ -11,7 +11,7 @@ import struct
 
 import pytest
 
-from stgs.client import PlaybackError, PlayConfig, play, player
+from stgs.client import PlaybackError, PlayConfig, play, player, resources
 from stgs.client.view import ViewSpec
 from stgs.codec import stream
 from tests.client.conftest import QUICK, copy_tree, segment, serving
@@ -69,8 +69,8 @@ def test_decoding_more_than_the_machine_holds_is_refused_before_fetching():
     gop = 1040 * 8192**2 * 2 + 1040 * 2048**2 * 16 * 4  # the caps: grid 2048, G 1024, W 16
     with pytest.raises(PlaybackError, match=r"decoding needs 780\.0 GiB \(2 GOPs of 390\.0 GiB at once\); "
                                             r"this machine has 16\.0 GiB"):
-        player.check_decode_memory(gop, 2, ram=16 << 30)
-    player.check_decode_memory(1 << 30, 2, ram=16 << 30)  # fits
+        resources.check_decode_memory(gop, 2, ram=16 << 30)
+    resources.check_decode_memory(1 << 30, 2, ram=16 << 30)  # fits
 
 
 async def test_a_scene_at_the_caps_is_refused_by_memory_not_a_crash(scene, tmp_path):
