@@ -24,16 +24,14 @@ import torch
 from bench.realtime import frame_stats, loop_model, play_process
 from stgs.camera import Camera, resize
 from stgs.client.view import parse_scene_cameras
-from stgs.codec.features import features_from_frames
-from stgs.codec.keyframe import decode_keyframe
-from stgs.codec.video import decode_segment
+from stgs.evaluate import packaged_gops
 from stgs.metrics import psnr
 from stgs.model.native_deform import bf16_available
 from stgs.model.store import load_model, read_meta
 from stgs.model.view import FrameRenderer
 from stgs.packager import PackConfig, pack
 from stgs.server.app import loopback
-from stgs.tree import CAMERAS, MANIFEST, feature_path, keyframe_path, rep_id
+from stgs.tree import CAMERAS, MANIFEST, rep_id
 
 BASE = {"qp": 24, "precision": "fp32", "size": "640x360", "ring": 8, "render_threads": None}
 VARIANTS = [{}, {"qp": 16}, {"qp": 32}, {"precision": "bf16"}, {"size": "320x180"}, {"size": "1280x720"},
@@ -44,16 +42,10 @@ def streamed_psnr(model_dir: Path, dash: Path, qp: int, camera: Camera, gops: in
     """Mean PSNR of the first, middle and last frame of the scene's first `gops` GOPs, streamed at `qp`
     (decoded whole: bit-exact with the stream) against the uncompressed model, at `camera`."""
     meta, models = load_model(model_dir)
-    version = next(p.name for p in dash.iterdir() if p.name.startswith("v-"))
-    init = (dash / feature_path(version, rep_id(qp), None)).read_bytes()
-    side, values = meta.shape.grid_side, []
+    streamed_gop = packaged_gops(dash)[rep_id(qp)]
+    values = []
     for k in range(min(gops, meta.num_gops)):
-        kf_bytes = (dash / keyframe_path(version, k)).read_bytes()
-        kf = decode_keyframe(kf_bytes, meta.shape, k, len(kf_bytes))
-        media = (dash / feature_path(version, rep_id(qp), k)).read_bytes()
-        frames = decode_segment(init, media, meta.shape.num_features, 4 * side, 4 * side)
-        streamed = FrameRenderer(kf.to_model(features_from_frames(frames, side, kf.feature_ranges)))
-        local = FrameRenderer(models[k])
+        streamed, local = FrameRenderer(streamed_gop(k)), FrameRenderer(models[k])
         for i in sorted({0, meta.shape.gop_size // 2, meta.shape.gop_size - 1}):
             values.append(psnr(streamed.render(i, camera).clamp(0, 1), local.render(i, camera).clamp(0, 1)))
     return statistics.mean(values)

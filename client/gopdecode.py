@@ -53,11 +53,11 @@ class GOPDecoder:
     """Decodes the GOPs of one playback in order (one feature decoder thread at a time)."""
 
     def __init__(self, cfg: PlayConfig, pres: Presentation, schedule: FetchSchedule,
-                 records: dict[int, GOPRecord], budget: ThreadBudget, drive: Callable[[Step], Awaitable[Fetched]]):
+                 records: dict[int, GOPRecord], budget: ThreadBudget, drive: Callable[[Step], Awaitable[Fetched]],
+                 epoch: float):
+        """epoch: the time.perf_counter() the log's timelines start at (when the playback began)."""
         self.cfg, self.pres, self.schedule, self.records, self.budget = cfg, pres, schedule, records, budget
-        self.drive = drive
-        self.epoch = time.perf_counter()
-        """Where the log's timelines start (the session sets it when playback begins)."""
+        self.drive, self.epoch = drive, epoch
         self.window = pres.shape.window
         self.last: FeatureStream | None = None
         self.streams: list[FeatureStream] = []

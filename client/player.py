@@ -132,8 +132,8 @@ class Session:
             self.capacity_s, lambda k: stats_gop(stats, k, rep_ids) if stats is not None else None,
             cfg.abr_settings, dl.settings, clock=lambda: self.now(), playing=lambda: self.clock.t0 is not None)
         self.budget = ThreadBudget.for_cores(usable_cores(), cfg.render_threads, cfg.decode_threads)
-        self.decoder = GOPDecoder(cfg, pres, self.schedule, self.records, self.budget, self.drive)
-        self.decoder.epoch = self.t_start / self.speed
+        self.decoder = GOPDecoder(cfg, pres, self.schedule, self.records, self.budget, self.drive,
+                                  self.t_start / self.speed)
         if cfg.decode and cfg.ring_frames < pres.shape.window:
             raise PlaybackError(f"a ring of {cfg.ring_frames} feature frames cannot hold one frame's window of "
                                 f"{pres.shape.window}")

@@ -12,33 +12,25 @@ import pytest
 
 from stgs.client import PlayConfig, play, player
 from stgs.client.view import ViewSpec, parse_scene_cameras
-from stgs.codec.features import features_from_frames
-from stgs.codec.keyframe import decode_keyframe
 from stgs.codec.mp4 import set_timeline, split_fragmented
 from stgs.codec.video import VideoTiming, decode_segment, encode_gop
+from stgs.evaluate import packaged_gops
 from stgs.fsio import to_uint8
 from stgs.model.store import load_model
 from stgs.model.view import FrameRenderer
-from stgs.tree import CAMERAS
+from stgs.tree import CAMERAS, rep_id
 from tests.client.conftest import QUICK, SCENE, copy_tree, segment, serving
 
 G = SCENE.gop_size
 CAM = ViewSpec(camera="cam00")
 
 
-def whole_gop_renderer(root, shape, qp: int, k: int) -> FrameRenderer:
+def whole_gop_renderer(root, qp: int, k: int) -> FrameRenderer:
     """GOP k of the tree decoded the old way: every feature frame at once, then one model."""
-    kf_bytes = segment(root, f"v-*/keyframes/gop_{k:05d}.stgk").read_bytes()
-    kf = decode_keyframe(kf_bytes, shape, k, len(kf_bytes))
-    init = segment(root, f"v-*/features/qp{qp}/init.mp4").read_bytes()
-    media = segment(root, f"v-*/features/qp{qp}/seg_{k:05d}.m4s").read_bytes()
-    side = shape.grid_side
-    frames = decode_segment(init, media, shape.num_features, 4 * side, 4 * side)
-    return FrameRenderer(kf.to_model(features_from_frames(frames, side, kf.feature_ranges)))
+    return FrameRenderer(packaged_gops(root)[rep_id(qp)](k))
 
 
 def assert_frames_equal_whole_decode(scene, root, frames_dir, qp: int, expected: list[int]) -> None:
-    meta, _ = load_model(scene / "model")
     cameras = parse_scene_cameras(json.loads((root / CAMERAS).read_text()))
     cam = next(c for c in cameras if c.name == "cam00")  # the camera the player draws from
     pngs = sorted(frames_dir.glob("*.png"))
@@ -47,7 +39,7 @@ def assert_frames_equal_whole_decode(scene, root, frames_dir, qp: int, expected:
     for png in pngs:
         f = int(png.stem)
         k = f // G
-        renderers.setdefault(k, whole_gop_renderer(root, meta.shape, qp, k))
+        renderers.setdefault(k, whole_gop_renderer(root, qp, k))
         local = to_uint8(renderers[k].render(f % G, cam).clamp(0, 1))
         streamed = cv2.cvtColor(cv2.imread(str(png)), cv2.COLOR_BGR2RGB)
         assert np.array_equal(streamed, local), f"frame {f} at QP {qp}"
