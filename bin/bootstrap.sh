@@ -36,14 +36,16 @@ stgs_ensure_venv() {
   "$python" -c 'import sys; sys.exit(sys.version_info < (3, 11))' \
     || stgs_die "python3 >= 3.11 is required (found $("$python" --version 2>&1))"
   local want
-  want=$(cat "$STGS_ROOT/requirements.lock" "$STGS_ROOT/pyproject.toml" | sha256sum | cut -d' ' -f1)
+  want=$(cat "$STGS_ROOT/requirements.lock" "$STGS_ROOT/requirements-ray.lock" "$STGS_ROOT/pyproject.toml" \
+    | sha256sum | cut -d' ' -f1)
   if [ -f "$STGS_VENV/.stgs-stamp" ] && [ "$(cat "$STGS_VENV/.stgs-stamp")" = "$want" ]; then
     return 0
   fi
   echo "stgs setup: creating $STGS_VENV with the pinned requirements (first run downloads torch) ..." >&2
   "$python" -m venv "$STGS_VENV" || stgs_die "python3 -m venv failed (Debian: apt-get install python3-venv)"
+  # The Ray extra (stgs train/pack --ray) too: the tests start a local Ray cluster.
   "$STGS_VENV/bin/python" -m pip install -q --disable-pip-version-check -r "$STGS_ROOT/requirements.lock" \
-    || stgs_die "installing requirements.lock failed"
+    -r "$STGS_ROOT/requirements-ray.lock" || stgs_die "installing requirements.lock and requirements-ray.lock failed"
   "$STGS_VENV/bin/python" -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e "$STGS_ROOT" \
     || stgs_die "installing streamstgs failed"
   echo "$want" > "$STGS_VENV/.stgs-stamp"

@@ -55,6 +55,16 @@ def _effects(text: str) -> tuple[str, ...]:
     return tuple(_names(text))
 
 
+def _add_ray(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--ray", metavar="ADDRESS",
+                   help=f"run {what} as tasks on Ray (the optional `ray` extra): local (a Ray instance on this "
+                   "machine's cores), auto (the cluster `ray start` made here, or $RAY_ADDRESS) or HOST:PORT; the "
+                   "inputs and OUT must be on storage every worker mounts at the same path (docs/SCALING.md)")
+    p.add_argument("--ray-retries", type=_non_negative_int, default=3,
+                   help="with --ray: times a task is retried when its worker dies (default 3; a task that fails "
+                   "on bad input is never retried)")
+
+
 def add_synth(sub: argparse._SubParsersAction) -> None:
     from stgs.synth import PRESETS
     from stgs.synth.scene import EFFECTS
@@ -131,6 +141,7 @@ def add_pack(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--codec", default="hevc", help="feature-video codec (default and only: hevc)")
     p.add_argument("--jobs", type=_positive_int, help="parallel encodes (default: core count)")
     p.add_argument("--no-sort", action="store_true", help="skip the PLAS sort (for comparisons)")
+    _add_ray(p, "one task per GOP (sort, keyframe) and per GOP x QP (encode, measure)")
     p.add_argument("--resume", action="store_true",
                    help="reuse segments a previous interrupted run of the same inputs completed")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -144,7 +155,8 @@ def run_pack(args: argparse.Namespace) -> int:
                      resume=args.resume)
     if args.jobs:
         cfg.jobs = args.jobs
-    stats = pack(args.model_dir, args.out_dir, cfg, progress=not args.quiet)
+    stats = pack(args.model_dir, args.out_dir, cfg, progress=not args.quiet, ray=args.ray,
+                 retries=args.ray_retries)
     print(f"wrote {args.out_dir / MANIFEST}: {len(stats['gops'])} GOPs, keyframes "
           f"{stats['keyframe_bandwidth'] / 1e3:.0f} kbit/s")
     for rid, rep in stats["representations"].items():
@@ -380,7 +392,10 @@ def add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-relocate", dest="relocate", action="store_false", default=None,
                    help="no relocation of dead Gaussians")
     p.add_argument("--seed", type=int, help="random seed (default 0)")
-    p.add_argument("--threads", type=_positive_int, help="torch threads")
+    p.add_argument("--threads", type=_positive_int,
+                   help="torch threads (default: torch's; with --ray, 1 per task). The same seed and threads give "
+                   "the same bytes, locally or on Ray")
+    _add_ray(p, "the base stage, then one task per GOP,")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run from its checkpoints")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(run=run_train)
@@ -407,7 +422,8 @@ def run_train(args: argparse.Namespace) -> int:
     from stgs.train import budget, train
 
     cfg = budget(args.budget, **train_overrides(args))
-    report = train(args.dataset, args.out, cfg, progress=not args.quiet, resume=args.resume, kind=args.kind)
+    report = train(args.dataset, args.out, cfg, progress=not args.quiet, resume=args.resume, kind=args.kind,
+                   ray=args.ray, retries=args.ray_retries)
     for g in report["gops"]:
         val = f", validation {g['val_psnr']:.2f} dB" if g["val_psnr"] is not None else ""
         print(f"GOP {g['gop']}: {g['iterations']} iterations in {g['seconds']:.0f} s, train {g['train_psnr']:.2f} dB"

@@ -15,6 +15,7 @@ content under a URL never changes.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from concurrent.futures import ThreadPoolExecutor
@@ -104,16 +105,20 @@ class Packer:
             raise StgsError(f"{model_dir}: a layered scene (format 2, static layer of "
                             f"{self.meta.static.capacity} Gaussians) cannot be packed by this build yet; "
                             "train it with --layers single to stream it")
-        check_output_dir(self.out)
-        self.out.mkdir(parents=True, exist_ok=True)
         self.id = pack_id(self.model_dir, self.meta.gop_files, cfg.digest_fields())
         self.version_dir = version_dir(self.id)
         shape = self.meta.shape
         self.timing = VideoTiming.for_gop(shape.num_features, shape.gop_size, self.meta.fps)
-        self.state = PackState(self.out, self.id, cfg.resume)
+        self.state: PackState | None = None
         self.encoder = FeatureEncoder(self.timing, shape.num_features, cfg.preset)
         self.builder = ManifestBuilder(shape, self.side, self.meta.fps, self.version_dir, self.timing.timescale,
                                        self.timing.segment_ticks(shape.num_features), self.timing.rate)
+
+    def prepare_output(self) -> None:
+        """Check the output folder and open the resume state; done once, by the run's driver (never by a task)."""
+        check_output_dir(self.out)
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.state = PackState(self.out, self.id, self.cfg.resume)
 
     @property
     def seconds_per_gop(self) -> float:
@@ -129,16 +134,24 @@ class Packer:
 
     def feature_task(self, gop: PreparedGOP, qp: int) -> SegmentRecord:
         """GOP k at one QP: encoded, written and measured (or, resuming, what an earlier run recorded)."""
-        k, rep = gop.index, rep_id(qp)
-        task = f"gop{k}-qp{qp}"
+        task = qp_task_name(gop.index, qp)
         done = self.state.done(self.out, task)
         if done is None:
-            init, media = self.encoder.encode(k, qp, gop.frames)
-            files = {feature_path(self.version_dir, rep, k): media, feature_path(self.version_dir, rep, None): init}
-            for rel, data in files.items():
-                self.write(rel, data)
-            done = measure(gop, init, media, self.meta)
-            self.state.record(task, files, done)
+            files, done = self.encode_segment(gop, qp)
+            self.state.record(task, {rel: hashlib.sha256(data).hexdigest() for rel, data in files.items()}, done)
+        return self.segment_record(gop.index, done)
+
+    def encode_segment(self, gop: PreparedGOP, qp: int) -> tuple[dict[str, bytes], dict]:
+        """GOP k's feature video at one QP encoded, its init and media segments written, the media measured:
+        (the files by path, the measurements)."""
+        k, rep = gop.index, rep_id(qp)
+        init, media = self.encoder.encode(k, qp, gop.frames)
+        files = {feature_path(self.version_dir, rep, k): media, feature_path(self.version_dir, rep, None): init}
+        for rel, data in files.items():
+            self.write(rel, data)
+        return files, measure(gop, init, media, self.meta)
+
+    def segment_record(self, k: int, done: dict) -> SegmentRecord:
         return SegmentRecord(k, self.seconds_per_gop, done["bytes"],
                              {"feature_psnr": done["feature_psnr"], "render_psnr": done["render_psnr"]})
 
@@ -165,7 +178,11 @@ class Packer:
             for future in previous:
                 future.result()
         bar.close()
-        for qp in cfg.qps:
+        return self.finish()
+
+    def finish(self) -> dict:
+        """stats.json, cameras.json and, last, the MPD, from the segments the builder was told of."""
+        for qp in self.cfg.qps:
             init = (self.out / feature_path(self.version_dir, rep_id(qp), None)).read_bytes()
             self.builder.codecs[rep_id(qp)] = hevc_codecs(init)
         stats = self.builder.stats(self.id)
@@ -188,6 +205,24 @@ class Packer:
         atomic_write_bytes(self.out / CAMERAS, data)
 
 
-def pack(model_dir: Path, out: Path, cfg: PackConfig | None = None, progress: bool = True) -> dict:
-    """Package a model dir into a DASH tree at `out`; returns the stats document."""
-    return Packer(model_dir, Path(out), cfg or PackConfig(), progress).run()
+def qp_task_name(k: int, qp: int) -> str:
+    """The name of GOP k's task at one QP (in the resume state and the task logs)."""
+    return f"gop{k}-qp{qp}"
+
+
+def pack(model_dir: Path, out: Path, cfg: PackConfig | None = None, progress: bool = True, ray: str | None = None,
+         retries: int = 3) -> dict:
+    """Package a model dir into a DASH tree at `out`; returns the stats document. `ray`: None (this process, on
+    a pool of `cfg.jobs` encoders) or a Ray address (stgs.tasks.open_runner; stgs.packager.tasks)."""
+    packer = Packer(model_dir, Path(out), cfg or PackConfig(), progress)
+    packer.prepare_output()
+    if ray is None:
+        return packer.run()
+    from stgs.packager.tasks import run_tasks
+    from stgs.tasks import open_runner
+
+    runner = open_runner(ray, retries, progress)
+    try:
+        return run_tasks(packer, runner)
+    finally:
+        runner.close()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import threading
 from dataclasses import asdict, dataclass
@@ -9,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from safetensors import safe_open
+from safetensors.numpy import save_file as save_numpy
 
 from stgs.camera import Camera
 from stgs.codec.features import VIDEO_MAX, feature_ranges, features_from_frames, quantize_features, tile_frames
@@ -29,8 +32,6 @@ class PreparedGOP:
     """Everything a GOP's QP tasks share, computed once per GOP."""
 
     index: int
-    original: GOPModel
-    """The uncompressed GOP as stored in the model dir."""
     frames: np.ndarray
     """(E, 4S, 4S) 12-bit feature frames of the sorted GOP."""
     ranges: torch.Tensor
@@ -73,7 +74,32 @@ def prepare_gop(model_dir: Path, meta: SceneMeta, k: int, plas: PLASConfig | Non
     renderer = FrameRenderer(original)
     reference = [renderer.render(f, cam).clamp(0, 1) for f, cam in pairs]
     decoded = decode_keyframe(keyframe, meta.shape, k, max_bytes=len(keyframe))
-    return PreparedGOP(k, original, tiled, ranges, keyframe, decoded, pairs, reference)
+    return PreparedGOP(k, tiled, ranges, keyframe, decoded, pairs, reference)
+
+
+def save_prepared(gop: PreparedGOP, path: Path) -> None:
+    """A prepared GOP as a safetensors file (no pickle) for the QP tasks that run elsewhere (stgs.packager.tasks);
+    its keyframe is not in it: it is in the tree already."""
+    tensors = {"frames": gop.frames, "ranges": gop.ranges.numpy()}
+    tensors |= {f"reference.{i}": r.numpy() for i, r in enumerate(gop.reference)}
+    views = [{"frame": f, "camera": cam.to_json()} for f, cam in gop.views]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    save_numpy(tensors, str(tmp), metadata={"index": str(gop.index), "views": json.dumps(views)})
+    tmp.replace(path)
+
+
+def load_prepared(path: Path, keyframe: bytes, meta: SceneMeta) -> PreparedGOP:
+    """The prepared GOP `save_prepared` wrote, with its keyframe segment (read from the tree)."""
+    with safe_open(str(path), "np") as f:
+        info = f.metadata()
+        tensors = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118 - safe_open has no iterator
+    k = int(info["index"])
+    views = [(v["frame"], Camera.from_json(v["camera"])) for v in json.loads(info["views"])]
+    reference = [torch.from_numpy(tensors[f"reference.{i}"]) for i in range(len(views))]
+    decoded = decode_keyframe(keyframe, meta.shape, k, max_bytes=len(keyframe))
+    return PreparedGOP(k, tensors["frames"], torch.from_numpy(tensors["ranges"]), keyframe, decoded, views,
+                       reference)
 
 
 class FeatureEncoder:

@@ -79,9 +79,10 @@ class PackState:
                 return None
         return entry["result"]
 
-    def record(self, task: str, files: dict[str, bytes], result: dict) -> None:
+    def record(self, task: str, files: dict[str, str], result: dict) -> None:
+        """`task` finished: the SHA-256 of each file it wrote (by path) and its result."""
         with self.lock:
-            for rel, data in files.items():
-                self.doc["files"][rel] = hashlib.sha256(data).hexdigest()
+            for rel, digest in files.items():
+                self.doc["files"][rel] = digest
             self.doc["tasks"][task] = {"files": sorted(files), "result": result}
             self.save()

@@ -46,6 +46,10 @@ CAMERAS = "cameras.json"
 CAMERAS_FORMAT = "streamstgs-cameras"
 PACK_STATE = ".pack-state.json"
 """The packager's record of finished tasks (for --resume); hidden, so never served."""
+PACK_WORK = ".pack-work"
+"""A distributed pack's prepared GOPs, handed from each GOP's prepare task to its QP tasks; removed at the end."""
+PACK_LOGS = ".pack-logs"
+"""A distributed pack's per-task logs (stgs.tasks); hidden, so never served."""
 
 # --- packaged tree: segments ---
 KEYFRAME_EXTENSION = ".stgk"

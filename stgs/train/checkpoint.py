@@ -18,14 +18,14 @@ from stgs.train.ops import Optimizer
 class Checkpoints:
     """The checkpoints of one run in `folder`; `resume` says whether loading one is wanted at all."""
 
-    def __init__(self, folder: Path, gen: torch.Generator, resume: bool):
-        self.folder, self.gen, self.resume = folder, gen, resume
+    def __init__(self, folder: Path, resume: bool):
+        self.folder, self.resume = folder, resume
 
     def path(self, name: str) -> Path:
         return self.folder / f"{name}.safetensors"
 
-    def save(self, name: str, model: GOPModel, opt: Optimizer, extra: dict, aux: AuxTransformer | None = None,
-             accum: torch.Tensor | None = None) -> None:
+    def save(self, name: str, model: GOPModel, opt: Optimizer, gen: torch.Generator, extra: dict,
+             aux: AuxTransformer | None = None, accum: torch.Tensor | None = None) -> None:
         tensors = {f"model.{k}": v.detach().contiguous() for k, v in model.state_dict().items()}
         if aux is not None:
             tensors |= {f"aux.{k}": v.detach().contiguous() for k, v in aux.state_dict().items()}
@@ -36,15 +36,16 @@ class Checkpoints:
                         tensors[f"adam.{group['name']}.{i}.{key}"] = t.detach().reshape(t.shape).contiguous()
         if accum is not None:
             tensors["accum"] = accum.contiguous()
-        tensors["rng"] = self.gen.get_state()
+        tensors["rng"] = gen.get_state()
+        self.folder.mkdir(parents=True, exist_ok=True)
         path = self.path(name)
         tmp = path.with_suffix(".tmp")
         save_file(tensors, str(tmp), metadata={"state": json.dumps(extra)})
         tmp.replace(path)
 
-    def load(self, name: str, model: GOPModel, opt: Optimizer, aux: AuxTransformer | None = None
-             ) -> tuple[dict, torch.Tensor | None] | None:
-        """Restore `name` into model, aux, opt and the generator; (its extra, its accumulator), or None when
+    def load(self, name: str, model: GOPModel, opt: Optimizer, gen: torch.Generator,
+             aux: AuxTransformer | None = None) -> tuple[dict, torch.Tensor | None] | None:
+        """Restore `name` into model, aux, opt and `gen`; (its extra, its accumulator), or None when
         not resuming or there is no such checkpoint."""
         path = self.path(name)
         if not (self.resume and path.is_file()):
@@ -61,5 +62,5 @@ class Checkpoints:
                 state = {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
                 if state:
                     opt.opt.state[p] = state
-        self.gen.set_state(tensors["rng"])
+        gen.set_state(tensors["rng"])
         return extra, tensors.get("accum")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
 from dataclasses import dataclass, field
 
@@ -175,3 +176,15 @@ def budget(name: str, **overrides) -> TrainConfig:
     cfg = dataclasses.replace(BUDGETS[name], **(layered | overrides))
     cfg.validate()
     return cfg
+
+
+def config_from_dict(doc: dict) -> TrainConfig:
+    """The TrainConfig `dataclasses.asdict` gave (how a run's settings travel to its tasks)."""
+    cfg = TrainConfig(**{**doc, "lr": LearningRates(**doc["lr"])})
+    cfg.validate()
+    return cfg
+
+
+def stage_seed(seed: int, stage: str) -> int:
+    """The seed of one stage of a run (the base stage, a GOP), independent of every other stage's."""
+    return int.from_bytes(hashlib.sha256(f"{seed}/{stage}".encode()).digest()[:8], "little") >> 1

@@ -19,19 +19,20 @@ smaller dynamic layer, started from the migrated Gaussians and the GOP's
 triangulated points, drawn over the frozen static layer in one splat.
 
 Checkpoints (safetensors + JSON, no pickle) under OUT/.train/ allow --resume;
-a non-finite loss stops the run with the last good checkpoint kept.
+a non-finite loss stops the run with the last good checkpoint kept. Each stage
+seeds its own generators, so GOPs are independent tasks (stgs.train.run runs
+them here or on Ray and writes the model dir).
 
-This module orchestrates; the parts: `views` (training images), `seeding`
+This module holds the stages; the parts: `views` (training images), `seeding`
 (initial points and attributes; geometry in `init`), `losses`, `ops`
 (relocation, sorting, pruning and the Adam-state surgery they need),
 `checkpoint`, `aux` (the auxiliary transformer), `dynamic` (dynamic masks).
-Its two loops (coarse, per GOP) with their loss keep it a little over 300 lines.
+Its two loops (coarse, per GOP) with their loss make it longer than most modules.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import shutil
 import time
@@ -39,29 +40,26 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
-from safetensors.torch import load_file
 from tqdm import tqdm
 
 from stgs.codec.attributes import OPACITY_LOGIT_RANGE
 from stgs.data import open_dataset, split
 from stgs.errors import StgsError
-from stgs.fsio import atomic_write_bytes
 from stgs.memory import reuse_large_allocations
 from stgs.metrics import psnr, ssim, ssim_map
 from stgs.model.gop import Gaussians, GOPModel, GOPShape, frame_time
 from stgs.model.static import StaticLayer, merge
-from stgs.model.store import save_gop, save_model
 from stgs.model.view import splat, static_view
 from stgs.train import losses
 from stgs.train.aux import AuxTransformer
+from stgs.train.base import BaseStage
 from stgs.train.checkpoint import Checkpoints
-from stgs.train.config import TrainConfig
-from stgs.train.dynamic import gop_dynamic_masks
+from stgs.train.config import TrainConfig, stage_seed
 from stgs.train.layers import Migrated, fit_view_dependent, init_dynamic, migrate, motion_scores, moving_masks
 from stgs.train.ops import Optimizer, prune, relocate, sort
 from stgs.train.seeding import init_canonical, init_frames, initial_points
-from stgs.train.views import Views, load_views, scale_camera, scene_extent
-from stgs.tree import CAMERAS, CAMERAS_FORMAT, MODEL_META, TRAIN_REPORT, gop_file, gop_stem
+from stgs.train.views import Views, scene_extent
+from stgs.tree import CAMERAS, MODEL_META, TRAIN_REPORT, gop_stem
 
 STATE_DIR = ".train"
 
@@ -109,20 +107,32 @@ class Trainer:
         self.static: StaticLayer | None = None
         self.migrated: Migrated | None = None
         self.layer_info: dict = {}
+        self.base: BaseStage | None = None
         self.state = self.out / STATE_DIR
+        self.checkpoints = Checkpoints(self.state, resume)
+        self.seed_stage("setup")
+        self.extent = scene_extent(self.ds.cameras(cfg.start_frame))
+        self.triangulated = self.background_points = None
+
+    def prepare_output(self) -> None:
+        """Check the output folder (a model dir or ours to create) and, unless resuming, clear the run's state.
+        Done once, by the run's driver (never by a task)."""
         if self.out.exists() and not self.out.is_dir():
             raise StgsError(f"{self.out}: exists and is not a folder")
         ours = {STATE_DIR, MODEL_META, CAMERAS, TRAIN_REPORT}
         if self.out.is_dir() and not (self.out / MODEL_META).is_file() and \
                 any(p.name not in ours for p in self.out.iterdir()):
             raise StgsError(f"{self.out}: folder is not empty and not a model dir; refusing to write into it")
-        if not resume and self.state.exists():
+        if not self.resume and self.state.exists():
             shutil.rmtree(self.state)
         self.state.mkdir(parents=True, exist_ok=True)
-        self.gen = torch.Generator().manual_seed(cfg.seed)
-        self.checkpoints = Checkpoints(self.state, self.gen, resume)
-        torch.manual_seed(cfg.seed)
-        self.extent = scene_extent(self.ds.cameras(cfg.start_frame))
+
+    def seed_stage(self, stage: str) -> None:
+        """Each stage (the base stage, each GOP) draws from its own generators, seeded from the run's seed and the
+        stage's name: a GOP trains to the same bytes wherever and in whatever order it runs."""
+        seed = stage_seed(self.cfg.seed, stage)
+        self.gen = torch.Generator().manual_seed(seed)
+        torch.manual_seed(seed)
 
     def gop_frames(self, k: int) -> list[int]:
         start = self.cfg.start_frame + k * self.cfg.gop_size
@@ -138,9 +148,10 @@ class Trainer:
         """Canonical 3DGS (no deformation) on frames from all times; with `moving` ((F, C, H, W) bool), on the
         pixels that do not move only (stage A of layered training)."""
         cfg = self.cfg
+        self.seed_stage(stage)
         model = GOPModel(shape)
         opt = Optimizer(model, cfg, self.extent, None, canonical_only=True)
-        resumed = self.checkpoints.load(stage, model, opt)
+        resumed = self.checkpoints.load(stage, model, opt, self.gen)
         start = resumed[0]["iteration"] if resumed else 0
         if resumed:  # the counts the interrupted run found, for the report
             self.triangulated, self.background_points = resumed[0].get("triangulated"), resumed[0].get("background")
@@ -173,9 +184,9 @@ class Trainer:
             if cfg.relocate and (it + 1) % cfg.relocate_every == 0 and it < cfg.relocate_until * cfg.coarse_iterations:
                 relocate(model, opt, torch.sigmoid(model.opacity_logit.detach()), cfg.dead_opacity, self.gen)
             if (it + 1) % cfg.checkpoint_every == 0:
-                self.checkpoints.save(stage, model, opt, self._coarse_state(it + 1))
+                self.checkpoints.save(stage, model, opt, self.gen, self._coarse_state(it + 1))
         if cfg.coarse_iterations:
-            self.checkpoints.save(stage, model, opt, self._coarse_state(cfg.coarse_iterations))
+            self.checkpoints.save(stage, model, opt, self.gen, self._coarse_state(cfg.coarse_iterations))
         return model
 
     def stage_a(self, views: Views) -> GOPModel:
@@ -227,6 +238,7 @@ class Trainer:
                   ) -> tuple[GOPModel, GOPReport]:
         cfg = self.cfg
         setup = time.perf_counter()
+        self.seed_stage(gop_stem(k))
         model = self.start_model(k, coarse)
         static = [static_view(self.static, cam) for cam in views.cameras] if self.static is not None else None
         with torch.no_grad():
@@ -236,7 +248,7 @@ class Trainer:
         opt = Optimizer(model, cfg, self.extent, aux)
         report = GOPReport(k)
         accum = torch.zeros(2, self.shape.capacity)  # running sum and count of deformed opacities
-        resumed = self.checkpoints.load(gop_stem(k), model, opt, aux)
+        resumed = self.checkpoints.load(gop_stem(k), model, opt, self.gen, aux)
         start = 0
         if resumed:
             extra, saved_accum = resumed
@@ -271,8 +283,8 @@ class Trainer:
                                 psnr=f"{psnr(img.detach().clamp(0, 1), target):.1f}")
             if (it + 1) % cfg.checkpoint_every == 0 and it + 1 < cfg.iterations:
                 report.seconds = time.perf_counter() - clock
-                self.checkpoints.save(gop_stem(k), model, opt, {"iteration": it + 1,
-                                                                 "report": dataclasses.asdict(report)}, aux, accum)
+                self.checkpoints.save(gop_stem(k), model, opt, self.gen,
+                                      {"iteration": it + 1, "report": dataclasses.asdict(report)}, aux, accum)
         report.pruned = prune(model, accum, cfg.dead_opacity)
         report.seconds = time.perf_counter() - clock
         report.iterations = cfg.iterations
@@ -343,71 +355,13 @@ class Trainer:
 
     # --- the run ---
 
+    def use_base(self, base: BaseStage) -> BaseStage:
+        """Train GOPs from `base` (the base stage's result)."""
+        self.base, self.static, self.migrated = base, base.static, base.migrated
+        return base
+
     def coarse_frames(self) -> list[int]:
         """The frames of the coarse stage (stage A): at most two GOPs' worth, spread over the trained span."""
         all_frames = [f for k in range(self.num_gops) for f in self.gop_frames(k)]
         step = max(1, len(all_frames) // max(1, min(len(all_frames), 2 * self.cfg.gop_size)))
         return all_frames[::step]
-
-    def run(self) -> dict:
-        cfg = self.cfg
-        self.triangulated = self.background_points = None
-        coarse_views = load_views(self.ds, self.train_names, self.coarse_frames(), cfg.scale, self.progress)
-        start = time.perf_counter()
-        if self.layered:
-            self.stage_a(coarse_views)
-            coarse = None
-        else:
-            coarse = self.coarse(coarse_views, self.shape)
-        coarse_s = time.perf_counter() - start
-        del coarse_views
-        reports, gops = [], []
-        for k in range(self.num_gops):
-            done = self.state / gop_file(k)
-            report_path = self.state / f"{gop_stem(k)}.report.json"
-            if self.resume and done.is_file() and report_path.is_file():
-                gops.append(self._load_done(done))
-                reports.append(json.loads(report_path.read_text()))
-                continue
-            frames = self.gop_frames(k)
-            views = load_views(self.ds, self.train_names, frames, cfg.scale, self.progress)
-            if cfg.dynamic:
-                views.dynamic = gop_dynamic_masks(views.images, cfg.dynamic_frames, cfg.dynamic_theta)
-            val = (load_views(self.ds, self.val_names, frames, cfg.scale, False) if self.val_names else None)
-            model, report = self.train_gop(k, coarse, views, val)
-            save_gop(model, done)
-            atomic_write_bytes(report_path, json.dumps(dataclasses.asdict(report)).encode())
-            gops.append(model)
-            reports.append(dataclasses.asdict(report))
-        return self.finish(gops, reports, coarse_s)
-
-    def _load_done(self, path: Path) -> GOPModel:
-        model = GOPModel(self.shape)
-        model.load_state_dict(load_file(str(path)))
-        return model
-
-    def finish(self, gops: list[GOPModel], reports: list[dict], coarse_s: float) -> dict:
-        cfg = self.cfg
-        extra = {"generator": "stgs.train", "dataset": self.ds.name, "start_frame": cfg.start_frame,
-                 "train_cameras": self.train_names, "validation_cameras": self.val_names,
-                 "config": json.loads(json.dumps(dataclasses.asdict(cfg)))}
-        save_model(self.out, gops, self.ds.fps, extra, static=self.static)
-        cams = [scale_camera(c, cfg.scale) for c in self.ds.cameras(cfg.start_frame)]
-        doc = {"format": CAMERAS_FORMAT, "version": 1, "cameras": [c.to_json() for c in cams]}
-        atomic_write_bytes(self.out / CAMERAS, (json.dumps(doc, indent=1) + "\n").encode())
-        report = {"dataset": self.ds.name, "budget": cfg.budget, "gops": reports, "coarse_seconds": coarse_s,
-                  "triangulated_points": self.triangulated,
-                  "background_points": self.background_points, "capacity": self.shape.capacity,
-                  "train_cameras": self.train_names, "validation_cameras": self.val_names,
-                  "layers": cfg.layers}
-        if self.static is not None:
-            report |= {"static_capacity": self.static.capacity, "static_seconds": coarse_s} | self.layer_info
-        atomic_write_bytes(self.out / TRAIN_REPORT, (json.dumps(report, indent=1) + "\n").encode())
-        return report
-
-
-def train(dataset: Path, out: Path, cfg: TrainConfig, progress: bool = True, resume: bool = False,
-          kind: str = "auto") -> dict:
-    """Train a model dir at `out` from a multi-view dataset; returns the training report."""
-    return Trainer(dataset, out, cfg, progress, resume, kind).run()
-

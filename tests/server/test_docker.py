@@ -111,3 +111,49 @@ def test_compose_puts_a_caching_proxy_in_front():
     server_section = compose.split("  cache:")[0]
     assert '"--max-connections-per-client", "0"' in server_section
     assert re.search(r"limit_conn \w+ \d+;", conf) and "limit_conn_zone $binary_remote_addr" in conf
+
+
+def stage(path: Path, name: str) -> list[tuple[str, str]]:
+    """The instructions of one named stage of a multi-stage Dockerfile."""
+    ins, out, current = instructions(path), [], None
+    for kind, args in ins:
+        if kind == "FROM":
+            current = args.split(" AS ")[-1].strip() if " AS " in args else None
+        if current == name:
+            out.append((kind, args))
+    return out
+
+
+def test_ray_worker_image_is_the_packager_image_plus_ray():
+    path = DOCKER / "packager.Dockerfile"
+    ins = instructions(path)
+    assert ins[-1] == ("FROM", "packager")  # a plain `docker build` still gives the packager image
+    worker = stage(path, "ray-worker")
+    assert worker[0] == ("FROM", "packager AS ray-worker")
+    assert any(k == "RUN" and "-r requirements-ray.lock" in a for k, a in worker)
+    assert ("ENTRYPOINT", '["ray"]') in worker
+    user = [a for k, a in worker if k == "USER"]
+    assert user and user[-1] not in ("root", "0")
+    pins = dict(line.split("==") for line in (ROOT / "requirements-ray.lock").read_text().splitlines()
+                if "==" in line and not line.startswith("#"))
+    assert pins["ray"] == "2.60.0"
+    assert re.search(r'^ray = \["ray==2\.60\.0"\]', (ROOT / "pyproject.toml").read_text(), re.M)
+    assert not re.search(r"^ray==", LOCK.read_text(), re.M)  # the packager image does not carry Ray
+
+
+def test_ray_compose_runs_a_head_and_workers_on_one_shared_volume():
+    import yaml
+
+    doc = yaml.safe_load((DOCKER / "ray-compose.yaml").read_text())
+    head, worker = doc["services"]["ray-head"], doc["services"]["ray-worker"]
+    for service in (head, worker):
+        assert service["build"] == {"context": "..", "dockerfile": "docker/packager.Dockerfile",
+                                    "target": "ray-worker"}
+        assert service["volumes"] == ["${WORK:-./work}:/work"]  # every task sees the same paths
+        assert service["command"][0] == "start" and "--block" in service["command"]
+    assert "--head" in head["command"] and "--port=6379" in head["command"] and "--num-cpus=0" in head["command"]
+    assert "--address=ray-head:6379" in worker["command"] and worker["depends_on"] == ["ray-head"]
+    assert worker["deploy"]["replicas"] == "${WORKERS:-2}"
+    assert "ports" not in head  # Ray's port stays on the compose network
+    text = (DOCKER / "ray-compose.yaml").read_text()
+    assert "stgs train /work/" in text and "--ray auto" in text

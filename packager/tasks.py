@@ -1,0 +1,96 @@
+"""`stgs pack --ray`: a pack as tasks on a Ray cluster, writing the same tree as a local pack.
+
+Per GOP a prepare task sorts and tiles the GOP, writes its keyframe segment into the tree and saves the prepared
+GOP (feature frames, ranges, reference views; safetensors) under `OUT/.pack-work/`; per GOP x QP an encode task
+loads it, encodes, writes the init and media segments and measures them, with the same Packer code as a local
+pack. The driver records each finished task in the resume state as it arrives (so `--resume` after the driver
+dies re-runs only what is missing), tells the manifest builder of every segment, removes the work folder and
+writes stats.json and, last, the MPD. Task logs stay under `OUT/.pack-logs/` (hidden: never served).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+from stgs.codec.plas import PLASConfig
+from stgs.errors import StgsError
+from stgs.packager.manifest import SegmentRecord
+from stgs.packager.packer import PackConfig, Packer, qp_task_name
+from stgs.packager.segments import load_prepared, save_prepared
+from stgs.tasks import Runner, Task
+from stgs.tree import PACK_LOGS, PACK_WORK, feature_path, keyframe_path, rep_id
+
+
+@dataclass(frozen=True)
+class PackJob:
+    """What a task needs to rebuild the pack where it runs (plain data)."""
+
+    model_dir: str
+    out: str
+    cfg: dict
+
+
+def _packer(job: PackJob) -> Packer:
+    doc = job.cfg
+    cfg = PackConfig(**{**doc, "qps": tuple(doc["qps"]), "plas": PLASConfig(**doc["plas"]), "resume": False})
+    return Packer(Path(job.model_dir), Path(job.out), cfg, progress=False)
+
+
+def prepared_path(out: Path, k: int) -> Path:
+    return Path(out) / PACK_WORK / f"gop_{k:05d}.safetensors"
+
+
+def prepare_task(job: PackJob, k: int) -> dict:
+    packer = _packer(job)
+    gop = packer.prepare_gop(k)
+    packer.write(keyframe_path(packer.version_dir, k), gop.keyframe)
+    save_prepared(gop, prepared_path(packer.out, k))
+    return {"keyframe_bytes": len(gop.keyframe)}
+
+
+def encode_task(job: PackJob, k: int, qp: int) -> dict:
+    packer = _packer(job)
+    keyframe = (packer.out / keyframe_path(packer.version_dir, k)).read_bytes()
+    gop = load_prepared(prepared_path(packer.out, k), keyframe, packer.meta)
+    files, result = packer.encode_segment(gop, qp)
+    return {"files": {rel: hashlib.sha256(data).hexdigest() for rel, data in files.items()}, "result": result}
+
+
+def run_tasks(packer: Packer, runner: Runner) -> dict:
+    """The pack on `runner` (after Packer.prepare_output); returns the stats document."""
+    cfg, out, state = packer.cfg, packer.out, packer.state
+    job = PackJob(str(packer.model_dir.resolve()), str(out.resolve()), dataclasses.asdict(cfg))
+    tasks = []
+    for k in range(packer.meta.num_gops):
+        pending = [qp for qp in cfg.qps if state.done(out, qp_task_name(k, qp)) is None]
+        prepare = f"gop{k}-prepare"
+        if pending or not (out / keyframe_path(packer.version_dir, k)).is_file():
+            tasks.append(Task(prepare, prepare_task, (job, k)))
+        tasks += [Task(qp_task_name(k, qp), encode_task, (job, k, qp), after=(prepare,)) for qp in pending]
+    inits: dict[int, set[str]] = {}
+
+    def on_result(name: str, result: dict) -> None:
+        if "files" in result:
+            state.record(name, result["files"], result["result"])
+            qp = int(name.rsplit("-qp", 1)[1])
+            inits.setdefault(qp, set()).add(result["files"][feature_path(packer.version_dir, rep_id(qp), None)])
+
+    runner.run(tasks, out / PACK_LOGS, "pack GOPs x QPs", on_result)
+    for qp, digests in inits.items():
+        if len(digests) > 1:
+            raise StgsError(f"QP {qp}: the GOPs' encodes produced {len(digests)} different init segments; a "
+                            "Representation needs one (are the workers running different ffmpeg builds?)")
+    for k in range(packer.meta.num_gops):
+        size = (out / keyframe_path(packer.version_dir, k)).stat().st_size
+        packer.builder.on_keyframe(SegmentRecord(k, packer.seconds_per_gop, size))
+        for qp in cfg.qps:
+            done = state.done(out, qp_task_name(k, qp))
+            if done is None:
+                raise StgsError(f"{out}: GOP {k} at QP {qp} is missing or changed after its task finished")
+            packer.builder.on_feature_segment(rep_id(qp), packer.segment_record(k, done))
+    shutil.rmtree(out / PACK_WORK, ignore_errors=True)
+    return packer.finish()

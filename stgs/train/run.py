@@ -1,0 +1,158 @@
+"""A training run as tasks (`stgs train`, locally or with `--ray`): the base stage once, then one task per GOP,
+then the model dir, written by the driver exactly as a local run writes it.
+
+Every task reads the dataset and the run's state folder (`OUT/.train/`) and writes its result there atomically:
+the base stage's file (stgs.train.base), each GOP's trained model and report. A GOP draws from generators seeded
+by the run's seed and its own index (Trainer.seed_stage), so it trains to the same bytes in any process and any
+order, given the same thread count: torch's CPU kernels add in an order that follows the thread count, so a Ray
+run pins it (`threads`, default 1 per task) and a local run reproduces a Ray run's bytes with the same `threads`.
+A task resumes from its own checkpoints, so a retried task (its worker killed) continues where it stopped, and a
+run resumed after its driver died skips the GOPs whose results are already saved.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from safetensors.torch import load_file
+
+from stgs.fsio import atomic_write_bytes
+from stgs.model.gop import GOPModel
+from stgs.model.store import save_gop, save_model
+from stgs.tasks import Task, open_runner
+from stgs.train.base import BASE_FILE, BaseStage
+from stgs.train.config import TrainConfig, config_from_dict
+from stgs.train.dynamic import gop_dynamic_masks
+from stgs.train.trainer import Trainer
+from stgs.train.views import load_views, scale_camera
+from stgs.tree import CAMERAS, CAMERAS_FORMAT, TRAIN_REPORT, gop_file, gop_stem
+
+LOG_DIR = "logs"
+"""Per-task logs under the run's state folder."""
+
+
+def report_file(k: int) -> str:
+    return f"{gop_stem(k)}.report.json"
+
+
+def base_stage(trainer: Trainer) -> BaseStage:
+    """The coarse stage (single) or stage A (layered), run once and saved in the state folder; loaded from there
+    when an earlier task or run finished it."""
+    path = trainer.state / BASE_FILE
+    if path.is_file():
+        return trainer.use_base(BaseStage.load(path, trainer.shape))
+    views = load_views(trainer.ds, trainer.train_names, trainer.coarse_frames(), trainer.cfg.scale,
+                       trainer.progress)
+    start = time.perf_counter()
+    if trainer.layered:
+        trainer.stage_a(views)
+        base = BaseStage(static=trainer.static, migrated=trainer.migrated)
+    else:
+        base = BaseStage(coarse=trainer.coarse(views, trainer.shape))
+    base.info = {"seconds": time.perf_counter() - start, "triangulated_points": trainer.triangulated,
+                 "background_points": trainer.background_points} | trainer.layer_info
+    trainer.state.mkdir(parents=True, exist_ok=True)
+    base.save(path)
+    return trainer.use_base(base)
+
+
+def gop_done(trainer: Trainer, k: int) -> bool:
+    return (trainer.state / gop_file(k)).is_file() and (trainer.state / report_file(k)).is_file()
+
+
+def gop_stage(trainer: Trainer, k: int) -> dict:
+    """Train GOP k from the saved base stage; save it and its report in the state folder."""
+    cfg = trainer.cfg
+    base = trainer.base or trainer.use_base(BaseStage.load(trainer.state / BASE_FILE, trainer.shape))
+    frames = trainer.gop_frames(k)
+    views = load_views(trainer.ds, trainer.train_names, frames, cfg.scale, trainer.progress)
+    if cfg.dynamic:
+        views.dynamic = gop_dynamic_masks(views.images, cfg.dynamic_frames, cfg.dynamic_theta)
+    val = load_views(trainer.ds, trainer.val_names, frames, cfg.scale, False) if trainer.val_names else None
+    model, report = trainer.train_gop(k, base.coarse, views, val)
+    save_gop(model, trainer.state / gop_file(k))
+    atomic_write_bytes(trainer.state / report_file(k), json.dumps(dataclasses.asdict(report)).encode())
+    return {"gop": k, "seconds": report.seconds, "val_psnr": report.val_psnr}
+
+
+def finish(trainer: Trainer) -> dict:
+    """The model dir from the saved base stage and GOPs (model.json last), its cameras and the training report."""
+    cfg, state = trainer.cfg, trainer.state
+    base = trainer.use_base(BaseStage.load(state / BASE_FILE, trainer.shape))
+    gops = []
+    for k in range(trainer.num_gops):
+        model = GOPModel(trainer.shape)
+        model.load_state_dict(load_file(str(state / gop_file(k))))
+        gops.append(model)
+    reports = [json.loads((state / report_file(k)).read_text()) for k in range(trainer.num_gops)]
+    extra = {"generator": "stgs.train", "dataset": trainer.ds.name, "start_frame": cfg.start_frame,
+             "train_cameras": trainer.train_names, "validation_cameras": trainer.val_names,
+             "config": json.loads(json.dumps(dataclasses.asdict(cfg)))}
+    save_model(trainer.out, gops, trainer.ds.fps, extra, static=base.static)
+    cams = [scale_camera(c, cfg.scale) for c in trainer.ds.cameras(cfg.start_frame)]
+    doc = {"format": CAMERAS_FORMAT, "version": 1, "cameras": [c.to_json() for c in cams]}
+    atomic_write_bytes(trainer.out / CAMERAS, (json.dumps(doc, indent=1) + "\n").encode())
+    info = dict(base.info)
+    coarse_s = info.pop("seconds")
+    report = {"dataset": trainer.ds.name, "budget": cfg.budget, "gops": reports, "coarse_seconds": coarse_s,
+              "triangulated_points": info.pop("triangulated_points"),
+              "background_points": info.pop("background_points"), "capacity": trainer.shape.capacity,
+              "train_cameras": trainer.train_names, "validation_cameras": trainer.val_names, "layers": cfg.layers}
+    if base.static is not None:
+        report |= {"static_capacity": base.static.capacity, "static_seconds": coarse_s} | info
+    atomic_write_bytes(trainer.out / TRAIN_REPORT, (json.dumps(report, indent=1) + "\n").encode())
+    return report
+
+
+@dataclass(frozen=True)
+class TrainJob:
+    """What a task needs to rebuild the run where it runs (plain data)."""
+
+    dataset: str
+    out: str
+    cfg: dict
+    kind: str
+    progress: bool
+
+
+def _trainer(job: TrainJob) -> Trainer:
+    return Trainer(Path(job.dataset), Path(job.out), config_from_dict(job.cfg), job.progress, resume=True,
+                   kind=job.kind)
+
+
+def base_task(job: TrainJob) -> dict:
+    return {"seconds": base_stage(_trainer(job)).info["seconds"]}
+
+
+def gop_task(job: TrainJob, k: int) -> dict:
+    return gop_stage(_trainer(job), k)
+
+
+def train(dataset: Path, out: Path, cfg: TrainConfig, progress: bool = True, resume: bool = False,
+          kind: str = "auto", ray: str | None = None, retries: int = 3) -> dict:
+    """Train a model dir at `out` from a multi-view dataset; returns the training report. `ray`: None (this
+    process) or a Ray address (stgs.tasks.open_runner), where each task gets `cfg.threads` cores (default 1)."""
+    if ray is not None and cfg.threads is None:
+        cfg = dataclasses.replace(cfg, threads=1)
+    trainer = Trainer(Path(dataset), Path(out), cfg, progress, resume, kind)
+    trainer.prepare_output()
+    runner = open_runner(ray, retries, progress)
+    try:
+        # Ray's workers report through the driver's one progress bar; a local run shows each stage's own.
+        job = TrainJob(str(Path(dataset).resolve()), str(trainer.out.resolve()), dataclasses.asdict(cfg), kind,
+                       progress and ray is None)
+        cpus, logs = cfg.threads or 1, trainer.state / LOG_DIR
+        tasks, after = [], ()
+        if not (trainer.state / BASE_FILE).is_file():
+            tasks.append(Task("base", base_task, (job,), cpus=cpus, fresh_process=True))
+            after = ("base",)
+        tasks += [Task(gop_stem(k), gop_task, (job, k), after=after, cpus=cpus, fresh_process=True)
+                  for k in range(trainer.num_gops) if not gop_done(trainer, k)]
+        runner.run(tasks, logs, "train: base stage and GOPs")
+    finally:
+        runner.close()
+    return finish(trainer)
