@@ -215,14 +215,15 @@ def pack(model_dir: Path, out: Path, cfg: PackConfig | None = None, progress: bo
     """Package a model dir into a DASH tree at `out`; returns the stats document. `ray`: None (this process, on
     a pool of `cfg.jobs` encoders) or a Ray address (stgs.tasks.open_runner; stgs.packager.tasks)."""
     packer = Packer(model_dir, Path(out), cfg or PackConfig(), progress)
-    packer.prepare_output()
     if ray is None:
+        packer.prepare_output()
         return packer.run()
     from stgs.packager.tasks import run_tasks
     from stgs.tasks import open_runner
 
-    runner = open_runner(ray, retries, progress)
+    runner = open_runner(ray, retries, progress)  # before anything is written: a bad address leaves no output
     try:
+        packer.prepare_output()
         return run_tasks(packer, runner)
     finally:
         runner.close()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
+import socket
 import traceback
 from collections.abc import Callable
 from pathlib import Path
@@ -23,6 +24,18 @@ try:
     from ray.exceptions import RayTaskError
 except ImportError as e:  # pragma: no cover - exercised only where the extra is missing
     raise StgsError("Ray is not installed: install the optional extra (pip install 'streamstgs[ray]')") from e
+
+
+def check_reachable(address: str, timeout: float = 5.0) -> None:
+    """A HOST:PORT (or ray://HOST:PORT) address that answers a TCP connect; Ray itself would retry an unreachable
+    head for minutes."""
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not (host and port.isdigit() and 0 < int(port) < 65536):
+        raise StgsError(f"a Ray address is local, auto, HOST:PORT or ray://HOST:PORT, got {address!r}")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
+    except OSError as e:
+        raise StgsError(f"cannot reach the Ray cluster at {address!r}: {e.strerror or e}") from None
 
 
 class RayRunner:
@@ -40,6 +53,8 @@ class RayRunner:
         if address == "local":
             options |= {"num_cpus": os.cpu_count() or 1, "include_dashboard": False}
         else:
+            if address != "auto":
+                check_reachable(address)
             options["address"] = address
         try:
             ray.init(**options)
@@ -92,7 +107,7 @@ class RayRunner:
             raise TaskFailedError(f"task {name} raised {last} (its traceback is in the task's log)") from None
         except ray.exceptions.RayError as e:
             raise TaskFailedError(f"task {name} did not finish after {self.retries + 1} attempt(s): "
-                             f"{str(e).splitlines()[0]}") from None
+                                  f"{str(e).splitlines()[0]}") from None
 
     def close(self) -> None:
         if self.owns and ray.is_initialized():

@@ -139,9 +139,9 @@ def train(dataset: Path, out: Path, cfg: TrainConfig, progress: bool = True, res
     if ray is not None and cfg.threads is None:
         cfg = dataclasses.replace(cfg, threads=1)
     trainer = Trainer(Path(dataset), Path(out), cfg, progress, resume, kind)
-    trainer.prepare_output()
-    runner = open_runner(ray, retries, progress)
+    runner = open_runner(ray, retries, progress)  # before anything is written: a bad address leaves no output
     try:
+        trainer.prepare_output()
         # Ray's workers report through the driver's one progress bar; a local run shows each stage's own.
         job = TrainJob(str(Path(dataset).resolve()), str(trainer.out.resolve()), dataclasses.asdict(cfg), kind,
                        progress and ray is None)

@@ -2,11 +2,18 @@
 
 from __future__ import annotations
 
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 
 from stgs.errors import StgsError
 from stgs.tasks import LocalRunner, Task, TaskFailedError
 from stgs.tasks.runner import SHARED_TOKEN, execute, read_log, write_shared_token
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def double(x: int) -> dict:
@@ -57,3 +64,23 @@ def test_a_task_whose_dependency_failed_never_starts(tmp_path):
     outcome = execute("after", double, (1,), token, str(tmp_path), True, {"error": "input 3 is bad"})
     assert outcome == {"error": "input 3 is bad"} and read_log(tmp_path, "after") == []
     assert execute("ok", double, (1,), token, str(tmp_path), True, {"result": {}}) == {"result": {"value": 2}}
+
+
+def test_without_ray_nothing_of_ray_is_imported(tmp_path):
+    """A local run's whole import graph (the CLI, training, packing, the task runner) leaves Ray alone."""
+    code = ("import sys; import stgs.cli.commands, stgs.train.run, stgs.packager.packer, stgs.packager.tasks, "
+            "stgs.tasks; from stgs.tasks import open_runner; open_runner(None); "
+            "sys.exit(1 if any(m == 'ray' or m.startswith('ray.') for m in sys.modules) else 0)")
+    assert subprocess.run([sys.executable, "-c", code], cwd=ROOT).returncode == 0
+
+
+def test_an_unreachable_or_malformed_ray_address_is_one_clear_error_at_once():
+    ray_runner = pytest.importorskip("stgs.tasks.ray_runner")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # closed again: nothing listens there
+    with pytest.raises(StgsError, match=f"cannot reach the Ray cluster at '127.0.0.1:{port}'"):
+        ray_runner.check_reachable(f"127.0.0.1:{port}")
+    for bad in ("nohost", "host:port", "host:0", ":6379"):
+        with pytest.raises(StgsError, match="a Ray address is local, auto, HOST:PORT"):
+            ray_runner.check_reachable(bad)
