@@ -137,19 +137,20 @@ class Packer:
         task = qp_task_name(gop.index, qp)
         done = self.state.done(self.out, task)
         if done is None:
-            files, done = self.encode_segment(gop, qp)
-            self.state.record(task, {rel: hashlib.sha256(data).hexdigest() for rel, data in files.items()}, done)
+            digests, done = self.encode_segment(gop, qp)
+            self.state.record(task, digests, done)
         return self.segment_record(gop.index, done)
 
-    def encode_segment(self, gop: PreparedGOP, qp: int) -> tuple[dict[str, bytes], dict]:
+    def encode_segment(self, gop: PreparedGOP, qp: int) -> tuple[dict[str, str], dict]:
         """GOP k's feature video at one QP encoded, its init and media segments written, the media measured:
-        (the files by path, the measurements)."""
+        (the SHA-256 of each file by path, the measurements)."""
         k, rep = gop.index, rep_id(qp)
         init, media = self.encoder.encode(k, qp, gop.frames)
         files = {feature_path(self.version_dir, rep, k): media, feature_path(self.version_dir, rep, None): init}
         for rel, data in files.items():
             self.write(rel, data)
-        return files, measure(gop, init, media, self.meta)
+        digests = {rel: hashlib.sha256(data).hexdigest() for rel, data in files.items()}
+        return digests, measure(gop, init, media, self.meta)
 
     def segment_record(self, k: int, done: dict) -> SegmentRecord:
         return SegmentRecord(k, self.seconds_per_gop, done["bytes"],

@@ -11,7 +11,6 @@ writes stats.json and, last, the MPD. Task logs stay under `OUT/.pack-logs/` (hi
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,7 +56,7 @@ def encode_task(job: PackJob, k: int, qp: int) -> dict:
     keyframe = (packer.out / keyframe_path(packer.version_dir, k)).read_bytes()
     gop = load_prepared(prepared_path(packer.out, k), keyframe, packer.meta)
     files, result = packer.encode_segment(gop, qp)
-    return {"files": {rel: hashlib.sha256(data).hexdigest() for rel, data in files.items()}, "result": result}
+    return {"qp": qp, "files": files, "result": result}
 
 
 def run_tasks(packer: Packer, runner: Runner) -> dict:
@@ -76,7 +75,7 @@ def run_tasks(packer: Packer, runner: Runner) -> dict:
     def on_result(name: str, result: dict) -> None:
         if "files" in result:
             state.record(name, result["files"], result["result"])
-            qp = int(name.rsplit("-qp", 1)[1])
+            qp = result["qp"]
             inits.setdefault(qp, set()).add(result["files"][feature_path(packer.version_dir, rep_id(qp), None)])
 
     runner.run(tasks, out / PACK_LOGS, "pack GOPs x QPs", on_result)

@@ -41,8 +41,8 @@ def check_reachable(address: str, timeout: float = 5.0) -> None:
 class RayRunner:
     """Tasks on the Ray cluster this process is connected to; one progress bar over all of them."""
 
-    def __init__(self, retries: int, progress: bool, owns: bool):
-        self.retries, self.progress, self.owns = retries, progress, owns
+    def __init__(self, retries: int, progress: bool):
+        self.retries, self.progress = retries, progress
 
     @classmethod
     def connect(cls, address: str, retries: int = 3, progress: bool = True) -> RayRunner:
@@ -61,7 +61,7 @@ class RayRunner:
         except (ConnectionError, RuntimeError, ValueError) as e:
             where = "a new local Ray instance" if address == "local" else f"the Ray cluster at {address!r}"
             raise StgsError(f"cannot start or reach {where}: {str(e).splitlines()[0]}") from None
-        return cls(retries, progress, owns=True)
+        return cls(retries, progress)
 
     def run(self, tasks: list[Task], log_dir: Path, desc: str,
             on_result: Callable[[str, dict], None] | None = None) -> dict[str, dict]:
@@ -110,5 +110,5 @@ class RayRunner:
                                   f"{str(e).splitlines()[0]}") from None
 
     def close(self) -> None:
-        if self.owns and ray.is_initialized():
+        if ray.is_initialized():
             ray.shutdown()

@@ -39,12 +39,17 @@ def report_file(k: int) -> str:
     return f"{gop_stem(k)}.report.json"
 
 
+def saved_base(trainer: Trainer) -> BaseStage:
+    """The base stage from the state folder, in use by `trainer`."""
+    return trainer.use_base(BaseStage.load(trainer.state / BASE_FILE, trainer.shape))
+
+
 def base_stage(trainer: Trainer) -> BaseStage:
     """The coarse stage (single) or stage A (layered), run once and saved in the state folder; loaded from there
     when an earlier task or run finished it."""
     path = trainer.state / BASE_FILE
     if path.is_file():
-        return trainer.use_base(BaseStage.load(path, trainer.shape))
+        return saved_base(trainer)
     views = load_views(trainer.ds, trainer.train_names, trainer.coarse_frames(), trainer.cfg.scale,
                        trainer.progress)
     start = time.perf_counter()
@@ -67,7 +72,7 @@ def gop_done(trainer: Trainer, k: int) -> bool:
 def gop_stage(trainer: Trainer, k: int) -> dict:
     """Train GOP k from the saved base stage; save it and its report in the state folder."""
     cfg = trainer.cfg
-    base = trainer.base or trainer.use_base(BaseStage.load(trainer.state / BASE_FILE, trainer.shape))
+    base = trainer.base or saved_base(trainer)
     frames = trainer.gop_frames(k)
     views = load_views(trainer.ds, trainer.train_names, frames, cfg.scale, trainer.progress)
     if cfg.dynamic:
@@ -82,7 +87,7 @@ def gop_stage(trainer: Trainer, k: int) -> dict:
 def finish(trainer: Trainer) -> dict:
     """The model dir from the saved base stage and GOPs (model.json last), its cameras and the training report."""
     cfg, state = trainer.cfg, trainer.state
-    base = trainer.use_base(BaseStage.load(state / BASE_FILE, trainer.shape))
+    base = saved_base(trainer)
     gops = []
     for k in range(trainer.num_gops):
         model = GOPModel(trainer.shape)
