@@ -44,8 +44,11 @@ stgs_ensure_venv() {
   echo "stgs setup: creating $STGS_VENV with the pinned requirements (first run downloads torch) ..." >&2
   "$python" -m venv "$STGS_VENV" || stgs_die "python3 -m venv failed (Debian: apt-get install python3-venv)"
   # The Ray extra (stgs train/pack --ray) too: the tests start a local Ray cluster.
-  "$STGS_VENV/bin/python" -m pip install -q --disable-pip-version-check -r "$STGS_ROOT/requirements.lock" \
-    -r "$STGS_ROOT/requirements-ray.lock" || stgs_die "installing requirements.lock and requirements-ray.lock failed"
+  # torch from PyPI brings its CUDA libraries: the environment takes about 6.5 GB, and pip's
+  # wheel cache would double that, so it is not kept.
+  "$STGS_VENV/bin/python" -m pip install -q --disable-pip-version-check --no-cache-dir \
+    -r "$STGS_ROOT/requirements.lock" -r "$STGS_ROOT/requirements-ray.lock" \
+    || stgs_die "installing requirements.lock and requirements-ray.lock failed (the environment needs about 6.5 GB of free disk)"
   "$STGS_VENV/bin/python" -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e "$STGS_ROOT" \
     || stgs_die "installing streamstgs failed"
   echo "$want" > "$STGS_VENV/.stgs-stamp"
