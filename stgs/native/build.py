@@ -21,7 +21,7 @@ from typing import Any
 
 SOURCES = ("project.cpp", "binning.cpp", "forward.cpp", "backward.cpp", "deform.cpp", "deform_amx.cpp")
 """The splatter by stage (projection, binning, forward, backward), then the deformation field."""
-HEADERS = ("stgs_abi.h", "splat.h", "splat_avx512.h", "fastmath.h", "deform.h")
+HEADERS = ("stgs_abi.h", "splat.h", "splat_avx2.h", "splat_avx512.h", "fastmath.h", "deform.h")
 """stgs_abi.h is the C ABI (every export, read by stgs.native.abi); the others are internal."""
 CSRC = Path(__file__).with_name("csrc")
 ARCH = os.environ.get("STGS_NATIVE_ARCH", "native")

@@ -1,7 +1,8 @@
 // Stage 3, forward: front-to-back compositing of each tile's list (DESIGN.md's per-pixel
 // loop), with the per-pixel bookkeeping (final transmittance, last contributor) the backward
 // pass reads. Its torch twin is stgs.render.stages.composite_tiles. The AVX-512 kernels sit
-// beside the portable one, which stays the build for CPUs without AVX-512.
+// beside the portable one; on AVX2 CPUs without AVX-512 inference takes splat_avx2.h's kernel
+// and the tracked forward the portable one.
 
 #include <omp.h>
 
@@ -18,6 +19,7 @@
 #endif
 
 #include "splat.h"
+#include "splat_avx2.h"
 #include "splat_avx512.h"
 #include "stgs_abi.h"
 
@@ -213,6 +215,16 @@ void render_tile_fast(const RasterCtx& ctx, int tile, const float* bg, float* ou
     render_tile_avx512<true>(ctx, tile, bg, out, trans_final, n_contrib);
   else
     render_tile_avx512<false>(ctx, tile, bg, out, nullptr, nullptr);
+}
+
+constexpr auto kRenderTile = render_tile_fast;
+#elif defined(__AVX2__) && defined(__FMA__)
+void render_tile_fast(const RasterCtx& ctx, int tile, const float* bg, float* out, float* trans_final,
+                      int32_t* n_contrib) {
+  if (trans_final != nullptr)
+    render_tile(ctx, tile, bg, out, trans_final, n_contrib);
+  else
+    render_tile_infer_avx2(ctx, tile, bg, out);
 }
 
 constexpr auto kRenderTile = render_tile_fast;
