@@ -15,7 +15,7 @@
 #include "stgs_abi.h"
 #include "fastmath.h"
 
-#if defined(__AVX512F__)
+#if defined(__AVX2__)
 #include <immintrin.h>
 #endif
 
@@ -29,38 +29,60 @@ using stgs::kOut;
 constexpr int kBlock = 32;
 
 #if defined(__AVX512F__)
-// y[b, :M] = x[b, :K] @ wt (K x M, row-major): register tiles of 4 rows x 64
-// columns (16 accumulators) so every weight load feeds four FMAs.
+// y[b, :M] = x[b, :K] @ wt (K x M, row-major): register tiles of R rows x 64 columns (16
+// accumulators at R = 4) so every weight load feeds R FMAs; R = 4, then 1 for the last rows.
+template <int M, int R>
+void matmul_tile(const float* x, int K, int ldx, const float* wt, float* y) {
+  constexpr int kCols = M < 64 ? M : 64;
+  constexpr int kVec = kCols / 16;
+  for (int c0 = 0; c0 < M; c0 += kCols) {
+    __m512 acc[R][kVec];
+    for (int r = 0; r < R; ++r)
+      for (int j = 0; j < kVec; ++j) acc[r][j] = _mm512_setzero_ps();
+    for (int k = 0; k < K; ++k) {
+      __m512 w[kVec];
+      for (int j = 0; j < kVec; ++j) w[j] = _mm512_loadu_ps(wt + k * M + c0 + 16 * j);
+      for (int r = 0; r < R; ++r) {
+        const __m512 xb = _mm512_set1_ps(x[r * ldx + k]);
+        for (int j = 0; j < kVec; ++j) acc[r][j] = _mm512_fmadd_ps(xb, w[j], acc[r][j]);
+      }
+    }
+    for (int r = 0; r < R; ++r)
+      for (int j = 0; j < kVec; ++j) _mm512_storeu_ps(y + r * M + c0 + 16 * j, acc[r][j]);
+  }
+}
+#elif defined(__AVX2__) && defined(__FMA__)
+// AVX2 (16 registers of 8 lanes): register tiles of R rows x 16 columns, so every weight load feeds
+// R FMAs; R = 4, then 1 for the last rows (the culled appearance rows are any count). The same k
+// order as the other kernels.
+template <int M, int R>
+void matmul_tile(const float* x, int K, int ldx, const float* wt, float* y) {
+  for (int c0 = 0; c0 < M; c0 += 16) {
+    __m256 acc[R][2];
+    for (int r = 0; r < R; ++r) acc[r][0] = acc[r][1] = _mm256_setzero_ps();
+    for (int k = 0; k < K; ++k) {
+      const __m256 w0 = _mm256_loadu_ps(wt + k * M + c0), w1 = _mm256_loadu_ps(wt + k * M + c0 + 8);
+      for (int r = 0; r < R; ++r) {
+        const __m256 xb = _mm256_broadcast_ss(x + r * ldx + k);
+        acc[r][0] = _mm256_fmadd_ps(xb, w0, acc[r][0]);
+        acc[r][1] = _mm256_fmadd_ps(xb, w1, acc[r][1]);
+      }
+    }
+    for (int r = 0; r < R; ++r) {
+      _mm256_storeu_ps(y + r * M + c0, acc[r][0]);
+      _mm256_storeu_ps(y + r * M + c0 + 8, acc[r][1]);
+    }
+  }
+}
+#endif
+
+#if defined(__AVX512F__) || (defined(__AVX2__) && defined(__FMA__))
 template <int M>
 void matmul_rows(const float* x, int rows, int K, int ldx, const float* wt, float* y) {
   static_assert(M % 16 == 0, "M must be a multiple of 16");
-  constexpr int kCols = M < 64 ? M : 64;
-  constexpr int kVec = kCols / 16;
   int b = 0;
-  for (; b + 4 <= rows; b += 4) {
-    for (int c0 = 0; c0 < M; c0 += kCols) {
-      __m512 acc[4][kVec];
-      for (int r = 0; r < 4; ++r)
-        for (int j = 0; j < kVec; ++j) acc[r][j] = _mm512_setzero_ps();
-      for (int k = 0; k < K; ++k) {
-        __m512 w[kVec];
-        for (int j = 0; j < kVec; ++j) w[j] = _mm512_loadu_ps(wt + k * M + c0 + 16 * j);
-        for (int r = 0; r < 4; ++r) {
-          const __m512 xb = _mm512_set1_ps(x[(b + r) * ldx + k]);
-          for (int j = 0; j < kVec; ++j) acc[r][j] = _mm512_fmadd_ps(xb, w[j], acc[r][j]);
-        }
-      }
-      for (int r = 0; r < 4; ++r)
-        for (int j = 0; j < kVec; ++j) _mm512_storeu_ps(y + (b + r) * M + c0 + 16 * j, acc[r][j]);
-    }
-  }
-  for (; b < rows; ++b) {
-    for (int m = 0; m < M; ++m) {
-      float acc = 0.0f;
-      for (int k = 0; k < K; ++k) acc += x[b * ldx + k] * wt[k * M + m];
-      y[b * M + m] = acc;
-    }
-  }
+  for (; b + 4 <= rows; b += 4) matmul_tile<M, 4>(x + b * ldx, K, ldx, wt, y + b * M);
+  for (; b < rows; ++b) matmul_tile<M, 1>(x + b * ldx, K, ldx, wt, y + b * M);
 }
 #else
 // Portable fallback: one row at a time, the compiler vectorises over columns.
