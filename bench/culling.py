@@ -14,6 +14,7 @@ import argparse
 import json
 import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -68,17 +69,23 @@ def measure(model_dir: Path, repeats: int) -> str:
             f"{diff:.1e} |")
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def table_main(doc: str, header: str, measure: Callable[[Path, int], str]) -> int:
+    """The CLI of a per-model table: --model (repeatable) and --repeats, then one row per model."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     parser.add_argument("--model", type=Path, action="append", required=True)
     parser.add_argument("--repeats", type=int, default=30)
     args = parser.parse_args()
     print(f"{torch.get_num_threads()} threads\n")
-    print("| scene | Gaussians | kept by the culling | deform ms, no culling | deform ms, culled | ratio | "
-          "frame ms, no culling | frame ms, culled | max pixel difference |\n|---|---|---|---|---|---|---|---|---|")
+    print(header + "\n|" + "---|" * header.count(" | ") + "---|")
     for model in args.model:
         print(measure(model, args.repeats), flush=True)
     return 0
+
+
+def main() -> int:
+    return table_main(__doc__, "| scene | Gaussians | kept by the culling | deform ms, no culling | "
+                      "deform ms, culled | ratio | frame ms, no culling | frame ms, culled | max pixel difference |",
+                      measure)
 
 
 if __name__ == "__main__":
