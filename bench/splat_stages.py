@@ -54,8 +54,10 @@ def measure(model_dir: Path, repeats: int) -> str:
     def binning():
         return bin_native(*args, cam.width, cam.height)
 
-    def forward():
-        return raster_forward(args[0], args[1], args[2], colors, bg, args[3], args[4], cam.width, cam.height)
+    def forward(for_backward: bool = False):
+        means2d, conics, opacities, depths, extents = args
+        return raster_forward(means2d, conics, opacities, colors, bg, depths, extents, cam.width, cam.height,
+                              for_backward)
 
     times: dict[str, list[float]] = {"project": [], "bin": [], "forward": []}
     for _ in range(3):
@@ -66,8 +68,7 @@ def measure(model_dir: Path, repeats: int) -> str:
             fn()
             times[name].append((time.perf_counter() - start) * 1e3)
     pairs = binning().pairs()
-    _, handle = raster_forward(args[0], args[1], args[2], colors, bg, args[3], args[4], cam.width, cam.height,
-                               for_backward=True)
+    _, handle = forward(for_backward=True)
     reached = reached_pairs(handle.pixels()[1])
     med = {k: statistics.median(v) for k, v in times.items()}
     unused = 1.0 - reached / max(pairs, 1)

@@ -12,22 +12,15 @@
 
 namespace stgs::splat {
 
-constexpr float kLog2e8 = 1.44269504088896341f;
-constexpr int kPrefetch8 = 8;
-
-// 2^x on 8 lanes: x = n + f, n the nearest integer (f in [-0.5, 0.5], exact), 2^f by the degree-5
-// minimax polynomial of the AVX-512 kernel. x is clamped at -127, where the exponent field is 0 and the
+// 2^x on 8 lanes: x = n + f, n the nearest integer (f in [-0.5, 0.5], exact), 2^f by kExp2Poly
+// (splat.h), as the AVX-512 kernel. x is clamped at -127, where the exponent field is 0 and the
 // result 0 (AVX2 has no vscalefps); NaN passes the clamp (the second operand of max) and stays NaN.
 inline __m256 exp2_v8(__m256 x) {
   x = _mm256_max_ps(_mm256_set1_ps(-127.0f), x);
   const __m256 n = _mm256_round_ps(x, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
   const __m256 f = _mm256_sub_ps(x, n);
-  __m256 p = _mm256_set1_ps(1.3276465062e-3f);
-  p = _mm256_fmadd_ps(p, f, _mm256_set1_ps(9.6755412793e-3f));
-  p = _mm256_fmadd_ps(p, f, _mm256_set1_ps(5.5507132949e-2f));
-  p = _mm256_fmadd_ps(p, f, _mm256_set1_ps(2.4022119725e-1f));
-  p = _mm256_fmadd_ps(p, f, _mm256_set1_ps(6.9314696705e-1f));
-  p = _mm256_fmadd_ps(p, f, _mm256_set1_ps(1.0000000717e+0f));
+  __m256 p = _mm256_set1_ps(kExp2Poly[0]);
+  for (int i = 1; i < 6; ++i) p = _mm256_fmadd_ps(p, f, _mm256_set1_ps(kExp2Poly[i]));
   const __m256i bits = _mm256_slli_epi32(_mm256_add_epi32(_mm256_cvtps_epi32(n), _mm256_set1_epi32(127)), 23);
   return _mm256_mul_ps(p, _mm256_castsi256_ps(bits));
 }
@@ -38,10 +31,10 @@ struct InferRows8 {
   __m256 quad_x[2], cross[2], inside[2];
   __m256 pc, log2_o, amax;
   InferRows8(const Splat& s, int x0)
-      : pc(_mm256_set1_ps(-0.5f * kLog2e8 * s.c)), log2_o(_mm256_set1_ps(s.log2_o)), amax(_mm256_set1_ps(kAlphaMax)) {
+      : pc(_mm256_set1_ps(-0.5f * kLog2e * s.c)), log2_o(_mm256_set1_ps(s.log2_o)), amax(_mm256_set1_ps(kAlphaMax)) {
     const __m256 lane = _mm256_setr_ps(0, 1, 2, 3, 4, 5, 6, 7);
     const __m256 lo = _mm256_set1_ps(float(s.rect.u0 - x0)), hi = _mm256_set1_ps(float(s.rect.u1 - x0));
-    const __m256 pa = _mm256_set1_ps(-0.5f * kLog2e8 * s.a), pb2 = _mm256_set1_ps(-kLog2e8 * s.b);
+    const __m256 pa = _mm256_set1_ps(-0.5f * kLog2e * s.a), pb2 = _mm256_set1_ps(-kLog2e * s.b);
     for (int h = 0; h < 2; ++h) {
       const __m256 col = _mm256_add_ps(lane, _mm256_set1_ps(float(8 * h)));
       const __m256 dx = _mm256_sub_ps(_mm256_add_ps(col, _mm256_set1_ps(float(x0) + 0.5f)), _mm256_set1_ps(s.mx));
@@ -77,7 +70,7 @@ inline void render_tile_infer_avx2(const RasterCtx& ctx, int tile, const float* 
   const int64_t begin = ctx.tile_start[tile], end = ctx.tile_start[tile + 1];
   for (int64_t k = begin; k < end; ++k) {
     if ((k - begin) % kScanEvery == 0 && live_rows == 0) break;
-    if (k + kPrefetch8 < end) __builtin_prefetch(&ctx.splats[ctx.ids[k + kPrefetch8]]);
+    if (k + kPrefetch < end) prefetch_splat(ctx, k + kPrefetch);
     const Splat& s = ctx.splats[ctx.ids[k]];
     const int v0 = std::max(s.rect.v0, box.y0), v1 = std::min(s.rect.v1, box.y0 + box.h - 1);
     const InferRows8 ir(s, box.x0);

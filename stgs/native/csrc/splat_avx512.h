@@ -13,19 +13,10 @@
 #if defined(__AVX512F__)
 namespace stgs::splat {
 
-// Tile-list entries ahead whose Splat is prefetched: the list visits Gaussians in
-// depth order, so their records are scattered through memory.
-constexpr int kPrefetch = 8;
 
-inline void prefetch_splat(const RasterCtx& ctx, int64_t entry) {
-  __builtin_prefetch(&ctx.splats[ctx.ids[entry]]);
-}
-
-// Row powers are evaluated in log2 units, so that the falloff is one 2^x: the
-// conic comes pre-scaled by -0.5 log2(e) (pa, pb2, pc), which also saves the
-// multiply by -0.5. The gradients keep the natural-unit conic (a, c, half).
-constexpr float kLog2e = 1.44269504088896341f;
-
+// Row powers are evaluated in log2 units (kLog2e, splat.h): the conic comes pre-scaled by
+// -0.5 log2(e) (pa, pb2, pc), which also saves the multiply by -0.5. The gradients keep the
+// natural-unit conic (a, c, half).
 struct SplatVec {
   __m512 mx, a, c, o, r, g, bl, amin, amax, tmin, one, half, pa, pb2, pc;
   explicit SplatVec(const Splat& s)
@@ -37,18 +28,14 @@ struct SplatVec {
 };
 
 // 2^x for x <= 0: x = n + f with n the nearest integer (f in [-0.5, 0.5], exact),
-// 2^f by a degree-5 minimax polynomial (relative error 2.3e-7 in float32).
+// 2^f by kExp2Poly (splat.h).
 inline __m512 exp2_v(__m512 x) {
   // No clamp from below: far under -126 vscalefps underflows to 0 (n is exact for any float). Rows
   // far from the ellipse give denormals or 0 here; a clamp at 2^-64 to avoid them measured 1-4 % slower.
   const __m512 n = _mm512_roundscale_ps(x, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
   const __m512 f = _mm512_sub_ps(x, n);
-  __m512 p = _mm512_set1_ps(1.3276465062e-3f);
-  p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(9.6755412793e-3f));
-  p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(5.5507132949e-2f));
-  p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(2.4022119725e-1f));
-  p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(6.9314696705e-1f));
-  p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(1.0000000717e+0f));
+  __m512 p = _mm512_set1_ps(kExp2Poly[0]);
+  for (int i = 1; i < 6; ++i) p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(kExp2Poly[i]));
   return _mm512_scalef_ps(p, n);
 }
 
