@@ -52,41 +52,60 @@ void matmul_tile(const float* x, int K, int ldx, const float* wt, float* y) {
   }
 }
 #elif defined(__AVX2__) && defined(__FMA__)
-// AVX2 (16 registers of 8 lanes): register tiles of R rows x 16 columns, so every weight load feeds
-// R FMAs; R = 4, then 1 for the last rows (the culled appearance rows are any count). The same k
-// order as the other kernels.
-template <int M, int R>
-void matmul_tile(const float* x, int K, int ldx, const float* wt, float* y) {
-  for (int c0 = 0; c0 < M; c0 += 16) {
-    __m256 acc[R][2];
-    for (int r = 0; r < R; ++r) acc[r][0] = acc[r][1] = _mm256_setzero_ps();
-    for (int k = 0; k < K; ++k) {
-      const __m256 w0 = _mm256_loadu_ps(wt + k * M + c0), w1 = _mm256_loadu_ps(wt + k * M + c0 + 8);
-      for (int r = 0; r < R; ++r) {
-        const __m256 xb = _mm256_broadcast_ss(x + r * ldx + k);
-        acc[r][0] = _mm256_fmadd_ps(xb, w0, acc[r][0]);
-        acc[r][1] = _mm256_fmadd_ps(xb, w1, acc[r][1]);
-      }
+// AVX2 (16 registers of 8 lanes): y[b, c0 : c0 + 8 V] for R rows (R = 4, then 1 for the last rows:
+// the culled appearance rows are any count), so every weight load feeds R FMAs. The same k order
+// as the other kernels.
+template <int M, int R, int V>
+void matmul_strip(const float* x, int K, int ldx, const float* wt, float* y) {
+  __m256 acc[R][V];
+  for (int r = 0; r < R; ++r)
+    for (int j = 0; j < V; ++j) acc[r][j] = _mm256_setzero_ps();
+  for (int k = 0; k < K; ++k) {
+    __m256 w[V];
+    for (int j = 0; j < V; ++j) {
+      w[j] = _mm256_loadu_ps(wt + k * M + 8 * j);
+      // Keeps the weights in registers: folded into each FMA as memory operands they cost R
+      // loads per vector and k instead of 1, and the loads, not the FMAs, then set the pace.
+      __asm__("" : "+x"(w[j]));
     }
     for (int r = 0; r < R; ++r) {
-      _mm256_storeu_ps(y + r * M + c0, acc[r][0]);
-      _mm256_storeu_ps(y + r * M + c0 + 8, acc[r][1]);
+      const __m256 xb = _mm256_broadcast_ss(x + r * ldx + k);
+      for (int j = 0; j < V; ++j) acc[r][j] = _mm256_fmadd_ps(xb, w[j], acc[r][j]);
     }
   }
+  for (int r = 0; r < R; ++r)
+    for (int j = 0; j < V; ++j) _mm256_storeu_ps(y + r * M + 8 * j, acc[r][j]);
+}
+
+template <int M, int V>
+void matmul_strip_rows(const float* x, int rows, int K, int ldx, const float* wt, float* y) {
+  int b = 0;
+  for (; b + 4 <= rows; b += 4) matmul_strip<M, 4, V>(x + b * ldx, K, ldx, wt, y + b * M);
+  for (; b < rows; ++b) matmul_strip<M, 1, V>(x + b * ldx, K, ldx, wt, y + b * M);
 }
 #endif
 
 #if defined(__AVX512F__) || (defined(__AVX2__) && defined(__FMA__))
-template <int M>
+// y[b, :M] = x[b, :K] @ wt; columns from Cols on may be left unwritten (the AVX2 kernel skips
+// them: the appearance decoders' packed second layer uses 4 of its 16).
+template <int M, int Cols = M>
 void matmul_rows(const float* x, int rows, int K, int ldx, const float* wt, float* y) {
-  static_assert(M % 16 == 0, "M must be a multiple of 16");
+  static_assert(M % 16 == 0 && Cols % 8 == 0 && Cols <= M, "M: a multiple of 16, Cols: of 8");
+#if defined(__AVX512F__)
   int b = 0;
   for (; b + 4 <= rows; b += 4) matmul_tile<M, 4>(x + b * ldx, K, ldx, wt, y + b * M);
   for (; b < rows; ++b) matmul_tile<M, 1>(x + b * ldx, K, ldx, wt, y + b * M);
+#else
+  // Strip by strip, so one K x 16 strip of the weights stays in L1 while every row passes it (a
+  // 64 x 128 layer is 32 KiB, all of L1).
+  int c0 = 0;
+  for (; c0 + 16 <= Cols; c0 += 16) matmul_strip_rows<M, 2>(x, rows, K, ldx, wt + c0, y + c0);
+  if (c0 < Cols) matmul_strip_rows<M, 1>(x, rows, K, ldx, wt + c0, y + c0);
+#endif
 }
 #else
 // Portable fallback: one row at a time, the compiler vectorises over columns.
-template <int M>
+template <int M, int Cols = M>
 void matmul_rows(const float* x, int rows, int K, int ldx, const float* wt, float* y) {
   for (int b = 0; b < rows; ++b) {
     float acc[M] = {0};
@@ -172,7 +191,7 @@ void stgs_deform(int64_t n, int window, const float* const* window_feats, const 
     // D_o and D_c on [h, view direction]: [do(1) dc(3)] in out2.
     matmul_rows<2 * kHidden>(app_in, kept, kHidden + 3, kHidden + 3, app1_t, hidden2);
     relu_inplace(hidden2, kept * 2 * kHidden);
-    matmul_rows<kOut>(hidden2, kept, 2 * kHidden, 2 * kHidden, app2_t, out2);
+    matmul_rows<kOut, 8>(hidden2, kept, 2 * kHidden, 2 * kHidden, app2_t, out2);  // [do dc] in 0..3
     for (int b = 0; b < rows; ++b)
       if (keep[b])
         stgs::deformed_appearance(io, first + b, &out2[slot[b] * kOut]);
