@@ -33,13 +33,23 @@ def frozen_heap() -> Iterator[None]:
 
 
 def process_peak_rss_mb() -> float | None:
-    """The player process's peak resident memory so far (MB), where the OS reports it."""
+    """The player process's peak resident memory so far (MB), where the OS reports it.
+
+    On Linux this is /proc/self/status's VmHWM, the high-water mark of this program's own memory: getrusage's
+    ru_maxrss survives exec, so a player started by a large process (a benchmark that packed a scene first)
+    would report its parent's peak instead of its own."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024  # kB
+    except (OSError, ValueError, IndexError):
+        pass
     try:
         import resource
     except ImportError:
         return None
-    kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # kilobytes on Linux
-    return kb / 1024
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # kilobytes on Linux
 
 
 def check_decode_memory(gop_bytes: int, max_decoded: int, ram: int | None = None) -> None:
