@@ -45,8 +45,8 @@ def loop_model(src: Path, dst: Path, seconds: float) -> Path:
     dst.mkdir(parents=True)
     for entry in doc["gops"]:
         (dst / entry["file"]).symlink_to((src / entry["file"]).resolve())
-    for extra in (CAMERAS, "gt"):
-        if (src / extra).exists():
+    for extra in (CAMERAS, "gt", (doc.get("static") or {}).get("file")):  # a layered scene's static layer too
+        if extra and (src / extra).exists():
             (dst / extra).symlink_to((src / extra).resolve())
     gops = doc["gops"]
     doc["gops"] = [{**gops[i % len(gops)], "index": i} for i in range(count)]

@@ -1,8 +1,12 @@
 """`stgs demo`: the whole path on the embedded default scene, on this machine, with no downloads.
 
-synthesise (preset "demo") -> pack (five QPs) -> serve on a free loopback
-port -> play a free-viewpoint orbit with the look-ahead ABR -> write the video,
-a contact sheet, a truth | streamed | error comparison and a summary.
+synthesise (preset "demo" with a static backdrop: a layered scene, model
+format 2) -> pack (five QPs) -> serve on a free loopback port -> play a
+free-viewpoint orbit with the look-ahead ABR -> write the video, a contact
+sheet, a truth | streamed | error comparison and a summary. The same scene is
+also synthesised and packed as format 1 (the backdrop folded into every GOP)
+to print what the static layer saves: both formats' KB/frame and rendered
+PSNR per QP.
 
 This is the one place that drives every stage; it imports them lazily.
 """
@@ -10,6 +14,7 @@ This is the one place that drives every stage; it imports them lazily.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import math
 import threading
@@ -59,12 +64,13 @@ class TruthProbe:
 
     def __init__(self, model_dir: Path, gop_size: int):
         from stgs.data.synth import SynthReader
-        from stgs.model.store import load_model
+        from stgs.model.store import load_model, load_static
 
         self.gop_size = gop_size
         self.truth = SynthReader(model_dir)
         self.camera = self.truth.cameras(0)[0]
-        self.local = load_model(model_dir)[1]
+        meta, self.local = load_model(model_dir)
+        self.static = load_static(model_dir, meta)
         self.rows: list[tuple[float, float]] = []
         """(PSNR vs truth, PSNR vs uncompressed model) per compared frame."""
         self.compare: list[torch.Tensor] = []
@@ -77,7 +83,7 @@ class TruthProbe:
         f = k * self.gop_size + i
         truth = self.truth.image(f, self.camera.name)
         streamed = renderer.render(i, self.camera, window=window).clamp(0, 1)
-        reference = FrameRenderer(self.local[k]).render(i, self.camera).clamp(0, 1)
+        reference = FrameRenderer(self.local[k], static=self.static).render(i, self.camera).clamp(0, 1)
         with self.lock:
             self.rows.append((psnr(streamed, truth), psnr(streamed, reference)))
             if len(self.compare) < 3 * COMPARE_FRAMES:
@@ -93,12 +99,23 @@ async def stream(dash: Path, play_cfg_kwargs: dict, probe: TruthProbe) -> dict:
         return await play(PlayConfig(url=base + MANIFEST, **play_cfg_kwargs), on_frame=probe)
 
 
+def format_rows(stats: dict, frames: int) -> dict[str, dict]:
+    """Per feature Representation of a packed tree: KB per frame (keyframes, features and, in format 2, the
+    static layer amortised over the scene's frames) and the mean rendered PSNR against the uncompressed model."""
+    static = stats.get("static", {}).get("bytes", 0) if stats.get("static") else 0
+    keyframes = sum(g["keyframe_bytes"] for g in stats["gops"])
+    return {rid: {"kb_per_frame": (keyframes + sum(g["representations"][rid]["bytes"] for g in stats["gops"])
+                                   + static) / 1e3 / frames,
+                  "render_psnr": rep["mean_render_psnr"]}
+            for rid, rep in stats["representations"].items()}
+
+
 def run(out: Path, progress: bool = True) -> int:
     from stgs.client.view import ViewSpec
     from stgs.packager import PackConfig, pack
 
     out = Path(out)
-    cfg = PRESETS["demo"]
+    cfg = dataclasses.replace(PRESETS["demo"], effects=(*PRESETS["demo"].effects, "static_background"))
     print(f"stgs demo: native kernels {'on' if available() else 'OFF (pure-torch reference)'}")
     clock = time.perf_counter()
     report = synthesize(cfg, out / "model", progress=progress)
@@ -106,6 +123,8 @@ def run(out: Path, progress: bool = True) -> int:
     clock = time.perf_counter()
     stats = pack(out / "model", out / "dash", PackConfig(), progress=progress)
     pack_s = time.perf_counter() - clock
+    single_report = synthesize(dataclasses.replace(cfg, fold=True), out / "model_format1", progress=progress)
+    single_stats = pack(out / "model_format1", out / "dash_format1", PackConfig(), progress=progress)
     frames = cfg.num_gops * cfg.gop_size
     orbit = out / "orbit.mp4"
     probe = TruthProbe(out / "model", cfg.gop_size)
@@ -127,10 +146,17 @@ def run(out: Path, progress: bool = True) -> int:
         "startup_delay_s": log["startup_delay_s"], "stalls": log["stalls"],
         "render_ms_median": log["render_ms_median"], "render_fps": log["render_fps"],
         "ladder_kbps": {rid: rep["bandwidth"] / 1e3 for rid, rep in stats["representations"].items()},
+        "static_gaussians": cfg.static_grid_side ** 2, "static_bytes": stats["static"]["bytes"],
+        "formats": {"2": {"fidelity_psnr_db": report.fidelity_psnr, "per_qp": format_rows(stats, frames)},
+                    "1": {"fidelity_psnr_db": single_report.fidelity_psnr,
+                          "gaussians": single_stats_capacity(out / "model_format1"),
+                          "per_qp": format_rows(single_stats, frames)}},
     }
     atomic_write_bytes(out / "summary.json", (json.dumps(summary, indent=2) + "\n").encode())
-    print(f"scene: {summary['gaussians']} Gaussians, {cfg.num_gops} GOPs x {cfg.gop_size} frames at "
+    print(f"scene: {summary['gaussians']} moving Gaussians + a static layer of {summary['static_gaussians']} "
+          f"({summary['static_bytes'] / 1e3:.0f} kB, sent once), {cfg.num_gops} GOPs x {cfg.gop_size} frames at "
           f"{cfg.fps:g} fps ({cfg.width}x{cfg.height}); synthesised in {synth_s:.0f} s, packed in {pack_s:.0f} s")
+    print_formats(summary["formats"])
     print(f"streamed with the look-ahead (mpc) ABR: QPs {','.join(map(str, summary['qps']))}, "
           f"{summary['kb_per_frame']:.1f} KB/frame, start-up {summary['startup_delay_s']:.2f} s, "
           f"{log['stalls']['count']} stall(s)")
@@ -141,3 +167,22 @@ def run(out: Path, progress: bool = True) -> int:
     print(f"wrote {orbit}, {out / 'contact_sheet.png'}, {out / 'compare.png'}, {out / 'playback.json'}, "
           f"{out / 'summary.json'}")
     return 0
+
+
+def single_stats_capacity(model_dir: Path) -> int:
+    from stgs.model.store import read_meta
+
+    return read_meta(model_dir).shape.capacity
+
+
+def print_formats(formats: dict) -> None:
+    """Both formats of the scene side by side: KB/frame and rendered PSNR (vs each uncompressed model) per QP."""
+    two, one = formats["2"], formats["1"]
+    print(f"format 2 (static layer sent once) vs format 1 (every GOP carries the backdrop, "
+          f"{one['gaussians']} Gaussians): model fidelity {two['fidelity_psnr_db']:.2f} vs "
+          f"{one['fidelity_psnr_db']:.2f} dB")
+    for rid, row in two["per_qp"].items():
+        other = one["per_qp"][rid]
+        print(f"  {rid}: {row['kb_per_frame']:6.1f} vs {other['kb_per_frame']:6.1f} KB/frame "
+              f"({row['kb_per_frame'] / other['kb_per_frame']:.2f}x), rendered {row['render_psnr']:.2f} vs "
+              f"{other['render_psnr']:.2f} dB")

@@ -1,10 +1,12 @@
 """Turning a downloaded GOP into a playable one: keyframe decoded whole, features streamed frame by frame.
 
 A GOP is ready to play when its keyframe (five JPEG XL images) is decoded and the first window of its
-feature video (stgs.codec.stream) is in the ring; the rest of the feature video decodes while the GOP
-plays. A keyframe that does not decode is downloaded once more; a feature segment that does not decode,
-at the start or in the middle of the GOP, is replaced by the lowest rung's (the fetch schedule decides
-both), resuming at the frame the renderer needs.
+feature video (stgs.codec.stream) is in the ring, and, in a layered (format-2) scene, the static layer
+(decoded once, on its own thread as soon as it arrives, and drawn with every GOP); the rest of the
+feature video decodes while the GOP plays. A keyframe that does not decode is downloaded once more; a
+feature segment that does not decode, at the start or in the middle of the GOP, is replaced by the lowest
+rung's (the fetch schedule decides both), resuming at the frame the renderer needs. A static layer that
+does not decode ends the playback with one error (the dynamic layer alone is not the scene).
 """
 
 from __future__ import annotations
@@ -21,7 +23,9 @@ from stgs.client.playlog import GOPRecord
 from stgs.client.schedule import FetchSchedule
 from stgs.client.threads import ThreadBudget
 from stgs.codec.keyframe import Keyframe, KeyframeError, decode_keyframe
+from stgs.codec.static import StaticSegmentError, decode_static
 from stgs.codec.stream import FeatureStream
+from stgs.model.static import StaticLayer
 from stgs.model.view import FrameRenderer
 
 
@@ -61,6 +65,30 @@ class GOPDecoder:
         self.window = pres.shape.window
         self.last: FeatureStream | None = None
         self.streams: list[FeatureStream] = []
+        self._static: asyncio.Task | None = None
+
+    def start_static(self, data: bytes, rec: GOPRecord) -> None:
+        """Begin decoding the static-layer segment (format 2) while the first GOP downloads."""
+        if not self.cfg.decode:
+            return
+        static = self.pres.static
+
+        def decode() -> StaticLayer:
+            start = time.perf_counter()
+            layer = decode_static(data, static.capacity, static.sh_degree, self.pres.max_static_bytes())
+            rec.static_decode_s = time.perf_counter() - start
+            return layer
+
+        self._static = asyncio.create_task(asyncio.to_thread(decode))
+
+    async def static_layer(self) -> StaticLayer | None:
+        """The decoded static layer (None in format 1); PlaybackError if its segment does not decode."""
+        if self._static is None:
+            return None
+        try:
+            return await self._static
+        except StaticSegmentError as exc:
+            raise PlaybackError(f"static layer: {exc}") from None
 
     def close(self) -> None:
         """Stop every feature stream (the end of a playback, or its failure)."""
@@ -97,7 +125,9 @@ class GOPDecoder:
                 kf = await asyncio.to_thread(self.decode_keyframe, item)
             except KeyframeError as again:
                 raise PlaybackError(f"keyframe segment of GOP {k}: {again}") from None
-        renderer = await asyncio.to_thread(FrameRenderer, kf.to_model(None), self.cfg.native, self.cfg.precision)
+        static = await self.static_layer()
+        renderer = await asyncio.to_thread(FrameRenderer, kf.to_model(None), self.cfg.native, self.cfg.precision,
+                                           static)
         try:
             stream = self.open_stream(item, kf, 0, self.last)
             self.last = stream

@@ -31,6 +31,7 @@ from stgs.mpd import (
     KEYFRAME_SCHEME,
     MPD,
     PROFILE_STGS,
+    STATIC_SCHEME,
     AdaptationSet,
     MPDError,
     expand_template,
@@ -66,14 +67,43 @@ class Rung:
     """QP parsed from the id (`qp<N>`), if it has that form."""
 
 
-def _bounded_int(fields: dict[str, str], key: str, lo: int, hi: int) -> int:
+def _bounded_int(fields: dict[str, str], key: str, lo: int, hi: int, what: str = "keyframe") -> int:
     try:
         value = int(fields[key])
     except (KeyError, ValueError):
-        raise MPDError(f"keyframe descriptor lacks an integer {key}") from None
+        raise MPDError(f"{what} descriptor lacks an integer {key}") from None
     if not lo <= value <= hi:
-        raise MPDError(f"keyframe descriptor {key}={value} is outside {lo}..{hi} (client limit)")
+        raise MPDError(f"{what} descriptor {key}={value} is outside {lo}..{hi} (client limit)")
     return value
+
+
+@dataclass(frozen=True)
+class StaticLayerInfo:
+    """A format-2 presentation's static layer: one segment for the Period (manifests/PROFILE.md)."""
+
+    capacity: int
+    sh_degree: int
+    bandwidth: int
+    """@bandwidth of its Representation: its bytes x 8 over the Period's duration."""
+    media: str
+    """The segment's URL template."""
+    rep_id: str
+
+
+def _static_layer(a: AdaptationSet) -> StaticLayerInfo:
+    fields = a.descriptor(STATIC_SCHEME).fields()
+    if fields.get("version") != "1":
+        raise MPDError(f"static-layer descriptor version {fields.get('version')!r} is not supported (this client "
+                       "reads version 1)")
+    capacity = _bounded_int(fields, "capacity", 1, MAX_CAPACITY, "static-layer")
+    side = _bounded_int(fields, "grid_side", 1, math.isqrt(MAX_CAPACITY), "static-layer")
+    if side * side != capacity:
+        raise MPDError(f"static-layer descriptor: grid_side {side} does not match capacity {capacity}")
+    sh_degree = _bounded_int(fields, "sh_degree", 0, 1, "static-layer")
+    if len(a.representations) != 1:
+        raise MPDError("the static-layer AdaptationSet must have exactly one Representation")
+    rep = a.representations[0]
+    return StaticLayerInfo(capacity, sh_degree, rep.bandwidth, a.segment_template.media, rep.id)
 
 
 
@@ -122,6 +152,9 @@ class Presentation:
         self.ladder = sorted((Rung(r.id, r.bandwidth, qp_of(r.id)) for r in self.features.representations),
                              key=lambda r: (r.bandwidth, r.rep_id))
         self.keyframe_rep = self.keyframes.representations[0]
+        found = mpd.find_adaptation_set(STATIC_SCHEME)
+        self.static: StaticLayerInfo | None = None if found is None else _static_layer(found)
+        """The static layer of a format-2 presentation (fetched once, before the first GOP), or None."""
 
     @classmethod
     def parse(cls, data: bytes, url: str) -> Presentation:
@@ -160,6 +193,19 @@ class Presentation:
         t = self.keyframes.segment_template
         return urljoin(self.base, expand_template(t.media, self.keyframe_rep.id, self._number(gop, t.start_number)))
 
+    def static_url(self) -> str:
+        """URL of the static-layer segment (format 2 only)."""
+        if self.static is None:
+            raise MPDError("this presentation has no static layer")
+        return urljoin(self.base, expand_template(self.static.media, self.static.rep_id, 0))
+
+    def max_static_bytes(self) -> int:
+        """The static segment's size cap: what its @bandwidth delivers over the Period, with slack."""
+        if self.static is None:
+            raise MPDError("this presentation has no static layer")
+        return min(MAX_SEGMENT_BYTES,
+                   math.ceil(self.static.bandwidth * self.duration / 8 * SEGMENT_SLACK) + 4096)
+
     def init_url(self, rep_id: str) -> str:
         return urljoin(self.base, expand_template(self.features.segment_template.initialization, rep_id))
 
@@ -189,6 +235,13 @@ class Presentation:
         side = self.grid_side
         n = side * side
         return 2 * n * 14 * 4 + ring_frames * n * 16 * 4 + 16 * (4 * side) ** 2 * 2
+
+    def static_layer_bytes(self) -> int:
+        """Memory the decoded static layer holds for the whole playback (its attributes, its per-view copy for
+        the renderer and the layered merge of one frame); 0 in format 1."""
+        if self.static is None:
+            return 0
+        return 3 * self.static.capacity * (14 + 9 * self.static.sh_degree) * 4
 
     def max_keyframe_bytes(self) -> int:
         return self._cap(self.keyframe_rep.bandwidth)

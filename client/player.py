@@ -1,8 +1,9 @@
 """The playback session: ABR -> fetch -> decode the keyframe, stream the features -> deform + splat per frame.
 
 Three asyncio tasks share one event loop:
-- the fetcher runs the fetch schedule (stgs.client.schedule) GOP after GOP: keyframe, then the feature segment of
-  the Representation the ABR rule picks, while the buffer has room;
+- the fetcher runs the fetch schedule (stgs.client.schedule): a layered scene's static layer first (once, whatever
+  the start GOP; it counts in start-up), then GOP after GOP: keyframe, then the feature segment of the
+  Representation the ABR rule picks, while the buffer has room;
 - the decoder (stgs.client.gopdecode) decodes each downloaded GOP's keyframe whole (JPEG XL via OpenImageIO)
   and starts its feature stream (stgs.codec.stream: PyAV, frame by frame into a bounded ring, in its own
   thread), at most `max_decoded` GOPs at a time (the one playing and the next); a GOP is ready when its
@@ -117,7 +118,8 @@ class Session:
         self.T = pres.segment_seconds
         self.G = pres.shape.gop_size
         if cfg.decode:
-            check_decode_memory(pres.decoded_gop_bytes(cfg.ring_frames), cfg.max_decoded)
+            check_decode_memory(pres.decoded_gop_bytes(cfg.ring_frames), cfg.max_decoded,
+                                static_bytes=pres.static_layer_bytes())
         span = pres.span(cfg.start_s, cfg.duration_s, cfg.buffer_s)
         self.k0, self.frames, self.gops, self.capacity_s = span.first_gop, span.frames, span.gops, span.buffer_s
         self.first_frame = self.k0 * self.G
@@ -193,6 +195,16 @@ class Session:
         return Done(len(data), sample.seconds * self.speed, sample.ttfb * self.speed, data)
 
     async def fetch_loop(self, downloaded: dict[int, asyncio.Future]) -> None:
+        if self.pres.static is not None:
+            rec = self.records[self.k0]
+            start = self.now()
+            try:
+                data = await self.drive(self.schedule.fetch_static(rec))
+            except PlaybackError as exc:
+                downloaded[self.k0].set_exception(exc)
+                return
+            rec.events.append(f"static layer: {len(data)} bytes in {self.now() - start:.3f} s")
+            self.decoder.start_static(data, rec)
         for k in self.gops:
             while not self.clock.has_room(self.now()):
                 await self.sleep(min(0.05, self.T / 20))

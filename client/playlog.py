@@ -30,6 +30,10 @@ class GOPRecord:
     keyframe_bytes: int = 0
     feature_bytes: int = 0
     init_bytes: int = 0
+    static_bytes: int = 0
+    """A layered scene's static-layer segment, counted in the first GOP of the playback (fetched once)."""
+    static_decode_s: float = 0.0
+    """Its decode (first GOP only)."""
     download_s: float = 0.0
     ttfb_s: float = 0.0
     """Time to first byte of the feature segment."""
@@ -82,7 +86,8 @@ def gop_row(r: GOPRecord) -> dict:
 
     return {"index": r.index, "rep": r.rep, "qp": r.qp, "rule": r.rule, "buffer_s": r.buffer_s,
             "estimate_kbps": r.estimate_kbps, "keyframe_bytes": r.keyframe_bytes, "feature_bytes": r.feature_bytes,
-            "init_bytes": r.init_bytes, "download_s": r.download_s, "ttfb_s": r.ttfb_s,
+            "init_bytes": r.init_bytes, "static_bytes": r.static_bytes, "static_decode_s": r.static_decode_s,
+            "download_s": r.download_s, "ttfb_s": r.ttfb_s,
             "keyframe_decode_s": r.keyframe_decode_s, "feature_decode_s": r.feature_decode_s,
             "dequantise_s": r.dequantise_s, "decode_s": r.decode_s, "decode_ms": r.decode_ms,
             "dequantise_ms": r.dequantise_ms, "decode_at_s": r.decode_at_s, "wait_ms": r.wait_ms,
@@ -103,7 +108,7 @@ def playback_log(records: list[GOPRecord], clock: PlaybackClock, *, url: str, ab
     render = sorted(ms for r in played for ms in r.render_ms)
     reps = [r.rep for r in played]
     frames = sum(r.presented for r in played)
-    total_bytes = sum(r.keyframe_bytes + r.feature_bytes + r.init_bytes for r in played)
+    total_bytes = sum(r.keyframe_bytes + r.feature_bytes + r.init_bytes + r.static_bytes for r in played)
     return {
         "format": LOG_FORMAT, "version": 1, "url": url, "abr": abr, **(extra or {}),
         "segment_s": clock.segment_s, "buffer_capacity_s": clock.capacity_s, "start_gop": clock.first_gop,
@@ -114,6 +119,7 @@ def playback_log(records: list[GOPRecord], clock: PlaybackClock, *, url: str, ab
         "frames": frames, "rendered_frames": len(render), "dropped_frames": sum(r.dropped for r in played),
         "render_ms_median": render[len(render) // 2] if render else None,
         "render_fps": 1e3 / render[len(render) // 2] if render else None,
+        "static_bytes": sum(r.static_bytes for r in recs),
         "bytes": total_bytes, "kb_per_frame": total_bytes / 1e3 / frames if frames else None,
         "wasted_bytes": wasted_bytes, "retries": retries,
         "error": None if error is None else str(error) or type(error).__name__,

@@ -52,11 +52,12 @@ def process_peak_rss_mb() -> float | None:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # kilobytes on Linux
 
 
-def check_decode_memory(gop_bytes: int, max_decoded: int, ram: int | None = None) -> None:
-    """Refuse, before fetching anything, a presentation whose decoded GOPs (`max_decoded` of them at once) need
-    more memory than the machine has."""
+def check_decode_memory(gop_bytes: int, max_decoded: int, ram: int | None = None, static_bytes: int = 0) -> None:
+    """Refuse, before fetching anything, a presentation whose decoded GOPs (`max_decoded` of them at once) and
+    static layer (held all along) need more memory than the machine has."""
     ram = physical_memory() if ram is None else ram
-    need = gop_bytes * max_decoded
+    need = gop_bytes * max_decoded + static_bytes
     if ram is not None and need > ram:
+        layer = f" and a static layer of {static_bytes / 2**30:.1f} GiB" if static_bytes else ""
         raise PlaybackError(f"decoding needs {need / 2**30:.1f} GiB ({max_decoded} GOPs of "
-                            f"{gop_bytes / 2**30:.1f} GiB at once); this machine has {ram / 2**30:.1f} GiB")
+                            f"{gop_bytes / 2**30:.1f} GiB at once{layer}); this machine has {ram / 2**30:.1f} GiB")

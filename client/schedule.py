@@ -22,6 +22,9 @@ the rest, so the two cannot drift apart:
 - A feature download that is abandoned, or fails for good above the lowest
   rung, falls back to the lowest rung; a failure at the lowest rung, or of a
   keyframe, ends the playback (`ScheduleError`).
+- A layered (format-2) presentation's static layer is requested first, once
+  per playback whatever the start GOP (`fetch_static`), with the same
+  retries; it is the first throughput sample. A failure ends the playback.
 - A keyframe the decoder rejects is downloaded once more
   (`refetch_keyframe`); a feature segment that does not decode falls back
   to the lowest rung (`fallback`).
@@ -66,7 +69,7 @@ from stgs.client.fetchsteps import (
 from stgs.client.manifest import Presentation
 from stgs.client.playlog import GOPRecord
 from stgs.limits import MAX_INIT_BYTES
-from stgs.tree import KEYFRAME_REP
+from stgs.tree import KEYFRAME_REP, STATIC_REP
 
 
 @dataclass
@@ -98,6 +101,20 @@ class FetchSchedule:
         self.adaptive = not isinstance(self.rule, FixedRule)
         self._arrived: float | None = None
         self._last_keyframe_bits: float | None = None
+
+    # --- the static layer (format 2), once per playback ---
+
+    def fetch_static(self, rec: GOPRecord) -> Generator[Request | Wait, Outcome | None, bytes]:
+        """The static-layer segment, before the first GOP (counted in that GOP's record as its `static` request);
+        its transfer is the ABR's first throughput sample."""
+        pres = self.pres
+        request = Request("static", rec.index, STATIC_REP, pres.static_url(), pres.max_static_bytes())
+        outcome = yield from self._get(request, rec)
+        if not isinstance(outcome, Done):
+            raise ScheduleError(f"static layer: {outcome.reason}")
+        self.samples.append(self._sample(outcome))
+        rec.static_bytes = outcome.nbytes
+        return outcome.data
 
     # --- one GOP ---
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 from stgs.errors import StgsError
 
-DECODE_KEYS = ("keyframe_ms", "frame_ms", "ring_frames")
+DECODE_KEYS = ("keyframe_ms", "frame_ms", "ring_frames", "static_ms")
 
 
 @dataclass(frozen=True)
@@ -38,6 +38,9 @@ class DecodeSpec:
     bitrate)."""
     ring_frames: int = 8
     """The player's ring of feature frames (PlayConfig.ring_frames)."""
+    static_ms: float = 0.0
+    """A layered scene's static-layer decode, once (the log's static_decode_s): the first GOP's features start
+    decoding once both its keyframe and the static layer are decoded, as in the player."""
 
     def frame_s(self, rep: str) -> float:
         """Seconds per feature frame of Representation `rep`."""
@@ -70,7 +73,8 @@ def parse_decode(doc: object, where: str) -> DecodeSpec:
     ring = doc.get("ring_frames", 8)
     if isinstance(ring, bool) or not isinstance(ring, int) or ring < 1:
         raise StgsError(f"{where}: decode 'ring_frames' must be an integer >= 1, got {ring!r}")
-    return DecodeSpec(keyframe, frame, ring)
+    static = _milliseconds(doc.get("static_ms", 0.0), "decode 'static_ms'", where)
+    return DecodeSpec(keyframe, frame, ring, static)
 
 
 @dataclass(frozen=True)
@@ -102,11 +106,13 @@ class DecoderModel:
         """E = G + W - 1 feature frames per GOP."""
         return self.gop_size + self.window - 1
 
-    def plan(self, downloaded: float, slot: float, keyframe_s: float, frame_s: float) -> GOPPlan:
+    def plan(self, downloaded: float, slot: float, keyframe_s: float, frame_s: float,
+             not_before: float = 0.0) -> GOPPlan:
         """The next GOP's decoding: downloaded at `downloaded`, a decode slot free at `slot`, its keyframe
-        costing `keyframe_s` and its feature frames `frame_s` each (nothing is committed until `start`)."""
+        costing `keyframe_s` and its feature frames `frame_s` each, its features not before `not_before` (the
+        static layer decoded); nothing is committed until `start`."""
         keyframe_done = max(downloaded, slot, self.keyframe_free) + keyframe_s
-        first = max(keyframe_done, self.features_free)
+        first = max(keyframe_done, self.features_free, not_before)
         return GOPPlan(keyframe_done, first, frame_s, first + self.window * frame_s)  # the first window fits
 
     def start(self, plan: GOPPlan, start: float) -> int:

@@ -30,6 +30,8 @@ class Ladder:
     psnr: dict[str, list[float | None]]
     """Representation id -> per GOP rendered PSNR (stats.json), None where unknown."""
     stats: dict | None
+    static_bytes: int = 0
+    """A layered scene's static-layer segment (fetched once per playback), 0 in format 1."""
 
     @property
     def url(self) -> str:
@@ -66,9 +68,10 @@ def load_ladder(scene: str) -> Ladder:
         media = {r.rep_id: [_local_path(folder, pres.media_url(r.rep_id, k)).stat().st_size
                             for k in range(pres.num_gops)] for r in pres.ladder}
         init = {r.rep_id: _local_path(folder, pres.init_url(r.rep_id)).stat().st_size for r in pres.ladder}
+        static = 0 if pres.static is None else _local_path(folder, pres.static_url()).stat().st_size
     except OSError as exc:
         raise StgsError(f"{scene}: segment missing ({exc.filename})") from None
-    return Ladder(pres, kf, media, init, _psnr(stats, pres), stats)
+    return Ladder(pres, kf, media, init, _psnr(stats, pres), stats, static)
 
 
 def _psnr(stats: dict | None, pres: Presentation) -> dict[str, list[float | None]]:
@@ -98,8 +101,9 @@ async def _remote(url: str) -> Ladder:
     try:
         kf = [int(g["keyframe_bytes"]) for g in stats["gops"]]
         media = {r.rep_id: [int(g["representations"][r.rep_id]["bytes"]) for g in stats["gops"]] for r in pres.ladder}
+        static = 0 if pres.static is None else int(stats["static"]["bytes"])
     except (KeyError, TypeError, ValueError) as exc:
         raise StgsError(f"{url}: stats.json lacks per-GOP sizes ({exc})") from None
     if len(kf) != pres.num_gops:
         raise StgsError(f"{url}: stats.json lists {len(kf)} GOPs, the MPD {pres.num_gops}")
-    return Ladder(pres, kf, media, init, _psnr(stats, pres), stats)
+    return Ladder(pres, kf, media, init, _psnr(stats, pres), stats, static)

@@ -51,6 +51,7 @@ def metrics(log: dict, ladder: Ladder, effects: Effects) -> dict:
         "mean_quality_db": (sum(quality) / len(quality)) if quality and None not in quality else None,
         "switches": log["switches"], "wasted_bytes": log["wasted_bytes"],
         "qoe": linear_qoe(rates, stall, REBUFFER_PENALTY), "qps": [g["qp"] for g in gops],
+        "static_bytes": log.get("static_bytes", 0), "kb_per_frame": log.get("kb_per_frame"),
         "quality_qoe": linear_qoe(quality, stall, REBUFFER_PENALTY_DB) if None not in quality else None,
         "error": log.get("error"),
     }
@@ -133,19 +134,23 @@ def plot_cdf(path: Path, values: dict[str, list[float]], xlabel: str) -> None:
 
 
 def summary_table(rows: list[dict]) -> str:
-    """Markdown: mean of each metric per ABR rule over the playbacks in `rows`."""
+    """Markdown: mean of each metric per ABR rule (and per tree, where a scenario compares several) over the
+    playbacks in `rows`."""
     by_rule: dict[str, list[dict]] = {}
+    several = len({r.get("scene") for r in rows}) > 1
     for r in rows:
-        by_rule.setdefault(f"{r['abr']} ({r['engine']})", []).append(r)
+        tree = f"{r['scene']} (format {r['format']}): " if several else ""
+        by_rule.setdefault(f"{tree}{r['abr']} ({r['engine']})", []).append(r)
     lines = ["| ABR (engine) | playbacks | QoE | mean bit rate (kbit/s) | mean quality (dB) | stalls | stall s | "
-             "rebuffer % | switches | startup s |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "rebuffer % | switches | startup s | kB/frame |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for rule, rs in by_rule.items():
         def mean(key: str, rs=rs) -> float:
             vals = [r[key] for r in rs if r[key] is not None]
             return sum(vals) / len(vals) if vals else math.nan
         lines.append(f"| {rule} | {len(rs)} | {mean('qoe'):.3f} | {mean('mean_bitrate_kbps'):.0f} | "
                      f"{mean('mean_quality_db'):.2f} | {mean('stall_count'):.2f} | {mean('stall_s'):.2f} | "
-                     f"{100 * mean('rebuffer_ratio'):.1f} | {mean('switches'):.2f} | {mean('startup_delay_s'):.2f} |")
+                     f"{100 * mean('rebuffer_ratio'):.1f} | {mean('switches'):.2f} | {mean('startup_delay_s'):.2f} | "
+                     f"{mean('kb_per_frame'):.2f} |")
     return "\n".join(lines)
 
 
@@ -153,21 +158,29 @@ def sabre_manifest(ladder: Ladder) -> dict:
     """The scene's ladder as Sabre's manifest JSON. Each size is a whole GOP (keyframe + features), so Sabre
     budgets the fixed keyframe as our player does; segment 0 also carries its rung's init segment (our player
     fetches it before the first GOP's features). One request per segment matches our player after its first GOP
-    (keyframe and features are asked for together). What Sabre cannot express is listed under `streamstgs`:
-    the init segment a later switch to a new rung costs, and the first GOP's three requests."""
+    (keyframe and features are asked for together). A layered scene's static layer, fetched once before the
+    first GOP, is budgeted in segment 0 too (its bits are also given alone). What Sabre cannot express is listed
+    under `streamstgs`: the init segment a later switch to a new rung costs, and the first GOP's requests."""
     pres = ladder.pres
     reps = [r.rep_id for r in pres.ladder]
     sizes = [[(ladder.keyframe_bytes[k] + ladder.media_bytes[r][k]) * 8 for r in reps] for k in range(pres.num_gops)]
     T = pres.segment_seconds
     bitrates = [sum(s[i] for s in sizes) / len(sizes) / T / 1e3 for i in range(len(reps))]
     init_bits = [ladder.init_bytes[r] * 8 for r in reps]
+    static_bits = ladder.static_bytes * 8
     if sizes:
-        sizes[0] = [s + i for s, i in zip(sizes[0], init_bits, strict=True)]
+        sizes[0] = [s + i + static_bits for s, i in zip(sizes[0], init_bits, strict=True)]
+    first = 3 + (1 if static_bits else 0)
+    not_expressible = ["the init segment of a rung first used after segment 0 (its bits are in "
+                       "init_segment_bits, not in that segment)",
+                       f"the first GOP's requests are {first} round trips ({'static layer, ' if static_bits else ''}"
+                       "keyframe, init, media)"]
+    if static_bits:
+        not_expressible.append("the static layer is fetched once per playback whatever the start segment; Sabre "
+                               "counts it in segment 0 only (a playback starting later pays it in its first)")
     return {"segment_duration_ms": round(T * 1e3, 3), "bitrates_kbps": bitrates, "segment_sizes_bits": sizes,
             "streamstgs": {
-                "init_segment_bits": init_bits,
-                "requests_per_segment": 1, "first_segment_requests": 3,
-                "not_expressible": ["the init segment of a rung first used after segment 0 (its bits are in "
-                                    "init_segment_bits, not in that segment)",
-                                    "the first GOP's keyframe is a request of its own (three round trips: "
-                                    "keyframe, init, media)"]}}
+                "init_segment_bits": init_bits, "static_layer_bits": static_bits,
+                "static_layer_budget": "segment 0" if static_bits else "none (format 1)",
+                "requests_per_segment": 1, "first_segment_requests": first,
+                "not_expressible": not_expressible}}

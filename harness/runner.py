@@ -35,20 +35,25 @@ def run_once(sc: Scenario, engine: str, rule: str, ladder, decode: bool = False,
 
 
 def run_scenario(sc: Scenario, engines: list[str], out: Path, decode: bool = False, speed: float = 1.0) -> list[dict]:
-    """Every (engine, rule) playback of one scenario; writes logs, timelines, plots and a summary under out."""
-    ladder = load_ladder(sc.scene)
+    """Every (tree, engine, rule) playback of one scenario (its `scene` and each tree it compares with); writes
+    logs, timelines, plots and one summary under out."""
     results = []
-    for rule in rules(sc):
-        for engine in engines:
-            start = time.perf_counter()
-            log = run_once(sc, engine, rule, ladder, decode, speed)
-            seconds = time.perf_counter() - start
-            m = metrics(log, ladder, sc.effects) | {"scenario": sc.name, "wall_s": seconds}
-            stem = f"{sc.name}-{engine}-{rule}"
-            write_json(out / f"{stem}.log.json", log)
-            write_timeline(out / f"{stem}.timeline.csv", timeline(log, sc.effects))
-            plot_timeline(out / f"{stem}.png", log, sc.effects.bandwidth, f"{sc.name}: {engine}, {rule}")
-            results.append(m)
+    for variant in sc.variants():
+        ladder = load_ladder(variant.scene)
+        for rule in rules(variant):
+            for engine in engines:
+                start = time.perf_counter()
+                log = run_once(variant, engine, rule, ladder, decode, speed)
+                seconds = time.perf_counter() - start
+                m = metrics(log, ladder, variant.effects) | {"scenario": variant.name, "wall_s": seconds,
+                                                             "scene": variant.label,
+                                                             "format": 1 if ladder.pres.static is None else 2}
+                stem = f"{variant.name}-{engine}-{rule}"
+                write_json(out / f"{stem}.log.json", log)
+                write_timeline(out / f"{stem}.timeline.csv", timeline(log, variant.effects))
+                plot_timeline(out / f"{stem}.png", log, variant.effects.bandwidth,
+                              f"{variant.name}: {engine}, {rule}")
+                results.append(m)
     write_json(out / f"{sc.name}.summary.json", results)
     (out / f"{sc.name}.summary.md").write_text(summary_table(results) + "\n")
     return results

@@ -2,6 +2,7 @@
 
 ```toml
 scene = "dash/"              # a packaged scene folder, or its MPD URL
+compare = ["dash-format1/"]  # optional: other trees of the same scene (e.g. format 1 vs 2), one report
 abr = ["mpc", "dynamic", "throughput"]   # rules: mpc dynamic throughput bola bola-e
 buffer_s = 6.0               # optional (default: three GOPs)
 start_s = 0.0                # optional
@@ -44,6 +45,7 @@ from stgs.client.abr import RULES
 from stgs.errors import StgsError
 from stgs.harness.decode import DecodeSpec, parse_decode
 from stgs.limits import MAX_TRACE_POINTS
+from stgs.tree import MANIFEST
 
 EFFECTS = ("bandwidth", "latency_ms", "jitter_ms", "loss", "outages", "competing", "faults")
 TRACE_FORMATS = ("sabre", "mahimahi", "pensieve", "csv")
@@ -265,9 +267,35 @@ class Scenario:
     effects: Effects = field(default_factory=Effects)
     qp: int | None = None
     """Pin one QP instead of adapting (abr ignored)."""
+    compare: list[str] = field(default_factory=list)
+    """Other packaged trees (folders or MPD URLs) played under the same settings, reported beside `scene`."""
+    label: str = ""
+    """The tree's short name in a report that compares several (set by `variants`)."""
+
+    def variants(self) -> list[Scenario]:
+        """This scenario once per tree (`scene`, then each of `compare`), named after the tree when there are
+        several."""
+        scenes = [self.scene, *self.compare]
+        if len(scenes) == 1:
+            return [dataclasses.replace(self, label=scene_labels(scenes)[0])]
+        return [dataclasses.replace(self, scene=s, compare=[], name=f"{self.name}-{label}", label=label)
+                for s, label in zip(scenes, scene_labels(scenes), strict=True)]
 
 
-SCENARIO_KEYS = {"scene", "abr", "buffer_s", "start_s", "duration_s", "seed", "decode", "effects", "qp", "name"}
+def scene_labels(scenes: list[str]) -> list[str]:
+    """Short distinct names of trees: each folder's name (the MPD's folder for a URL), with as many parent
+    folders as it takes to tell them apart (then a number)."""
+    parts = [[p for p in (s[:-len(MANIFEST)] if s.endswith(MANIFEST) else s).split("/") if p] or ["scene"]
+             for s in scenes]
+    for depth in range(1, max(len(p) for p in parts) + 1):
+        labels = ["/".join(p[-depth:]) for p in parts]
+        if len(set(labels)) == len(labels):
+            return labels
+    return [f"{label}-{i}" for i, label in enumerate(labels)]
+
+
+SCENARIO_KEYS = {"scene", "compare", "abr", "buffer_s", "start_s", "duration_s", "seed", "decode", "effects", "qp",
+                 "name"}
 
 
 def _number(doc: dict, key: str, where: str, lo: float = 0.0, integer: bool = False) -> float | None:
@@ -341,9 +369,14 @@ def scenario_from_dict(doc: dict, where: str, base: Path) -> Scenario:
         raise StgsError(f"{where}: unknown key(s) {unknown}; known: {', '.join(sorted(SCENARIO_KEYS))}")
     if not isinstance(doc.get("scene"), str):
         raise StgsError(f"{where}: 'scene' (a packaged scene folder or MPD URL) is required")
-    scene = doc["scene"]
-    if not scene.startswith(("http://", "https://")):
-        scene = str((base / scene).resolve())
+    compare = doc.get("compare", [])
+    if not isinstance(compare, list) or any(not isinstance(c, str) for c in compare):
+        raise StgsError(f"{where}: 'compare' must list packaged scene folders or MPD URLs")
+
+    def resolve(scene: str) -> str:
+        return scene if scene.startswith(("http://", "https://")) else str((base / scene).resolve())
+
+    scene = resolve(doc["scene"])
     abr = doc.get("abr", ["mpc"])
     abr = [abr] if isinstance(abr, str) else abr
     if not isinstance(abr, list) or not abr or any(not isinstance(a, str) or a not in RULES for a in abr):
@@ -354,4 +387,5 @@ def scenario_from_dict(doc: dict, where: str, base: Path) -> Scenario:
                     duration_s=_number(doc, "duration_s", where, 1e-3), seed=int(_number(doc, "seed", where,
                                                                                          integer=True) or 0),
                     decode=parse_decode(doc.get("decode", {}), where),
-                    effects=parse_effects(doc.get("effects", {}), where, base), qp=None if qp is None else int(qp))
+                    effects=parse_effects(doc.get("effects", {}), where, base), qp=None if qp is None else int(qp),
+                    compare=[resolve(c) for c in compare])

@@ -9,8 +9,9 @@ and playback uses the player's `PlaybackClock` (start-up, due times, stalls).
 Transfers take the time `stgs.harness.network.Network` computes, faults
 included; decoding follows the player's pipeline (stgs.harness.decode: keyframes whole, feature frames one by
 one into a bounded ring, frames dropped when their features are late), with at most two decoded GOPs held
-(the playing one and the next), at the costs the scenario's [decode] table gives. The
-output has the player's log format; `not_modelled` lists what the player
+(the playing one and the next), at the costs the scenario's [decode] table gives. A layered scene's
+static layer is fetched first, once, through the same schedule, and decoded (`static_ms`) before the
+first GOP's features. The output has the player's log format; `not_modelled` lists what the player
 does that no simulated scenario can trigger.
 """
 
@@ -69,6 +70,8 @@ class Simulation:
                                       ladder.gop_info, self.settings, download or DownloadSettings(),
                                       clock=lambda: self.now, playing=lambda: self.clock.t0 is not None)
         self.error: str | None = None
+        self.static_ready = 0.0
+        """When the static layer is decoded (format 2; 0 in format 1)."""
         self.records = {k: GOPRecord(k) for k in self.gops}
         g = pres.shape.gop_size
         for k, rec in self.records.items():
@@ -94,7 +97,7 @@ class Simulation:
             # decoding needs a free slot: the GOP two before has finished (the one before has started)
             slot = self.records[k - 1].play_start_s if k - 2 >= self.k0 else 0.0
             keyframe_s, frame_s = self.decode_costs(k, rec)
-            plan = self.decoder.plan(rec.fetch_end_s, slot, keyframe_s, frame_s)
+            plan = self.decoder.plan(rec.fetch_end_s, slot, keyframe_s, frame_s, self.static_ready)
             ready = plan.ready
             start = ready if self.clock.t0 is None else max(ready, self.clock.due(k))
             if start > until:
@@ -150,7 +153,8 @@ class Simulation:
         (judged per chunk when abandonable)."""
         ladder = self.ladder
         nbytes = (ladder.keyframe_bytes[req.gop] if req.kind == "keyframe" else
-                  ladder.init_bytes[req.rep] if req.kind == "init" else ladder.media_bytes[req.rep][req.gop])
+                  ladder.init_bytes[req.rep] if req.kind == "init" else
+                  ladder.static_bytes if req.kind == "static" else ladder.media_bytes[req.rep][req.gop])
         ready = start + rtt
         status = self.net.fault(req.url)
         if status is not None:
@@ -181,7 +185,20 @@ class Simulation:
         rec.fetch_end_s = self.now
         rec.download_s = rec.fetch_end_s - rec.fetch_start_s
 
+    def fetch_static(self) -> None:
+        """The static layer before the first GOP (format 2), then its decode."""
+        rec = self.records[self.k0]
+        self.drive(self.schedule.fetch_static(rec), rec)
+        rec.static_decode_s = self.sc.decode.static_ms / 1e3
+        self.static_ready = self.now + rec.static_decode_s
+
     def run(self) -> dict:
+        if self.ladder.pres.static is not None:
+            try:
+                self.fetch_static()
+            except ScheduleError as exc:
+                self.error = str(exc)
+                return self.log()
         for k in self.gops:
             self.wait_for_room()
             try:

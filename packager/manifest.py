@@ -19,6 +19,7 @@ from stgs.mpd import (
     FEATURE_SCHEME,
     KEYFRAME_SCHEME,
     MPD,
+    STATIC_SCHEME,
     AdaptationSet,
     Descriptor,
     Period,
@@ -28,10 +29,13 @@ from stgs.mpd import (
 from stgs.tree import (
     KEYFRAME_MIME_TYPE,
     KEYFRAME_REP,
+    STATIC_MIME_TYPE,
+    STATIC_REP,
     feature_init_template,
     feature_media_template,
     keyframe_template,
     qp_of,
+    static_template,
 )
 
 STATS_FORMAT = "streamstgs-stats"
@@ -67,6 +71,19 @@ class RepresentationRecords:
         return [self.segments[k] for k in sorted(self.segments)]
 
 
+@dataclass(frozen=True)
+class StaticRecord:
+    """The static-layer segment of a format-2 pack, as the packer reports it."""
+
+    bytes: int
+    capacity: int
+    sh_degree: int
+
+    @property
+    def grid_side(self) -> int:
+        return math.isqrt(self.capacity)
+
+
 @dataclass
 class ManifestBuilder:
     """Collects segment records per Representation and builds the MPD and stats.json from them."""
@@ -84,6 +101,8 @@ class ManifestBuilder:
     features: dict[str, RepresentationRecords] = field(default_factory=dict)
     codecs: dict[str, str] = field(default_factory=dict)
     """@codecs per feature Representation."""
+    static: StaticRecord | None = None
+    """The static layer's segment (format 2), or None (format 1: no static AdaptationSet)."""
 
     @property
     def segment_seconds(self) -> float:
@@ -91,6 +110,9 @@ class ManifestBuilder:
 
     def on_keyframe(self, record: SegmentRecord) -> None:
         self.keyframes.add(record)
+
+    def on_static(self, record: StaticRecord) -> None:
+        self.static = record
 
     def on_feature_segment(self, rep_id: str, record: SegmentRecord) -> None:
         self.features.setdefault(rep_id, RepresentationRecords(rep_id)).add(record)
@@ -117,8 +139,19 @@ class ManifestBuilder:
             SegmentTemplate(feature_media_template(self.version), self.timescale, self.segment_ticks, 0,
                             feature_init_template(self.version)),
             reps, [Descriptor(FEATURE_SCHEME, "tiles=4x4;channels=16;bits=12")])
-        duration = len(self.keyframes.segments) * self.segment_seconds
-        return MPD(duration, self.segment_seconds, [Period("0", [keyframes, features])])
+        gops = len(self.keyframes.segments)
+        sets = [keyframes, features] if self.static is None else [self.static_set(gops), keyframes, features]
+        return MPD(gops * self.segment_seconds, self.segment_seconds, [Period("0", sets)])
+
+    def static_set(self, gops: int) -> AdaptationSet:
+        """The static layer's AdaptationSet: one segment spanning the Period (manifests/PROFILE.md)."""
+        s = self.static
+        params = f"version=1;capacity={s.capacity};grid_side={s.grid_side};sh_degree={s.sh_degree}"
+        bandwidth = math.ceil(s.bytes * 8 / (gops * self.segment_seconds))
+        return AdaptationSet(
+            0, "application", STATIC_MIME_TYPE,
+            SegmentTemplate(static_template(self.version), self.timescale, gops * self.segment_ticks, 0),
+            [Representation(STATIC_REP, bandwidth)], [Descriptor(STATIC_SCHEME, params)])
 
     def stats(self, pack_id: str) -> dict:
         """stats.json: per Representation and per GOP, bytes and quality (manifests/PROFILE.md)."""
@@ -130,11 +163,16 @@ class ManifestBuilder:
                 "mean_bytes": sum(s.bytes for s in rows) / len(rows),
                 "mean_feature_psnr": sum(s.quality["feature_psnr"] for s in rows) / len(rows),
                 "mean_render_psnr": sum(s.quality["render_psnr"] for s in rows) / len(rows)}
-        return {"format": STATS_FORMAT, "version": 1, "pack_id": pack_id,
-                "segment_seconds": self.segment_seconds, "frames_per_gop": self.shape.gop_size,
-                "keyframe_bandwidth": self.keyframes.bandwidth(),
-                "representations": reps,
-                "gops": [{"index": kf.number, "keyframe_bytes": kf.bytes,
-                          "representations": {r.rep_id: {"bytes": r.segments[kf.number].bytes,
-                                                         **r.segments[kf.number].quality} for r in self.ladder()}}
-                         for kf in self.keyframes.ordered()]}
+        doc = {"format": STATS_FORMAT, "version": 1, "pack_id": pack_id,
+               "segment_seconds": self.segment_seconds, "frames_per_gop": self.shape.gop_size,
+               "keyframe_bandwidth": self.keyframes.bandwidth(),
+               "representations": reps,
+               "gops": [{"index": kf.number, "keyframe_bytes": kf.bytes,
+                         "representations": {r.rep_id: {"bytes": r.segments[kf.number].bytes,
+                                                        **r.segments[kf.number].quality} for r in self.ladder()}}
+                        for kf in self.keyframes.ordered()]}
+        if self.static is not None:  # format 2 only: a format-1 tree's stats.json is unchanged
+            s = self.static
+            doc["static"] = {"bytes": s.bytes, "capacity": s.capacity, "grid_side": s.grid_side,
+                             "sh_degree": s.sh_degree}
+        return doc

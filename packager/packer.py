@@ -20,17 +20,20 @@ import json
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 from tqdm import tqdm
 
 from stgs.codec.mp4 import hevc_codecs
 from stgs.codec.plas import PLASConfig
+from stgs.codec.static import decode_static, pack_static
 from stgs.codec.video import PRESETS, VideoTiming
 from stgs.errors import FieldError, StgsError
 from stgs.fsio import atomic_write_bytes
-from stgs.model.store import SceneMeta, read_meta
-from stgs.packager.manifest import ManifestBuilder, SegmentRecord
+from stgs.model.static import StaticLayer
+from stgs.model.store import SceneMeta, load_static, read_meta
+from stgs.packager.manifest import ManifestBuilder, SegmentRecord, StaticRecord
 from stgs.packager.segments import FeatureEncoder, PreparedGOP, measure, prepare_gop
 from stgs.packager.state import PackState, check_output_dir, pack_id
 from stgs.synth import load_ground_truth
@@ -43,6 +46,7 @@ from stgs.tree import (
     feature_path,
     keyframe_path,
     rep_id,
+    static_path,
     version_dir,
 )
 
@@ -101,10 +105,8 @@ class Packer:
         if self.side == 0:
             raise StgsError(f"{model_dir}: capacity {self.meta.shape.capacity} is not a square; "
                             "the packager needs N = S² Gaussians")
-        if self.meta.static is not None:
-            raise StgsError(f"{model_dir}: a layered scene (format 2, static layer of "
-                            f"{self.meta.static.capacity} Gaussians) cannot be packed by this build yet; "
-                            "train it with --layers single to stream it")
+        self.static: StaticLayer | None = load_static(self.model_dir, self.meta)
+        """The scene's static layer as trained (format 2), or None."""
         self.id = pack_id(self.model_dir, self.meta.gop_files, cfg.digest_fields())
         self.version_dir = version_dir(self.id)
         shape = self.meta.shape
@@ -125,9 +127,27 @@ class Packer:
         return self.meta.shape.gop_size / self.meta.fps
 
     def prepare_gop(self, k: int) -> PreparedGOP:
-        """Sort, tile, write nothing yet: GOP k's keyframe, feature frames and reference views."""
+        """Sort, tile, write nothing yet: GOP k's keyframe, feature frames and reference views (of the
+        composite with the static layer, in a layered scene)."""
         return prepare_gop(self.model_dir, self.meta, k, self.cfg.plas if self.cfg.sort else None,
-                           self.cfg.stats_views, self.cfg.stats_frames)
+                           self.cfg.stats_views, self.cfg.stats_frames, self.static)
+
+    def write_static(self) -> None:
+        """A layered scene's static layer, sorted and encoded, into the tree (before any GOP: the QP tasks
+        measure the composite with the segment as a player decodes it), and its record to the builder."""
+        if self.static is None:
+            return
+        data = pack_static(self.static, self.cfg.plas if self.cfg.sort else None)
+        self.write(static_path(self.version_dir), data)
+        self.builder.on_static(StaticRecord(len(data), self.static.capacity, self.static.sh_degree))
+
+    @cached_property
+    def decoded_static(self) -> StaticLayer | None:
+        """The static layer as a player decodes it from the tree (None in format 1)."""
+        if self.static is None:
+            return None
+        data = (self.out / static_path(self.version_dir)).read_bytes()
+        return decode_static(data, self.static.capacity, self.static.sh_degree, len(data))
 
     def write(self, rel: str, data: bytes) -> None:
         atomic_write_bytes(self.out / rel, data)
@@ -150,7 +170,7 @@ class Packer:
         for rel, data in files.items():
             self.write(rel, data)
         digests = {rel: hashlib.sha256(data).hexdigest() for rel, data in files.items()}
-        return digests, measure(gop, init, media, self.meta)
+        return digests, measure(gop, init, media, self.meta, self.decoded_static)
 
     def segment_record(self, k: int, done: dict) -> SegmentRecord:
         return SegmentRecord(k, self.seconds_per_gop, done["bytes"],
@@ -165,6 +185,7 @@ class Packer:
             self.builder.on_feature_segment(rep_id(qp), self.feature_task(gop, qp))
             bar.update(1)
 
+        self.write_static()
         # GOP k+1 is sorted and tiled while GOP k's QPs encode; at most two GOPs are held in memory.
         with ThreadPoolExecutor(max_workers=cfg.jobs) as pool:
             previous: list = []

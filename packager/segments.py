@@ -21,6 +21,7 @@ from stgs.codec.plas import PLASConfig, permute_gop, plas_order, sort_key
 from stgs.codec.video import VideoTiming, decode_segment, encode_gop
 from stgs.metrics import psnr
 from stgs.model.gop import GOPModel
+from stgs.model.static import StaticLayer
 from stgs.model.store import SceneMeta, load_gop
 from stgs.model.view import FrameRenderer, framing_orbit
 from stgs.synth import load_ground_truth
@@ -54,9 +55,9 @@ def stats_cameras(model_dir: Path, model: GOPModel, count: int) -> list[Camera]:
 
 
 def prepare_gop(model_dir: Path, meta: SceneMeta, k: int, plas: PLASConfig | None, views: int,
-                frames: int) -> PreparedGOP:
+                frames: int, static: StaticLayer | None = None) -> PreparedGOP:
     """GOP k sorted (PLAS unless `plas` is None), tiled, its keyframe written and read back, and `views` x `frames`
-    reference views rendered from the uncompressed GOP."""
+    reference views rendered from the uncompressed GOP (with the uncompressed static layer, if any)."""
     side = meta.shape.grid_side
     original = load_gop(model_dir, meta, k)
     if plas is not None:
@@ -71,7 +72,7 @@ def prepare_gop(model_dir: Path, meta: SceneMeta, k: int, plas: PLASConfig | Non
     cams = stats_cameras(model_dir, original, views)
     g = meta.shape.gop_size
     pairs = [(f, cam) for f in sorted({0, g // 2, g - 1})[:frames] for cam in cams]
-    renderer = FrameRenderer(original)
+    renderer = FrameRenderer(original, static=static)
     reference = [renderer.render(f, cam).clamp(0, 1) for f, cam in pairs]
     decoded = decode_keyframe(keyframe, meta.shape, k, max_bytes=len(keyframe))
     return PreparedGOP(k, tiled, ranges, keyframe, decoded, pairs, reference)
@@ -128,14 +129,15 @@ def mse_psnr(mse: list[float]) -> float:
     return 99.0 if m == 0 else 10 * math.log10(1.0 / m)
 
 
-def measure(gop: PreparedGOP, init: bytes, media: bytes, meta: SceneMeta) -> dict:
-    """Bytes, decoded-feature PSNR and rendered-view PSNR (against the uncompressed GOP) of one media segment."""
+def measure(gop: PreparedGOP, init: bytes, media: bytes, meta: SceneMeta, static: StaticLayer | None = None) -> dict:
+    """Bytes, decoded-feature PSNR and rendered-view PSNR (against the uncompressed GOP) of one media segment;
+    `static`: a layered scene's static layer as decoded from its segment (the PSNR is then the composite's)."""
     side = meta.shape.grid_side
     decoded_frames = decode_segment(init, media, meta.shape.num_features, 4 * side, 4 * side)
     feature_psnr = psnr(torch.from_numpy(decoded_frames.astype(np.float32)) / VIDEO_MAX,
                         torch.from_numpy(gop.frames.astype(np.float32)) / VIDEO_MAX)
     features = features_from_frames(decoded_frames, side, gop.ranges)
-    renderer = FrameRenderer(gop.decoded_keyframe.to_model(features))
+    renderer = FrameRenderer(gop.decoded_keyframe.to_model(features), static=static)
     mse = [(renderer.render(f, cam).clamp(0, 1).double() - ref.double()).square().mean().item()
            for (f, cam), ref in zip(gop.views, gop.reference, strict=True)]
     return {"bytes": len(media), "feature_psnr": round(min(feature_psnr, 99.0), 4),

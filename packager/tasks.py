@@ -63,6 +63,7 @@ def run_tasks(packer: Packer, runner: Runner) -> dict:
     """The pack on `runner` (after Packer.prepare_output); returns the stats document."""
     cfg, out, state = packer.cfg, packer.out, packer.state
     job = PackJob(str(packer.model_dir.resolve()), str(out.resolve()), dataclasses.asdict(cfg))
+    packer.write_static()
     tasks = []
     for k in range(packer.meta.num_gops):
         pending = [qp for qp in cfg.qps if state.done(out, qp_task_name(k, qp)) is None]

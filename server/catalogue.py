@@ -13,7 +13,7 @@ from pathlib import Path
 
 from aiohttp import web
 
-from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, MPDError, read_mpd
+from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, STATIC_SCHEME, MPDError, read_mpd
 from stgs.server.config import CORS_HEADERS, ROOT_KEY
 from stgs.tree import MANIFEST
 
@@ -27,9 +27,13 @@ def scene_summary(name: str, manifest: Path) -> dict:
     mpd = read_mpd(manifest)
     video = mpd.adaptation_set(FEATURE_SCHEME)
     keyframes = mpd.adaptation_set(KEYFRAME_SCHEME)
+    static = mpd.find_adaptation_set(STATIC_SCHEME)
     seconds = video.segment_template.seconds
-    return {"name": name, "manifest": manifest_url(name), "duration": mpd.duration,
-            "gops": round(mpd.duration / seconds), "gop_seconds": seconds,
+    return {"name": name, "manifest": manifest_url(name), "format": 1 if static is None else 2,
+            "duration": mpd.duration, "gops": round(mpd.duration / seconds), "gop_seconds": seconds,
+            "static": None if static is None else {
+                "capacity": int(static.descriptor(STATIC_SCHEME).fields().get("capacity", 0)),
+                "bandwidth": static.representations[0].bandwidth},
             "keyframe_bandwidth": keyframes.representations[0].bandwidth,
             "ladder": [{"id": r.id, "bandwidth": r.bandwidth, "codecs": r.codecs} for r in video.representations]}
 
@@ -45,7 +49,7 @@ def catalogue(root: Path) -> list[dict]:
         if manifest.is_file():
             try:
                 scenes.append(scene_summary(name, manifest))
-            except (MPDError, OSError, IndexError, ArithmeticError) as exc:
+            except (MPDError, OSError, IndexError, ArithmeticError, ValueError) as exc:
                 # listed as bad (one broken scene must not take the catalogue down with it)
                 logging.getLogger("stgs.server").warning("%s: not a playable StreamSTGS manifest (%s)", manifest, exc)
                 scenes.append({"name": name, "manifest": manifest_url(name),

@@ -8,13 +8,14 @@ from pathlib import Path
 from aiohttp import web
 
 from stgs.server.slots import TransferSlots
-from stgs.tree import KEYFRAME_EXTENSION, KEYFRAME_MIME_TYPE
+from stgs.tree import KEYFRAME_EXTENSION, KEYFRAME_MIME_TYPE, STATIC_EXTENSION, STATIC_MIME_TYPE
 
 CONTENT_TYPES = {
     ".mpd": "application/dash+xml",
     ".mp4": "video/mp4",
     ".m4s": "video/iso.segment",
     KEYFRAME_EXTENSION: KEYFRAME_MIME_TYPE,
+    STATIC_EXTENSION: STATIC_MIME_TYPE,
     ".json": "application/json",
 }
 """The only files served, by extension."""

@@ -21,19 +21,35 @@ import torch
 
 from stgs.codec.features import features_from_frames
 from stgs.codec.keyframe import decode_keyframe
+from stgs.codec.static import decode_static
 from stgs.codec.video import decode_segment
 from stgs.data import open_dataset
 from stgs.errors import FieldError, StgsError
 from stgs.fsio import atomic_write_bytes, image_grid, save_png
 from stgs.metrics import LPIPS, lpips_backbone_file, psnr, ssim
 from stgs.model.gop import GOPModel, GOPShape
+from stgs.model.static import StaticLayer
 from stgs.model.store import load_gop, load_static, read_meta
 from stgs.model.view import FrameRenderer
-from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, MPDError, expand_template, read_mpd
+from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, STATIC_SCHEME, MPDError, expand_template, read_mpd
 from stgs.train.views import scale_camera
 from stgs.tree import MANIFEST, TRAIN_REPORT
 
 GRID_ROWS = 4
+
+
+def packaged_static(dash: Path) -> StaticLayer | None:
+    """A local format-2 tree's static layer as a player decodes it (None for a format-1 tree)."""
+    try:
+        found = read_mpd(dash / MANIFEST).find_adaptation_set(STATIC_SCHEME)
+        if found is None:
+            return None
+        fields = found.descriptor(STATIC_SCHEME).fields()
+        capacity, sh_degree = int(fields["capacity"]), int(fields["sh_degree"])
+        data = (dash / expand_template(found.segment_template.media, found.representations[0].id, 0)).read_bytes()
+        return decode_static(data, capacity, sh_degree, len(data))
+    except (OSError, MPDError, KeyError, ValueError) as exc:
+        raise StgsError(f"{dash}: static layer unreadable ({exc})") from None
 
 
 def packaged_gops(dash: Path) -> dict[str, Callable[[int], GOPModel]]:
@@ -87,9 +103,12 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
     if start + meta.num_gops * g > ds.num_frames:
         raise StgsError(f"{ds.name} has {ds.num_frames} frames; the model needs {start + meta.num_gops * g}")
     sources: dict[str, Callable[[int], GOPModel]] = {"uncompressed": lambda k: load_gop(model_dir, meta, k)}
-    if dash is not None:
-        sources |= packaged_gops(Path(dash))
     static = load_static(model_dir, meta)
+    statics = dict.fromkeys(sources, static)
+    if dash is not None:
+        packaged = packaged_gops(Path(dash))
+        sources |= packaged
+        statics |= dict.fromkeys(packaged, packaged_static(Path(dash)))  # the tree's, as a player draws it
     lpips = LPIPS.load(lpips_net) if lpips_net else None
     result: dict = {"model_dir": str(model_dir), "dataset": ds.name, "validation_cameras": cams_val,
                     "frame_stride": stride, "lpips": lpips_info(lpips, lpips_net), "format": meta.version,
@@ -99,7 +118,7 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
     for name, load in sources.items():
         per_gop = []
         for k in tqdm(range(meta.num_gops), desc=f"eval {name}", unit="gop", disable=not progress):
-            renderer = FrameRenderer(load(k), static=static)
+            renderer = FrameRenderer(load(k), static=statics[name])
             rows = []
             for i in range(0, g, stride):
                 f = start + k * g + i

@@ -26,6 +26,8 @@ KEYFRAME_SCHEME = "urn:streamstgs:keyframe:2026"
 """SupplementalProperty scheme marking the keyframe AdaptationSet."""
 FEATURE_SCHEME = "urn:streamstgs:features:2026"
 """SupplementalProperty scheme marking the feature-video AdaptationSet."""
+STATIC_SCHEME = "urn:streamstgs:static:2026"
+"""SupplementalProperty scheme marking the static-layer AdaptationSet (format-2 trees only)."""
 
 
 class MPDError(ValueError):
@@ -264,10 +266,17 @@ class MPD:
 
     def adaptation_set(self, scheme: str) -> AdaptationSet:
         """The first AdaptationSet of the first Period marked with `scheme`."""
-        for a in self.periods[0].adaptation_sets:
+        found = self.find_adaptation_set(scheme)
+        if found is None:
+            raise MPDError(f"no AdaptationSet with SupplementalProperty {scheme}")
+        return found
+
+    def find_adaptation_set(self, scheme: str) -> AdaptationSet | None:
+        """The first AdaptationSet of the first Period marked with `scheme`, or None."""
+        for a in self.periods[0].adaptation_sets if self.periods else ():
             if a.has_scheme(scheme):
                 return a
-        raise MPDError(f"no AdaptationSet with SupplementalProperty {scheme}")
+        return None
 
 
 def _required(el: etree._Element, attr: str) -> str:

@@ -58,7 +58,13 @@ KEYFRAME_MIME_TYPE = "application/vnd.streamstgs.keyframe"
 """@mimeType of the keyframe AdaptationSet (container: stgs.codec.keyframe)."""
 KEYFRAME_REP = "keyframes"
 """The keyframe AdaptationSet's one Representation."""
-SEGMENT_SUFFIXES = (KEYFRAME_EXTENSION, ".mp4", ".m4s")
+STATIC_EXTENSION = ".stgl"
+"""File extension of the static-layer segment (a format-2 tree's one segment per Period)."""
+STATIC_MIME_TYPE = "application/vnd.streamstgs.static"
+"""@mimeType of the static-layer AdaptationSet (container: stgs.codec.static)."""
+STATIC_REP = "static"
+"""The static-layer AdaptationSet's one Representation."""
+SEGMENT_SUFFIXES = (KEYFRAME_EXTENSION, STATIC_EXTENSION, ".mp4", ".m4s")
 """Every segment file's suffix (documents are the rest)."""
 
 
@@ -69,6 +75,15 @@ def version_dir(pack_id: str) -> str:
 
 def keyframe_template(version: str) -> str:
     return f"{version}/keyframes/gop_$Number%05d${KEYFRAME_EXTENSION}"
+
+
+def static_template(version: str) -> str:
+    return f"{version}/static/layer{STATIC_EXTENSION}"
+
+
+def static_path(version: str) -> str:
+    """Path (relative to the MPD) of the static-layer segment."""
+    return expand_template(static_template(version), STATIC_REP)
 
 
 def feature_media_template(version: str) -> str:

@@ -1,4 +1,4 @@
-"""`stgs demo`, the README's main command, end to end (about a minute)."""
+"""`stgs demo`, the README's main command, end to end (a few minutes: the scene twice, layered and folded)."""
 
 from __future__ import annotations
 
@@ -30,6 +30,14 @@ def test_demo_streams_the_default_scene_end_to_end(tmp_path):
     assert sheet.shape == (2 * 240, 6 * 320, 3)
     assert cv2.imread(str(out / "compare.png")).shape == (4 * 240, 3 * 320, 3)
     assert (out / "dash" / "manifest.mpd").is_file() and (out / "dash" / "cameras.json").is_file()
+    # The default scene is layered: its static layer streamed once; the folded format-1 twin is compared.
+    assert log["static_bytes"] == summary["static_bytes"] > 0 and summary["static_gaussians"] == 1024
+    two, one = summary["formats"]["2"]["per_qp"], summary["formats"]["1"]["per_qp"]
+    assert set(two) == set(one) == {f"qp{q}" for q in (16, 20, 24, 28, 32)}
+    assert summary["formats"]["1"]["gaussians"] == 72 * 72  # 4,096 moving + 1,024 backdrop, padded to a square
+    for rid in two:  # the backdrop sent once costs less than in every GOP
+        assert two[rid]["kb_per_frame"] < one[rid]["kb_per_frame"]
+    assert "format 2 (static layer sent once) vs format 1" in result.stdout
 
 
 def test_bench_render_smoke():

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from stgs.model.gop import GOPModel
+from stgs.model.static import StaticLayer
 
 
 @dataclass(frozen=True)
@@ -63,8 +64,8 @@ def attribute_range(spec: AttributeSpec, values: torch.Tensor) -> torch.Tensor:
     return torch.stack([lo, hi]).float()
 
 
-def _values(model: GOPModel, spec: AttributeSpec) -> torch.Tensor:
-    return getattr(model, spec.param).detach().float().reshape(model.shape.capacity, spec.channels)
+def _values(model: GOPModel | StaticLayer, spec: AttributeSpec) -> torch.Tensor:
+    return getattr(model, spec.param).detach().float().reshape(-1, spec.channels)
 
 
 def quantize(spec: AttributeSpec, values: torch.Tensor, rng: torch.Tensor, side: int) -> np.ndarray:
@@ -83,7 +84,7 @@ def dequantize(spec: AttributeSpec, codes: np.ndarray, rng: torch.Tensor) -> tor
     return unit * (rng[1] - rng[0]) + rng[0]
 
 
-def encode_attributes(model: GOPModel, side: int) -> dict[str, tuple[np.ndarray, torch.Tensor]]:
+def encode_attributes(model: GOPModel | StaticLayer, side: int) -> dict[str, tuple[np.ndarray, torch.Tensor]]:
     """name -> (codes (S, S, C), range (2, C)) for every attribute image."""
     out = {}
     for spec in SPECS:
@@ -93,7 +94,7 @@ def encode_attributes(model: GOPModel, side: int) -> dict[str, tuple[np.ndarray,
     return out
 
 
-def apply_attributes(model: GOPModel, decoded: dict[str, torch.Tensor]) -> None:
+def apply_attributes(model: GOPModel | StaticLayer, decoded: dict[str, torch.Tensor]) -> None:
     """Load dequantised (N, C) attributes into the model's canonical parameters."""
     with torch.no_grad():
         for spec in SPECS:

@@ -29,7 +29,7 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load, save
 
-from stgs.codec.attributes import SPECS, apply_attributes, dequantize, encode_attributes
+from stgs.codec.attributes import SPECS, AttributeSpec, apply_attributes, dequantize, encode_attributes
 from stgs.codec.features import VIDEO_BITS
 from stgs.codec.jxl import ImageDecodeError, decode_jxl, encode_jxl
 from stgs.limits import MAX_KEYFRAME_HEADER_BYTES
@@ -87,10 +87,7 @@ def encode_keyframe(gop: int, model: GOPModel, feature_ranges: torch.Tensor) -> 
     side = model.shape.grid_side
     if side == 0:
         raise ValueError("the capacity must be a square S² to form attribute images")
-    tensors: dict[str, torch.Tensor] = {}
-    for name, (codes, rng) in encode_attributes(model, side).items():
-        tensors[f"image.{name}"] = torch.frombuffer(bytearray(encode_jxl(codes)), dtype=torch.uint8)
-        tensors[f"range.{name}"] = rng.contiguous()
+    tensors = image_tensors(encode_attributes(model, side))
     tensors["range.features"] = feature_ranges.float().contiguous()
     for name, weight in model.field.state_dict().items():
         tensors[f"field.{name}"] = weight.detach().float().contiguous()
@@ -99,27 +96,94 @@ def encode_keyframe(gop: int, model: GOPModel, feature_ranges: torch.Tensor) -> 
     return save(tensors, metadata={META_KEY: json.dumps(meta, sort_keys=True)})
 
 
-def _header(data: bytes) -> dict:
+def _header(data: bytes, what: str, error: type[ValueError]) -> dict:
     if len(data) < 8:
-        raise KeyframeError("keyframe segment is truncated")
+        raise error(f"{what} segment is truncated")
     size = struct.unpack_from("<Q", data)[0]
     if size > MAX_KEYFRAME_HEADER_BYTES or 8 + size > len(data):
-        raise KeyframeError(f"keyframe header claims {size} bytes")
+        raise error(f"{what} header claims {size} bytes")
     try:
         header = json.loads(data[8:8 + size])
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise KeyframeError(f"keyframe header is not JSON ({exc})") from exc
+        raise error(f"{what} header is not JSON ({exc})") from exc
     if not isinstance(header, dict):
-        raise KeyframeError("keyframe header is not a JSON object")
+        raise error(f"{what} header is not a JSON object")
     return header
+
+
+def read_container(data: bytes, metadata: dict[str, str], want: dict[str, tuple[int, ...] | None], max_bytes: int,
+                   what: str, error: type[ValueError]) -> dict[str, torch.Tensor]:
+    """The tensors of a segment in this container (`what`: "keyframe" or "static-layer"), refused with `error`
+    unless its size, metadata, tensor names, dtypes and shapes are what the manifest announced (`want`: name ->
+    shape, None for a JPEG XL byte string) and every float is finite; checked before anything is decoded."""
+    if len(data) > max_bytes:
+        raise error(f"{what} segment is {len(data)} bytes, over the {max_bytes}-byte limit")
+    header = _header(data, what, error)
+    try:
+        meta = json.loads((header.get("__metadata__") or {}).get(META_KEY, "{}"))
+    except (json.JSONDecodeError, TypeError, AttributeError) as exc:
+        raise error(f"{what} metadata is not JSON ({exc})") from exc
+    if not isinstance(meta, dict):
+        raise error(f"{what} metadata is not a JSON object")
+    for key, value in metadata.items():
+        if meta.get(key) != value:
+            raise error(f"{what} {key} is {meta.get(key)!r}, expected {value!r}")
+    names = set(header) - {"__metadata__"}
+    if names != set(want):
+        raise error(f"{what} tensors differ from the format (missing {sorted(set(want) - names)}, "
+                    f"unknown {sorted(names - set(want))})")
+    for name, shp in want.items():
+        entry = header[name]
+        dtype = "U8" if shp is None else "F32"
+        if not isinstance(entry, dict) or entry.get("dtype") != dtype:
+            raise error(f"{what} tensor {name} must be {dtype}")
+        if shp is not None and (not isinstance(entry.get("shape"), list) or tuple(entry["shape"]) != shp):
+            raise error(f"{what} tensor {name} has shape {entry.get('shape')}, expected {list(shp)}")
+    try:
+        tensors = load(data)
+    except (SafetensorError, ValueError) as exc:
+        raise error(f"{what} segment is corrupt ({exc})") from exc
+    for name, t in tensors.items():
+        if t.dtype == torch.float32 and not torch.isfinite(t).all():
+            raise error(f"{what} tensor {name} contains NaN or Inf")
+    return tensors
+
+
+def decode_images(tensors: dict[str, torch.Tensor], specs: tuple[AttributeSpec, ...], side: int, what: str,
+                  error: type[ValueError]) -> dict[str, torch.Tensor]:
+    """name -> dequantised (S², C) values of each spec's JPEG XL image and range."""
+    attributes = {}
+    for spec in specs:
+        try:
+            codes = decode_jxl(tensors[f"image.{spec.name}"].numpy().tobytes(), (side, side, spec.channels),
+                               spec.dtype)
+            attributes[spec.name] = dequantize(spec, np.asarray(codes), tensors[f"range.{spec.name}"])
+        except (ImageDecodeError, ValueError) as exc:
+            raise error(f"{what} image {spec.name}: {exc}") from exc
+    return attributes
+
+
+def image_tensors(images: dict[str, tuple[np.ndarray, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """The container's image.<name> (lossless JPEG XL bytes) and range.<name> tensors of quantised images."""
+    tensors: dict[str, torch.Tensor] = {}
+    for name, (codes, rng) in images.items():
+        tensors[f"image.{name}"] = torch.frombuffer(bytearray(encode_jxl(codes)), dtype=torch.uint8)
+        tensors[f"range.{name}"] = rng.contiguous()
+    return tensors
+
+
+def image_shapes(specs: tuple[AttributeSpec, ...]) -> dict[str, tuple[int, ...] | None]:
+    """name -> shape of the image and range tensors of `specs` (None: a JPEG XL byte string)."""
+    want: dict[str, tuple[int, ...] | None] = {}
+    for spec in specs:
+        want[f"image.{spec.name}"] = None
+        want[f"range.{spec.name}"] = (2, spec.channels)
+    return want
 
 
 def expected_tensors(shape: GOPShape) -> dict[str, tuple[int, ...] | None]:
     """name -> shape (None for the variable-length JPEG XL byte strings)."""
-    want: dict[str, tuple[int, ...] | None] = {}
-    for spec in SPECS:
-        want[f"image.{spec.name}"] = None
-        want[f"range.{spec.name}"] = (2, spec.channels)
+    want = image_shapes(SPECS)
     want["range.features"] = (2, FEATURE_DIM)
     field = DeformationField(shape.window, shape.pe_freqs)
     want |= {f"field.{k}": tuple(v.shape) for k, v in field.state_dict().items()}
@@ -128,45 +192,9 @@ def expected_tensors(shape: GOPShape) -> dict[str, tuple[int, ...] | None]:
 
 def decode_keyframe(data: bytes, shape: GOPShape, gop: int, max_bytes: int) -> Keyframe:
     """Parse and check a keyframe segment against the shape and GOP index the manifest announced."""
-    if len(data) > max_bytes:
-        raise KeyframeError(f"keyframe segment is {len(data)} bytes, over the {max_bytes}-byte limit")
-    header = _header(data)
-    try:
-        meta = json.loads((header.get("__metadata__") or {}).get(META_KEY, "{}"))
-    except (json.JSONDecodeError, TypeError, AttributeError) as exc:
-        raise KeyframeError(f"keyframe metadata is not JSON ({exc})") from exc
-    if not isinstance(meta, dict):
-        raise KeyframeError("keyframe metadata is not a JSON object")
-    for key, value in keyframe_metadata(gop, shape).items():
-        if meta.get(key) != value:
-            raise KeyframeError(f"keyframe {key} is {meta.get(key)!r}, expected {value!r}")
-    want = expected_tensors(shape)
-    names = set(header) - {"__metadata__"}
-    if names != set(want):
-        raise KeyframeError(f"keyframe tensors differ from the format (missing {sorted(set(want) - names)}, "
-                            f"unknown {sorted(names - set(want))})")
-    for name, shp in want.items():
-        entry = header[name]
-        dtype = "U8" if shp is None else "F32"
-        if not isinstance(entry, dict) or entry.get("dtype") != dtype:
-            raise KeyframeError(f"keyframe tensor {name} must be {dtype}")
-        if shp is not None and (not isinstance(entry.get("shape"), list) or tuple(entry["shape"]) != shp):
-            raise KeyframeError(f"keyframe tensor {name} has shape {entry.get('shape')}, expected {list(shp)}")
-    try:
-        tensors = load(data)
-    except (SafetensorError, ValueError) as exc:
-        raise KeyframeError(f"keyframe segment is corrupt ({exc})") from exc
-    for name, t in tensors.items():
-        if t.dtype == torch.float32 and not torch.isfinite(t).all():
-            raise KeyframeError(f"keyframe tensor {name} contains NaN or Inf")
-    side = shape.grid_side
-    attributes = {}
-    for spec in SPECS:
-        try:
-            codes = decode_jxl(tensors[f"image.{spec.name}"].numpy().tobytes(), (side, side, spec.channels),
-                               spec.dtype)
-            attributes[spec.name] = dequantize(spec, np.asarray(codes), tensors[f"range.{spec.name}"])
-        except (ImageDecodeError, ValueError) as exc:
-            raise KeyframeError(f"keyframe image {spec.name}: {exc}") from exc
+    what = "keyframe"
+    tensors = read_container(data, keyframe_metadata(gop, shape), expected_tensors(shape), max_bytes, what,
+                             KeyframeError)
+    attributes = decode_images(tensors, SPECS, shape.grid_side, what, KeyframeError)
     field = {k[len("field."):]: v for k, v in tensors.items() if k.startswith("field.")}
     return Keyframe(gop, shape, attributes, field, tensors["range.features"])

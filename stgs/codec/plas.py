@@ -23,6 +23,7 @@ import torch
 import torch.nn.functional as F
 
 from stgs.model.gop import GOPModel
+from stgs.model.static import StaticLayer
 
 PERMUTATIONS = torch.tensor(list(itertools.permutations(range(4))))
 """(24, 4): every placement of a group's 4 Gaussians on its 4 cells."""
@@ -46,12 +47,13 @@ class PLASConfig:
     """Weight of the temporal-feature columns (what the video codec sees)."""
 
 
-def sort_key(model: GOPModel, cfg: PLASConfig = PLASConfig()) -> torch.Tensor:
+def sort_key(model: GOPModel | StaticLayer, cfg: PLASConfig = PLASConfig()) -> torch.Tensor:
     """(N, D) standardised attributes a grid should be smooth in.
 
     Each attribute group (position, colour, log scale, rotation, opacity, the
-    time-mean of the features) is standardised and scaled to equal weight,
-    then position and features get their configured weights.
+    time-mean of the features where the model has them: a static layer has
+    none) is standardised and scaled to equal weight, then position and
+    features get their configured weights.
     """
     groups = [
         (model.xyz, cfg.position_weight),
@@ -59,8 +61,9 @@ def sort_key(model: GOPModel, cfg: PLASConfig = PLASConfig()) -> torch.Tensor:
         (model.log_scale, 1.0),
         (model.rotation, 1.0),
         (model.opacity_logit[:, None], 1.0),
-        (model.features.mean(0), cfg.feature_weight),
     ]
+    if isinstance(model, GOPModel):
+        groups.append((model.features.mean(0), cfg.feature_weight))
     cols = []
     for values, weight in groups:
         v = values.detach().float()
@@ -159,4 +162,11 @@ def permute_gop(model: GOPModel, order: torch.Tensor) -> GOPModel:
         state[name] = state[name][order]
     state["features"] = state["features"][:, order]
     out.load_state_dict(state)
+    return out
+
+
+def permute_static(layer: StaticLayer, order: torch.Tensor) -> StaticLayer:
+    """A copy of a static layer with its Gaussians in `order` (the rendered scene is unchanged)."""
+    out = StaticLayer(layer.capacity, layer.sh_degree)
+    out.load_state_dict({name: t[order] for name, t in layer.state_dict().items()})
     return out

@@ -10,8 +10,9 @@ it is, with the ground truth inside it under `gt/`:
 
 With the static_background effect the scene is layered (model format 2): the
 backdrop is the static layer, taken exactly from the truth (it never moves, so
-there is nothing to fit), and the GOPs fit the rest as before. `stgs pack`
-needs a single-layer scene until it can carry a static layer.
+there is nothing to fit), and the GOPs fit the rest as before. With `fold` the
+same scene is written as format 1 instead: every GOP fits the backdrop too
+(stgs.synth.scene.FoldedScene), the single-layer model to compare with.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ from stgs.model.store import load_model, load_static, save_model
 from stgs.model.view import FrameRenderer, in_guard_band
 from stgs.render import rasterize
 from stgs.synth.fit import fit_gop
-from stgs.synth.scene import DEFAULT_EFFECTS, EFFECTS, FOREGROUND, ProceduralScene, TruthFrame
+from stgs.synth.scene import DEFAULT_EFFECTS, EFFECTS, FOREGROUND, FoldedScene, ProceduralScene, TruthFrame
 from stgs.tree import CAMERAS, GROUND_TRUTH_DIR, MASKS_DIR, MODEL_META
 
 SCENE_TARGET = (0.0, 0.55, 0.0)
@@ -74,6 +75,8 @@ class SynthConfig:
     """Seed of the scene layout and the fit."""
     fidelity_stride: int = 5
     """Evaluate rendered fidelity on every n-th frame (all cameras)."""
+    fold: bool = False
+    """With static_background: fold the backdrop into every GOP (a format-1 model of the layered scene)."""
 
     def validate(self) -> None:
         checks = [(self.grid_side >= 4, "grid_side must be >= 4"),
@@ -93,6 +96,8 @@ class SynthConfig:
         unknown = sorted(set(self.effects) - set(EFFECTS))
         if unknown:
             raise StgsError(f"synth config: unknown effect(s) {unknown}; known: {', '.join(EFFECTS)}")
+        if self.fold and "static_background" not in self.effects:
+            raise StgsError("synth config: fold needs the static_background effect (a layered scene to fold)")
 
 
 PRESETS = {
@@ -120,6 +125,9 @@ def config_from_toml(path: Path, base: SynthConfig | None = None) -> SynthConfig
             if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
                 raise StgsError(f"{path}: 'effects' must be a list of names")
             value = tuple(value)
+        elif key == "fold":
+            if not isinstance(value, bool):
+                raise StgsError(f"{path}: 'fold' must be true or false")
         elif not isinstance(value, (int, float)) or isinstance(value, bool):
             raise StgsError(f"{path}: '{key}' must be a number")
         values[key] = value
@@ -246,6 +254,9 @@ def synthesize(cfg: SynthConfig, out: Path, progress: bool = True) -> SynthRepor
     layered = "static_background" in cfg.effects
     scene = ProceduralScene(shape.capacity, tuple(cfg.effects), cfg.seed,
                             cfg.static_grid_side ** 2 if layered else 0)
+    fit_scene = FoldedScene(scene) if cfg.fold else scene
+    if cfg.fold:
+        shape = dataclasses.replace(shape, capacity=fit_scene.capacity)
     cameras = ground_truth_cameras(cfg)
     report = SynthReport()
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-", dir=out.parent))
@@ -256,7 +267,7 @@ def synthesize(cfg: SynthConfig, out: Path, progress: bool = True) -> SynthRepor
         for k in tqdm(range(cfg.num_gops), desc="fit GOPs", unit="gop", disable=not progress):
             start = time.perf_counter()
             times = [(k * cfg.gop_size + i) / cfg.fps for i in range(cfg.gop_size)]
-            result = fit_gop(scene, times, shape, cfg.fit_steps, seed=cfg.seed + k)
+            result = fit_gop(fit_scene, times, shape, cfg.fit_steps, seed=cfg.seed + k)
             gops.append(result.model)
             report.fit.append({"gop": k, "position_rmse": result.position_rmse,
                                "color_rmse": result.color_rmse,
@@ -264,7 +275,7 @@ def synthesize(cfg: SynthConfig, out: Path, progress: bool = True) -> SynthRepor
                                "seconds": time.perf_counter() - start})
         extra = {"generator": "stgs.synth", "config": dataclasses.asdict(cfg),
                  "ground_truth": GROUND_TRUTH_DIR}
-        save_model(staging, gops, cfg.fps, extra, static=truth_static_layer(scene))
+        save_model(staging, gops, cfg.fps, extra, static=None if cfg.fold else truth_static_layer(scene))
         report.fidelity_psnr, report.fidelity_views = measure_fidelity(staging, cfg.fidelity_stride)
         atomic_write_bytes(staging / "synth_report.json",
                            (json.dumps(report.to_json(), indent=2) + "\n").encode())

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 
 from stgs.model.gop import GOPModel, GOPShape, frame_time
-from stgs.synth.scene import ProceduralScene, TruthFrame
+from stgs.synth.scene import FoldedScene, ProceduralScene, TruthFrame
 
 MAX_ROWS_PER_STEP = 32768
 """Gaussian x frame rows evaluated per optimisation step (bounds time and memory)."""
@@ -79,7 +79,7 @@ def random_centers(count: int, gen: torch.Generator, radius: float = 3.2) -> tor
     return torch.stack([radius * torch.sin(phi), height, radius * torch.cos(phi)], -1)
 
 
-def fit_gop(scene: ProceduralScene, times: list[float], shape: GOPShape, steps: int,
+def fit_gop(scene: ProceduralScene | FoldedScene, times: list[float], shape: GOPShape, steps: int,
             seed: int = 0) -> FitResult:
     """Fit one GOP to the truth at `times` (one per GOP frame)."""
     if len(times) != shape.gop_size:

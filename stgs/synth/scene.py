@@ -231,3 +231,27 @@ def _backdrop(count: int, gen: torch.Generator) -> TruthFrame:
     zeros = torch.zeros(n, 3)
     return TruthFrame(torch.cat([wall_means, floor_means]), log_scales.clone(), quats.clone(), torch.full((n,), 0.95),
                       torch.cat([wall_colors, floor_colors]).clamp(0, 1), zeros + torch.tensor([1.0, 0, 0]), zeros)
+
+
+class FoldedScene:
+    """A layered scene's truth with its static layer folded into every frame: the same scene for a single-layer
+    (format-1) model, whose GOPs must fit the backdrop too. The backdrop follows the moving Gaussians; slots
+    past them up to the next square capacity are invisible (opacity 0)."""
+
+    def __init__(self, scene: ProceduralScene):
+        if scene.static is None:
+            raise ValueError("only a layered scene (static_background) can be folded")
+        self.scene = scene
+        used = scene.capacity + len(scene.static.means)
+        side = math.isqrt(used - 1) + 1
+        self.capacity = side * side
+        pad = self.capacity - used
+        hidden = torch.zeros(pad, 3)
+        self.padding = TruthFrame(hidden, torch.full((pad, 3), math.log(0.01)),
+                                  torch.tensor([1.0, 0, 0, 0]).expand(pad, 4).clone(), torch.zeros(pad), hidden,
+                                  torch.tensor([0.0, 1.0, 0.0]).expand(pad, 3).clone(), hidden)
+
+    def at(self, time_s: float) -> TruthFrame:
+        """The true Gaussians at `time_s`: the moving ones, the backdrop, the invisible padding."""
+        parts = [self.scene.at(time_s), self.scene.static, self.padding]
+        return TruthFrame(*(torch.cat([getattr(p, f.name) for p in parts]) for f in dataclasses.fields(TruthFrame)))

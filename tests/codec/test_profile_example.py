@@ -1,4 +1,4 @@
-"""manifests/example.mpd: valid DASH, and a StreamSTGS profile the parser accepts."""
+"""manifests/example.mpd and example-layered.mpd: valid DASH, and a StreamSTGS profile the parsers accept."""
 
 from __future__ import annotations
 
@@ -10,15 +10,26 @@ from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, PROFILE_STGS, parse_mpd
 from tests.conftest import SHARED
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "manifests" / "example.mpd"
+LAYERED = EXAMPLE.with_name("example-layered.mpd")
 
 
-def test_example_validates_against_the_schema():
+@pytest.mark.parametrize("example", [EXAMPLE, LAYERED], ids=["format1", "layered"])
+def test_example_validates_against_the_schema(example):
     xsd = SHARED / "dash" / "DASH-MPD.xsd"
     if not xsd.is_file():
         pytest.skip("../shared/dash is absent")
     from stgs.mpd_schema import schema_errors
 
-    assert schema_errors(EXAMPLE.read_bytes(), xsd) == []
+    assert schema_errors(example.read_bytes(), xsd) == []
+
+
+def test_layered_example_parses_with_its_static_layer():
+    from stgs.client.manifest import Presentation
+
+    pres = Presentation.parse(LAYERED.read_bytes(), "http://example.org/scene/manifest.mpd")
+    assert pres.static.capacity == 1024 and pres.static.sh_degree == 0 and pres.shape.capacity == 4096
+    assert pres.static_url() == "http://example.org/scene/v-f897b8501405/static/layer.stgl"
+    assert Presentation.parse(EXAMPLE.read_bytes(), "http://example.org/manifest.mpd").static is None
 
 
 def test_example_parses_as_the_profile():

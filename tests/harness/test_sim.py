@@ -34,6 +34,55 @@ def hand_ladder(gops: int = 5, keyframe: int = 125_000, media=(12_500, 25_000, 5
                   dict.fromkeys(reps, init), {r: [40.0 + i] * gops for i, r in enumerate(reps)}, None)
 
 
+STATIC_SET = (b'<AdaptationSet id="0" contentType="application" mimeType="application/vnd.streamstgs.static">'
+              b'<SupplementalProperty schemeIdUri="urn:streamstgs:static:2026" '
+              b'value="version=1;capacity=4096;grid_side=64;sh_degree=0"/>'
+              b'<SegmentTemplate media="static/layer.stgl" timescale="1" duration="5" startNumber="0"/>'
+              b'<Representation id="static" bandwidth="400000"/></AdaptationSet>')
+
+
+def layered_ladder(static: int = 250_000, gops: int = 5) -> Ladder:
+    """hand_ladder's sizes with a static layer of `static` bytes (a format-2 presentation)."""
+    plain = hand_ladder(gops)
+    data = EXAMPLE.replace(b'mediaPresentationDuration="PT2S"', f'mediaPresentationDuration="PT{gops}S"'.encode())
+    head, sep, tail = data.partition(b"<Period")
+    period_end = tail.index(b">") + 1
+    data = head + sep + tail[:period_end] + STATIC_SET + tail[period_end:]
+    pres = Presentation.parse(data, "http://h/manifest.mpd")
+    return Ladder(pres, plain.keyframe_bytes, plain.media_bytes, plain.init_bytes, plain.psnr, None, static)
+
+
+def test_the_static_layer_is_fetched_once_and_counts_in_startup():
+    fx = {"bandwidth": {"kbps": 500}}
+    log = simulate(layered_ladder(), scenario(fx, qp=32), "throughput")
+    # 2 Mbit of static layer at 0.5 Mbit/s (4 s), then GOP 0 as in the format-1 case (1.108 Mbit: 2.216 s).
+    assert log["startup_delay_s"] == pytest.approx(4.0 + 2.216)
+    assert log["static_bytes"] == 250_000 and log["gops"][0]["requests"][0]["kind"] == "static"
+    assert sum(r["kind"] == "static" for g in log["gops"] for r in g["requests"]) == 1
+    # A slow static decode holds the first GOP's features back: ready when the layer is decoded (4 + 3 s).
+    slow = simulate(layered_ladder(), scenario(fx, qp=32, decode={"static_ms": 3000}), "throughput")
+    assert slow["startup_delay_s"] == pytest.approx(7.0) and slow["gops"][0]["static_decode_s"] == 3.0
+    # Started at GOP 3, the static layer is still fetched first, once.
+    later = simulate(layered_ladder(), scenario(fx, qp=32, start_s=3.0), "throughput")
+    assert [g["index"] for g in later["gops"]] == [3, 4] and later["static_bytes"] == 250_000
+    assert later["gops"][0]["requests"][0]["kind"] == "static"
+    # A static segment the server refuses ends the playback before any GOP.
+    refused = simulate(layered_ladder(), scenario({**fx, "faults": [{"path": "layer.stgl", "status": 404}]},
+                                                  qp=32), "throughput")
+    assert refused["error"].startswith("static layer") and refused["gops_played"] == 0
+
+
+def test_sabre_export_budgets_the_static_layer_in_segment_0():
+    doc = sabre_manifest(layered_ladder(static=10_000, gops=3))
+    media = (12_500, 25_000, 50_000, 100_000, 200_000)
+    assert doc["segment_sizes_bits"][0] == [(125_000 + m + 1_000 + 10_000) * 8 for m in media]
+    assert doc["segment_sizes_bits"][1] == [(125_000 + m) * 8 for m in media]
+    extra = doc["streamstgs"]
+    assert extra["static_layer_bits"] == 80_000 and extra["static_layer_budget"] == "segment 0"
+    assert extra["first_segment_requests"] == 4
+    assert sabre_manifest(hand_ladder(gops=3))["streamstgs"]["static_layer_bits"] == 0
+
+
 def scenario(effects: dict, **kw):
     return scenario_from_dict({"scene": "unused", "effects": effects, **kw}, "test", Path("."))
 
