@@ -102,7 +102,7 @@ async def stream(dash: Path, play_cfg_kwargs: dict, probe: TruthProbe) -> dict:
 def format_rows(stats: dict, frames: int) -> dict[str, dict]:
     """Per feature Representation of a packed tree: KB per frame (keyframes, features and, in format 2, the
     static layer amortised over the scene's frames) and the mean rendered PSNR against the uncompressed model."""
-    static = stats.get("static", {}).get("bytes", 0) if stats.get("static") else 0
+    static = stats["static"]["bytes"] if "static" in stats else 0
     keyframes = sum(g["keyframe_bytes"] for g in stats["gops"])
     return {rid: {"kb_per_frame": (keyframes + sum(g["representations"][rid]["bytes"] for g in stats["gops"])
                                    + static) / 1e3 / frames,
@@ -149,7 +149,7 @@ def run(out: Path, progress: bool = True) -> int:
         "static_gaussians": cfg.static_grid_side ** 2, "static_bytes": stats["static"]["bytes"],
         "formats": {"2": {"fidelity_psnr_db": report.fidelity_psnr, "per_qp": format_rows(stats, frames)},
                     "1": {"fidelity_psnr_db": single_report.fidelity_psnr,
-                          "gaussians": single_stats_capacity(out / "model_format1"),
+                          "gaussians": model_capacity(out / "model_format1"),
                           "per_qp": format_rows(single_stats, frames)}},
     }
     atomic_write_bytes(out / "summary.json", (json.dumps(summary, indent=2) + "\n").encode())
@@ -169,7 +169,8 @@ def run(out: Path, progress: bool = True) -> int:
     return 0
 
 
-def single_stats_capacity(model_dir: Path) -> int:
+def model_capacity(model_dir: Path) -> int:
+    """Gaussian slots of each GOP of a model dir."""
     from stgs.model.store import read_meta
 
     return read_meta(model_dir).shape.capacity

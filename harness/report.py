@@ -133,14 +133,19 @@ def plot_cdf(path: Path, values: dict[str, list[float]], xlabel: str) -> None:
     save_figure(fig, path)
 
 
-def summary_table(rows: list[dict]) -> str:
-    """Markdown: mean of each metric per ABR rule (and per tree, where a scenario compares several) over the
-    playbacks in `rows`."""
-    by_rule: dict[str, list[dict]] = {}
+def row_groups(rows: list[dict]) -> dict[str, list[dict]]:
+    """Playbacks grouped by ABR rule and engine, and by tree where a scenario compares several."""
+    groups: dict[str, list[dict]] = {}
     several = len({r.get("scene") for r in rows}) > 1
     for r in rows:
         tree = f"{r['scene']} (format {r['format']}): " if several else ""
-        by_rule.setdefault(f"{tree}{r['abr']} ({r['engine']})", []).append(r)
+        groups.setdefault(f"{tree}{r['abr']} ({r['engine']})", []).append(r)
+    return groups
+
+
+def summary_table(rows: list[dict]) -> str:
+    """Markdown: mean of each metric per group of `row_groups` over the playbacks in `rows`."""
+    by_rule = row_groups(rows)
     lines = ["| ABR (engine) | playbacks | QoE | mean bit rate (kbit/s) | mean quality (dB) | stalls | stall s | "
              "rebuffer % | switches | startup s | kB/frame |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for rule, rs in by_rule.items():

@@ -14,7 +14,16 @@ from stgs.client import PlayConfig, play
 from stgs.errors import StgsError
 from stgs.harness.emulate import emulate, scene_url
 from stgs.harness.ladder import load_ladder
-from stgs.harness.report import metrics, plot_cdf, plot_timeline, summary_table, timeline, write_json, write_timeline
+from stgs.harness.report import (
+    metrics,
+    plot_cdf,
+    plot_timeline,
+    row_groups,
+    summary_table,
+    timeline,
+    write_json,
+    write_timeline,
+)
 from stgs.harness.scenario import TRACE_FORMATS, Scenario, load_trace
 from stgs.harness.sim import simulate
 from stgs.tree import MANIFEST
@@ -64,21 +73,22 @@ def run_batch(sc: Scenario, traces: Path, engines: list[str], out: Path, speed: 
     files = sorted(p for p in Path(traces).iterdir() if p.suffix in TRACE_SUFFIXES)
     if not files:
         raise StgsError(f"{traces}: no trace files ({', '.join(TRACE_SUFFIXES)}; formats {', '.join(TRACE_FORMATS)})")
-    ladder = load_ladder(sc.scene)
     rows = []
-    for f in files:
-        trace = load_trace(f)
-        variant = dataclasses.replace(sc, name=f"{sc.name}-{f.stem}",
-                                      effects=dataclasses.replace(sc.effects, bandwidth=trace))
-        for rule in rules(variant):
-            for engine in engines:
-                log = run_once(variant, engine, rule, ladder, speed=speed)
-                rows.append(metrics(log, ladder, variant.effects) | {"scenario": variant.name, "trace": f.name})
+    for tree in sc.variants():
+        ladder = load_ladder(tree.scene)
+        for f in files:
+            trace = load_trace(f)
+            variant = dataclasses.replace(tree, name=f"{tree.name}-{f.stem}",
+                                          effects=dataclasses.replace(tree.effects, bandwidth=trace))
+            for rule in rules(variant):
+                for engine in engines:
+                    log = run_once(variant, engine, rule, ladder, speed=speed)
+                    rows.append(metrics(log, ladder, variant.effects) | {
+                        "scenario": variant.name, "trace": f.name, "scene": tree.label,
+                        "format": 1 if ladder.pres.static is None else 2})
     write_json(out / f"{sc.name}.batch.json", rows)
     (out / f"{sc.name}.batch.md").write_text(summary_table(rows) + "\n")
-    qoe: dict[str, list[float]] = {}
-    for r in rows:
-        qoe.setdefault(f"{r['abr']} ({r['engine']})", []).append(r["qoe"])
+    qoe = {label: [r["qoe"] for r in group] for label, group in row_groups(rows).items()}
     plot_cdf(out / f"{sc.name}.qoe_cdf.png", qoe, "QoE per GOP (Pensieve linear)")
     return rows
 

@@ -204,6 +204,15 @@ def test_a_scenario_compares_format1_and_format2_trees_in_one_report(layered, sc
     table = (out / "s.summary.md").read_text()
     for folder, fmt in ((layered[0], 2), (scene, 1)):
         assert f"| {folder.name}/dash (format {fmt}): throughput (sim) |" in table
+    # Over a folder of traces too: each tree once per trace, one batch report.
+    traces = tmp_path / "traces"
+    traces.mkdir()
+    (traces / "slow.csv").write_text("time_s,bandwidth_kbps\n0,800\n1,1200\n")
+    result = stgs("sim", str(tmp_path / "s.toml"), "--traces", str(traces), "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    rows = json.loads((out / "s.batch.json").read_text())
+    assert sorted((r["format"], r["trace"]) for r in rows) == [(1, "slow.csv"), (2, "slow.csv")]
+    assert f"| {layered[0].name}/dash (format 2): throughput (sim) | 1 |" in result.stdout
 
 
 async def test_the_server_serves_the_static_segment_as_an_immutable_segment(layered):
