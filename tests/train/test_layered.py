@@ -101,9 +101,12 @@ def test_layered_training_writes_format2_and_eval_splits_the_error(scene, tmp_pa
     gop = doc["streams"]["uncompressed"]["gops"][0]
     assert {"psnr_foreground", "psnr_background"} <= set(gop)
     assert all({"psnr", "psnr_foreground", "psnr_background"} <= set(row) for row in gop["frames"])
-    packed = stgs("pack", str(out), str(tmp_path / "dash"))
-    assert packed.returncode != 0 and "--layers single" in packed.stderr
-    assert len(packed.stderr.strip().splitlines()) == 1
+    # A trained layered scene streams as a format-2 tree: its static layer one segment, sent once.
+    packed = stgs("pack", str(out), str(tmp_path / "dash"), "--qps", "20,32", "--quiet")
+    assert packed.returncode == 0, packed.stderr
+    stats = json.loads((tmp_path / "dash" / "stats.json").read_text())
+    assert stats["static"]["capacity"] == 256 and stats["static"]["bytes"] > 0
+    assert "static layer: 256 Gaussians" in packed.stdout
 
 
 def test_view_dependent_fit_recovers_a_view_dependent_static_layer():
