@@ -4,8 +4,9 @@ QP and deformation precision; start-up, seek and peak memory; a per-frame timeli
     python -m bench.realtime --model /work/runs/s1 --model /tmp/demo/model --seconds 60 --qps 16,24,32 \\
         --work /tmp/rt --timeline docs/realtime_timeline.png
 
-Each model dir (a trained or `stgs synth` scene, format 1) is looped to `--seconds` of content (its GOPs
-repeated in order: decode and render cost are per GOP, the content repeats) and packed once at the QPs; a
+Each model dir (a trained or `stgs synth` scene, format 1 or layered format 2) is looped to `--seconds` of
+content (its GOPs repeated in order: decode and render cost are per GOP, the content repeats) and packed once
+at the QPs; a
 packaged tree (`--dash`, or `stgs bench play --dash`) is played as it is. The real server serves it on
 loopback and the real `stgs play --realtime` plays it in its own process at the scene's first camera,
 640x360, for the whole duration; then a seek: `--start` at the middle, 4 seconds. Prints Markdown for
@@ -118,7 +119,10 @@ async def run_scene(source: Path, work: Path, seconds: float, qps: list[int], pr
                     size: str) -> tuple[list[str], list[tuple[int, int, str, bool, Path]]]:
     name, dash = prepare(source, work, seconds, qps)
     stats = json.loads((dash / STATS).read_text())
-    n = Presentation.parse((dash / MANIFEST).read_bytes(), "http://localhost/" + MANIFEST).shape.capacity
+    pres = Presentation.parse((dash / MANIFEST).read_bytes(), "http://localhost/" + MANIFEST)
+    n = pres.shape.capacity + (pres.static.capacity if pres.static else 0)  # a layered scene: both layers
+    if pres.static:
+        name += f" (static {pres.static.capacity:,} + dynamic {pres.shape.capacity:,})"
     seconds = stats["segment_seconds"] * len(stats["gops"])
     view = ["--size", size]
     if (dash / CAMERAS).is_file():  # the scene's first camera, else the player's default orbit
