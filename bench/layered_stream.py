@@ -22,6 +22,7 @@ from pathlib import Path
 
 from bench.realtime import play_process
 from stgs.client.view import parse_scene_cameras
+from stgs.packager.manifest import kb_per_frame
 from stgs.server.app import loopback
 from stgs.tree import CAMERAS, MANIFEST, STATS
 
@@ -32,17 +33,12 @@ AMORTISE_S = 60.0
 def size_rows(stats: dict) -> dict[str, dict]:
     """Per Representation: bytes per GOP and KB per frame (static over the scene; over AMORTISE_S)."""
     gops = stats["gops"]
-    g, seconds = stats["frames_per_gop"], stats["segment_seconds"]
-    frames = len(gops) * g
-    fps = g / seconds
-    static = stats["static"]["bytes"] if stats.get("static") else 0
+    frames_60s = round(AMORTISE_S * stats["frames_per_gop"] / stats["segment_seconds"])
     rows = {}
     for rid, rep in stats["representations"].items():
         per_gop = statistics.mean(gop["keyframe_bytes"] + gop["representations"][rid]["bytes"] for gop in gops)
-        rows[rid] = {"qp": rep["qp"], "gop_bytes": per_gop,
-                     "kb_frame_scene": (per_gop / g + static / frames) / 1e3,
-                     "kb_frame_60s": (per_gop / g + static / (AMORTISE_S * fps)) / 1e3,
-                     "render_psnr": rep["mean_render_psnr"]}
+        rows[rid] = {"qp": rep["qp"], "gop_bytes": per_gop, "kb_frame_scene": kb_per_frame(stats, rid),
+                     "kb_frame_60s": kb_per_frame(stats, rid, frames_60s), "render_psnr": rep["mean_render_psnr"]}
     return rows
 
 

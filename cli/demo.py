@@ -99,14 +99,12 @@ async def stream(dash: Path, play_cfg_kwargs: dict, probe: TruthProbe) -> dict:
         return await play(PlayConfig(url=base + MANIFEST, **play_cfg_kwargs), on_frame=probe)
 
 
-def format_rows(stats: dict, frames: int) -> dict[str, dict]:
+def format_rows(stats: dict) -> dict[str, dict]:
     """Per feature Representation of a packed tree: KB per frame (keyframes, features and, in format 2, the
     static layer amortised over the scene's frames) and the mean rendered PSNR against the uncompressed model."""
-    static = stats["static"]["bytes"] if "static" in stats else 0
-    keyframes = sum(g["keyframe_bytes"] for g in stats["gops"])
-    return {rid: {"kb_per_frame": (keyframes + sum(g["representations"][rid]["bytes"] for g in stats["gops"])
-                                   + static) / 1e3 / frames,
-                  "render_psnr": rep["mean_render_psnr"]}
+    from stgs.packager.manifest import kb_per_frame
+
+    return {rid: {"kb_per_frame": kb_per_frame(stats, rid), "render_psnr": rep["mean_render_psnr"]}
             for rid, rep in stats["representations"].items()}
 
 
@@ -147,10 +145,10 @@ def run(out: Path, progress: bool = True) -> int:
         "render_ms_median": log["render_ms_median"], "render_fps": log["render_fps"],
         "ladder_kbps": {rid: rep["bandwidth"] / 1e3 for rid, rep in stats["representations"].items()},
         "static_gaussians": cfg.static_grid_side ** 2, "static_bytes": stats["static"]["bytes"],
-        "formats": {"2": {"fidelity_psnr_db": report.fidelity_psnr, "per_qp": format_rows(stats, frames)},
+        "formats": {"2": {"fidelity_psnr_db": report.fidelity_psnr, "per_qp": format_rows(stats)},
                     "1": {"fidelity_psnr_db": single_report.fidelity_psnr,
                           "gaussians": model_capacity(out / "model_format1"),
-                          "per_qp": format_rows(single_stats, frames)}},
+                          "per_qp": format_rows(single_stats)}},
     }
     atomic_write_bytes(out / "summary.json", (json.dumps(summary, indent=2) + "\n").encode())
     print(f"scene: {summary['gaussians']} moving Gaussians + a static layer of {summary['static_gaussians']} "

@@ -34,6 +34,8 @@ from stgs.mpd import (
     STATIC_SCHEME,
     AdaptationSet,
     MPDError,
+    StaticLayerDescriptor,
+    bounded_field,
     expand_template,
     parse_mpd,
 )
@@ -67,14 +69,8 @@ class Rung:
     """QP parsed from the id (`qp<N>`), if it has that form."""
 
 
-def _bounded_int(fields: dict[str, str], key: str, lo: int, hi: int, what: str = "keyframe") -> int:
-    try:
-        value = int(fields[key])
-    except (KeyError, ValueError):
-        raise MPDError(f"{what} descriptor lacks an integer {key}") from None
-    if not lo <= value <= hi:
-        raise MPDError(f"{what} descriptor {key}={value} is outside {lo}..{hi} (client limit)")
-    return value
+def _bounded_int(fields: dict[str, str], key: str, lo: int, hi: int) -> int:
+    return bounded_field(fields, key, lo, hi, "keyframe")
 
 
 @dataclass(frozen=True)
@@ -91,19 +87,12 @@ class StaticLayerInfo:
 
 
 def _static_layer(a: AdaptationSet) -> StaticLayerInfo:
-    fields = a.descriptor(STATIC_SCHEME).fields()
-    if fields.get("version") != "1":
-        raise MPDError(f"static-layer descriptor version {fields.get('version')!r} is not supported (this client "
-                       "reads version 1)")
-    capacity = _bounded_int(fields, "capacity", 1, MAX_CAPACITY, "static-layer")
-    side = _bounded_int(fields, "grid_side", 1, math.isqrt(MAX_CAPACITY), "static-layer")
-    if side * side != capacity:
-        raise MPDError(f"static-layer descriptor: grid_side {side} does not match capacity {capacity}")
-    sh_degree = _bounded_int(fields, "sh_degree", 0, 1, "static-layer")
+    descriptor = StaticLayerDescriptor.parse(a)
     if len(a.representations) != 1:
         raise MPDError("the static-layer AdaptationSet must have exactly one Representation")
     rep = a.representations[0]
-    return StaticLayerInfo(capacity, sh_degree, rep.bandwidth, a.segment_template.media, rep.id)
+    return StaticLayerInfo(descriptor.capacity, descriptor.sh_degree, rep.bandwidth, a.segment_template.media,
+                           rep.id)
 
 
 
@@ -203,8 +192,7 @@ class Presentation:
         """The static segment's size cap: what its @bandwidth delivers over the Period, with slack."""
         if self.static is None:
             raise MPDError("this presentation has no static layer")
-        return min(MAX_SEGMENT_BYTES,
-                   math.ceil(self.static.bandwidth * self.duration / 8 * SEGMENT_SLACK) + 4096)
+        return self._cap(self.static.bandwidth, self.duration)
 
     def init_url(self, rep_id: str) -> str:
         return urljoin(self.base, expand_template(self.features.segment_template.initialization, rep_id))
@@ -244,13 +232,15 @@ class Presentation:
         return 3 * self.static.capacity * (14 + 9 * self.static.sh_degree) * 4
 
     def max_keyframe_bytes(self) -> int:
-        return self._cap(self.keyframe_rep.bandwidth)
+        return self._cap(self.keyframe_rep.bandwidth, self.segment_seconds)
 
     def max_media_bytes(self, rep_id: str) -> int:
-        return self._cap(self.rung(rep_id).bandwidth)
+        return self._cap(self.rung(rep_id).bandwidth, self.segment_seconds)
 
-    def _cap(self, bandwidth: int) -> int:
-        return min(MAX_SEGMENT_BYTES, math.ceil(bandwidth * self.segment_seconds / 8 * SEGMENT_SLACK) + 4096)
+    @staticmethod
+    def _cap(bandwidth: int, seconds: float) -> int:
+        """A segment's size cap: what its @bandwidth delivers over its duration, with slack."""
+        return min(MAX_SEGMENT_BYTES, math.ceil(bandwidth * seconds / 8 * SEGMENT_SLACK) + 4096)
 
     def rung(self, rep_id: str) -> Rung:
         for r in self.ladder:

@@ -25,6 +25,7 @@ from stgs.mpd import (
     Period,
     Representation,
     SegmentTemplate,
+    StaticLayerDescriptor,
 )
 from stgs.tree import (
     KEYFRAME_MIME_TYPE,
@@ -76,12 +77,7 @@ class StaticRecord:
     """The static-layer segment of a format-2 pack, as the packer reports it."""
 
     bytes: int
-    capacity: int
-    sh_degree: int
-
-    @property
-    def grid_side(self) -> int:
-        return math.isqrt(self.capacity)
+    descriptor: StaticLayerDescriptor
 
 
 @dataclass
@@ -145,13 +141,11 @@ class ManifestBuilder:
 
     def static_set(self, gops: int) -> AdaptationSet:
         """The static layer's AdaptationSet: one segment spanning the Period (manifests/PROFILE.md)."""
-        s = self.static
-        params = f"version=1;capacity={s.capacity};grid_side={s.grid_side};sh_degree={s.sh_degree}"
-        bandwidth = math.ceil(s.bytes * 8 / (gops * self.segment_seconds))
+        bandwidth = math.ceil(self.static.bytes * 8 / (gops * self.segment_seconds))
         return AdaptationSet(
             0, "application", STATIC_MIME_TYPE,
             SegmentTemplate(static_template(self.version), self.timescale, gops * self.segment_ticks, 0),
-            [Representation(STATIC_REP, bandwidth)], [Descriptor(STATIC_SCHEME, params)])
+            [Representation(STATIC_REP, bandwidth)], [Descriptor(STATIC_SCHEME, self.static.descriptor.value)])
 
     def stats(self, pack_id: str) -> dict:
         """stats.json: per Representation and per GOP, bytes and quality (manifests/PROFILE.md)."""
@@ -172,7 +166,17 @@ class ManifestBuilder:
                                                         **r.segments[kf.number].quality} for r in self.ladder()}}
                         for kf in self.keyframes.ordered()]}
         if self.static is not None:  # format 2 only: a format-1 tree's stats.json is unchanged
-            s = self.static
-            doc["static"] = {"bytes": s.bytes, "capacity": s.capacity, "grid_side": s.grid_side,
-                             "sh_degree": s.sh_degree}
+            d = self.static.descriptor
+            doc["static"] = {"bytes": self.static.bytes, "capacity": d.capacity, "grid_side": d.grid_side,
+                             "sh_degree": d.sh_degree}
         return doc
+
+
+def kb_per_frame(stats: dict, rep_id: str, static_frames: int | None = None) -> float:
+    """KB per frame of a stats.json's feature Representation `rep_id`: keyframes and features over the scene's
+    frames, plus a format-2 tree's static layer amortised over `static_frames` (default: the scene's frames)."""
+    gops = stats["gops"]
+    frames = len(gops) * stats["frames_per_gop"]
+    content = sum(g["keyframe_bytes"] + g["representations"][rep_id]["bytes"] for g in gops)
+    static = stats["static"]["bytes"] if "static" in stats else 0
+    return (content / frames + static / (static_frames or frames)) / 1e3

@@ -33,6 +33,7 @@ from stgs.errors import FieldError, StgsError
 from stgs.fsio import atomic_write_bytes
 from stgs.model.static import StaticLayer
 from stgs.model.store import SceneMeta, load_static, read_meta
+from stgs.mpd import StaticLayerDescriptor
 from stgs.packager.manifest import ManifestBuilder, SegmentRecord, StaticRecord
 from stgs.packager.segments import FeatureEncoder, PreparedGOP, measure, prepare_gop
 from stgs.packager.state import PackState, check_output_dir, pack_id
@@ -139,7 +140,8 @@ class Packer:
             return
         data = pack_static(self.static, self.cfg.plas if self.cfg.sort else None)
         self.write(static_path(self.version_dir), data)
-        self.builder.on_static(StaticRecord(len(data), self.static.capacity, self.static.sh_degree))
+        self.builder.on_static(StaticRecord(len(data), StaticLayerDescriptor(self.static.capacity,
+                                                                             self.static.sh_degree)))
 
     @cached_property
     def decoded_static(self) -> StaticLayer | None:

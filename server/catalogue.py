@@ -13,7 +13,7 @@ from pathlib import Path
 
 from aiohttp import web
 
-from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, STATIC_SCHEME, MPDError, read_mpd
+from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, STATIC_SCHEME, MPDError, StaticLayerDescriptor, read_mpd
 from stgs.server.config import CORS_HEADERS, ROOT_KEY
 from stgs.tree import MANIFEST
 
@@ -32,7 +32,7 @@ def scene_summary(name: str, manifest: Path) -> dict:
     return {"name": name, "manifest": manifest_url(name), "format": 1 if static is None else 2,
             "duration": mpd.duration, "gops": round(mpd.duration / seconds), "gop_seconds": seconds,
             "static": None if static is None else {
-                "capacity": int(static.descriptor(STATIC_SCHEME).fields().get("capacity", 0)),
+                "capacity": StaticLayerDescriptor.parse(static).capacity,
                 "bandwidth": static.representations[0].bandwidth},
             "keyframe_bandwidth": keyframes.representations[0].bandwidth,
             "ladder": [{"id": r.id, "bandwidth": r.bandwidth, "codecs": r.codecs} for r in video.representations]}

@@ -31,7 +31,15 @@ from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.static import StaticLayer
 from stgs.model.store import load_gop, load_static, read_meta
 from stgs.model.view import FrameRenderer
-from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, STATIC_SCHEME, MPDError, expand_template, read_mpd
+from stgs.mpd import (
+    FEATURE_SCHEME,
+    KEYFRAME_SCHEME,
+    STATIC_SCHEME,
+    MPDError,
+    StaticLayerDescriptor,
+    expand_template,
+    read_mpd,
+)
 from stgs.train.views import scale_camera
 from stgs.tree import MANIFEST, TRAIN_REPORT
 
@@ -44,11 +52,10 @@ def packaged_static(dash: Path) -> StaticLayer | None:
         found = read_mpd(dash / MANIFEST).find_adaptation_set(STATIC_SCHEME)
         if found is None:
             return None
-        fields = found.descriptor(STATIC_SCHEME).fields()
-        capacity, sh_degree = int(fields["capacity"]), int(fields["sh_degree"])
+        descriptor = StaticLayerDescriptor.parse(found)
         data = (dash / expand_template(found.segment_template.media, found.representations[0].id, 0)).read_bytes()
-        return decode_static(data, capacity, sh_degree, len(data))
-    except (OSError, MPDError, KeyError, ValueError) as exc:
+        return decode_static(data, descriptor.capacity, descriptor.sh_degree, len(data))
+    except (OSError, MPDError, IndexError, ValueError) as exc:
         raise StgsError(f"{dash}: static layer unreadable ({exc})") from None
 
 

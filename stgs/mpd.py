@@ -15,7 +15,7 @@ from pathlib import Path
 
 from lxml import etree
 
-from stgs.limits import MAX_DURATION_S, MAX_MPD_BYTES, MAX_TEMPLATE_NUMBER_WIDTH
+from stgs.limits import MAX_CAPACITY, MAX_DURATION_S, MAX_MPD_BYTES, MAX_TEMPLATE_NUMBER_WIDTH
 
 NS = "urn:mpeg:dash:schema:mpd:2011"
 PROFILE_LIVE = "urn:mpeg:dash:profile:isoff-live:2011"
@@ -219,6 +219,53 @@ class AdaptationSet:
             if d.scheme_id_uri == scheme:
                 return d
         raise MPDError(f"AdaptationSet {self.id} has no SupplementalProperty {scheme}")
+
+
+@dataclass(frozen=True)
+class StaticLayerDescriptor:
+    """The static-layer AdaptationSet's SupplementalProperty (manifests/PROFILE.md): what a player must know
+    before it fetches the layer. `value` writes it, `parse` reads and checks it (the one place for both)."""
+
+    capacity: int
+    """N_s = S_s² Gaussians."""
+    sh_degree: int
+    """0, or 1 with degree-1 view-dependent colour."""
+
+    @property
+    def grid_side(self) -> int:
+        return math.isqrt(self.capacity)
+
+    @property
+    def value(self) -> str:
+        return f"version=1;capacity={self.capacity};grid_side={self.grid_side};sh_degree={self.sh_degree}"
+
+    @classmethod
+    def parse(cls, adaptation_set: AdaptationSet) -> StaticLayerDescriptor:
+        """The descriptor of a static-layer AdaptationSet, refused (MPDError) unless it is version 1 with a square
+        capacity within MAX_CAPACITY and a known colour degree."""
+        fields = adaptation_set.descriptor(STATIC_SCHEME).fields()
+        if fields.get("version") != "1":
+            raise MPDError(f"static-layer descriptor version {fields.get('version')!r} is not supported (this "
+                           "client reads version 1)")
+
+        what = "static-layer"
+        capacity = bounded_field(fields, "capacity", 1, MAX_CAPACITY, what)
+        side = bounded_field(fields, "grid_side", 1, math.isqrt(MAX_CAPACITY), what)
+        if side * side != capacity:
+            raise MPDError(f"static-layer descriptor: grid_side {side} does not match capacity {capacity}")
+        return cls(capacity, bounded_field(fields, "sh_degree", 0, 1, what))
+
+
+def bounded_field(fields: dict[str, str], key: str, lo: int, hi: int, what: str) -> int:
+    """Integer `key` of a descriptor's `key=value` fields within lo..hi (the client's caps); `what` names the
+    descriptor in the error."""
+    try:
+        value = int(fields[key])
+    except (KeyError, ValueError):
+        raise MPDError(f"{what} descriptor lacks an integer {key}") from None
+    if not lo <= value <= hi:
+        raise MPDError(f"{what} descriptor {key}={value} is outside {lo}..{hi} (client limit)")
+    return value
 
 
 @dataclass
