@@ -15,14 +15,8 @@ from urllib.parse import urljoin
 
 from stgs.codec.mp4 import MP4Error, media_timeline, track_timescale
 from stgs.limits import (
-    MAX_CAPACITY,
-    MAX_FPS,
-    MAX_GOP_SIZE,
     MAX_GOPS,
-    MAX_PE_FREQS,
     MAX_SEGMENT_BYTES,
-    MAX_WINDOW,
-    MIN_FPS,
     SEGMENT_SLACK,
 )
 from stgs.model.gop import GOPShape
@@ -33,9 +27,9 @@ from stgs.mpd import (
     PROFILE_STGS,
     STATIC_SCHEME,
     AdaptationSet,
+    KeyframeDescriptor,
     MPDError,
     StaticLayerDescriptor,
-    bounded_field,
     expand_template,
     parse_mpd,
 )
@@ -67,10 +61,6 @@ class Rung:
     """@bandwidth, bit/s."""
     qp: int | None
     """QP parsed from the id (`qp<N>`), if it has that form."""
-
-
-def _bounded_int(fields: dict[str, str], key: str, lo: int, hi: int) -> int:
-    return bounded_field(fields, key, lo, hi, "keyframe")
 
 
 @dataclass(frozen=True)
@@ -116,20 +106,9 @@ class Presentation:
             raise MPDError("the feature AdaptationSet has no Representation")
         if self.features.segment_template.initialization is None:
             raise MPDError("the feature SegmentTemplate has no initialization")
-        fields = self.keyframes.descriptor(KEYFRAME_SCHEME).fields()
-        capacity = _bounded_int(fields, "capacity", 1, MAX_CAPACITY)
-        self.shape = GOPShape(capacity, _bounded_int(fields, "gop_size", 2, MAX_GOP_SIZE),
-                              _bounded_int(fields, "window", 1, MAX_WINDOW),
-                              _bounded_int(fields, "pe_freqs", 0, MAX_PE_FREQS))
-        side = _bounded_int(fields, "grid_side", 1, math.isqrt(MAX_CAPACITY))
-        if side * side != capacity:
-            raise MPDError(f"keyframe descriptor: grid_side {side} does not match capacity {capacity}")
-        try:
-            self.fps = float(fields["fps"])
-        except (KeyError, ValueError):
-            raise MPDError("keyframe descriptor lacks fps") from None
-        if not MIN_FPS <= self.fps <= MAX_FPS:
-            raise MPDError(f"keyframe descriptor fps={self.fps} is outside {MIN_FPS:g}..{MAX_FPS:g}")
+        descriptor = KeyframeDescriptor.parse(self.keyframes)
+        self.shape = GOPShape(descriptor.capacity, descriptor.gop_size, descriptor.window, descriptor.pe_freqs)
+        self.fps = descriptor.fps
         self.segment_seconds = self.keyframes.segment_template.seconds
         if not 0 < self.segment_seconds <= 3600 or self.features.segment_template.seconds != self.segment_seconds:
             raise MPDError("keyframe and feature segments must have one positive duration")

@@ -22,6 +22,7 @@ from stgs.mpd import (
     STATIC_SCHEME,
     AdaptationSet,
     Descriptor,
+    KeyframeDescriptor,
     Period,
     Representation,
     SegmentTemplate,
@@ -119,13 +120,12 @@ class ManifestBuilder:
 
     def mpd(self) -> MPD:
         shape, side = self.shape, self.grid_side
-        params = (f"version=1;capacity={shape.capacity};grid_side={side};gop_size={shape.gop_size};"
-                  f"window={shape.window};pe_freqs={shape.pe_freqs};fps={self.fps:g}")
+        descriptor = KeyframeDescriptor(shape.capacity, shape.gop_size, shape.window, shape.pe_freqs, self.fps)
         keyframes = AdaptationSet(
             1, "application", KEYFRAME_MIME_TYPE,
             SegmentTemplate(keyframe_template(self.version), self.timescale, self.segment_ticks, 0),
             [Representation(KEYFRAME_REP, self.keyframes.bandwidth())],
-            [Descriptor(KEYFRAME_SCHEME, params)])
+            [Descriptor(KEYFRAME_SCHEME, descriptor.value)])
         rate = self.frame_rate
         frame_rate = str(rate.numerator) if rate.denominator == 1 else f"{rate.numerator}/{rate.denominator}"
         reps = [Representation(r.rep_id, r.bandwidth(), self.codecs[r.rep_id], 4 * side, 4 * side, frame_rate,

@@ -35,6 +35,7 @@ from stgs.mpd import (
     FEATURE_SCHEME,
     KEYFRAME_SCHEME,
     STATIC_SCHEME,
+    KeyframeDescriptor,
     MPDError,
     StaticLayerDescriptor,
     expand_template,
@@ -67,11 +68,10 @@ def packaged_gops(dash: Path) -> dict[str, Callable[[int], GOPModel]]:
     except (OSError, MPDError) as exc:
         raise StgsError(f"{dash}: not a packaged scene ({exc})") from None
     try:
-        fields = kf_set.descriptor(KEYFRAME_SCHEME).fields()
-        shape = GOPShape(int(fields["capacity"]), int(fields["gop_size"]), int(fields["window"]),
-                         int(fields["pe_freqs"]))
-    except (KeyError, ValueError) as exc:
-        raise StgsError(f"{dash}: keyframe descriptor lacks or garbles {exc}") from None
+        d = KeyframeDescriptor.parse(kf_set)
+    except MPDError as exc:
+        raise StgsError(f"{dash}: {exc}") from None
+    shape = GOPShape(d.capacity, d.gop_size, d.window, d.pe_freqs)
     side = shape.grid_side
 
     def loader(rep: str) -> Callable[[int], GOPModel]:

@@ -15,7 +15,17 @@ from pathlib import Path
 
 from lxml import etree
 
-from stgs.limits import MAX_CAPACITY, MAX_DURATION_S, MAX_MPD_BYTES, MAX_TEMPLATE_NUMBER_WIDTH
+from stgs.limits import (
+    MAX_CAPACITY,
+    MAX_DURATION_S,
+    MAX_FPS,
+    MAX_GOP_SIZE,
+    MAX_MPD_BYTES,
+    MAX_PE_FREQS,
+    MAX_TEMPLATE_NUMBER_WIDTH,
+    MAX_WINDOW,
+    MIN_FPS,
+)
 
 NS = "urn:mpeg:dash:schema:mpd:2011"
 PROFILE_LIVE = "urn:mpeg:dash:profile:isoff-live:2011"
@@ -222,6 +232,48 @@ class AdaptationSet:
 
 
 @dataclass(frozen=True)
+class KeyframeDescriptor:
+    """The keyframe AdaptationSet's SupplementalProperty (manifests/PROFILE.md): the sizes of every GOP of the
+    scene, which a player checks before it downloads anything. `value` writes it, `parse` reads and checks it."""
+
+    capacity: int
+    """N = S² Gaussians per GOP (the dynamic layer's, in a format-2 tree)."""
+    gop_size: int
+    """Frames per GOP."""
+    window: int
+    """Temporal window of the deformation field."""
+    pe_freqs: int
+    """Positional-encoding frequencies of the deformation field."""
+    fps: float
+    """Frames per second."""
+
+    @property
+    def grid_side(self) -> int:
+        return math.isqrt(self.capacity)
+
+    @property
+    def value(self) -> str:
+        return (f"version=1;capacity={self.capacity};grid_side={self.grid_side};gop_size={self.gop_size};"
+                f"window={self.window};pe_freqs={self.pe_freqs};fps={self.fps:g}")
+
+    @classmethod
+    def parse(cls, adaptation_set: AdaptationSet) -> KeyframeDescriptor:
+        """The descriptor of the keyframe AdaptationSet, refused (MPDError) unless it is version 1 with a square
+        capacity and every size within the client's limits (stgs.limits)."""
+        what = "keyframe"
+        fields, capacity = _grid_fields(adaptation_set, KEYFRAME_SCHEME, what)
+        try:
+            fps = float(fields["fps"])
+        except (KeyError, ValueError):
+            raise MPDError("keyframe descriptor lacks fps") from None
+        if not MIN_FPS <= fps <= MAX_FPS:  # also refuses nan
+            raise MPDError(f"keyframe descriptor fps={fps} is outside {MIN_FPS:g}..{MAX_FPS:g}")
+        return cls(capacity, bounded_field(fields, "gop_size", 2, MAX_GOP_SIZE, what),
+                   bounded_field(fields, "window", 1, MAX_WINDOW, what),
+                   bounded_field(fields, "pe_freqs", 0, MAX_PE_FREQS, what), fps)
+
+
+@dataclass(frozen=True)
 class StaticLayerDescriptor:
     """The static-layer AdaptationSet's SupplementalProperty (manifests/PROFILE.md): what a player must know
     before it fetches the layer. `value` writes it, `parse` reads and checks it (the one place for both)."""
@@ -243,17 +295,22 @@ class StaticLayerDescriptor:
     def parse(cls, adaptation_set: AdaptationSet) -> StaticLayerDescriptor:
         """The descriptor of a static-layer AdaptationSet, refused (MPDError) unless it is version 1 with a square
         capacity within MAX_CAPACITY and a known colour degree."""
-        fields = adaptation_set.descriptor(STATIC_SCHEME).fields()
-        if fields.get("version") != "1":
-            raise MPDError(f"static-layer descriptor version {fields.get('version')!r} is not supported (this "
-                           "client reads version 1)")
-
         what = "static-layer"
-        capacity = bounded_field(fields, "capacity", 1, MAX_CAPACITY, what)
-        side = bounded_field(fields, "grid_side", 1, math.isqrt(MAX_CAPACITY), what)
-        if side * side != capacity:
-            raise MPDError(f"static-layer descriptor: grid_side {side} does not match capacity {capacity}")
+        fields, capacity = _grid_fields(adaptation_set, STATIC_SCHEME, what)
         return cls(capacity, bounded_field(fields, "sh_degree", 0, 1, what))
+
+
+def _grid_fields(adaptation_set: AdaptationSet, scheme: str, what: str) -> tuple[dict[str, str], int]:
+    """The `key=value` fields of a version-1 descriptor of a square grid of Gaussians, and its checked capacity."""
+    fields = adaptation_set.descriptor(scheme).fields()
+    if fields.get("version") != "1":
+        raise MPDError(f"{what} descriptor version {fields.get('version')!r} is not supported (this client reads "
+                       "version 1)")
+    capacity = bounded_field(fields, "capacity", 1, MAX_CAPACITY, what)
+    side = bounded_field(fields, "grid_side", 1, math.isqrt(MAX_CAPACITY), what)
+    if side * side != capacity:
+        raise MPDError(f"{what} descriptor: grid_side {side} does not match capacity {capacity}")
+    return fields, capacity
 
 
 def bounded_field(fields: dict[str, str], key: str, lo: int, hi: int, what: str) -> int:

@@ -6,7 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from stgs.client.manifest import MAX_CAPACITY, Presentation
+from stgs.client.manifest import Presentation
+from stgs.limits import MAX_CAPACITY
 from stgs.mpd import MPDError
 
 EXAMPLE = (Path(__file__).resolve().parents[2] / "manifests" / "example.mpd").read_bytes()
@@ -66,6 +67,10 @@ def test_segment_caps_follow_bandwidth():
     ((b"capacity=1024;grid_side=32", f"capacity={MAX_CAPACITY * 4};grid_side=4096".encode()), "client limit"),
     ((b"grid_side=32", b"grid_side=31"), "does not match capacity"),
     ((b"gop_size=30", b"gop_size=x"), "lacks an integer gop_size"),
+    ((b"version=1;capacity=1024", b"version=2;capacity=1024"), "keyframe descriptor version '2' is not supported"),
+    ((b"window=3", b"window=0"), r"keyframe descriptor window=0 is outside 1\.\."),
+    ((b"fps=30", b"fps=nan"), "keyframe descriptor fps=nan is outside"),
+    ((b";fps=30", b""), "keyframe descriptor lacks fps"),
     ((b'type="static"', b'type="dynamic"'), "only static"),
     ((b"<MPD ", b"<NotMPD "), "not well-formed"),
     # numeric edge cases: each was a ZeroDivisionError, OverflowError or ValueError traceback
