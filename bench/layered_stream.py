@@ -8,7 +8,10 @@ per QP: bytes per GOP (keyframe + features), KB per frame with the static layer 
 over 60 s of content, the rendered PSNR stats.json gives (against each format's own uncompressed model), and,
 from a real `stgs play` in its own process against the real server on loopback (pinned QP, 640x360 at the
 scene's first camera, the whole scene): feature decode ms per frame (median), deform + splat ms per frame
-(median) and the time from the first request to the first frame. Prints Markdown for docs/BENCHMARKS.md.
+(median) and the time from the first request to the first frame. Then, for each format-1 rung, the KB per frame a
+format-2 tree of the same scene needs at the same rendered PSNR (its ladder interpolated, log KB linear in PSNR
+between neighbouring rungs, never extrapolated: pack the format-2 tree with QPs that span format 1's PSNRs) and the
+ratio. Prints Markdown for docs/BENCHMARKS.md.
 """
 
 from __future__ import annotations
@@ -16,9 +19,12 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import math
 import platform
 import statistics
 from pathlib import Path
+
+import numpy as np
 
 from bench.realtime import play_process
 from stgs.client.view import parse_scene_cameras
@@ -42,6 +48,29 @@ def size_rows(stats: dict) -> dict[str, dict]:
     return rows
 
 
+def kb_at_psnr(ladder: list[tuple[float, float]], psnr: float) -> float | None:
+    """KB per frame at rendered PSNR `psnr` on a ladder of (PSNR dB, KB per frame) rungs: log KB interpolated
+    linearly in PSNR between the two rungs around it; None outside the ladder's PSNR range."""
+    rungs = sorted(ladder)
+    if not rungs or not rungs[0][0] <= psnr <= rungs[-1][0]:
+        return None
+    xs = np.array([r[0] for r in rungs])
+    logs = np.log([r[1] for r in rungs])
+    return math.exp(float(np.interp(psnr, xs, logs)))
+
+
+def equal_psnr_rows(reference: dict[str, dict], candidate: dict[str, dict], key: str) -> list[dict]:
+    """Per `reference` rung (size_rows output, QP order): the `candidate` ladder's KB per frame (column `key`) at
+    the reference rung's rendered PSNR, and the ratio candidate / reference (None where outside the ladder)."""
+    ladder = [(r["render_psnr"], r[key]) for r in candidate.values()]
+    rows = []
+    for ref in sorted(reference.values(), key=lambda r: r["qp"]):
+        kb = kb_at_psnr(ladder, ref["render_psnr"])
+        rows.append({"qp": ref["qp"], "psnr": ref["render_psnr"], "reference_kb": ref[key], "candidate_kb": kb,
+                     "ratio": None if kb is None else kb / ref[key]})
+    return rows
+
+
 async def play_rows(tree: Path, work: Path, qps: list[int], size: str) -> dict[int, dict]:
     view = ["--size", size]
     if (tree / CAMERAS).is_file():
@@ -60,29 +89,53 @@ async def play_rows(tree: Path, work: Path, qps: list[int], size: str) -> dict[i
     return out
 
 
+def print_equal_psnr(reference: tuple[str, dict], candidate: tuple[str, dict]) -> None:
+    """The equal-PSNR table of a format-2 ladder (candidate) against a format-1 ladder (reference)."""
+    (ref_name, ref_rows), (cand_name, cand_rows) = reference, candidate
+    print(f"\n{cand_name} against {ref_name} at {ref_name}'s rendered PSNR per rung:\n")
+    print(f"| {ref_name} QP | rendered PSNR dB | {ref_name} KB/frame | {cand_name} KB/frame (scene) | ratio | "
+          f"{cand_name} KB/frame (60 s) | ratio (60 s) |")
+    print("|---|---|---|---|---|---|---|")
+    scene = equal_psnr_rows(ref_rows, cand_rows, "kb_frame_scene")
+    long = equal_psnr_rows(ref_rows, cand_rows, "kb_frame_60s")
+    for a, b in zip(scene, long, strict=True):
+        def cell(row: dict) -> str:
+            return ("outside the ladder | -" if row["candidate_kb"] is None
+                    else f"{row['candidate_kb']:.2f} | **{row['ratio']:.2f}**")
+        print(f"| {a['qp']} | {a['psnr']:.2f} | {a['reference_kb']:.2f} | {cell(a)} | {cell(b)} |")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--tree", type=Path, action="append", required=True, help="packaged tree (repeatable)")
-    parser.add_argument("--qps", default="16,20,24,28,32")
+    parser.add_argument("--qps", help="QPs to play (default: each tree's whole ladder)")
+    parser.add_argument("--no-play", action="store_true", help="sizes and PSNR only, no playback")
     parser.add_argument("--size", default="640x360")
     parser.add_argument("--work", type=Path, required=True, help="folder for the playback logs")
     args = parser.parse_args(argv)
-    qps = [int(q) for q in args.qps.split(",")]
     args.work.mkdir(parents=True, exist_ok=True)
     print("| tree | static layer | QP | bytes/GOP | KB/frame (scene) | KB/frame (60 s) | rendered PSNR dB | "
           "feature decode ms/frame | deform + splat ms/frame | first frame s |")
     print("|---|---|---|---|---|---|---|---|---|---|")
+    ladders: dict[bool, list[tuple[str, dict]]] = {False: [], True: []}
     for tree in args.tree:
         stats = json.loads((tree / STATS).read_text())
-        sizes = {r["qp"]: r for r in size_rows(stats).values()}
-        played = asyncio.run(play_rows(tree, args.work, qps, args.size))
+        rows = size_rows(stats)
+        ladders["static" in stats].append((tree.name, rows))
+        sizes = {r["qp"]: r for r in rows.values()}
+        qps = sorted(sizes) if args.qps is None else [int(q) for q in args.qps.split(",") if int(q) in sizes]
+        played = {} if args.no_play else asyncio.run(play_rows(tree, args.work, qps, args.size))
         static = f"{stats['static']['capacity']:,} G, {stats['static']['bytes'] / 1e3:.1f} kB" \
             if stats.get("static") else "-"
         for qp in qps:
-            s, p = sizes[qp], played[qp]
+            s = sizes[qp]
+            p = (f"{played[qp]['decode_ms']:.2f} | {played[qp]['render_ms']:.1f} | {played[qp]['first_frame_s']:.2f}"
+                 if qp in played else "- | - | -")
             print(f"| {tree.name} | {static} | {qp} | {s['gop_bytes'] / 1e3:,.1f} kB | {s['kb_frame_scene']:.2f} | "
-                  f"{s['kb_frame_60s']:.2f} | {s['render_psnr']:.2f} | {p['decode_ms']:.2f} | "
-                  f"{p['render_ms']:.1f} | {p['first_frame_s']:.2f} |")
+                  f"{s['kb_frame_60s']:.2f} | {s['render_psnr']:.2f} | {p} |")
+    for reference in ladders[False]:
+        for candidate in ladders[True]:
+            print_equal_psnr(reference, candidate)
     print(f"\nMachine: {platform.machine()} {platform.processor() or ''}; {args.size}, pinned QP, whole scene")
     return 0
 
