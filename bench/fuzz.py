@@ -4,8 +4,11 @@ Targets (each a function of the fuzzed input, with the one error type it may rai
 
 - `mpd`: the MPD model and the client's Presentation (URLs, spans, caps) on a StreamSTGS MPD whose attribute
   values are drawn (huge numbers, odd durations, template widths, junk) or whose bytes are mutated; MPDError.
+  The MPD may carry a static-layer AdaptationSet (format 2) with a drawn descriptor.
 - `keyframe`: the keyframe reader on a real keyframe segment with its safetensors header's fields replaced by
   drawn JSON values or its bytes mutated; KeyframeError.
+- `static`: the static-layer reader on a real static segment (with view-dependent colour) edited the same
+  ways; StaticSegmentError.
 - `mp4`: the ISO BMFF box code (split, timeline read/write, track timescale, codecs string) on a real HEVC
   fragment with mutated bytes; MP4Error.
 - `trace`, `scenario`: the harness's trace formats and scenario files on drawn text; StgsError.
@@ -40,10 +43,12 @@ from stgs.client.manifest import Presentation
 from stgs.codec.features import feature_ranges
 from stgs.codec.keyframe import KeyframeError, decode_keyframe, encode_keyframe
 from stgs.codec.mp4 import MP4Error, hevc_codecs, media_timeline, set_timeline, split_fragmented, track_timescale
+from stgs.codec.static import StaticSegmentError, decode_static, encode_static
 from stgs.codec.video import VideoTiming, encode_gop
 from stgs.errors import StgsError
 from stgs.harness.scenario import load_scenario, load_trace
 from stgs.model.gop import GOPModel, GOPShape
+from stgs.model.static import StaticLayer
 from stgs.mpd import MPDError, parse_mpd
 
 CASE_ALARM_S = 5.0
@@ -54,7 +59,7 @@ MEMORY_BOUND_MB = 1024
 SEED_MPD = """<?xml version='1.0' encoding='UTF-8'?>
 <MPD xmlns="urn:mpeg:dash:schema:mpd:2011" type="static" profiles="urn:mpeg:dash:profile:isoff-live:2011,\
 urn:streamstgs:profile:2026" mediaPresentationDuration="{duration}" minBufferTime="PT1S">{base}
-  <Period id="0" start="PT0S">
+  <Period id="0" start="PT0S">{static}
     <AdaptationSet id="1" contentType="application" mimeType="application/vnd.streamstgs.keyframe">
       <SupplementalProperty schemeIdUri="urn:streamstgs:keyframe:2026" value="{params}"/>
       <SegmentTemplate media="{kf_media}" timescale="{timescale}" duration="{seg_duration}" startNumber="{start}"/>
@@ -70,9 +75,20 @@ urn:streamstgs:profile:2026" mediaPresentationDuration="{duration}" minBufferTim
   </Period>
 </MPD>"""
 
-SEED_VALUES = {"duration": "PT2S", "base": "", "params": "version=1;capacity=4096;grid_side=64;gop_size=30;"
-               "window=3;pe_freqs=4;fps=30", "kf_media": "v-1/keyframes/gop_$Number%05d$.stgk",
-               "timescale": "1024", "seg_duration": "1024", "start": "0", "kf_bandwidth": "974904",
+STATIC_SET = """
+    <AdaptationSet id="0" contentType="application" mimeType="application/vnd.streamstgs.static">
+      <SupplementalProperty schemeIdUri="urn:streamstgs:static:2026" value="{static_params}"/>
+      <SegmentTemplate media="{static_media}" timescale="1024" duration="2048" startNumber="0"/>
+      <Representation id="static" bandwidth="{static_bandwidth}"/>
+    </AdaptationSet>"""
+"""A format-2 MPD's static-layer AdaptationSet (SEED_MPD's `static`, empty in format 1)."""
+STATIC_VALUES = {"static_params": "version=1;capacity=1024;grid_side=32;sh_degree=0",
+                 "static_media": "v-1/static/layer.stgl", "static_bandwidth": "32676"}
+
+SEED_VALUES = {"duration": "PT2S", "base": "", "static": "",
+               "params": "version=1;capacity=4096;grid_side=64;gop_size=30;window=3;pe_freqs=4;fps=30",
+               "kf_media": "v-1/keyframes/gop_$Number%05d$.stgk", "timescale": "1024", "seg_duration": "1024",
+               "start": "0", "kf_bandwidth": "974904",
                "media": "v-1/features/$RepresentationID$/seg_$Number%05d$.m4s", "rep_id": "qp16",
                "bandwidth": "6387080"}
 
@@ -117,6 +133,16 @@ def templates() -> st.SearchStrategy[str]:
                      st.sampled_from(["$$$", "$Number$", "$RepresentationID$$Number%d$", "$Time$", "../../x"]))
 
 
+def static_sets() -> st.SearchStrategy[str]:
+    """A static-layer AdaptationSet with drawn descriptor fields, template and bandwidth."""
+    params = st.dictionaries(st.sampled_from(["version", "capacity", "grid_side", "sh_degree", "junk"]), numbers(),
+                             max_size=5).map(lambda d: ";".join(f"{k}={v}" for k, v in d.items()))
+    drawn = {"static_params": st.one_of(st.just(STATIC_VALUES["static_params"]), params),
+             "static_media": templates(), "static_bandwidth": numbers()}
+    return st.fixed_dictionaries({}, optional=drawn).map(
+        lambda d: STATIC_SET.format(**{k: _xml_escape(v) for k, v in {**STATIC_VALUES, **d}.items()}))
+
+
 def mpd_values() -> st.SearchStrategy[dict[str, str]]:
     params = st.dictionaries(st.sampled_from(["version", "capacity", "grid_side", "gop_size", "window", "pe_freqs",
                                               "fps", "junk"]), numbers(), max_size=8).map(
@@ -124,7 +150,8 @@ def mpd_values() -> st.SearchStrategy[dict[str, str]]:
     drawn = {"duration": durations(), "params": st.one_of(st.just(SEED_VALUES["params"]), params),
              "kf_media": templates(), "media": templates(), "timescale": numbers(), "seg_duration": numbers(),
              "start": numbers(), "kf_bandwidth": numbers(), "bandwidth": numbers(), "rep_id": st.text(max_size=10),
-             "base": st.one_of(st.just(""), st.text(max_size=30).map(lambda t: f"<BaseURL>{t}</BaseURL>"))}
+             "base": st.one_of(st.just(""), st.text(max_size=30).map(lambda t: f"<BaseURL>{t}</BaseURL>")),
+             "static": st.one_of(st.just(""), static_sets())}
     return st.fixed_dictionaries({}, optional=drawn).map(lambda d: {**SEED_VALUES, **d})
 
 
@@ -155,9 +182,11 @@ def mutated(seed: bytes) -> st.SearchStrategy[bytes]:
 
 
 def mpd_inputs() -> st.SearchStrategy[bytes]:
-    structured = mpd_values().map(lambda v: SEED_MPD.format(**{k: x if k == "base" else _xml_escape(x)
+    structured = mpd_values().map(lambda v: SEED_MPD.format(**{k: x if k in ("base", "static") else _xml_escape(x)
                                                                for k, x in v.items()}).encode("utf-8", "replace"))
-    return st.one_of(structured, mutated(SEED_MPD.format(**SEED_VALUES).encode()))
+    layered = {**SEED_VALUES, "static": STATIC_SET.format(**STATIC_VALUES)}
+    return st.one_of(structured, mutated(SEED_MPD.format(**SEED_VALUES).encode()),
+                     mutated(SEED_MPD.format(**layered).encode()))
 
 
 def json_values() -> st.SearchStrategy[object]:
@@ -176,6 +205,20 @@ def seed_keyframe() -> tuple[bytes, object]:
         for p in model.parameters():
             p.normal_(0, 0.4)
     return encode_keyframe(1, model, feature_ranges(model.features.detach())), model.shape
+
+
+STATIC_SEED_CAPACITY = 64
+
+
+@functools.cache
+def seed_static() -> bytes:
+    """A static segment with degree-1 view-dependent colour (its three extra images included)."""
+    torch.manual_seed(0)
+    layer = StaticLayer(STATIC_SEED_CAPACITY, sh_degree=1)
+    with torch.no_grad():
+        for p in layer.parameters():
+            p.normal_(0, 0.4)
+    return encode_static(layer)
 
 
 def header_edits(seed: bytes) -> st.SearchStrategy[bytes]:
@@ -197,7 +240,8 @@ def header_edits(seed: bytes) -> st.SearchStrategy[bytes]:
         raw = json.dumps(doc).encode()
         return struct.pack("<Q", len(raw)) + raw + seed[8 + size:]
 
-    return st.tuples(st.sampled_from(names), st.sampled_from(["dtype", "shape", "data_offsets", "capacity", "gop"]),
+    return st.tuples(st.sampled_from(names), st.sampled_from(["dtype", "shape", "data_offsets", "capacity", "gop",
+                                                             "sh_degree"]),
                      json_values()).map(apply)
 
 
@@ -259,11 +303,17 @@ def mpd_target(data: bytes) -> None:
     pres.keyframe_url(0), pres.init_url(last), pres.media_url(last, pres.num_gops - 1)
     pres.span(0.0, None, None), pres.span(pres.duration / 2, 1.0, 5.0), pres.gop_at(pres.duration)
     pres.max_keyframe_bytes(), pres.max_media_bytes(last), pres.decoded_gop_bytes(8)
+    if pres.static is not None:
+        pres.static_url(), pres.max_static_bytes(), pres.static_layer_bytes()
 
 
 def keyframe_target(data: bytes) -> None:
     _, shape = seed_keyframe()
     decode_keyframe(data, shape, 1, 1 << 20)
+
+
+def static_target(data: bytes) -> None:
+    decode_static(data, STATIC_SEED_CAPACITY, 1, 1 << 20)
 
 
 def mp4_target(data: bytes) -> None:
@@ -299,6 +349,8 @@ TARGETS = {
     "mpd": Target(mpd_inputs, mpd_target, MPDError),
     "keyframe": Target(lambda: st.one_of(header_edits(seed_keyframe()[0]), mutated(seed_keyframe()[0])),
                        keyframe_target, KeyframeError),
+    "static": Target(lambda: st.one_of(header_edits(seed_static()), mutated(seed_static())), static_target,
+                     StaticSegmentError),
     "mp4": Target(lambda: mutated(seed_fragment()), mp4_target, MP4Error),
     "trace": Target(trace_inputs, trace_target, StgsError),
     "scenario": Target(scenario_inputs, scenario_target, StgsError),

@@ -10,7 +10,7 @@ import pytest
 
 from bench.fuzz import MEMORY_BOUND_MB, SEED_MPD, SEED_VALUES, TARGETS, HangError, Target, check, fuzz, peak_rss_mb
 
-CASES = {"mpd": 2000, "keyframe": 1500, "mp4": 2000, "trace": 1500, "scenario": 1500}
+CASES = {"mpd": 2000, "keyframe": 1500, "static": 1000, "mp4": 2000, "trace": 1500, "scenario": 1500}
 
 
 @pytest.mark.parametrize("name", sorted(TARGETS))
