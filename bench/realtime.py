@@ -1,5 +1,6 @@
 """Real-time playback benchmark: does `stgs play --realtime` hold 30 fps with no drop and no stall, per scene,
-QP and deformation precision; start-up, seek and peak memory; a per-frame timeline plot.
+QP, deformation precision and feature decoder threads; start-up, seek and peak memory; a per-frame timeline
+plot.
 
     python -m bench.realtime --model /work/runs/s1 --model /tmp/demo/model --seconds 60 --qps 16,24,32 \\
         --work /tmp/rt --timeline docs/realtime_timeline.png
@@ -23,6 +24,7 @@ import platform
 import shutil
 import statistics
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 from stgs.client.manifest import Presentation
@@ -86,10 +88,10 @@ def frame_stats(log: dict) -> dict[str, tuple[float, float]]:
             "splat": quantiles(every("splat_ms")), "render": quantiles(every("render_ms"))}
 
 
-def row(name: str, n: int, qp: int, precision: str, kbps: float, log: dict, seek: dict | None) -> str:
+def row(name: str, n: int, qp: int, setting: Setting, kbps: float, log: dict, seek: dict | None) -> str:
     s = frame_stats(log)
     ok = log["dropped_frames"] == 0 and log["stalls"]["count"] == 0 and log["error"] is None
-    cells = [name, f"{n:,}", str(qp), precision, f"{kbps / 1e3:.2f}",
+    cells = [name, f"{n:,}", str(qp), setting.precision, str(log["threads"]["decode"]), f"{kbps / 1e3:.2f}",
              f"{log['frames']}", f"**{log['dropped_frames']}**", f"**{log['stalls']['count']}**",
              "yes" if ok else "no",
              *(f"{s[k][0]:.1f} / {s[k][1]:.1f}" for k in ("decode", "wait", "deform", "splat")),
@@ -99,9 +101,27 @@ def row(name: str, n: int, qp: int, precision: str, kbps: float, log: dict, seek
     return "| " + " | ".join(cells) + " |"
 
 
-HEADER = ("| scene | Gaussians | QP | deformation | feature Mbit/s | frames | dropped | stalls | 30 fps held | "
-          "decode + dequantise ms (median / p95) | wait ms | deform ms | splat ms | start-up s | seek s | "
-          "peak RSS MB |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+HEADER = ("| scene | Gaussians | QP | deformation | decoder threads | feature Mbit/s | frames | dropped | stalls | "
+          "30 fps held | decode + dequantise ms (median / p95) | wait ms | deform ms | splat ms | start-up s | "
+          "seek s | peak RSS MB |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One player setting the benchmark plays each scene and QP with."""
+
+    precision: str
+    """Deformation precision (`stgs play --precision`)."""
+    decode_threads: int | None
+    """libavcodec threads of the feature decoder (None: the player's default for the core count)."""
+
+    def flags(self) -> list[str]:
+        threads = [] if self.decode_threads is None else ["--decode-threads", str(self.decode_threads)]
+        return ["--precision", self.precision, *threads]
+
+    @property
+    def tag(self) -> str:
+        return self.precision + ("" if self.decode_threads is None else f"-dec{self.decode_threads}")
 
 
 def prepare(source: Path, work: Path, seconds: float, qps: list[int]) -> tuple[str, Path]:
@@ -115,7 +135,7 @@ def prepare(source: Path, work: Path, seconds: float, qps: list[int]) -> tuple[s
     return name, work / f"{name}-dash"
 
 
-async def run_scene(source: Path, work: Path, seconds: float, qps: list[int], precisions: list[str],
+async def run_scene(source: Path, work: Path, seconds: float, qps: list[int], settings: list[Setting],
                     size: str) -> tuple[list[str], list[tuple[int, int, str, bool, Path]]]:
     name, dash = prepare(source, work, seconds, qps)
     stats = json.loads((dash / STATS).read_text())
@@ -131,17 +151,17 @@ async def run_scene(source: Path, work: Path, seconds: float, qps: list[int], pr
     async with loopback(dash) as base:
         url = base + MANIFEST
         await play_process(url, work / "warmup.json", [*view, "--duration", "1"])  # page cache, native build
-        for precision in precisions:
+        for setting in settings:
             for qp in qps:
-                tag = f"{name}-qp{qp}-{precision}"
-                common = [*view, "--realtime", "--qp", str(qp), "--precision", precision]
+                tag = f"{name}-qp{qp}-{setting.tag}"
+                common = [*view, "--realtime", "--qp", str(qp), *setting.flags()]
                 log = await play_process(url, work / f"{tag}.json", common)
                 seek = await play_process(url, work / f"{tag}-seek.json", [*common, "--start", f"{seconds / 2:g}",
                                                                          "--duration", f"{SEEK_SECONDS:g}"])
                 kbps = stats["representations"][f"qp{qp}"]["bandwidth"] / 1e3
-                rows.append(row(name, n, qp, precision, kbps, log, seek))
+                rows.append(row(name, n, qp, setting, kbps, log, seek))
                 ok = log["dropped_frames"] == 0 and log["stalls"]["count"] == 0 and log["error"] is None
-                verdicts.append((n, qp, precision, ok, work / f"{tag}.json"))
+                verdicts.append((n, qp, setting.tag, ok, work / f"{tag}.json"))
                 print(rows[-1], flush=True)
     return rows, verdicts
 
@@ -154,6 +174,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--qps", default="16,24,32")
     parser.add_argument("--size", default="640x360")
     parser.add_argument("--precisions", default="fp32,bf16")
+    parser.add_argument("--decode-threads", help="feature decoder threads to compare, e.g. 1,2 (default: the "
+                        "player's default)")
     parser.add_argument("--work", type=Path, required=True, help="folder for looped models, trees and logs")
     parser.add_argument("--timeline", type=Path, help="PNG of the per-frame timeline of one run")
     parser.add_argument("--timeline-log", type=Path, help="the run to plot (default: the largest scene that "
@@ -164,10 +186,12 @@ def main(argv: list[str] | None = None) -> int:
     qps = [int(q) for q in args.qps.split(",")]
     precisions = [p for p in args.precisions.split(",") if p != "bf16" or bf16_available()]
     skipped = sorted(set(args.precisions.split(",")) - set(precisions))
+    threads = [None] if args.decode_threads is None else [int(t) for t in args.decode_threads.split(",")]
+    settings = [Setting(p, t) for p in precisions for t in threads]
     args.work.mkdir(parents=True, exist_ok=True)
     rows, verdicts = [], []
     for source in [*args.model, *args.dash]:
-        r, v = asyncio.run(run_scene(source, args.work, args.seconds, qps, precisions, args.size))
+        r, v = asyncio.run(run_scene(source, args.work, args.seconds, qps, settings, args.size))
         rows += r
         verdicts += v
     print(f"\nMachine: {platform.machine()} {platform.processor() or ''}; {args.seconds:g} s per run at {args.size}"
@@ -175,30 +199,27 @@ def main(argv: list[str] | None = None) -> int:
     print(HEADER)
     print("\n".join(rows))
     print("\nLargest scene that held 30 fps (no drop, no stall) for the whole run:\n")
-    print("| QP | deformation | largest Gaussians |\n|---|---|---|")
-    for precision in precisions:
+    print("| QP | setting | largest Gaussians |\n|---|---|---|")
+    for setting in settings:
         for qp in qps:
-            held = [n for n, q, p, ok, _ in verdicts if q == qp and p == precision and ok]
-            print(f"| {qp} | {precision} | {max(held):,} |" if held else f"| {qp} | {precision} | none |")
+            held = [n for n, q, tag, ok, _ in verdicts if q == qp and tag == setting.tag and ok]
+            print(f"| {qp} | {setting.tag} | {max(held):,} |" if held else f"| {qp} | {setting.tag} | none |")
     if args.timeline:
         from bench.timeline import plot_timeline
 
-        chosen = args.timeline_log or pick_timeline(verdicts, qps)
+        chosen = args.timeline_log or pick_timeline(verdicts, qps, settings[0].tag)
         plot_timeline(json.loads(chosen.read_text()), args.timeline, title=chosen.stem)
         print(f"\ntimeline of {chosen.name}: {args.timeline}")
     return 0
 
 
-def pick_timeline(verdicts: list[tuple[int, int, str, bool, Path]], qps: list[int]) -> Path:
+def pick_timeline(verdicts: list[tuple[int, int, str, bool, Path]], qps: list[int], tag: str) -> Path:
+    """The run of setting `tag` at the middle QP: the largest scene that held 30 fps, else the smallest one."""
     middle = qps[len(qps) // 2]
-    held = [(n, path) for n, q, p, ok, path in verdicts if q == middle and p == "fp32" and ok]
-    if held:
-        return max(held)[1]
-    return min((n, path) for n, q, p, _, path in verdicts if q == middle)[1]
+    runs = [(n, ok, path) for n, q, t, ok, path in verdicts if q == middle and t == tag]
+    held = [(n, path) for n, ok, path in runs if ok]
+    return max(held)[1] if held else min((n, path) for n, _, path in runs)[1]
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())
 
 
 def cli(dash: Path | None, scene, qps: list[int], width: int, height: int) -> int:
@@ -215,3 +236,7 @@ def cli(dash: Path | None, scene, qps: list[int], width: int, height: int) -> in
         print(f"synthesising a {scene.grid_side ** 2}-Gaussian scene (minutes) ...", flush=True)
         synthesize(scene, Path(tmp) / "model", progress=False)
         return main([*argv, "--model", str(Path(tmp) / "model")])
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
