@@ -16,6 +16,7 @@ import pytest
 from stgs.synth import SynthConfig, synthesize
 from stgs.tasks.runner import read_log
 from stgs.train import budget, train
+from stgs.tree import STATIC_EXTENSION, STATS
 from tests.conftest import run_stgs as stgs
 
 ray_cluster_utils = pytest.importorskip("ray.cluster_utils")
@@ -97,6 +98,21 @@ def test_train_and_pack_on_ray_give_the_bytes_of_a_local_run(cluster, scene, loc
     logs = sorted(p.stem for p in (tmp_path / "dash-ray" / ".pack-logs").glob("*.log"))
     assert logs == ["gop0-prepare", "gop0-qp20", "gop0-qp32", "gop1-prepare", "gop1-qp20", "gop1-qp32"]
     assert not (tmp_path / "dash-ray" / ".pack-work").exists()
+
+
+def test_a_layered_scene_packs_on_ray_to_the_bytes_of_a_local_run(cluster, tmp_path):
+    layered = SynthConfig(grid_side=8, num_gops=2, gop_size=4, width=48, height=36, num_cameras=2, fit_steps=10,
+                          effects=("rigid", "static_background"), static_grid_side=8)
+    synthesize(layered, tmp_path / "model", progress=False)
+    local = stgs("pack", str(tmp_path / "model"), str(tmp_path / "dash-local"), "--qps", "24", "--quiet")
+    assert local.returncode == 0, local.stderr
+    distributed = stgs("pack", str(tmp_path / "model"), str(tmp_path / "dash-ray"), "--qps", "24", "--quiet",
+                       "--ray", cluster)
+    assert distributed.returncode == 0, distributed.stderr
+    files = tree_files(tmp_path / "dash-ray")
+    assert files == tree_files(tmp_path / "dash-local")
+    assert [name for name in files if name.endswith(STATIC_EXTENSION)] != []  # the static layer is in both trees
+    assert json.loads(files[STATS])["static"]["capacity"] == 64
 
 
 def popen_train(scene: Path, out: Path, cluster: str, *extra: str) -> subprocess.Popen:
