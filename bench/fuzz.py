@@ -133,10 +133,15 @@ def templates() -> st.SearchStrategy[str]:
                      st.sampled_from(["$$$", "$Number$", "$RepresentationID$$Number%d$", "$Time$", "../../x"]))
 
 
+def descriptor_values(keys: list[str]) -> st.SearchStrategy[str]:
+    """A descriptor's `key=value;...` value with some of `keys`, each given a drawn number."""
+    return st.dictionaries(st.sampled_from(keys), numbers(), max_size=len(keys)).map(
+        lambda d: ";".join(f"{k}={v}" for k, v in d.items()))
+
+
 def static_sets() -> st.SearchStrategy[str]:
     """A static-layer AdaptationSet with drawn descriptor fields, template and bandwidth."""
-    params = st.dictionaries(st.sampled_from(["version", "capacity", "grid_side", "sh_degree", "junk"]), numbers(),
-                             max_size=5).map(lambda d: ";".join(f"{k}={v}" for k, v in d.items()))
+    params = descriptor_values(["version", "capacity", "grid_side", "sh_degree", "junk"])
     drawn = {"static_params": st.one_of(st.just(STATIC_VALUES["static_params"]), params),
              "static_media": templates(), "static_bandwidth": numbers()}
     return st.fixed_dictionaries({}, optional=drawn).map(
@@ -144,9 +149,7 @@ def static_sets() -> st.SearchStrategy[str]:
 
 
 def mpd_values() -> st.SearchStrategy[dict[str, str]]:
-    params = st.dictionaries(st.sampled_from(["version", "capacity", "grid_side", "gop_size", "window", "pe_freqs",
-                                              "fps", "junk"]), numbers(), max_size=8).map(
-        lambda d: ";".join(f"{k}={v}" for k, v in d.items()))
+    params = descriptor_values(["version", "capacity", "grid_side", "gop_size", "window", "pe_freqs", "fps", "junk"])
     drawn = {"duration": durations(), "params": st.one_of(st.just(SEED_VALUES["params"]), params),
              "kf_media": templates(), "media": templates(), "timescale": numbers(), "seg_duration": numbers(),
              "start": numbers(), "kf_bandwidth": numbers(), "bandwidth": numbers(), "rep_id": st.text(max_size=10),

@@ -88,9 +88,14 @@ def frame_stats(log: dict) -> dict[str, tuple[float, float]]:
             "splat": quantiles(every("splat_ms")), "render": quantiles(every("render_ms"))}
 
 
+def held_realtime(log: dict) -> bool:
+    """The playback held 30 fps for its whole length: no dropped frame, no stall, no error."""
+    return log["dropped_frames"] == 0 and log["stalls"]["count"] == 0 and log["error"] is None
+
+
 def row(name: str, n: int, qp: int, setting: Setting, kbps: float, log: dict, seek: dict | None) -> str:
     s = frame_stats(log)
-    ok = log["dropped_frames"] == 0 and log["stalls"]["count"] == 0 and log["error"] is None
+    ok = held_realtime(log)
     cells = [name, f"{n:,}", str(qp), setting.precision, str(log["threads"]["decode"]), f"{kbps / 1e3:.2f}",
              f"{log['frames']}", f"**{log['dropped_frames']}**", f"**{log['stalls']['count']}**",
              "yes" if ok else "no",
@@ -160,8 +165,7 @@ async def run_scene(source: Path, work: Path, seconds: float, qps: list[int], se
                                                                          "--duration", f"{SEEK_SECONDS:g}"])
                 kbps = stats["representations"][f"qp{qp}"]["bandwidth"] / 1e3
                 rows.append(row(name, n, qp, setting, kbps, log, seek))
-                ok = log["dropped_frames"] == 0 and log["stalls"]["count"] == 0 and log["error"] is None
-                verdicts.append((n, qp, setting.tag, ok, work / f"{tag}.json"))
+                verdicts.append((n, qp, setting.tag, held_realtime(log), work / f"{tag}.json"))
                 print(rows[-1], flush=True)
     return rows, verdicts
 
