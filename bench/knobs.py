@@ -76,7 +76,7 @@ async def measure(model: Path, work: Path, seconds: float) -> list[str]:
         for variant in VARIANTS:
             s = {**BASE, **variant}
             if s["precision"] == "bf16" and not bf16_available():
-                rows.append(f"| {label(variant)} | bf16 needs AMX: not run on this CPU | | | | | | |")
+                rows.append(f"| {label(variant)} | bf16 needs AVX512-BF16 or AMX: not run on this CPU | | | | | | |")
                 continue
             log = await play_process(url, work / f"knob-{name}-{label(variant).replace(' ', '_')}.json",
                                      setting_args(s, cameras[0].name))

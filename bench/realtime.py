@@ -199,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
         rows += r
         verdicts += v
     print(f"\nMachine: {platform.machine()} {platform.processor() or ''}; {args.seconds:g} s per run at {args.size}"
-          + (f"; not run here: {', '.join(skipped)} (no AMX)" if skipped else "") + "\n")
+          + (f"; not run here: {', '.join(skipped)} (no AVX512-BF16 or AMX)" if skipped else "") + "\n")
     print(HEADER)
     print("\n".join(rows))
     print("\nLargest scene that held 30 fps (no drop, no stall) for the whole run:\n")

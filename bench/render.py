@@ -111,7 +111,7 @@ def bench_size(n: int, width: int, height: int, repeats: int, reference_max: int
 
 def deform_rows(n: int, width: int, height: int, repeats: int) -> list[str]:
     """Deformation alone and deformation + splat per precision; accuracy against the fp32 deformation's image."""
-    from stgs.model.native_deform import bf16_available
+    from stgs.model.native_deform import bf16_backends
     from stgs.model.view import FrameRenderer
 
     cam = bench_camera(width, height)
@@ -123,7 +123,8 @@ def deform_rows(n: int, width: int, height: int, repeats: int) -> list[str]:
         rows.append(f"| {n} | torch fp32 | {torch_ms:.1f} | | | |")
         if not available():
             return rows
-        precisions = ["fp32"] + (["bf16"] if bf16_available() else [])
+        backends = bf16_backends()
+        precisions = ["fp32"] + (["bf16"] if backends else [])
         fp32_image = None
         for precision in precisions:
             renderer = FrameRenderer(model, precision=precision)
@@ -132,7 +133,8 @@ def deform_rows(n: int, width: int, height: int, repeats: int) -> list[str]:
             fp32_image = image if fp32_image is None else fp32_image
             accuracy = "(itself) | 0" if precision == "fp32" else \
                 f"{psnr(image.clamp(0, 1), fp32_image.clamp(0, 1)):.1f} | {(image - fp32_image).abs().max().item():.1e}"
-            rows.append(f"| {n} | native {precision} | {deform_ms:.1f} | **{total_ms:.1f}** | {accuracy} |")
+            name = f"native {precision}" + (f" ({backends[0]})" if precision == "bf16" else "")
+            rows.append(f"| {n} | {name} | {deform_ms:.1f} | **{total_ms:.1f}** | {accuracy} |")
     return rows
 
 

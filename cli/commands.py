@@ -278,8 +278,8 @@ def add_play(sub: argparse._SubParsersAction) -> None:
     view.add_argument("--fov", type=float, default=60.0, help="horizontal field of view, degrees (default: 60)")
     view.add_argument("--size", type=_size, help="image size WIDTHxHEIGHT (default: the camera's, else 640x360)")
     p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
-                   help="arithmetic of the deformation network: bf16 is faster on CPUs with AMX and costs "
-                   "accuracy (docs/BENCHMARKS.md; default: fp32)")
+                   help="arithmetic of the deformation network: bf16 is faster on CPUs with AVX512-BF16 "
+                   "or AMX and costs accuracy (docs/BENCHMARKS.md; default: fp32)")
     frame = p.add_argument_group("frame path (docs/CLIENT.md, 'Real-time playback')")
     frame.add_argument("--ring-frames", type=_positive_int, default=8,
                        help="feature frames decoded ahead of the renderer (default: 8; at least the model's window)")

@@ -13,7 +13,7 @@ MAX_GOP_SIZE = 1024
 MAX_WINDOW = 16
 """Longest sliding window W of temporal features per frame (the native fp32 kernel takes all of them)."""
 MAX_BF16_WINDOW = 8
-"""Longest window the AMX bf16 deformation kernel takes (its D_t input is padded to 128 = 8 x 16 lanes)."""
+"""Longest window the bf16 deformation kernel takes (its D_t input is padded to 128 = 8 x 16 lanes)."""
 MAX_PE_FREQS = 16
 """Most positional-encoding frequencies of t."""
 MIN_FPS = 1.0

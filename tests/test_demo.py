@@ -46,9 +46,10 @@ def test_bench_render_smoke():
     assert result.returncode == 0, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("| 300 |")]
     backends = [r.split("|")[2].strip() for r in rows]
-    from stgs.model.native_deform import bf16_available
+    from stgs.model.native_deform import bf16_backends
 
-    deforms = ["torch fp32", "native fp32"] + (["native bf16"] if bf16_available() else [])
+    bf16 = [f"native bf16 ({bf16_backends()[0]})"] if bf16_backends() else []  # the back end it ran on
+    deforms = ["torch fp32", "native fp32", *bf16]
     assert backends == ["reference fp64", "reference fp32", "native fp32", *deforms]
     bf16 = [r.split("|") for r in rows if "native bf16" in r]
     for cells in bf16:  # image PSNR against the fp32 deformation: finite and high, not identical
@@ -78,7 +79,11 @@ def test_bench_play_smoke(tmp_path):
                   "--height", "48")
     assert result.returncode == 0, result.stderr
     rows = [line.split("|") for line in result.stdout.splitlines() if line.startswith("| dash |")]
-    assert [r[3].strip() for r in rows] == ["20", "32", "20", "32"]  # printed as measured, then in the table
+    from stgs.model.native_deform import bf16_available
+
+    precisions = ["fp32"] + (["bf16"] if bf16_available() else [])  # bf16 runs where the CPU has it
+    assert [r[3].strip() for r in rows] == ["20", "32"] * len(precisions) * 2  # as measured, then in the table
+    assert [r[4].strip() for r in rows] == [p for p in precisions for _ in "ab"] * 2
     assert all(int(r[5]) >= 1 for r in rows)  # the player's decoder threads, as its log reports them
     assert all(int(r[7]) == 8 for r in rows)  # every frame of the 2 GOPs x 4 frames was presented
     mbits = [float(r[6]) for r in rows[:2]]

@@ -3,9 +3,10 @@
 The torch `GOPModel.deform` is the oracle; this path evaluates every MLP layer
 per block of Gaussians while the block sits in cache, and (given a camera)
 skips the view-dependent decoders of Gaussians that cannot reach the image.
-Two precisions: float32 (AVX-512 or portable), and bf16 inputs and weights
-with float32 accumulation on AMX tiles where the CPU and kernel allow it
-(an accuracy knob: docs/BENCHMARKS.md).
+Two precisions: float32 (AVX-512, AVX2 or portable), and bf16 inputs and
+weights with float32 accumulation, on AMX tiles or AVX512-BF16 vectors where
+the CPU (and, for AMX, the kernel) allow it (an accuracy knob:
+docs/BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -27,9 +28,23 @@ from stgs.native.build import NativeUnavailableError, available, load
 PRECISIONS = ("fp32", "bf16")
 """Arithmetic of the native deformation: float32, or bf16 inputs/weights with float32 accumulation."""
 
+BF16_BACKENDS = {"amx": 2, "avx512-bf16": 1}
+"""The bf16 deformation's back ends, preferred first, with their bit in stgs_deform_bf16_backends: AMX tiles
+(Intel Sapphire Rapids and later; Linux must grant AMX state) and AVX512-BF16 vectors (vdpbf16ps: AMD Zen 4
+and later, Intel Cooper Lake and later)."""
+
+
+def bf16_backends() -> list[str]:
+    """The bf16 back ends that can run here, preferred first (empty without the native build)."""
+    if not available():
+        return []
+    mask = load().stgs_deform_bf16_backends()
+    return [name for name, bit in BF16_BACKENDS.items() if mask & bit]
+
+
 def bf16_available() -> bool:
-    """True when the native bf16 deformation can run here (AMX-BF16 CPU, kernel grants AMX state)."""
-    return available() and load().stgs_deform_bf16_available() == 1
+    """True when the native bf16 deformation can run here on some back end."""
+    return bool(bf16_backends())
 
 
 def check_precision(precision: str) -> None:
@@ -37,8 +52,8 @@ def check_precision(precision: str) -> None:
     if precision not in PRECISIONS:
         raise ValueError(f"unknown deform precision {precision!r}; choose from {', '.join(PRECISIONS)}")
     if precision == "bf16" and not bf16_available():
-        raise NativeUnavailableError("bf16 deformation needs the native build on a CPU with AMX-BF16 "
-                                     "(e.g. Intel Sapphire Rapids); use fp32")
+        raise NativeUnavailableError("bf16 deformation needs the native build on a CPU with AVX512-BF16 or "
+                                     "AMX-BF16 (e.g. AMD Zen 4, Intel Sapphire Rapids); use fp32")
 
 
 def _c(t: torch.Tensor) -> torch.Tensor:
@@ -50,12 +65,13 @@ OUT_WIDTH = 16
 
 
 TILE_K = 32
-"""bf16 values of K per AMX tile row."""
+"""bf16 values of K per tile row (an AMX A-tile row; 16 pairs for vdpbf16ps)."""
 
 
-def _amx_tiles(weight: torch.Tensor) -> torch.Tensor:
-    """(K, M) in x out float32 weights as AMX B tiles: K zero-padded to a multiple of 32, then for each
-    K chunk and each 16-column tile, 16 rows of (column, pair of consecutive K) bf16 values."""
+def _bf16_tiles(weight: torch.Tensor) -> torch.Tensor:
+    """(K, M) in x out float32 weights as bf16 B tiles: K zero-padded to a multiple of 32, then for each
+    K chunk and each 16-column tile, 16 rows of (column, pair of consecutive K) bf16 values. Both back ends
+    read this: a row is an AMX B-tile row and the weight operand of one vdpbf16ps."""
     k, m = weight.shape
     chunks = -(-k // TILE_K)
     padded = torch.zeros(chunks * TILE_K, m)
@@ -88,13 +104,13 @@ class PackedWeights:
                               0).T.contiguous()
         self.app2 = _pack_second(_c(field.d_opacity[2].weight), _c(field.d_color[2].weight), 1, 4)
 
-        self._amx: list[torch.Tensor] | None = None
+        self._bf16: list[torch.Tensor] | None = None
 
-    def amx(self) -> list[torch.Tensor]:
-        """temporal, geo1, geo2, app1, app2 as AMX bf16 tiles (packed on first use)."""
-        if self._amx is None:
-            self._amx = [_amx_tiles(w) for w in (self.temporal_feat, self.geo1, self.geo2, self.app1, self.app2)]
-        return self._amx
+    def bf16(self) -> list[torch.Tensor]:
+        """temporal, geo1, geo2, app1, app2 as bf16 tiles (packed on first use)."""
+        if self._bf16 is None:
+            self._bf16 = [_bf16_tiles(w) for w in (self.temporal_feat, self.geo1, self.geo2, self.app1, self.app2)]
+        return self._bf16
 
     def pe_bias(self, frame: int, model: GOPModel) -> torch.Tensor:
         """The γ(t) part of D_t's input, folded into a per-frame bias."""
@@ -106,8 +122,9 @@ def deform_native(model: GOPModel, frame: int, camera_center: torch.Tensor,
                   weights: PackedWeights | None = None, viewmat: torch.Tensor | None = None,
                   K: torch.Tensor | None = None, width: int = 0, height: int = 0,
                   precision: str = "fp32", guard: tuple[float, float, float] | None = None,
-                  window: list[torch.Tensor] | None = None) -> Gaussians:
-    """GOPModel.deform in C++ (no autograd), in float32 or bf16 (`precision`, see PRECISIONS).
+                  window: list[torch.Tensor] | None = None, bf16_backend: str | None = None) -> Gaussians:
+    """GOPModel.deform in C++ (no autograd), in float32 or bf16 (`precision`, see PRECISIONS; bf16 on
+    `bf16_backend`, one of bf16_backends(), by default the first).
 
     `window`: the frame's W feature frames e_i ... e_{i+W-1}, (N, 16) each, where the model does not hold
     its features (a GOP streamed frame by frame, stgs.codec.stream); None reads them from model.features.
@@ -147,11 +164,16 @@ def deform_native(model: GOPModel, frame: int, camera_center: torch.Tensor,
         lib.stgs_deform(*inputs, ptr(weights.temporal_feat), ptr(pe_bias), ptr(weights.geo1), ptr(weights.geo2),
                         ptr(weights.app1), ptr(weights.app2), *camera, *outputs)
         return out
-    temporal, geo1, geo2, app1, app2 = weights.amx()
+    backend = bf16_backend or bf16_backends()[0]
+    if backend not in BF16_BACKENDS:
+        raise ValueError(f"unknown bf16 back end {backend!r}; choose from {', '.join(BF16_BACKENDS)}")
+    temporal, geo1, geo2, app1, app2 = weights.bf16()
     status = lib.stgs_deform_bf16(*inputs, ptr(temporal), temporal.shape[0], ptr(pe_bias), ptr(geo1), ptr(geo2),
-                                  ptr(app1), ptr(app2), *camera, *outputs)
+                                  ptr(app1), ptr(app2), *camera, *outputs[:-1], BF16_BACKENDS[backend],
+                                  outputs[-1])
     if status != 0:
-        raise NativeUnavailableError("the bf16 deformation kernel refused to run (no AMX state for this process)")
+        raise NativeUnavailableError(f"the bf16 deformation's {backend} back end cannot run here "
+                                     f"(available: {', '.join(bf16_backends()) or 'none'})")
     return out
 
 

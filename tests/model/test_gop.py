@@ -9,8 +9,10 @@ from torch import nn
 from stgs.camera import Camera, intrinsics, look_at
 from stgs.model.gop import FEATURE_DIM, HIDDEN, GOPModel, GOPShape, frame_time, positional_encoding
 from stgs.model.native_deform import (
+    BF16_BACKENDS,
     PackedWeights,
     bf16_available,
+    bf16_backends,
     check_precision,
     deform_bf16_reference,
     deform_native,
@@ -133,16 +135,19 @@ def test_native_culling_does_not_change_the_image():
     assert (slow.double() - a.double()).abs().max() < 1e-4 * a.abs().max()  # this random field's colours reach ~6
 
 
-needs_amx = pytest.mark.skipif(not bf16_available(), reason="the bf16 deformation needs a CPU with AMX-BF16")
+BF16_NEEDS = "the bf16 deformation needs a CPU with AVX512-BF16 or AMX-BF16"
+needs_bf16 = pytest.mark.skipif(not bf16_available(), reason=BF16_NEEDS)
 
 
-@needs_amx
+@pytest.mark.parametrize("backend", list(BF16_BACKENDS))
 @pytest.mark.parametrize("window, n", [(3, 1000), (8, 333), (1, 17)])
-def test_bf16_deform_matches_its_torch_oracle(window, n):
+def test_bf16_deform_matches_its_torch_oracle(window, n, backend):
+    if backend not in bf16_backends():
+        pytest.skip(f"the {backend} back end cannot run on this CPU")
     model = random_model(n=n, window=window)
     center = torch.tensor([0.3, -0.2, -4.0])
     with torch.no_grad():
-        got = deform_native(model, 5, center, precision="bf16")
+        got = deform_native(model, 5, center, precision="bf16", bf16_backend=backend)
         want = deform_bf16_reference(model, 5, center)
         full = model.deform(5, center)
     for name in ("means", "quats", "opacities", "colors", "scales"):
@@ -158,7 +163,7 @@ def test_bf16_deform_matches_its_torch_oracle(window, n):
         assert (g - f).abs().max() <= 1e-1 * peak, name  # bf16's 8-bit mantissa, large random weights
 
 
-@pytest.mark.parametrize("precision", ["fp32", pytest.param("bf16", marks=needs_amx)])
+@pytest.mark.parametrize("precision", ["fp32", pytest.param("bf16", marks=needs_bf16)])
 def test_a_nan_feature_is_refused_not_drawn(precision):
     """NaN must come out of the native deformation as NaN (its fast tanh clamps its input and its relu
     compares, and both let NaN pass, as torch does), so that the splatter refuses the frame instead of
@@ -174,7 +179,7 @@ def test_a_nan_feature_is_refused_not_drawn(precision):
         FrameRenderer(model, native=True, precision=precision).render(2, cam)
 
 
-@needs_amx
+@needs_bf16
 def test_bf16_renders_close_to_fp32():
     model = random_model(n=3000)
     with torch.no_grad():
@@ -193,8 +198,19 @@ def test_precision_errors_are_clear():
     with pytest.raises(ValueError, match="needs the native build"):
         FrameRenderer(random_model(n=10), native=False, precision="bf16")
     if not bf16_available():
-        with pytest.raises(NativeUnavailableError, match="AMX"):
+        with pytest.raises(NativeUnavailableError, match="AVX512-BF16 or AMX-BF16"):
             check_precision("bf16")
+
+
+@needs_bf16
+def test_bf16_backend_errors_are_clear():
+    model = random_model(n=10)
+    center = torch.tensor([0.3, -0.2, -4.0])
+    with pytest.raises(ValueError, match="unknown bf16 back end 'avx2'"):
+        deform_native(model, 1, center, precision="bf16", bf16_backend="avx2")
+    for backend in set(BF16_BACKENDS) - set(bf16_backends()):
+        with pytest.raises(NativeUnavailableError, match=f"{backend} back end cannot run here"):
+            deform_native(model, 1, center, precision="bf16", bf16_backend=backend)
 
 
 @pytest.mark.parametrize("native", [False, True])

@@ -90,7 +90,7 @@ def test_the_native_deformation_applies_the_same_guard_band(precision):
     from stgs.model.native_deform import bf16_available
 
     if precision == "bf16" and not bf16_available():
-        pytest.skip("the bf16 deformation needs a CPU with AMX-BF16")
+        pytest.skip("the bf16 deformation needs a CPU with AVX512-BF16 or AMX-BF16")
     half_w, half_h = W / 2, H / 2
     points = [point_at_pixel(W / 2 + (GUARD_BAND - 0.01) * half_w, H / 2, 2.0),
               point_at_pixel(W / 2 + (GUARD_BAND + 0.01) * half_w, H / 2, 2.0),

@@ -172,21 +172,13 @@ void stgs_deform(int64_t n, int window, const float* const* window_feats, const 
     stgs::deformed_scales(io, first, rows, out2, kOut);
     bool keep[kBlock];
     int slot[kBlock];
-    int kept = 0;
-    for (int b0 = 0; b0 < rows; b0 += stgs::kGeometryLanes) {
-      float dirs[3 * stgs::kGeometryLanes];
-      const int count = std::min(stgs::kGeometryLanes, rows - b0);
-      const unsigned lanes = stgs::block_geometry(io, first + b0, count, &out2[b0 * kOut], kOut, dirs);
-      for (int i = 0; i < count; ++i) {
-        const int b = b0 + i;
-        keep[b] = (lanes >> i) & 1u;
-        if (!keep[b]) continue;
-        float* row = &app_in[kept * (kHidden + 3)];
-        std::memcpy(row, &h[b * kHidden], kHidden * sizeof(float));
-        std::memcpy(row + kHidden, &dirs[3 * i], 3 * sizeof(float));
-        slot[b] = kept++;
-      }
-    }
+    int kept = 0;  // kept rows go to app_in densely, row b to slot[b]
+    stgs::cull_block(io, first, rows, out2, kOut, keep, [&](int b, const float* dir) {
+      float* row = &app_in[kept * (kHidden + 3)];
+      std::memcpy(row, &h[b * kHidden], kHidden * sizeof(float));
+      std::memcpy(row + kHidden, dir, 3 * sizeof(float));
+      slot[b] = kept++;
+    });
     if (kept == 0) continue;
     // D_o and D_c on [h, view direction]: [do(1) dc(3)] in out2.
     matmul_rows<2 * kHidden>(app_in, kept, kHidden + 3, kHidden + 3, app1_t, hidden2);

@@ -1,4 +1,4 @@
-// Pieces shared by the float32 (deform.cpp) and bf16/AMX (deform_amx.cpp)
+// Pieces shared by the float32 (deform.cpp) and bf16 (deform_bf16.cpp)
 // deformation kernels.
 #pragma once
 
@@ -188,6 +188,27 @@ inline unsigned block_geometry(const DeformIO& io, int64_t first, int, const flo
   return deformed_geometry(io, first, d, dirs) ? 1u : 0u;
 }
 #endif
+
+// block_geometry over the rows of one block (d: their geometry decoders' outputs, stride apart):
+// keep[b] says whether row b can reach the image, and on_kept(b, dir) receives each kept row's
+// unit view direction. Returns how many rows were kept.
+template <class OnKept>
+int cull_block(const DeformIO& io, int64_t first, int rows, const float* d, int stride, bool* keep,
+               OnKept on_kept) {
+  int kept = 0;
+  for (int b0 = 0; b0 < rows; b0 += kGeometryLanes) {
+    float dirs[3 * kGeometryLanes];
+    const int count = std::min(kGeometryLanes, rows - b0);
+    const unsigned lanes = block_geometry(io, first + b0, count, d + b0 * stride, stride, dirs);
+    for (int i = 0; i < count; ++i) {
+      keep[b0 + i] = (lanes >> i) & 1u;
+      if (!keep[b0 + i]) continue;
+      on_kept(b0 + i, &dirs[3 * i]);
+      ++kept;
+    }
+  }
+  return kept;
+}
 
 // Opacity and colour of Gaussian g from the appearance decoders' outputs d = [do(1) dc(3)].
 inline void deformed_appearance(const DeformIO& io, int64_t g, const float* d) {

@@ -57,7 +57,7 @@ int64_t stgs_raster_pairs(void* handle);
 
 void stgs_raster_free(void* handle);
 
-// --- deformation (deform.cpp, deform_amx.cpp) ---
+// --- deformation (deform.cpp, deform_bf16.cpp) ---
 
 // The deformation field of one frame in float32 for n Gaussians (DESIGN.md; weights packed
 // by stgs/model/native_deform.py). window_feats holds `window` pointers, to the frame's
@@ -72,17 +72,19 @@ void stgs_deform(int64_t n, int window, const float* const* window_feats, const 
                  float* out_scales, float* out_opac, float* out_colors, const double* guard,
                  int nthreads);
 
-// 1 when stgs_deform_bf16 can run in this process (AMX built and permitted).
-int stgs_deform_bf16_available(void);
+// The back ends of stgs_deform_bf16 that can run in this process, as a bit mask: 1 AVX512-BF16
+// vectors (built for such a CPU), 2 AMX tiles (built for AMX, and Linux grants AMX state).
+int stgs_deform_bf16_backends(void);
 
-// stgs_deform in bf16 with AMX tile weights; 0, or -1 when AMX is unavailable.
+// stgs_deform in bf16 on `backend` (1 or 2, as above), the five weights packed as bf16 tiles
+// (stgs/model/native_deform.py); 0, or -1 (nothing written) when that back end cannot run here.
 int stgs_deform_bf16(int64_t n, int window, const float* const* window_feats, const float* xyz,
                      const float* log_scale, const float* rotation, const float* opacity_logit,
                      const float* color, const void* temporal_w, int t_chunks, const float* pe_bias,
                      const void* geo1_w, const void* geo2_w, const void* app1_w, const void* app2_w,
                      const float* camera_center, const double* viewmat, const double* K, int width,
                      int height, float* out_means, float* out_quats, float* out_scales, float* out_opac,
-                     float* out_colors, const double* guard, int nthreads);
+                     float* out_colors, const double* guard, int backend, int nthreads);
 
 // STGS_ABI_END
 
