@@ -154,23 +154,22 @@ def deform_native(model: GOPModel, frame: int, camera_center: torch.Tensor,
         intr = K.detach().to(torch.float64).contiguous()
         if guard is not None:
             limits = torch.tensor(guard, dtype=torch.float64)
-    outputs = [ptr(out.means), ptr(out.quats), ptr(out.scales), ptr(out.opacities), ptr(out.colors), ptr(limits),
-               torch.get_num_threads()]
+    outputs = [ptr(out.means), ptr(out.quats), ptr(out.scales), ptr(out.opacities), ptr(out.colors), ptr(limits)]
+    threads = torch.get_num_threads()
     window_ptrs = ffi().new("float *[]", [ptr(f) for f in frames])
     inputs = [n, model.shape.window, window_ptrs, *(ptr(t) for t in canon)]
     camera = [ptr(center), ptr(view), ptr(intr), width, height]
     lib = load()
     if precision == "fp32":
         lib.stgs_deform(*inputs, ptr(weights.temporal_feat), ptr(pe_bias), ptr(weights.geo1), ptr(weights.geo2),
-                        ptr(weights.app1), ptr(weights.app2), *camera, *outputs)
+                        ptr(weights.app1), ptr(weights.app2), *camera, *outputs, threads)
         return out
     backend = bf16_backend or bf16_backends()[0]
     if backend not in BF16_BACKENDS:
         raise ValueError(f"unknown bf16 back end {backend!r}; choose from {', '.join(BF16_BACKENDS)}")
     temporal, geo1, geo2, app1, app2 = weights.bf16()
     status = lib.stgs_deform_bf16(*inputs, ptr(temporal), temporal.shape[0], ptr(pe_bias), ptr(geo1), ptr(geo2),
-                                  ptr(app1), ptr(app2), *camera, *outputs[:-1], BF16_BACKENDS[backend],
-                                  outputs[-1])
+                                  ptr(app1), ptr(app2), *camera, *outputs, BF16_BACKENDS[backend], threads)
     if status != 0:
         raise NativeUnavailableError(f"the bf16 deformation's {backend} back end cannot run here "
                                      f"(available: {', '.join(bf16_backends()) or 'none'})")
