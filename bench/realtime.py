@@ -96,7 +96,8 @@ def held_realtime(log: dict) -> bool:
 def row(name: str, n: int, qp: int, setting: Setting, kbps: float, log: dict, seek: dict | None) -> str:
     s = frame_stats(log)
     ok = held_realtime(log)
-    cells = [name, f"{n:,}", str(qp), setting.precision, str(log["threads"]["decode"]), f"{kbps / 1e3:.2f}",
+    cells = [name, f"{n:,}", str(qp), setting.precision, str(log["threads"]["decode"]), str(log["render_ahead"]),
+             f"{kbps / 1e3:.2f}",
              f"{log['frames']}", f"**{log['dropped_frames']}**", f"**{log['stalls']['count']}**",
              "yes" if ok else "no",
              *(f"{s[k][0]:.1f} / {s[k][1]:.1f}" for k in ("decode", "wait", "deform", "splat")),
@@ -106,9 +107,9 @@ def row(name: str, n: int, qp: int, setting: Setting, kbps: float, log: dict, se
     return "| " + " | ".join(cells) + " |"
 
 
-HEADER = ("| scene | Gaussians | QP | deformation | decoder threads | feature Mbit/s | frames | dropped | stalls | "
-          "30 fps held | decode + dequantise ms (median / p95) | wait ms | deform ms | splat ms | start-up s | "
-          "seek s | peak RSS MB |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+HEADER = ("| scene | Gaussians | QP | deformation | decoder threads | render ahead | feature Mbit/s | frames | "
+          "dropped | stalls | 30 fps held | decode + dequantise ms (median / p95) | wait ms | deform ms | splat ms | "
+          "start-up s | seek s | peak RSS MB |\n" + "|---" * 18 + "|")
 
 
 @dataclass(frozen=True)
@@ -119,14 +120,18 @@ class Setting:
     """Deformation precision (`stgs play --precision`)."""
     decode_threads: int | None
     """libavcodec threads of the feature decoder (None: the player's default for the core count)."""
+    render_ahead: int | None = None
+    """Frame slots a frame may render early (`stgs play --render-ahead`; None: the player's default)."""
 
     def flags(self) -> list[str]:
         threads = [] if self.decode_threads is None else ["--decode-threads", str(self.decode_threads)]
-        return ["--precision", self.precision, *threads]
+        ahead = [] if self.render_ahead is None else ["--render-ahead", str(self.render_ahead)]
+        return ["--precision", self.precision, *threads, *ahead]
 
     @property
     def tag(self) -> str:
-        return self.precision + ("" if self.decode_threads is None else f"-dec{self.decode_threads}")
+        return (self.precision + ("" if self.decode_threads is None else f"-dec{self.decode_threads}")
+                + ("" if self.render_ahead is None else f"-ahead{self.render_ahead}"))
 
 
 def prepare(source: Path, work: Path, seconds: float, qps: list[int]) -> tuple[str, Path]:
@@ -180,6 +185,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--precisions", default="fp32,bf16")
     parser.add_argument("--decode-threads", help="feature decoder threads to compare, e.g. 1,2 (default: the "
                         "player's default)")
+    parser.add_argument("--render-ahead", help="frame slots of rendering ahead to compare, e.g. 0,2 (default: the "
+                        "player's default)")
     parser.add_argument("--work", type=Path, required=True, help="folder for looped models, trees and logs")
     parser.add_argument("--timeline", type=Path, help="PNG of the per-frame timeline of one run")
     parser.add_argument("--timeline-log", type=Path, help="the run to plot (default: the largest scene that "
@@ -191,7 +198,8 @@ def main(argv: list[str] | None = None) -> int:
     precisions = [p for p in args.precisions.split(",") if p != "bf16" or bf16_available()]
     skipped = sorted(set(args.precisions.split(",")) - set(precisions))
     threads = [None] if args.decode_threads is None else [int(t) for t in args.decode_threads.split(",")]
-    settings = [Setting(p, t) for p in precisions for t in threads]
+    aheads = [None] if args.render_ahead is None else [int(r) for r in args.render_ahead.split(",")]
+    settings = [Setting(p, t, r) for p in precisions for t in threads for r in aheads]
     args.work.mkdir(parents=True, exist_ok=True)
     rows, verdicts = [], []
     for source in [*args.model, *args.dash]:

@@ -251,6 +251,7 @@ _positive_seconds = _seconds_parser(positive=True)
 
 def add_play(sub: argparse._SubParsersAction) -> None:
     from stgs.client.abr import RULES
+    from stgs.client.config import RENDER_AHEAD
 
     p = sub.add_parser("play", help="stream a packaged scene over HTTP and render it on the CPU",
                        description="Stream a StreamSTGS scene from its MPD URL: the ABR rule picks each GOP's "
@@ -283,6 +284,9 @@ def add_play(sub: argparse._SubParsersAction) -> None:
     frame = p.add_argument_group("frame path (docs/CLIENT.md, 'Real-time playback')")
     frame.add_argument("--ring-frames", type=_positive_int, default=8,
                        help="feature frames decoded ahead of the renderer (default: 8; at least the model's window)")
+    frame.add_argument("--render-ahead", type=_non_negative_int, default=RENDER_AHEAD,
+                       help="with --realtime, frame slots a frame may be rendered before its own: absorbs frames "
+                       f"slower than a slot, at that many frames of camera latency (default: {RENDER_AHEAD}; 0: none)")
     frame.add_argument("--render-threads", type=_positive_int,
                        help="threads of the deform and splat kernels (default: every usable core)")
     frame.add_argument("--decode-threads", type=_positive_int,
@@ -324,7 +328,8 @@ def run_play(args: argparse.Namespace) -> int:
         log = (args.out.parent if args.out.suffix.lower() == ".mp4" else args.out) / "playback.json"
     cfg = PlayConfig(url=args.url, abr=args.abr, qp=args.qp, buffer_s=args.buffer, start_s=args.start,
                      duration_s=args.duration, realtime=args.realtime, view=view, out=args.out, log=log,
-                     precision=args.precision, ring_frames=args.ring_frames, render_threads=args.render_threads,
+                     precision=args.precision, ring_frames=args.ring_frames, render_ahead=args.render_ahead,
+                     render_threads=args.render_threads,
                      decode_threads=args.decode_threads,
                      download=DownloadSettings(read_timeout_s=args.timeout, retries=args.retries),
                      urls=UrlPolicySettings(hosts=tuple(args.allow_host), any_host=args.allow_any_host,

@@ -54,15 +54,23 @@ class PlaybackClock:
         """When GOP k should start (after the first frame)."""
         return self.t0 + self.stall_total + (k - self.first_gop) * self.segment_s
 
-    def start(self, k: int, ready: float, arrived: float) -> float:
-        """GOP k starts playing; it became ready at `ready`, the player reached it at `arrived`.
-        Returns the stall it caused (0 when it was ready in time)."""
+    def start_time(self, k: int, ready: float, arrived: float, lead: float = 0.0) -> float:
+        """When GOP k would start: it became ready at `ready` and the player reached it at `arrived`. The first
+        GOP, and one not ready in time (a stall), start `lead` after they are ready: the renderer's head start
+        (stgs.client.framepath); one ready in time starts when it is due."""
         if self.t0 is None:
-            self.t0 = ready
-            self.playing = k
-            return 0.0
-        stall = ready - max(self.due(k), arrived)
+            return ready + lead
+        due = max(self.due(k), arrived)
+        return ready + lead if ready - due > STALL_EPSILON_S else due
+
+    def start(self, k: int, ready: float, arrived: float, lead: float = 0.0) -> float:
+        """GOP k starts playing (see start_time). Returns the stall it caused (0 when it was ready in time)."""
+        begin = self.start_time(k, ready, arrived, lead)
         self.playing = k
+        if self.t0 is None:
+            self.t0 = begin
+            return 0.0
+        stall = begin - max(self.due(k), arrived)
         if stall > STALL_EPSILON_S:
             self.stall_total += stall
             return stall

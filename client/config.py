@@ -14,6 +14,9 @@ from stgs.errors import FieldError, StgsError
 from stgs.model.native_deform import check_precision
 from stgs.native.build import NativeUnavailableError
 
+RENDER_AHEAD = 2
+"""Default frame slots a frame may render before its own (PlayConfig.render_ahead)."""
+
 
 class PlaybackError(StgsError):
     """Playback could not go on (after the retries and fallbacks the log records)."""
@@ -52,6 +55,11 @@ class PlayConfig:
     """Decoded GOP models held at once (the one playing + pre-decoded ones)."""
     ring_frames: int = 8
     """Feature frames decoded ahead of the renderer, per GOP (at least the model's window W)."""
+    render_ahead: int = RENDER_AHEAD
+    """Frame slots a frame may be rendered before its own (real time): a frame slower than a slot borrows the
+    time the frames before it left, and the first GOP (or one after a stall) is shown that many slots after
+    it is ready; the camera's motion is that many frames late on screen (0: each frame renders in its own
+    slot)."""
     render_threads: int | None = None
     """Threads of the deform and splat kernels (None: every usable core; stgs.client.threads)."""
     decode_threads: int | None = None
@@ -76,6 +84,8 @@ class PlayConfig:
             raise FieldError("duration_s", "must be a positive number of seconds")
         if self.ring_frames < 1:
             raise FieldError("ring_frames", "must be >= 1 (and at least the model's window)")
+        if self.render_ahead < 0:
+            raise FieldError("render_ahead", "must be >= 0 frames")
         for name in ("render_threads", "decode_threads"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise FieldError(name, "must be >= 1")

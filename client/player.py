@@ -1,6 +1,6 @@
 """The playback session: ABR -> fetch -> decode the keyframe, stream the features -> deform + splat per frame.
 
-Three asyncio tasks share one event loop:
+Four asyncio tasks share one event loop:
 - the fetcher runs the fetch schedule (stgs.client.schedule): a layered scene's static layer first (once, whatever
   the start GOP; it counts in start-up), then GOP after GOP: keyframe, then the feature segment of the
   Representation the ABR rule picks, while the buffer has room;
@@ -9,8 +9,9 @@ Three asyncio tasks share one event loop:
   thread), at most `max_decoded` GOPs at a time (the one playing and the next); a GOP is ready when its
   first feature window is decoded, and GOP k+1's features start decoding once GOP k's are all decoded, a
   few frames before its end, so a boundary does not wait when the decoder keeps up;
-- the player renders each GOP's frames (worker thread, `render_threads` kernel threads), taking each
-  frame's features from the ring, and keeps the clock.
+- the renderer and the presenter (stgs.client.framepath) render each GOP's frames (worker thread,
+  `render_threads` kernel threads) from the ring, up to `render_ahead` frame slots early, and present
+  them on the clock.
 
 The clock is the presentation's real-time schedule in both modes: GOP k is due
 `(k - k0) * T` after the first frame plus the stalls so far. A stall is time a
@@ -19,9 +20,9 @@ and drops a frame whose slot passes before it can be drawn (rendering behind, or
 decoded); its features are still consumed in order. Otherwise frames render as fast as they can (never
 dropped). The log has per-frame decode, dequantise, wait, deform and splat times.
 
-The module is over the usual size (~400 lines) because the Session's three tasks share one state
-(clock, records, the fetch schedule) and one task group; what to fetch lives in
-`stgs.client.schedule`, how to decode in `stgs.client.gopdecode`, settings in `stgs.client.config`.
+The Session holds what the tasks share (clock, records, the fetch schedule) and their task group; what to
+fetch lives in `stgs.client.schedule`, how to decode in `stgs.client.gopdecode`, how frames are rendered and
+presented in `stgs.client.framepath`, settings in `stgs.client.config`.
 """
 
 from __future__ import annotations
@@ -31,11 +32,6 @@ import json
 import math
 import time
 import traceback
-from collections.abc import Callable
-from dataclasses import dataclass
-from pathlib import Path
-
-import torch
 
 from stgs.client.abr import Decision, UpcomingGOP, make_rule
 from stgs.client.clock import PlaybackClock
@@ -53,38 +49,19 @@ from stgs.client.fetchsteps import (
     Step,
     Wait,
 )
-from stgs.client.gopdecode import GOPDecoder, ReadyGOP
+from stgs.client.framepath import FrameHook, FramePath
+from stgs.client.gopdecode import GOPDecoder
 from stgs.client.manifest import Presentation
-from stgs.client.output import NullSink, open_sink
 from stgs.client.playlog import GOPRecord, playback_log
 from stgs.client.resources import check_decode_memory, frozen_heap, process_peak_rss_mb
 from stgs.client.schedule import FetchSchedule
 from stgs.client.threads import ThreadBudget, render_threads, usable_cores
 from stgs.client.urlpolicy import UrlPolicy
-from stgs.client.view import Trajectory, build_trajectory, parse_scene_cameras
-from stgs.codec.video import VideoError
+from stgs.client.view import parse_scene_cameras
 from stgs.fsio import atomic_write_bytes
 from stgs.limits import MAX_DOC_BYTES, MAX_MPD_BYTES
-from stgs.model.view import FrameRenderer
 from stgs.mpd import MPDError
 from stgs.tree import CAMERAS, STATS
-
-FrameHook = Callable[[int, int, FrameRenderer, list[torch.Tensor]], None]
-"""Called in the render thread after each rendered frame with (GOP, frame in the GOP, the GOP's renderer,
-the frame's feature window): what a caller needs to render the same frame from another camera."""
-
-
-@dataclass
-class FrameTiming:
-    """One rendered frame and where its time went (seconds)."""
-
-    image: torch.Tensor
-    start: float
-    """time.perf_counter() when the render began."""
-    wait_s: float
-    """Waiting for the frame's features (the decoder behind the renderer)."""
-    deform_s: float
-    splat_s: float
 
 
 def stats_gop(stats: object, k: int, rep_ids: list[str]) -> UpcomingGOP | None:
@@ -114,7 +91,7 @@ class Session:
                  cameras: list | None, on_frame: FrameHook | None = None, requested: float | None = None):
         """requested: time.perf_counter() of the playback's first request (the manifest's), for the log's
         time to first frame."""
-        self.cfg, self.pres, self.dl, self.stats, self.cameras, self.on_frame = cfg, pres, dl, stats, cameras, on_frame
+        self.cfg, self.pres, self.dl, self.stats = cfg, pres, dl, stats
         self.T = pres.segment_seconds
         self.G = pres.shape.gop_size
         if cfg.decode:
@@ -122,7 +99,6 @@ class Session:
                                 static_bytes=pres.static_layer_bytes())
         span = pres.span(cfg.start_s, cfg.duration_s, cfg.buffer_s)
         self.k0, self.frames, self.gops, self.capacity_s = span.first_gop, span.frames, span.gops, span.buffer_s
-        self.first_frame = self.k0 * self.G
         self.records = {k: GOPRecord(k) for k in self.gops}
         self.speed = cfg.speed
         self.t_start = self.now()
@@ -136,6 +112,8 @@ class Session:
         self.budget = ThreadBudget.for_cores(usable_cores(), cfg.render_threads, cfg.decode_threads)
         self.decoder = GOPDecoder(cfg, pres, self.schedule, self.records, self.budget, self.drive,
                                   self.t_start / self.speed)
+        self.frame_path = FramePath(cfg, pres, self.clock, self.records, self.gops, self.frames, self.decoder,
+                                    self.now, self.sleep, cameras, on_frame, self.t_start)
         if cfg.decode and cfg.ring_frames < pres.shape.window:
             raise PlaybackError(f"a ring of {cfg.ring_frames} feature frames cannot hold one frame's window of "
                                 f"{pres.shape.window}")
@@ -234,101 +212,6 @@ class Session:
                 ready[k].set_exception(exc)
                 return
 
-    # --- playing ---
-
-    def render(self, ready: ReadyGOP, i: int, camera, deadline: float | None) -> FrameTiming | None:
-        """Frame i of the GOP, once its features are decoded; None when they are not by `deadline` (seconds
-        on the playback clock; None: wait as long as it takes)."""
-        start = time.perf_counter()
-        timeout = None if deadline is None else max(0.0, (deadline - self.now()) / self.speed)
-        window = ready.features.window(i, self.decoder.window, timeout)
-        if window is None:
-            return None
-        got = time.perf_counter()
-        g = ready.renderer.gaussians(i, camera, window)
-        mid = time.perf_counter()
-        image = ready.renderer.splat(g, camera, guarded=ready.renderer.guarded).clamp_(0, 1)
-        timing = FrameTiming(image, start, got - start, mid - got, time.perf_counter() - mid)
-        if self.on_frame is not None:
-            self.on_frame(ready.index, i, ready.renderer, window)
-        return timing
-
-    async def render_frame(self, ready: ReadyGOP, i: int, camera, deadline: float | None) -> FrameTiming | None:
-        """render(), replacing a feature stream that breaks at frame i by the lowest rung's and trying again."""
-        while True:
-            try:
-                return await asyncio.to_thread(self.render, ready, i, camera, deadline)
-            except VideoError as exc:
-                await self.decoder.recover(ready, i, str(exc))
-
-    async def play_gop(self, ready: ReadyGOP, trajectory: Trajectory, sink) -> None:
-        k, rec, fps = ready.index, self.records[ready.index], self.pres.fps
-        gop_start = self.clock.due(k)
-        for i in range(self.G):
-            f = k * self.G + i
-            j = f - self.first_frame
-            if j >= self.frames:
-                break
-            rec.presented += 1
-            deadline = None
-            if self.cfg.realtime:
-                due = gop_start + i / fps
-                deadline = due + 1 / fps
-                now = self.now()
-                if now < due:
-                    await self.sleep(due - now)
-            frame = None
-            if ready.renderer is not None and (deadline is None or self.now() < deadline):
-                frame = await self.render_frame(ready, i, trajectory.camera(j), deadline)
-            if ready.features is not None:
-                ready.features.release(i + 1)  # drawn or dropped, its features are consumed
-            if frame is None:
-                if ready.renderer is not None:  # rendering (or its features) could not make the frame's slot
-                    rec.dropped += 1
-                    sink.repeat(f)
-                continue
-            rec.render_at_s.append(frame.start - self.decoder.epoch)
-            rec.wait_ms.append(frame.wait_s * 1e3)
-            rec.deform_ms.append(frame.deform_s * 1e3)
-            rec.splat_ms.append(frame.splat_s * 1e3)
-            rec.render_ms.append((frame.wait_s + frame.deform_s + frame.splat_s) * 1e3)
-            await asyncio.to_thread(sink.write, f, frame.image)
-        if self.cfg.realtime:  # the last frame stays on screen for its whole interval: GOP k ends at its due + T
-            end = gop_start + rec.presented / fps
-            if (delay := end - self.now()) > 0:
-                await self.sleep(delay)
-        ready.finish(rec, self.decoder.epoch)
-
-    async def wait_ready(self, k: int, fut: asyncio.Future) -> ReadyGOP:
-        rec = self.records[k]
-        arrived = self.now()
-        was_ready = fut.done()
-        result = await fut
-        ready = arrived if was_ready else self.now()
-        rec.boundary_wait_s = ready - (self.t_start if k == self.k0 else arrived)
-        rec.stall_s = self.clock.start(k, ready, arrived)
-        rec.play_start_s = self.clock.due(k) - self.t_start
-        return result
-
-    async def play_loop(self, ready: dict[int, asyncio.Future], slots: asyncio.Semaphore) -> None:
-        sink = NullSink()
-        try:
-            for k in self.gops:
-                gop = await self.wait_ready(k, ready[k])
-                if k == self.k0 and gop.renderer is not None:
-                    trajectory = build_trajectory(self.cfg.view, self.cameras, gop.renderer.model,
-                                                  self.turn_frames())
-                    sink = open_sink(self.cfg.out, self.pres.fps, *self._frame_size(trajectory))
-                elif k == self.k0:
-                    trajectory = None
-                await self.play_gop(gop, trajectory, sink)
-                del gop
-                slots.release()
-            sink.close()
-        except BaseException:  # an error here or in another task (cancelled): no half-written output
-            sink.abort()
-            raise
-
     async def run(self) -> dict:
         """Fetch, decode and play as three tasks of one task group: whatever ends one of them (an error the
         schedule could not recover from, or one nobody expected) cancels the others; the log is written either
@@ -343,9 +226,11 @@ class Session:
                 await self.run_tasks(downloaded, ready, slots)
         except BaseExceptionGroup as failed:
             error = playback_failure(failed)
+            self.frame_path.sink.abort()  # no half-written output
             raise error from None
         except BaseException as exc:  # cancelled from outside, interrupted
             error = exc
+            self.frame_path.sink.abort()
             raise
         finally:
             self.decoder.close()
@@ -362,18 +247,8 @@ class Session:
         async with asyncio.TaskGroup() as group:
             group.create_task(self.fetch_loop(downloaded))
             group.create_task(self.decode_loop(downloaded, ready, slots))
-            group.create_task(self.play_loop(ready, slots))
-
-    def turn_frames(self) -> int:
-        if self.cfg.view.orbit_seconds:
-            return max(1, round(self.cfg.view.orbit_seconds * self.pres.fps))
-        return self.frames
-
-    def _frame_size(self, trajectory: Trajectory) -> tuple[int, int]:
-        sizes = {(c.width, c.height) for c in trajectory.cameras}
-        if len(sizes) > 1 and self.cfg.out is not None and Path(self.cfg.out).suffix.lower() == ".mp4":
-            raise PlaybackError("an MP4 needs one image size; the camera path has several (use PNG output)")
-        return next(iter(sizes))
+            group.create_task(self.frame_path.render_loop(ready))
+            group.create_task(self.frame_path.present_loop(ready, slots))
 
     def summary(self, error: BaseException | None) -> dict:
         return playback_log([self.records[k] for k in self.gops], self.clock, url=self.cfg.url,
@@ -382,7 +257,8 @@ class Session:
                             error=error, gops_planned=len(self.gops),
                             extra={"realtime": self.cfg.realtime, "decode": self.cfg.decode,
                                    "threads": {"render": self.budget.render, "decode": self.budget.decode},
-                                   "ring_frames": self.cfg.ring_frames, "fps": self.pres.fps,
+                                   "ring_frames": self.cfg.ring_frames,
+                                   "render_ahead": self.cfg.render_ahead, "fps": self.pres.fps,
                                    "process_peak_rss_mb": process_peak_rss_mb(),
                                    "time_to_first_frame_s": None if self.clock.t0 is None else
                                    (self.clock.t0 / self.speed - self.requested) * self.speed,

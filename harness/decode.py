@@ -9,9 +9,10 @@ Mirrors stgs.client.gopdecode and stgs.codec.stream, real-time playback with ins
   for frame j - ring to be released; decoding ends after the last frame, or when the GOP's playback ends
   (the player closes its stream: the frame being decoded finishes, the rest is never decoded);
 - GOP k is ready when its first window (W frames) is decoded: it starts at max(its due time, ready);
-- frame m of the GOP is drawn in its slot [start + m/fps, start + (m+1)/fps) if its window (frames m …
-  m+W-1) is decoded before the slot ends, released when drawn; otherwise it is dropped and released at the
-  slot's end.
+- frame m of the GOP is drawn if its window (frames m … m+W-1) is decoded before its slot
+  [start + m/fps, start + (m+1)/fps) ends, released when drawn: once its window is decoded, the frame before
+  it released, and no earlier than `render_ahead` slots before its own (stgs.client.framepath); otherwise
+  it is dropped and released at the slot's end.
 
 With frame_s = 0 a GOP is simply ready keyframe_s after it can be decoded.
 """
@@ -21,9 +22,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from stgs.client.config import RENDER_AHEAD
 from stgs.errors import StgsError
 
-DECODE_KEYS = ("keyframe_ms", "frame_ms", "ring_frames", "static_ms")
+DECODE_KEYS = ("keyframe_ms", "frame_ms", "ring_frames", "render_ahead", "static_ms")
 
 
 @dataclass(frozen=True)
@@ -38,6 +40,10 @@ class DecodeSpec:
     bitrate)."""
     ring_frames: int = 8
     """The player's ring of feature frames (PlayConfig.ring_frames)."""
+    render_ahead: int = 0
+    """Frame slots the player may render a frame before its own (PlayConfig.render_ahead): its GOPs start that
+    many slots after they are ready at the start and after a stall. A [decode] table defaults to the player's
+    default; without one the simulated player neither decodes nor renders (0)."""
     static_ms: float = 0.0
     """A layered scene's static-layer decode, once (the log's static_decode_s): the first GOP's features start
     decoding once both its keyframe and the static layer are decoded, as in the player."""
@@ -73,8 +79,11 @@ def parse_decode(doc: object, where: str) -> DecodeSpec:
     ring = doc.get("ring_frames", 8)
     if isinstance(ring, bool) or not isinstance(ring, int) or ring < 1:
         raise StgsError(f"{where}: decode 'ring_frames' must be an integer >= 1, got {ring!r}")
+    ahead = doc.get("render_ahead", RENDER_AHEAD)
+    if isinstance(ahead, bool) or not isinstance(ahead, int) or ahead < 0:
+        raise StgsError(f"{where}: decode 'render_ahead' must be an integer >= 0, got {ahead!r}")
     static = _milliseconds(doc.get("static_ms", 0.0), "decode 'static_ms'", where)
-    return DecodeSpec(keyframe, frame, ring, static)
+    return DecodeSpec(keyframe, frame, ring, ahead, static)
 
 
 @dataclass(frozen=True)
@@ -96,6 +105,8 @@ class DecoderModel:
     """W: feature frames one frame reads."""
     gop_size: int
     fps: float
+    render_ahead: int = 0
+    """Frame slots a frame may be drawn (and its features released) before its own."""
     keyframe_free: float = 0.0
     """When the keyframe decoder is next free."""
     features_free: float = 0.0
@@ -150,5 +161,6 @@ class DecoderModel:
             slot_start, slot_end = start + i * period, start + (i + 1) * period
             # frame i's window is decoded already (i + W - 1 < j when the ring holds W)
             drawn = self._drawn(i, start, period, decoded)
-            released.append(max(slot_start, decoded[i + self.window - 1]) if drawn else slot_end)
+            earliest = max(slot_start - self.render_ahead * period, released[-1] if released else 0.0)
+            released.append(max(earliest, decoded[i + self.window - 1]) if drawn else slot_end)
         return released[m]

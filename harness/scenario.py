@@ -14,6 +14,7 @@ keyframe_ms = 120            # keyframe decode per GOP (`stgs play --log` measur
 frame_ms = 4.5               # feature frame decode + dequantise (decode_ms + dequantise_ms in the log)
 # frame_ms = { qp16 = 6.1, qp24 = 4.5, qp32 = 3.2 }  # or per Representation: decode cost follows the bitrate
 ring_frames = 8              # the player's ring of decoded feature frames
+render_ahead = 2             # frame slots the player may render a frame early (`stgs play --render-ahead`)
 
 [effects]                    # only the effects named here are simulated
 bandwidth = { kbps = 5000 }                          # constant

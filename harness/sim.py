@@ -76,7 +76,10 @@ class Simulation:
         g = pres.shape.gop_size
         for k, rec in self.records.items():
             rec.presented = min(g, frames - (k - self.k0) * g)
-        self.decoder = DecoderModel(scenario.decode.ring_frames, pres.shape.window, g, pres.fps)
+        self.decoder = DecoderModel(scenario.decode.ring_frames, pres.shape.window, g, pres.fps,
+                                    scenario.decode.render_ahead)
+        self.lead = scenario.decode.render_ahead / pres.fps
+        """The renderer's head start at the first GOP and after a stall (stgs.client.framepath)."""
         if scenario.decode.ring_frames < pres.shape.window:
             raise StgsError(f"{scenario.name}: a ring of {scenario.decode.ring_frames} feature frames cannot hold "
                             f"one frame's window of {pres.shape.window}")
@@ -99,11 +102,11 @@ class Simulation:
             keyframe_s, frame_s = self.decode_costs(k, rec)
             plan = self.decoder.plan(rec.fetch_end_s, slot, keyframe_s, frame_s, self.static_ready)
             ready = plan.ready
-            start = ready if self.clock.t0 is None else max(ready, self.clock.due(k))
-            if start > until:
+            arrived = ready if self.clock.t0 is None else self.clock.due(k)
+            if self.clock.start_time(k, ready, arrived, self.lead) > until:
                 return
             rec.boundary_wait_s = ready if self.clock.t0 is None else 0.0
-            rec.stall_s = self.clock.start(k, ready, ready if self.clock.t0 is None else self.clock.due(k))
+            rec.stall_s = self.clock.start(k, ready, arrived, self.lead)
             rec.play_start_s = self.clock.due(k)
             rec.dropped = min(rec.presented, self.decoder.start(plan, rec.play_start_s))
             rec.keyframe_decode_s, rec.feature_decode_s = keyframe_s, frame_s * self.decoder.features

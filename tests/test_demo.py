@@ -85,7 +85,8 @@ def test_bench_play_smoke(tmp_path):
     assert [r[3].strip() for r in rows] == ["20", "32"] * len(precisions) * 2  # as measured, then in the table
     assert [r[4].strip() for r in rows] == [p for p in precisions for _ in "ab"] * 2
     assert all(int(r[5]) >= 1 for r in rows)  # the player's decoder threads, as its log reports them
-    assert all(int(r[7]) == 8 for r in rows)  # every frame of the 2 GOPs x 4 frames was presented
-    mbits = [float(r[6]) for r in rows[:2]]
+    assert all(int(r[6]) == 2 for r in rows)  # the player's default render-ahead, as its log reports it
+    assert all(int(r[8]) == 8 for r in rows)  # every frame of the 2 GOPs x 4 frames was presented
+    mbits = [float(r[7]) for r in rows[:2]]
     assert mbits[0] > mbits[1] > 0
     assert "| 20 | fp32 |" in result.stdout  # the largest-scene table

@@ -223,3 +223,5 @@ async def test_the_play_command(scene, tmp_path):
             code, out, err = await _stgs("play", *args)
             lines = err.strip().splitlines()
             assert code == 2 and len(lines) == 1 and lines[0].startswith("stgs: ") and message in lines[0], err
+        code, out, err = await _stgs("play", url, "--render-ahead", "-1")  # argparse's usage, then the error
+        assert code == 2 and "argument --render-ahead: must be 0 or more: -1" in err.strip().splitlines()[-1]

@@ -10,10 +10,11 @@ import cv2
 import numpy as np
 import pytest
 
-from stgs.client import PlayConfig, play, player
+from stgs.client import PlayConfig, framepath, play
 from stgs.client.view import ViewSpec, parse_scene_cameras
 from stgs.codec.mp4 import set_timeline, split_fragmented
 from stgs.codec.video import VideoTiming, decode_segment, encode_gop
+from stgs.errors import FieldError
 from stgs.evaluate import packaged_gops
 from stgs.fsio import to_uint8
 from stgs.model.store import load_model
@@ -63,8 +64,9 @@ async def test_seeking_to_a_middle_gop_starts_with_its_first_frame(scene, tmp_pa
     assert_frames_equal_whole_decode(scene, scene / "dash", tmp_path / "f", 24, list(range(G, 3 * G)))
 
 
-async def test_a_slow_renderer_drops_frames_and_the_count_is_exact(scene, tmp_path, monkeypatch):
-    real = player.Session.render
+@pytest.mark.parametrize("ahead", [0, 2])
+async def test_a_slow_renderer_drops_frames_and_the_count_is_exact(scene, tmp_path, monkeypatch, ahead):
+    real = framepath.FramePath.render
     interval = 1 / SCENE.fps
 
     def slow(self, ready, i, camera, deadline):
@@ -72,15 +74,18 @@ async def test_a_slow_renderer_drops_frames_and_the_count_is_exact(scene, tmp_pa
         time.sleep(1.6 * interval)  # every rendered frame overruns its slot
         return frame
 
-    monkeypatch.setattr(player.Session, "render", slow)
+    monkeypatch.setattr(framepath.FramePath, "render", slow)
     async with serving(scene / "dash") as url:
         log = await play(PlayConfig(url, qp=32, realtime=True, view=CAM, out=tmp_path / "f", download=QUICK,
-                                    ring_frames=3))
+                                    ring_frames=3, render_ahead=ahead))
     rendered = sorted(int(p.stem) for p in (tmp_path / "f").glob("*.png"))
     frames = SCENE.num_gops * G
     assert log["frames"] == frames and log["rendered_frames"] == len(rendered)
     assert log["dropped_frames"] == frames - len(rendered)
-    assert frames / 4 <= log["dropped_frames"] <= frames * 3 / 4  # ~1 in 2.6 frames is dropped
+    if ahead == 0:  # each frame in its own slot: ~1 in 2.6 frames is dropped
+        assert frames / 4 <= log["dropped_frames"] <= frames * 3 / 4
+    else:  # a head start cannot make up for a renderer slower than real time all along
+        assert log["dropped_frames"] >= 2
     for gop in log["gops"]:
         assert gop["dropped"] + len(gop["render_ms"]) == G
         last = max(f % G for f in rendered if f // G == gop["index"])
@@ -88,6 +93,40 @@ async def test_a_slow_renderer_drops_frames_and_the_count_is_exact(scene, tmp_pa
     assert rendered[0] == 0  # the first frame of a GOP always has its slot
     # the frames drawn after drops have their own features: dropped frames' were consumed in order
     assert_frames_equal_whole_decode(scene, scene / "dash", tmp_path / "f", 32, rendered)
+
+
+@pytest.mark.parametrize("ahead", [0, 2])
+async def test_rendering_ahead_absorbs_a_slow_first_frame_per_gop(scene, tmp_path, monkeypatch, ahead):
+    """The first frame of every GOP takes 2.2 frame intervals, the others are fast: rendered in its own slot it
+    makes the next frame miss its slot, once per GOP; rendered up to two slots early it borrows the time the
+    fast frames left (and the first GOP starts two slots after it is ready, so it has that lead too)."""
+    real = framepath.FramePath.render
+    interval = 1 / SCENE.fps
+
+    def slow_first(self, ready, i, camera, deadline):
+        frame = real(self, ready, i, camera, deadline)
+        if i == 0:
+            time.sleep(2.2 * interval)
+        return frame
+
+    monkeypatch.setattr(framepath.FramePath, "render", slow_first)
+    async with serving(scene / "dash") as url:
+        log = await play(PlayConfig(url, qp=32, realtime=True, view=CAM, out=tmp_path / "f", download=QUICK,
+                                    render_ahead=ahead))
+    assert log["error"] is None and log["render_ahead"] == ahead and log["stalls"]["count"] == 0
+    rendered = sorted(int(p.stem) for p in (tmp_path / "f").glob("*.png"))
+    if ahead == 0:
+        assert [f for f in range(SCENE.num_gops * G) if f not in rendered] == [1, G + 1, 2 * G + 1]
+    else:
+        assert log["dropped_frames"] == 0 and rendered == list(range(SCENE.num_gops * G))
+        for gop in log["gops"][1:]:  # drawn before its slot: a GOP's first frame during the GOP before
+            assert gop["render_at_s"][0] < gop["play_start_s"] - interval
+    assert_frames_equal_whole_decode(scene, scene / "dash", tmp_path / "f", 32, rendered)
+
+
+def test_render_ahead_is_a_whole_number_of_slots():
+    with pytest.raises(FieldError, match="render_ahead"):
+        PlayConfig("http://127.0.0.1/manifest.mpd", render_ahead=-1).validate()
 
 
 def shortened(media: bytes, init: bytes, shape, fps: float, k: int, qp: int, keep: int) -> bytes:
