@@ -165,7 +165,7 @@ class FramePath:
             gop = await self.wait_ready(k, ready[k])
             await self.present_gop(gop)
             gop.finish(self.records[k], self.decoder.epoch)
-            del gop
+            del gop, ready[k]  # its model, keyframe and segment bytes go now, not at the playback's end
             slots.release()
         self.sink.close()
 

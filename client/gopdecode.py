@@ -106,6 +106,7 @@ class GOPDecoder:
         stream = FeatureStream(item.init + item.media, self.pres.shape.num_features, self.pres.grid_side,
                                kf.feature_ranges, self.cfg.ring_frames, self.budget.decode, first,
                                name=f"GOP {item.index} features")
+        self.streams = [s for s in self.streams if not s.finished]  # close() needs only the running ones
         self.streams.append(stream)
         return stream.start(after)
 

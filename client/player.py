@@ -206,6 +206,7 @@ class Session:
         for k in self.gops:
             try:
                 item = await downloaded[k]
+                del downloaded[k]  # the playback holds only the GOPs it has not finished with, however long
                 await slots.acquire()
                 ready[k].set_result(await self.decoder.decode(item))
             except PlaybackError as exc:

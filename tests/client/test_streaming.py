@@ -3,8 +3,10 @@ accounting in real time, seeking, and a feature segment that breaks mid-GOP."""
 
 from __future__ import annotations
 
+import gc
 import json
 import time
+import weakref
 
 import cv2
 import numpy as np
@@ -122,6 +124,24 @@ async def test_rendering_ahead_absorbs_a_slow_first_frame_per_gop(scene, tmp_pat
         for gop in log["gops"][1:]:  # drawn before its slot: a GOP's first frame during the GOP before
             assert gop["render_at_s"][0] < gop["play_start_s"] - interval
     assert_frames_equal_whole_decode(scene, scene / "dash", tmp_path / "f", 32, rendered)
+
+
+async def test_a_played_gop_is_let_go(scene):
+    """Memory does not grow with the playback's length: by the time GOP 2 plays, GOP 0's renderer (and the
+    model, feature stream and segment bytes that come with it) has been freed."""
+    renderers: dict[int, weakref.ref] = {}
+    alive: list[bool] = []
+
+    def probe(k, i, renderer, window):
+        renderers.setdefault(k, weakref.ref(renderer))
+        if k == 2 and i == G - 1:
+            gc.collect()
+            alive.append(renderers[0]() is not None)
+
+    async with serving(scene / "dash") as url:
+        log = await play(PlayConfig(url, qp=32, view=CAM, download=QUICK), on_frame=probe)
+    assert log["error"] is None and len(renderers) == SCENE.num_gops == 3
+    assert alive == [False]
 
 
 def test_render_ahead_is_a_whole_number_of_slots():
