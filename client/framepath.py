@@ -13,10 +13,10 @@ Two asyncio tasks share the Session's clock and records:
   repeats the last; GOP k ends when its last frame's interval does.
 
 Rendering ahead lets a frame slower than a slot borrow the time the frames before it did not use: the first
-frames of a GOP share the cores with the next GOP's keyframe decode and take twice as long as the others
-(docs/BENCHMARKS.md, "Real-time playback"). The price is latency: a frame is rendered from the camera of its
-own time, up to `render_ahead` intervals before it is shown, which matters only where the camera follows a
-viewer's input.
+frames of a GOP share the cores with the keyframe decode of the GOP after next and take twice as long as
+the others (docs/BENCHMARKS.md, "Real-time playback"). The price is latency: a frame is rendered from the
+camera of its own time, up to `render_ahead` intervals before it is shown, which matters only where the
+camera follows a viewer's input.
 """
 
 from __future__ import annotations
