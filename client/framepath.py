@@ -66,7 +66,7 @@ class FramePath:
                  t_start: float):
         """gops: the GOPs played, in order; frames: how many frames are played from the first GOP's first;
         now, sleep: the playback clock (media seconds); t_start: now() when the playback began."""
-        self.cfg, self.pres, self.clock, self.records, self.gops = cfg, pres, clock, records, gops
+        self.cfg, self.clock, self.records, self.gops = cfg, clock, records, gops
         self.decoder, self.now, self.sleep, self.cameras, self.on_frame = decoder, now, sleep, cameras, on_frame
         self.t_start, self.frames = t_start, frames
         self.G, self.fps = pres.shape.gop_size, pres.fps

@@ -93,7 +93,6 @@ class Session:
         time to first frame."""
         self.cfg, self.pres, self.dl, self.stats = cfg, pres, dl, stats
         self.T = pres.segment_seconds
-        self.G = pres.shape.gop_size
         if cfg.decode:
             check_decode_memory(pres.decoded_gop_bytes(cfg.ring_frames), cfg.max_decoded,
                                 static_bytes=pres.static_layer_bytes())
@@ -227,13 +226,13 @@ class Session:
                 await self.run_tasks(downloaded, ready, slots)
         except BaseExceptionGroup as failed:
             error = playback_failure(failed)
-            self.frame_path.sink.abort()  # no half-written output
             raise error from None
         except BaseException as exc:  # cancelled from outside, interrupted
             error = exc
-            self.frame_path.sink.abort()
             raise
         finally:
+            if error is not None:
+                self.frame_path.sink.abort()  # no half-written output
             self.decoder.close()
             for fut in [*downloaded.values(), *ready.values()]:
                 if fut.done() and not fut.cancelled():
