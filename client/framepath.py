@@ -130,9 +130,9 @@ class FramePath:
         if window is None:
             return None
         got = time.perf_counter()
-        g = ready.renderer.gaussians(i, camera, window)
+        g = ready.renderer.dynamic_gaussians(i, camera, window)
         mid = time.perf_counter()
-        image = ready.renderer.splat(g, camera, guarded=ready.renderer.guarded).clamp_(0, 1)
+        image = ready.renderer.draw(g, camera).clamp_(0, 1)
         timing = FrameTiming(image, start, got - start, mid - got, time.perf_counter() - mid)
         if self.on_frame is not None:
             self.on_frame(ready.index, i, ready.renderer, window)

@@ -25,8 +25,7 @@ from stgs.client.threads import ThreadBudget
 from stgs.codec.keyframe import Keyframe, KeyframeError, decode_keyframe
 from stgs.codec.static import StaticSegmentError, decode_static
 from stgs.codec.stream import FeatureStream
-from stgs.model.static import StaticLayer
-from stgs.model.view import FrameRenderer
+from stgs.model.view import FrameRenderer, StaticDrawer
 
 
 @dataclass
@@ -73,16 +72,17 @@ class GOPDecoder:
             return
         static = self.pres.static
 
-        def decode() -> StaticLayer:
+        def decode() -> StaticDrawer:
             start = time.perf_counter()
             layer = decode_static(data, static.capacity, static.sh_degree, self.pres.max_static_bytes())
             rec.static_decode_s = time.perf_counter() - start
-            return layer
+            return StaticDrawer(layer)  # one for every GOP's renderer: a still camera keeps the layer
 
         self._static = asyncio.create_task(asyncio.to_thread(decode))
 
-    async def static_layer(self) -> StaticLayer | None:
-        """The decoded static layer (None in format 1); PlaybackError if its segment does not decode."""
+    async def static_layer(self) -> StaticDrawer | None:
+        """The decoded static layer's drawer (None in format 1); PlaybackError if its segment does not
+        decode."""
         if self._static is None:
             return None
         try:

@@ -15,6 +15,8 @@ is the model's drawing rule, as frustum culling is in other 3DGS renderers
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 
 from stgs.camera import Camera, orbit
@@ -22,6 +24,9 @@ from stgs.model.gop import Gaussians, GOPModel
 from stgs.model.static import StaticLayer, merge
 from stgs.native.build import available
 from stgs.render import Backend, rasterize
+
+if TYPE_CHECKING:
+    from stgs.render.fixed import FixedLayerView
 
 GUARD_BAND = 1.3
 """A Gaussian is drawn only when its mean projects within this many times the image's half-extent
@@ -71,19 +76,57 @@ def camera_key(camera: Camera) -> tuple:
     return (camera.viewmat.numpy().tobytes(), camera.K.numpy().tobytes(), camera.width, camera.height)
 
 
+class StaticDrawer:
+    """A scene's static layer as its GOPs' renderers draw it. Kept for the last camera: its per-view work
+    (activation, view-dependent colour, guard band); natively, once a camera and background have been drawn
+    twice in a row, its projection, tile lists and image alone (stgs.render.fixed), so that a frame composites
+    only the tiles the dynamic layer reaches. A player gives one drawer to every GOP's renderer, so a still
+    camera keeps the layer across GOP boundaries."""
+
+    def __init__(self, layer: StaticLayer):
+        self.layer = layer
+        self._view: tuple[tuple, Gaussians] | None = None
+        self._kept: tuple[tuple, FixedLayerView | None] | None = None
+        """(camera and background, the layer kept for them from their second frame in a row on)."""
+
+    def gaussians(self, camera: Camera) -> Gaussians:
+        """The static layer as `camera` draws it (always guarded), reused while the camera does not move."""
+        key = camera_key(camera)
+        if self._view is None or self._view[0] != key:
+            self._view = (key, static_view(self.layer, camera))
+        return self._view[1]
+
+    def kept_view(self, camera: Camera, background: torch.Tensor) -> FixedLayerView | None:
+        """The layer kept for this camera and (float32) background, or None on the first frame of a pair (the
+        caller splats both layers as usual: a camera that moves every frame never pays for a kept layer)."""
+        key = (camera_key(camera), background.numpy().tobytes())
+        if self._kept is None or self._kept[0] != key:
+            self._kept = (key, None)
+            return None
+        if self._kept[1] is None:
+            from stgs.render.fixed import FixedLayerView
+
+            s = self.gaussians(camera)
+            self._kept = (key, FixedLayerView(s.means, s.quats, s.scales, s.opacities, s.colors,
+                                              camera.viewmat.float(), camera.K.float(), camera.width,
+                                              camera.height, background))
+        return self._kept[1]
+
+
 class FrameRenderer:
     """Renders frames of one GOP (and the scene's static layer, if any), using the native deform and splat
-    when they are built. Only the dynamic layer is deformed; the static layer's per-view work (activation,
-    view-dependent colour, guard band) is kept for the last camera and reused while the camera stays put."""
+    when they are built. Only the dynamic layer is deformed; the static layer is drawn through a
+    StaticDrawer, which keeps its per-view work while the camera stays put."""
 
     def __init__(self, model: GOPModel, native: bool | None = None, precision: str = "fp32",
-                 static: StaticLayer | None = None):
-        """precision: arithmetic of the native deformation ("fp32" or "bf16", an accuracy knob)."""
+                 static: StaticLayer | StaticDrawer | None = None):
+        """precision: arithmetic of the native deformation ("fp32" or "bf16", an accuracy knob); static: the
+        scene's static layer, or a drawer of it shared with the other GOPs' renderers."""
         self.model = model
-        self.static = static
+        self.static_drawer = StaticDrawer(static) if isinstance(static, StaticLayer) else static
+        self.static = self.static_drawer.layer if self.static_drawer is not None else None
         self.native = available() if native is None else native
         self.precision = precision
-        self._static_view: tuple[tuple, Gaussians] | None = None
         self._weights = None
         if self.native:
             from stgs.model.native_deform import PackedWeights, check_precision
@@ -115,12 +158,7 @@ class FrameRenderer:
 
     def static_gaussians(self, camera: Camera) -> Gaussians | None:
         """The static layer as `camera` draws it (always guarded), reused while the camera does not move."""
-        if self.static is None:
-            return None
-        key = camera_key(camera)
-        if self._static_view is None or self._static_view[0] != key:
-            self._static_view = (key, static_view(self.static, camera))
-        return self._static_view[1]
+        return None if self.static_drawer is None else self.static_drawer.gaussians(camera)
 
     @property
     def guarded(self) -> bool:
@@ -131,7 +169,20 @@ class FrameRenderer:
     def render(self, frame: int, camera: Camera, background: torch.Tensor | None = None,
                window: list[torch.Tensor] | None = None) -> torch.Tensor:
         """(H, W, 3) float32 image of `frame` from `camera`."""
-        return self.splat(self.gaussians(frame, camera, window), camera, background, guarded=self.guarded)
+        return self.draw(self.dynamic_gaussians(frame, camera, window), camera, background)
+
+    @torch.no_grad()
+    def draw(self, dynamic: Gaussians, camera: Camera, background: torch.Tensor | None = None) -> torch.Tensor:
+        """(H, W, 3) float32 image of the static layer (if any) and `dynamic` (from `dynamic_gaussians` of this
+        camera) in one splat; natively, from the second frame of a still camera on, with the static layer kept
+        (StaticDrawer.kept_view: the same pixels)."""
+        drawer = self.static_drawer
+        if drawer is not None and self.native:
+            bg = torch.zeros(3) if background is None else background.detach().float()
+            if (kept := drawer.kept_view(camera, bg)) is not None:
+                return kept.draw(dynamic.means, dynamic.quats, dynamic.scales, dynamic.opacities, dynamic.colors)
+        g = dynamic if drawer is None else merge(drawer.gaussians(camera), dynamic)
+        return self.splat(g, camera, background, guarded=self.guarded)
 
     @torch.no_grad()
     def splat(self, g: Gaussians, camera: Camera, background: torch.Tensor | None = None,

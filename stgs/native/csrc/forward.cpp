@@ -233,6 +233,11 @@ constexpr auto kRenderTile = render_tile;
 #endif  // __AVX512F__
 
 }  // namespace
+
+void render_tile_infer(const RasterCtx& ctx, int tile, const float* bg, float* out) {
+  kRenderTile(ctx, tile, bg, out, nullptr, nullptr);
+}
+
 }  // namespace stgs::splat
 
 using namespace stgs::splat;

@@ -89,6 +89,10 @@ void bin_gaussians(RasterCtx& ctx, int64_t n, const float* xy, const float* coni
                    const float* color, const float* depth, const float* extent, int width, int height,
                    int nthreads);
 
+// Composites one tile without the backward pass's bookkeeping (forward.cpp: the CPU's fastest
+// inference kernel).
+void render_tile_infer(const RasterCtx& ctx, int tile, const float* bg, float* out);
+
 // -0.5 q of the Gaussian at a pixel offset; q >= 0 up to rounding, which callers clip.
 inline float raw_power(const Splat& s, float dx, float dy) {
   return -0.5f * (s.a * dx * dx + 2.0f * s.b * dx * dy + s.c * dy * dy);

@@ -55,6 +55,22 @@ void stgs_raster_backward(void* handle, int64_t n, const float* bg, const float*
 // (tile, Gaussian) pairs the context binned: a cost statistic.
 int64_t stgs_raster_pairs(void* handle);
 
+// A layer kept for the frames of one camera (kept.cpp): bins n Gaussians and renders them
+// alone into out (height, width, 3) over bg, as stgs_raster_forward does, and returns what
+// stgs_raster_over reuses (free it with stgs_raster_kept_free). Not for two threads at once.
+void* stgs_raster_keep(int64_t n, const float* xy, const float* conic, const float* opac,
+                       const float* color, const float* depth, const float* extent, const float* bg,
+                       int width, int height, float* out, int nthreads);
+
+// The image stgs_raster_forward makes of the kept layer's Gaussians followed by these n, into
+// out: only these are binned; each tile one of them reaches gets both lists merged front to
+// back and is composited, the others are copied from the kept image. Returns the tiles copied.
+int64_t stgs_raster_over(void* kept, int64_t n, const float* xy, const float* conic, const float* opac,
+                         const float* color, const float* depth, const float* extent, float* out,
+                         int nthreads);
+
+void stgs_raster_kept_free(void* kept);
+
 void stgs_raster_free(void* handle);
 
 // --- deformation (deform.cpp, deform_bf16.cpp) ---
