@@ -126,3 +126,22 @@ def test_a_shared_drawer_keeps_the_static_layer_across_gops():
         assert torch.equal(image, renderer.splat(renderer.gaussians(1, cam), cam, guarded=True))
         kept.append(drawer._kept[1])
     assert kept[0] is None and kept[1] is not None and kept[1] is kept[2] is kept[3]
+
+
+def test_the_static_tiles_benchmark_times_equal_images(tmp_path):
+    """bench.static_tiles on a small layered model dir: one row, the kept layer's images checked against one
+    splat of both layers on every timed frame (a difference ends the benchmark)."""
+    import json
+
+    from bench.static_tiles import measure
+    from stgs.model.store import save_model
+
+    save_model(tmp_path, [random_model(n=36, gop_size=4, seed=2)], 30.0, static=random_static(400, seed=1))
+    cam = Camera("a", intrinsics(80, 60, 60.0), look_at((0.0, 0.3, -2.5), (0.0, 0.0, 0.0)), 80, 60)
+    (tmp_path / "gt").mkdir()
+    (tmp_path / "gt" / "cameras.json").write_text(json.dumps({"cameras": [cam.to_json()]}))
+    (row,) = measure(tmp_path, frames=3, rounds=2)
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[:3] == [tmp_path.name, "400 + 36", "fp32"] and len(cells) == 11
+    assert 0 <= float(cells[3].rstrip(" %")) <= 100
+    assert all(float(c) > 0 for c in cells[4:7] + cells[8:])

@@ -71,6 +71,7 @@ void* stgs_raster_keep(int64_t n, const float* xy, const float* conic, const flo
   auto* kl = new KeptLayer();
   RasterCtx& layer = kl->layer;
   bin_gaussians(layer, n, xy, conic, opac, color, depth, extent, width, height, nthreads);
+  layer.scratch = Scratch{};  // the sort's buffers: not needed again
   const int tiles = layer.tiles_x * layer.tiles_y;
 #pragma omp parallel for num_threads(nthreads) schedule(dynamic, 1)
   for (int t = 0; t < tiles; ++t) render_tile_infer(layer, t, bg, out);
