@@ -49,7 +49,7 @@ def timed(fn) -> tuple[float, torch.Tensor]:
 
 def orbit_step(cam: Camera, i: int) -> Camera:
     """cam turned by i small steps about its look-at axis (a new pose every frame)."""
-    eye = -cam.viewmat[:3, :3].T.double() @ cam.viewmat[:3, 3].double()
+    eye = cam.center.double()
     angle = torch.tensor(0.002 * i, dtype=torch.float64)
     rot = torch.tensor([[torch.cos(angle), 0, torch.sin(angle)], [0, 1, 0], [-torch.sin(angle), 0, torch.cos(angle)]],
                        dtype=torch.float64)

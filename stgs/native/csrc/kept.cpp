@@ -20,12 +20,15 @@ namespace stgs::splat {
 namespace {
 
 struct KeptLayer {
-  RasterCtx layer;                // the kept Gaussians' records and tile lists
+  int32_t count = 0;              // kept Gaussians: the moving ones' ids start here
+  RasterCtx layer;                // the kept Gaussians' tile lists (their records moved into merged)
   std::vector<uint32_t> keys;     // their depths' bit patterns (the binning's sort keys)
   std::vector<float> image, bg;   // their image alone, and its background
   RasterCtx merged;               // records of both layers (the kept ones written once), merged lists
-  std::vector<uint8_t> touched;   // per tile: a moving Gaussian reaches it
 };
+
+// Whether a moving Gaussian reaches tile t.
+bool reached(const RasterCtx& moving, int t) { return moving.tile_start[t + 1] > moving.tile_start[t]; }
 
 uint32_t key_of(const float* depth, int64_t i) {
   uint32_t key;
@@ -35,7 +38,7 @@ uint32_t key_of(const float* depth, int64_t i) {
 
 // Merges tile t's kept list and moving list (moving ids offset by the kept count) into out.
 void merge_lists(const KeptLayer& kl, const RasterCtx& moving, const float* depth, int t, int32_t* out) {
-  const int32_t offset = int32_t(kl.layer.splats.size());
+  const int32_t offset = kl.count;
   const int32_t* a = kl.layer.ids.data() + kl.layer.tile_start[t];
   const int32_t* const a_end = kl.layer.ids.data() + kl.layer.tile_start[t + 1];
   const int32_t* b = moving.ids.data() + moving.tile_start[t];
@@ -84,9 +87,9 @@ void* stgs_raster_keep(int64_t n, const float* xy, const float* conic, const flo
   merged.height = height;
   merged.tiles_x = layer.tiles_x;
   merged.tiles_y = layer.tiles_y;
-  merged.splats = layer.splats;
+  merged.splats = std::move(layer.splats);
   merged.tile_start.assign(tiles + 1, 0);
-  kl->touched.assign(tiles, 0);
+  kl->count = int32_t(n);
   return kl;
 }
 
@@ -97,15 +100,14 @@ int64_t stgs_raster_over(void* kept, int64_t n, const float* xy, const float* co
   RasterCtx& merged = kl->merged;
   RasterCtx* moving = acquire_ctx();
   bin_gaussians(*moving, n, xy, conic, opac, color, depth, extent, merged.width, merged.height, nthreads);
-  const int64_t n_kept = int64_t(kl->layer.splats.size());
+  const int64_t n_kept = kl->count;
   merged.splats.resize(n_kept + n);
   std::copy(moving->splats.begin(), moving->splats.end(), merged.splats.begin() + n_kept);
   const int tiles = merged.tiles_x * merged.tiles_y;
   int64_t total = 0, reused = 0;
   for (int t = 0; t < tiles; ++t) {  // only reached tiles get a (merged) list
     merged.tile_start[t] = total;
-    kl->touched[t] = moving->tile_start[t + 1] > moving->tile_start[t];
-    if (kl->touched[t])
+    if (reached(*moving, t))
       total += kl->layer.tile_start[t + 1] - kl->layer.tile_start[t] + moving->tile_start[t + 1] -
                moving->tile_start[t];
     else
@@ -115,7 +117,7 @@ int64_t stgs_raster_over(void* kept, int64_t n, const float* xy, const float* co
   merged.ids.resize(total);
 #pragma omp parallel for num_threads(nthreads) schedule(dynamic, 1)
   for (int t = 0; t < tiles; ++t) {
-    if (kl->touched[t]) {
+    if (reached(*moving, t)) {
       merge_lists(*kl, *moving, depth, t, merged.ids.data() + merged.tile_start[t]);
       render_tile_infer(merged, t, kl->bg.data(), out);
     } else {
