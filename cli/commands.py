@@ -83,6 +83,9 @@ def add_synth(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--height", type=_positive_int, help="ground-truth image height")
     p.add_argument("--cameras", type=_positive_int, dest="num_cameras", help="ground-truth cameras")
     p.add_argument("--fit-steps", type=int, help="Adam steps of the parameter fit per GOP")
+    p.add_argument("--feature-smoothness", type=float,
+                   help="weight of the fit's feature roughness term, grid and time neighbours (default 0.3; "
+                   "0: off, noise-like features that cost several times the bits)")
     p.add_argument("--seed", type=int, help="random seed")
     p.add_argument("--effects", type=_effects,
                    help=f"comma-separated effects to simulate (known: {','.join(EFFECTS)}; static_background "
@@ -567,6 +570,8 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", default="25,50,100,200,400,800",
                    help="synth: comma-separated fit steps per GOP (default: 25,50,100,200,400,800)")
     p.add_argument("--preset", default="small", help="synth: SynthConfig preset (default: small)")
+    p.add_argument("--smoothness", help="synth: comma-separated feature smoothness weights to compare in feature "
+                   "bits and decode time per QP of --qps, instead of the fit-steps table")
     p.add_argument("--qps", default="16,20,24,28,32", help="pack, play: QPs (default: 16,20,24,28,32)")
     p.add_argument("--presets", default="ultrafast,veryfast,medium,slow",
                    help="pack: x265 presets (default: ultrafast,veryfast,medium,slow)")
@@ -589,6 +594,18 @@ def _int_list(text: str, option: str) -> list[int]:
         raise UsageError(f"{option} must be comma-separated integers, got {text!r}") from None
     if not values or min(values) < 0:
         raise UsageError(f"{option} must list non-negative integers, got {text!r}")
+    return values
+
+
+def _float_list(text: str | None, option: str) -> list[float]:
+    if not text:
+        return []
+    try:
+        values = [float(s) for s in text.split(",") if s]
+    except ValueError:
+        raise UsageError(f"{option} must be comma-separated numbers, got {text!r}") from None
+    if not all(0 <= v < 1e6 for v in values):
+        raise UsageError(f"{option} must list numbers in [0, 1e6), got {text!r}")
     return values
 
 
@@ -635,7 +652,8 @@ def run_bench(args: argparse.Namespace) -> int:
     if args.suite == "synth":
         if args.preset not in PRESETS:
             raise UsageError(f"--preset must be one of {', '.join(sorted(PRESETS))}")
-        return suite.main(_int_list(args.steps, "--steps"), args.preset)
+        return suite.main(_int_list(args.steps, "--steps"), args.preset, _float_list(args.smoothness, "--smoothness"),
+                          _int_list(args.qps, "--qps"))
     return suite.main(_int_list(args.sizes, "--sizes"), args.width, args.height, args.repeats, args.reference_max)
 
 

@@ -24,7 +24,10 @@ def test_every_subcommand_has_help():
     (["synth", "OUT", "--effects", "rigid,explode"], "unknown effect(s) ['explode']"),
     (["synth", "OUT", "--config", "missing.toml"], "cannot read synth config"),
     (["synth", "OUT", "--grid-side", "2"], "grid_side must be >= 4"),
+    (["synth", "OUT", "--feature-smoothness", "-1"], "feature_smoothness must be in [0, 1e6)"),
     (["bench", "render", "--sizes", "12,abc"], "--sizes must be comma-separated integers"),
+    (["bench", "synth", "--smoothness", "0,x"], "--smoothness must be comma-separated numbers"),
+    (["bench", "synth", "--smoothness", "nan"], "--smoothness must list numbers in [0, 1e6)"),
     (["train", "DATA", "OUT", "--position-lr", "0"], "lr.position must be a positive number"),
     (["train", "DATA", "OUT", "--position-lr", "inf"], "lr.position must be a positive number"),
 ])

@@ -71,6 +71,8 @@ class SynthConfig:
     """S_s of the static layer (the backdrop's S_s² Gaussians) when static_background is on."""
     fit_steps: int = 300
     """Adam steps of the parameter-space fit per GOP."""
+    feature_smoothness: float = 0.3
+    """Weight of the fit's feature roughness term (grid and time neighbours; 0: off): fewer feature bits."""
     seed: int = 0
     """Seed of the scene layout and the fit."""
     fidelity_stride: int = 5
@@ -88,6 +90,7 @@ class SynthConfig:
                    "width and height must be in 8..4096"),
                   (self.num_cameras >= 1, "num_cameras must be >= 1"),
                   (self.fit_steps >= 0, "fit_steps must be >= 0"),
+                  (0 <= self.feature_smoothness < 1e6, "feature_smoothness must be in [0, 1e6)"),
                   (self.fidelity_stride >= 1, "fidelity_stride must be >= 1"),
                   (self.static_grid_side >= 4, "static_grid_side must be >= 4")]
         for ok, message in checks:
@@ -267,7 +270,8 @@ def synthesize(cfg: SynthConfig, out: Path, progress: bool = True) -> SynthRepor
         for k in tqdm(range(cfg.num_gops), desc="fit GOPs", unit="gop", disable=not progress):
             start = time.perf_counter()
             times = [(k * cfg.gop_size + i) / cfg.fps for i in range(cfg.gop_size)]
-            result = fit_gop(fit_scene, times, shape, cfg.fit_steps, seed=cfg.seed + k)
+            result = fit_gop(fit_scene, times, shape, cfg.fit_steps, seed=cfg.seed + k,
+                             smoothness=cfg.feature_smoothness)
             gops.append(result.model)
             report.fit.append({"gop": k, "position_rmse": result.position_rmse,
                                "color_rmse": result.color_rmse,

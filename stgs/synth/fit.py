@@ -1,10 +1,16 @@
 """Fit a GOP model to the procedural truth in parameter space (no rendering involved).
 
 The canonical Gaussians are the truth at the GOP's first frame (opacity: its
-maximum over the GOP, so fading is a negative ΔO). Temporal features and the
-deformation field are then optimised with Adam so that deform(i, camera)
-reproduces the true attributes of every frame, the view-dependent colour
-sampled from random camera centres around the scene.
+maximum over the GOP, so fading is a negative ΔO). Temporal features (from
+zero) and the deformation field are then optimised with Adam so that
+deform(i, camera) reproduces the true attributes of every frame, the
+view-dependent colour sampled from random camera centres around the scene.
+
+Like the trainer (temporal and grid regularisers), the fit penalises features
+that differ between grid neighbours and between consecutive frames: without
+it Adam leaves noise-like features that the feature video spends about four
+bits per sample on, at no gain in fidelity (docs/BENCHMARKS.md, "Smooth
+features").
 """
 
 from __future__ import annotations
@@ -42,7 +48,7 @@ def _targets(model: GOPModel, truths: list[TruthFrame]) -> dict[str, torch.Tenso
     }
 
 
-def _init_canonical(model: GOPModel, truths: list[TruthFrame], gen: torch.Generator) -> None:
+def _init_canonical(model: GOPModel, truths: list[TruthFrame]) -> None:
     first = truths[0]
     peak = torch.stack([t.opacities for t in truths]).amax(0)
     with torch.no_grad():
@@ -51,7 +57,7 @@ def _init_canonical(model: GOPModel, truths: list[TruthFrame], gen: torch.Genera
         model.rotation.copy_(first.quats)
         model.opacity_logit.copy_(torch.logit(peak.clamp(1e-6, 1 - 1e-6)))
         model.color.copy_(first.base_colors)
-        model.features.normal_(0.0, 0.05, generator=gen)
+        model.features.zero_()
 
 
 def _predict(model: GOPModel, frames: torch.Tensor, idx: torch.Tensor, centers: torch.Tensor):
@@ -79,16 +85,33 @@ def random_centers(count: int, gen: torch.Generator, radius: float = 3.2) -> tor
     return torch.stack([radius * torch.sin(phi), height, radius * torch.cos(phi)], -1)
 
 
+def feature_roughness(features: torch.Tensor, side: int, anchors: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean squared difference of (E, S², C) features between each anchor slot (default: every slot) and its
+    right and lower neighbours on the S x S grid (a slot on the last column or row is its own neighbour
+    there), halved, plus between consecutive feature frames of the anchors. A random sample of anchors gives
+    an unbiased estimate at a fraction of the cost (the fit samples the same slots as its data term)."""
+    if anchors is None:
+        anchors = torch.arange(features.shape[1])
+    x, y = anchors % side, anchors // side
+    right = torch.where(x < side - 1, anchors + 1, anchors)
+    lower = torch.where(y < side - 1, anchors + side, anchors)
+    own, right, lower = features[:, torch.cat([anchors, right, lower])].chunk(3, dim=1)  # one gather, one scatter
+    spatial = ((right - own).square().mean() + (lower - own).square().mean()) / 2
+    if features.shape[0] < 2:
+        return spatial
+    return spatial + (own[1:] - own[:-1]).square().mean()
+
+
 def fit_gop(scene: ProceduralScene | FoldedScene, times: list[float], shape: GOPShape, steps: int,
-            seed: int = 0) -> FitResult:
-    """Fit one GOP to the truth at `times` (one per GOP frame)."""
+            seed: int = 0, smoothness: float = 0.0) -> FitResult:
+    """Fit one GOP to the truth at `times` (one per GOP frame); `smoothness` weighs feature_roughness."""
     if len(times) != shape.gop_size:
         raise ValueError("fit_gop: need one time per GOP frame")
     gen = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
     model = GOPModel(shape)
     truths = [scene.at(t) for t in times]
-    _init_canonical(model, truths, gen)
+    _init_canonical(model, truths)
     targets = _targets(model, truths)
     opt = torch.optim.Adam([{"params": [model.features], "lr": 2e-2},
                             {"params": model.field.parameters(), "lr": 4e-3}])
@@ -108,6 +131,8 @@ def fit_gop(scene: ProceduralScene | FoldedScene, times: list[float], shape: GOP
                 + 10 * (d_q - targets["dq"][frames][:, idx]).square().mean()
                 + 10 * (opac - targets["opacity"][frames][:, idx]).square().mean()
                 + 10 * (color - true_color).square().mean())
+        if smoothness > 0:
+            loss = loss + smoothness * feature_roughness(model.features, shape.grid_side, idx)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
