@@ -85,13 +85,55 @@ def random_centers(count: int, gen: torch.Generator, radius: float = 3.2) -> tor
     return torch.stack([radius * torch.sin(phi), height, radius * torch.cos(phi)], -1)
 
 
+class _GridRoughness(torch.autograd.Function):
+    """feature_roughness over every slot, its gradient written directly (a discrete Laplacian): about a
+    tenth of the time of the gathered version and a third of the same expression left to autograd."""
+
+    @staticmethod
+    def forward(ctx, features: torch.Tensor, side: int) -> torch.Tensor:
+        frames = features.shape[0]
+        grid = features.reshape(frames, side, side, -1)
+        right = grid[:, :, 1:] - grid[:, :, :-1]
+        lower = grid[:, 1:] - grid[:, :-1]
+        later = features[1:] - features[:-1]
+        ctx.save_for_backward(right, lower, later)
+        ctx.side = side
+        spatial = (_squared_norm(right) + _squared_norm(lower)) / (2 * features.numel())
+        return spatial + _squared_norm(later) / later.numel() if frames > 1 else spatial
+
+    @staticmethod
+    def backward(ctx, grad_out: torch.Tensor) -> tuple[torch.Tensor, None]:
+        right, lower, later = ctx.saved_tensors
+        frames, side = right.shape[0], ctx.side
+        grad = torch.zeros(frames, side, side, right.shape[-1], dtype=right.dtype)
+        spatial = right.new_tensor(1.0 / grad.numel()) * grad_out
+        for diff, head, tail in ((right * spatial, grad[:, :, 1:], grad[:, :, :-1]),
+                                 (lower * spatial, grad[:, 1:], grad[:, :-1])):
+            head += diff
+            tail -= diff
+        grad = grad.reshape(frames, side * side, -1)
+        if frames > 1:
+            temporal = later * (grad_out * (2.0 / later.numel()))
+            grad[1:] += temporal
+            grad[:-1] -= temporal
+        return grad, None
+
+
+def _squared_norm(t: torch.Tensor) -> torch.Tensor:
+    flat = t.reshape(-1)
+    return torch.dot(flat, flat)
+
+
 def feature_roughness(features: torch.Tensor, side: int, anchors: torch.Tensor | None = None) -> torch.Tensor:
     """Mean squared difference of (E, S², C) features between each anchor slot (default: every slot) and its
     right and lower neighbours on the S x S grid (a slot on the last column or row is its own neighbour
     there), halved, plus between consecutive feature frames of the anchors. A random sample of anchors gives
-    an unbiased estimate at a fraction of the cost (the fit samples the same slots as its data term)."""
+    an unbiased estimate at a fraction of the cost on large grids (the fit samples the same slots as its
+    data term); every slot (None) takes slices instead of a gather."""
+    if features.shape[1] != side * side:
+        raise ValueError(f"feature_roughness: {features.shape[1]} slots are not a {side} x {side} grid")
     if anchors is None:
-        anchors = torch.arange(features.shape[1])
+        return _GridRoughness.apply(features, side)
     x, y = anchors % side, anchors // side
     right = torch.where(x < side - 1, anchors + 1, anchors)
     lower = torch.where(y < side - 1, anchors + side, anchors)
@@ -119,6 +161,7 @@ def fit_gop(scene: ProceduralScene | FoldedScene, times: list[float], shape: GOP
     n, g = shape.capacity, shape.gop_size
     frames_per_step = min(g, 8)
     gauss_per_step = min(n, max(1, MAX_ROWS_PER_STEP // frames_per_step))
+    sampled = gauss_per_step < n  # else idx is every slot: the roughness runs on the whole grid, by slices
     for _ in range(steps):
         frames = torch.randperm(g, generator=gen)[:frames_per_step]
         idx = torch.randperm(n, generator=gen)[:gauss_per_step]
@@ -132,7 +175,8 @@ def fit_gop(scene: ProceduralScene | FoldedScene, times: list[float], shape: GOP
                 + 10 * (opac - targets["opacity"][frames][:, idx]).square().mean()
                 + 10 * (color - true_color).square().mean())
         if smoothness > 0:
-            loss = loss + smoothness * feature_roughness(model.features, shape.grid_side, idx)
+            loss = loss + smoothness * feature_roughness(model.features, shape.grid_side,
+                                                                idx if sampled else None)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

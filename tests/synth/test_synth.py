@@ -163,6 +163,30 @@ def test_feature_roughness_is_grid_and_time_neighbour_differences():
     assert feature_roughness(features, 2, torch.tensor([0])).item() == pytest.approx(0.5 + 4.0)
 
 
+@pytest.mark.parametrize("frames", [1, 5])
+def test_whole_grid_roughness_equals_the_gathered_one_over_every_slot(frames):
+    """The fit's whole-grid roughness (slices, a hand-written gradient) against the gathered one with every
+    slot as an anchor (autograd through indexing): the same value and the same gradient."""
+    torch.manual_seed(4)
+    side = 7
+    features = torch.randn(frames, side * side, 3, dtype=torch.float64) * torch.linspace(0.1, 3, 3,
+                                                                                        dtype=torch.float64)
+    gathered = features.clone().requires_grad_()
+    sliced = features.clone().requires_grad_()
+    want = feature_roughness(gathered, side, torch.randperm(side * side))
+    got = feature_roughness(sliced, side)
+    (2.5 * want).backward()
+    (2.5 * got).backward()
+    assert got.item() == pytest.approx(want.item(), rel=1e-12)
+    torch.testing.assert_close(sliced.grad, gathered.grad, rtol=1e-12, atol=1e-15)
+    assert sliced.grad.abs().max() > 0
+
+
+def test_roughness_needs_a_square_grid():
+    with pytest.raises(ValueError, match="not a 3 x 3 grid"):
+        feature_roughness(torch.zeros(2, 8, 4), 3)
+
+
 def test_smooth_features_cost_fewer_bits_at_the_same_fidelity():
     """The roughness term is what makes a fitted GOP's feature video cheap: the same scene fitted with and
     without it, its features encoded by x265 at one QP."""
