@@ -33,7 +33,12 @@ try:
     from bench.render import bench_camera, random_model
 except ImportError:  # a tree from before the benchmarks moved to bench/
     from stgs.benchmarks.render import bench_camera, random_model
-from stgs.model.native_deform import bf16_available
+try:
+    from stgs.model.native_deform import runnable_precisions
+except ImportError:  # a tree from before the int16 deformation
+    from stgs.model.native_deform import bf16_available
+    def runnable_precisions():
+        return ["fp32"] + (["bf16"] if bf16_available() else [])
 from stgs.model.view import FrameRenderer
 
 n, frames, model_dir = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3]
@@ -48,7 +53,7 @@ if model_dir:
 else:
     model, frame, cam = random_model(n), 30, bench_camera(640, 360)
 result = {}
-for precision in ["fp32"] + (["bf16"] if bf16_available() else []):
+for precision in runnable_precisions():
     renderer = FrameRenderer(model, precision=precision)
     with torch.no_grad():
         g = renderer.gaussians(frame, cam)
@@ -99,6 +104,8 @@ def main() -> int:
     print("\n| what | old ms | new ms | new / old |")
     print("|---|---|---|---|")
     for key in runs["new"][0]:
+        if key not in runs["old"][0]:  # a precision only the new tree has
+            continue
         old = statistics.median(run[key] for run in runs["old"])
         new = statistics.median(run[key] for run in runs["new"])
         label = "splat alone (fp32 deformation's Gaussians)" if key == "splat" else f"{key} deformation + splat"

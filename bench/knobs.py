@@ -26,7 +26,7 @@ from stgs.camera import Camera, resize
 from stgs.client.view import parse_scene_cameras
 from stgs.evaluate import packaged_gops
 from stgs.metrics import psnr
-from stgs.model.native_deform import bf16_available
+from stgs.model.native_deform import runnable_precisions
 from stgs.model.store import load_model, read_meta
 from stgs.model.view import FrameRenderer
 from stgs.packager import PackConfig, pack
@@ -34,7 +34,8 @@ from stgs.server.app import loopback
 from stgs.tree import CAMERAS, MANIFEST, rep_id
 
 BASE = {"qp": 24, "precision": "fp32", "size": "640x360", "ring": 8, "render_threads": None}
-VARIANTS = [{}, {"qp": 16}, {"qp": 32}, {"precision": "bf16"}, {"size": "320x180"}, {"size": "1280x720"},
+VARIANTS = [{}, {"qp": 16}, {"qp": 32}, {"precision": "bf16"}, {"precision": "int16"}, {"size": "320x180"},
+            {"size": "1280x720"},
             {"ring": 4}, {"ring": 16}, {"render_threads": 1}]
 
 
@@ -75,8 +76,8 @@ async def measure(model: Path, work: Path, seconds: float) -> list[str]:
         await play_process(url, work / "warmup.json", ["--camera", cameras[0].name, "--duration", "1"])
         for variant in VARIANTS:
             s = {**BASE, **variant}
-            if s["precision"] == "bf16" and not bf16_available():
-                rows.append(f"| {label(variant)} | bf16 needs AVX512-BF16 or AMX: not run on this CPU | | | | | | |")
+            if s["precision"] not in runnable_precisions():
+                rows.append(f"| {label(variant)} | {s['precision']} cannot run on this CPU: not run | | | | | | |")
                 continue
             log = await play_process(url, work / f"knob-{name}-{label(variant).replace(' ', '_')}.json",
                                      setting_args(s, cameras[0].name))

@@ -29,7 +29,7 @@ from pathlib import Path
 
 from stgs.client.manifest import Presentation
 from stgs.client.view import parse_scene_cameras
-from stgs.model.native_deform import bf16_available
+from stgs.model.native_deform import runnable_precisions
 from stgs.model.store import read_meta
 from stgs.packager import PackConfig, pack
 from stgs.server.app import loopback
@@ -182,7 +182,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--qps", default="16,24,32")
     parser.add_argument("--size", default="640x360")
-    parser.add_argument("--precisions", default="fp32,bf16")
+    parser.add_argument("--precisions", default="fp32,bf16", help="deformation precisions, e.g. fp32,int16 "
+                        "(those this CPU cannot run are skipped and said so)")
     parser.add_argument("--decode-threads", help="feature decoder threads to compare, e.g. 1,2 (default: the "
                         "player's default)")
     parser.add_argument("--render-ahead", help="frame slots of rendering ahead to compare, e.g. 0,2 (default: the "
@@ -195,7 +196,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.model and not args.dash:
         parser.error("give at least one --model or --dash")
     qps = [int(q) for q in args.qps.split(",")]
-    precisions = [p for p in args.precisions.split(",") if p != "bf16" or bf16_available()]
+    precisions = [p for p in args.precisions.split(",") if p in runnable_precisions()]
     skipped = sorted(set(args.precisions.split(",")) - set(precisions))
     threads = [None] if args.decode_threads is None else [int(t) for t in args.decode_threads.split(",")]
     aheads = [None] if args.render_ahead is None else [int(r) for r in args.render_ahead.split(",")]
@@ -207,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
         rows += r
         verdicts += v
     print(f"\nMachine: {platform.machine()} {platform.processor() or ''}; {args.seconds:g} s per run at {args.size}"
-          + (f"; not run here: {', '.join(skipped)} (no AVX512-BF16 or AMX)" if skipped else "") + "\n")
+          + (f"; not run here: {', '.join(skipped)} (this CPU cannot)" if skipped else "") + "\n")
     print(HEADER)
     print("\n".join(rows))
     print("\nLargest scene that held 30 fps (no drop, no stall) for the whole run:\n")

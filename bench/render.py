@@ -111,7 +111,7 @@ def bench_size(n: int, width: int, height: int, repeats: int, reference_max: int
 
 def deform_rows(n: int, width: int, height: int, repeats: int) -> list[str]:
     """Deformation alone and deformation + splat per precision; accuracy against the fp32 deformation's image."""
-    from stgs.model.native_deform import bf16_backends
+    from stgs.model.native_deform import bf16_backends, runnable_precisions
     from stgs.model.view import FrameRenderer
 
     cam = bench_camera(width, height)
@@ -124,9 +124,8 @@ def deform_rows(n: int, width: int, height: int, repeats: int) -> list[str]:
         if not available():
             return rows
         backends = bf16_backends()
-        precisions = ["fp32"] + (["bf16"] if backends else [])
         fp32_image = None
-        for precision in precisions:
+        for precision in runnable_precisions():
             renderer = FrameRenderer(model, precision=precision)
             deform_ms, _ = timed(lambda r=renderer: r.gaussians(30, cam), repeats)
             total_ms, image = timed(lambda r=renderer: r.render(30, cam), repeats)

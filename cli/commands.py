@@ -255,6 +255,7 @@ _positive_seconds = _seconds_parser(positive=True)
 def add_play(sub: argparse._SubParsersAction) -> None:
     from stgs.client.abr import RULES
     from stgs.client.config import RENDER_AHEAD
+    from stgs.model.native_deform import PRECISIONS
 
     p = sub.add_parser("play", help="stream a packaged scene over HTTP and render it on the CPU",
                        description="Stream a StreamSTGS scene from its MPD URL: the ABR rule picks each GOP's "
@@ -281,9 +282,9 @@ def add_play(sub: argparse._SubParsersAction) -> None:
     view.add_argument("--target", type=_vector, default=(0.0, 0.0, 0.0), help="point the --eye camera looks at")
     view.add_argument("--fov", type=float, default=60.0, help="horizontal field of view, degrees (default: 60)")
     view.add_argument("--size", type=_size, help="image size WIDTHxHEIGHT (default: the camera's, else 640x360)")
-    p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
+    p.add_argument("--precision", choices=PRECISIONS, default="fp32",
                    help="arithmetic of the deformation network: bf16 is faster on CPUs with AVX512-BF16 "
-                   "or AMX and costs accuracy (docs/BENCHMARKS.md; default: fp32)")
+                   "or AMX, int16 on AVX2 CPUs; both cost accuracy (docs/BENCHMARKS.md; default: fp32)")
     frame = p.add_argument_group("frame path (docs/CLIENT.md, 'Real-time playback')")
     frame.add_argument("--ring-frames", type=_positive_int, default=8,
                        help="feature frames decoded ahead of the renderer (default: 8; at least the model's window)")

@@ -46,13 +46,13 @@ def test_bench_render_smoke():
     assert result.returncode == 0, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("| 300 |")]
     backends = [r.split("|")[2].strip() for r in rows]
-    from stgs.model.native_deform import bf16_backends
+    from stgs.model.native_deform import bf16_backends, int16_available
 
     bf16 = [f"native bf16 ({bf16_backends()[0]})"] if bf16_backends() else []  # the back end it ran on
-    deforms = ["torch fp32", "native fp32", *bf16]
+    deforms = ["torch fp32", "native fp32", *bf16, *(["native int16"] if int16_available() else [])]
     assert backends == ["reference fp64", "reference fp32", "native fp32", *deforms]
-    bf16 = [r.split("|") for r in rows if "native bf16" in r]
-    for cells in bf16:  # image PSNR against the fp32 deformation: finite and high, not identical
+    reduced = [r.split("|") for r in rows if "native bf16" in r or "native int16" in r]
+    for cells in reduced:  # image PSNR against the fp32 deformation: finite and high, not identical
         assert 40 < float(cells[5]) < 200
 
 

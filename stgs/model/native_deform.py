@@ -3,13 +3,17 @@
 The torch `GOPModel.deform` is the oracle; this path evaluates every MLP layer
 per block of Gaussians while the block sits in cache, and (given a camera)
 skips the view-dependent decoders of Gaussians that cannot reach the image.
-Two precisions: float32 (AVX-512, AVX2 or portable), and bf16 inputs and
+Three precisions: float32 (AVX-512, AVX2 or portable); bf16 inputs and
 weights with float32 accumulation, on AMX tiles or AVX512-BF16 vectors where
-the CPU (and, for AMX, the kernel) allow it (an accuracy knob:
-docs/BENCHMARKS.md).
+the CPU (and, for AMX, the kernel) allow it; and int16 inputs and weights with
+exact int32 sums (AVX2 `vpmaddwd`), for CPUs without bf16 arithmetic. The
+reduced precisions are accuracy knobs (docs/BENCHMARKS.md).
 """
 
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass
 
 import torch
 
@@ -25,8 +29,9 @@ from stgs.model.gop import (
 from stgs.native.abi import ffi, ptr
 from stgs.native.build import NativeUnavailableError, available, load
 
-PRECISIONS = ("fp32", "bf16")
-"""Arithmetic of the native deformation: float32, or bf16 inputs/weights with float32 accumulation."""
+PRECISIONS = ("fp32", "bf16", "int16")
+"""Arithmetic of the native deformation: float32; bf16 inputs/weights with float32 accumulation; int16
+inputs/weights (one scale per input row and per weight column) with exact int32 sums."""
 
 BF16_BACKENDS = {"amx": 2, "avx512-bf16": 1}
 """The bf16 deformation's back ends, preferred first, with their bit in stgs_deform_bf16_backends: AMX tiles
@@ -47,13 +52,25 @@ def bf16_available() -> bool:
     return bool(bf16_backends())
 
 
+def int16_available() -> bool:
+    """True when the native int16 deformation can run here (the native build targets AVX2)."""
+    return available() and bool(load().stgs_deform_int16_available())
+
+
+def runnable_precisions() -> list[str]:
+    """The precisions of PRECISIONS that can run here (fp32 always: native or torch)."""
+    return ["fp32"] + (["bf16"] if bf16_available() else []) + (["int16"] if int16_available() else [])
+
+
 def check_precision(precision: str) -> None:
-    """Raise ValueError for an unknown precision, NativeUnavailableError for bf16 where it cannot run."""
+    """Raise ValueError for an unknown precision, NativeUnavailableError for one that cannot run here."""
     if precision not in PRECISIONS:
         raise ValueError(f"unknown deform precision {precision!r}; choose from {', '.join(PRECISIONS)}")
     if precision == "bf16" and not bf16_available():
         raise NativeUnavailableError("bf16 deformation needs the native build on a CPU with AVX512-BF16 or "
-                                     "AMX-BF16 (e.g. AMD Zen 4, Intel Sapphire Rapids); use fp32")
+                                     "AMX-BF16 (e.g. AMD Zen 4, Intel Sapphire Rapids); use fp32 or int16")
+    if precision == "int16" and not int16_available():
+        raise NativeUnavailableError("int16 deformation needs the native build on a CPU with AVX2; use fp32")
 
 
 def _c(t: torch.Tensor) -> torch.Tensor:
@@ -78,6 +95,34 @@ def _bf16_tiles(weight: torch.Tensor) -> torch.Tensor:
     padded[:k] = weight
     tiles = padded.reshape(chunks, TILE_K // 2, 2, m // 16, 16).permute(0, 3, 1, 4, 2)
     return tiles.contiguous().to(torch.bfloat16)
+
+
+INT32_LIMIT = 2**31 - 1
+
+
+@dataclass(frozen=True)
+class Int16Layer:
+    """One layer (K inputs, M outputs) for the int16 kernel."""
+
+    weight: torch.Tensor
+    """(K/2 pairs, M, 2) int16: K zero-padded to even, each weight column scaled to integers of at most q."""
+    col_scale: torch.Tensor
+    """(M,) float32: max |w| of the column / q (0 for an all-zero column)."""
+    q: float
+    """The bound of the weights and of the layer's quantised inputs: K·q² < 2^31, so the int32 sums are exact."""
+
+
+def _int16_layer(weight: torch.Tensor) -> Int16Layer:
+    """(K, M) in x out float32 weights for the int16 kernel."""
+    k, m = weight.shape
+    padded = torch.zeros(k + k % 2, m)
+    padded[:k] = weight
+    q = float(min(32767, math.isqrt(INT32_LIMIT // padded.shape[0])))
+    peak = padded.abs().amax(0)
+    inv = torch.where(peak > 0, q / peak, torch.zeros_like(peak))
+    quantised = (padded * inv).round().clamp(-q, q).to(torch.int16)
+    pairs = quantised.reshape(-1, 2, m).permute(0, 2, 1).contiguous()
+    return Int16Layer(pairs, (peak / q).contiguous(), q)
 
 
 def _pack_second(first: torch.Tensor, second: torch.Tensor, col0: int,
@@ -105,12 +150,19 @@ class PackedWeights:
         self.app2 = _pack_second(_c(field.d_opacity[2].weight), _c(field.d_color[2].weight), 1, 4)
 
         self._bf16: list[torch.Tensor] | None = None
+        self._int16: list[Int16Layer] | None = None
 
     def bf16(self) -> list[torch.Tensor]:
         """temporal, geo1, geo2, app1, app2 as bf16 tiles (packed on first use)."""
         if self._bf16 is None:
             self._bf16 = [_bf16_tiles(w) for w in (self.temporal_feat, self.geo1, self.geo2, self.app1, self.app2)]
         return self._bf16
+
+    def int16(self) -> list[Int16Layer]:
+        """temporal, geo1, geo2, app1, app2 for the int16 kernel (packed on first use)."""
+        if self._int16 is None:
+            self._int16 = [_int16_layer(w) for w in (self.temporal_feat, self.geo1, self.geo2, self.app1, self.app2)]
+        return self._int16
 
     def pe_bias(self, frame: int, model: GOPModel) -> torch.Tensor:
         """The γ(t) part of D_t's input, folded into a per-frame bias."""
@@ -123,7 +175,7 @@ def deform_native(model: GOPModel, frame: int, camera_center: torch.Tensor,
                   K: torch.Tensor | None = None, width: int = 0, height: int = 0,
                   precision: str = "fp32", guard: tuple[float, float, float] | None = None,
                   window: list[torch.Tensor] | None = None, bf16_backend: str | None = None) -> Gaussians:
-    """GOPModel.deform in C++ (no autograd), in float32 or bf16 (`precision`, see PRECISIONS; bf16 on
+    """GOPModel.deform in C++ (no autograd), in float32, bf16 or int16 (`precision`, see PRECISIONS; bf16 on
     `bf16_backend`, one of bf16_backends(), by default the first).
 
     `window`: the frame's W feature frames e_i ... e_{i+W-1}, (N, 16) each, where the model does not hold
@@ -164,6 +216,15 @@ def deform_native(model: GOPModel, frame: int, camera_center: torch.Tensor,
         lib.stgs_deform(*inputs, ptr(weights.temporal_feat), ptr(pe_bias), ptr(weights.geo1), ptr(weights.geo2),
                         ptr(weights.app1), ptr(weights.app2), *camera, *outputs, threads)
         return out
+    if precision == "int16":
+        layers = weights.int16()
+        layer_ptrs = ffi().new("int16_t *[]", [ptr(layer.weight) for layer in layers])
+        scale_ptrs = ffi().new("float *[]", [ptr(layer.col_scale) for layer in layers])
+        bounds = torch.tensor([layer.q for layer in layers], dtype=torch.float32)
+        if lib.stgs_deform_int16(*inputs, layer_ptrs, scale_ptrs, ptr(bounds), ptr(pe_bias), *camera, *outputs,
+                                 threads) != 0:
+            raise NativeUnavailableError("the int16 deformation cannot run here (the native build lacks AVX2)")
+        return out
     backend = bf16_backend or bf16_backends()[0]
     if backend not in BF16_BACKENDS:
         raise ValueError(f"unknown bf16 back end {backend!r}; choose from {', '.join(BF16_BACKENDS)}")
@@ -174,28 +235,3 @@ def deform_native(model: GOPModel, frame: int, camera_center: torch.Tensor,
         raise NativeUnavailableError(f"the bf16 deformation's {backend} back end cannot run here "
                                      f"(available: {', '.join(bf16_backends()) or 'none'})")
     return out
-
-
-def _bf16(t: torch.Tensor) -> torch.Tensor:
-    return t.detach().to(torch.bfloat16).to(torch.float32)
-
-
-def deform_bf16_reference(model: GOPModel, frame: int, camera_center: torch.Tensor) -> Gaussians:
-    """Pure-torch oracle of the bf16 kernel: every layer input and weight rounded to bf16, products and
-    sums in float32, γ(t)'s share of D_t in float32 (the kernel folds it into a bias)."""
-    field, shape = model.field, model.shape
-    in_feat = shape.window * FEATURE_DIM
-    temporal = field.temporal.weight.detach()
-    pe = positional_encoding(frame_time(frame, shape.gop_size), shape.pe_freqs)
-    h = _bf16(torch.tanh(_bf16(model.window_features(frame)) @ _bf16(temporal[:, :in_feat]).T
-                         + temporal[:, in_feat:] @ pe))
-
-    def decoder(layers: torch.nn.Sequential, x: torch.Tensor) -> torch.Tensor:
-        return _bf16(torch.relu(x @ _bf16(layers[0].weight).T)) @ _bf16(layers[2].weight).T
-
-    d_x, cov = decoder(field.d_pos, h), decoder(field.d_cov, h)
-    view = model.xyz.detach() + d_x - camera_center.reshape(1, 3).float()
-    view = view / torch.linalg.vector_norm(view, dim=1, keepdim=True).clamp_min(1e-12)
-    hv = torch.cat([h, _bf16(view)], dim=1)
-    d_o = torch.tanh(decoder(field.d_opacity, hv)).squeeze(1)
-    return model.apply_offsets((d_x, cov[:, :3], cov[:, 3:], d_o, decoder(field.d_color, hv)))

@@ -120,8 +120,9 @@ class FrameRenderer:
 
     def __init__(self, model: GOPModel, native: bool | None = None, precision: str = "fp32",
                  static: StaticLayer | StaticDrawer | None = None):
-        """precision: arithmetic of the native deformation ("fp32" or "bf16", an accuracy knob); static: the
-        scene's static layer, or a drawer of it shared with the other GOPs' renderers."""
+        """precision: arithmetic of the native deformation (stgs.model.native_deform.PRECISIONS: "fp32", "bf16"
+        or "int16", the last two accuracy knobs); static: the scene's static layer, or a drawer of it shared
+        with the other GOPs' renderers."""
         self.model = model
         self.static_drawer = StaticDrawer(static) if isinstance(static, StaticLayer) else static
         self.static = self.static_drawer.layer if self.static_drawer is not None else None

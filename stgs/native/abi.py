@@ -20,8 +20,8 @@ from stgs.native.build import CSRC
 ABI_HEADER = CSRC / "stgs_abi.h"
 BEGIN, END = "// STGS_ABI_BEGIN", "// STGS_ABI_END"
 
-POINTER_TYPES = {torch.float32: "float *", torch.float64: "double *", torch.int32: "int32_t *",
-                 torch.int64: "int64_t *"}
+POINTER_TYPES = {torch.float32: "float *", torch.float64: "double *", torch.int16: "int16_t *",
+                 torch.int32: "int32_t *", torch.int64: "int64_t *"}
 """The C pointer type of each tensor dtype the ABI takes; others (bf16 tiles) go as `void *`."""
 
 

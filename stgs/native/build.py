@@ -19,7 +19,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-SOURCES = ("project.cpp", "binning.cpp", "forward.cpp", "kept.cpp", "backward.cpp", "deform.cpp", "deform_bf16.cpp")
+SOURCES = ("project.cpp", "binning.cpp", "forward.cpp", "kept.cpp", "backward.cpp", "deform.cpp", "deform_bf16.cpp",
+           "deform_int16.cpp")
 """The splatter by stage (projection, binning, forward, a kept layer's forward, backward), then the deformation
 field."""
 HEADERS = ("stgs_abi.h", "splat.h", "splat_avx2.h", "splat_avx512.h", "fastmath.h", "deform.h")

@@ -7,16 +7,17 @@ import torch
 from torch import nn
 
 from stgs.camera import Camera, intrinsics, look_at
-from stgs.model.gop import FEATURE_DIM, HIDDEN, GOPModel, GOPShape, frame_time, positional_encoding
+from stgs.model.gop import FEATURE_DIM, HIDDEN, Gaussians, GOPModel, GOPShape, frame_time, positional_encoding
 from stgs.model.native_deform import (
     BF16_BACKENDS,
     PackedWeights,
     bf16_available,
     bf16_backends,
     check_precision,
-    deform_bf16_reference,
     deform_native,
+    int16_available,
 )
+from stgs.model.precision_oracles import deform_bf16_reference, deform_int16_reference
 from stgs.model.view import FrameRenderer, in_guard_band, splat
 from stgs.native.build import NativeUnavailableError, available
 
@@ -135,6 +136,16 @@ def test_native_culling_does_not_change_the_image():
     assert (slow.double() - a.double()).abs().max() < 1e-4 * a.abs().max()  # this random field's colours reach ~6
 
 
+def attributes(kernel: Gaussians, oracle: Gaussians, float32: Gaussians):
+    """(name, kernel's, oracle's, float32 deformation's, the float32 one's peak |value|) per attribute, scales
+    as their logs."""
+    for name in ("means", "quats", "opacities", "colors", "scales"):
+        g, w, f = (getattr(x, name) for x in (kernel, oracle, float32))
+        if name == "scales":
+            g, w, f = g.log(), w.log(), f.log()
+        yield name, g, w, f, f.abs().max()
+
+
 BF16_NEEDS = "the bf16 deformation needs a CPU with AVX512-BF16 or AMX-BF16"
 needs_bf16 = pytest.mark.skipif(not bf16_available(), reason=BF16_NEEDS)
 
@@ -150,11 +161,7 @@ def test_bf16_deform_matches_its_torch_oracle(window, n, backend):
         got = deform_native(model, 5, center, precision="bf16", bf16_backend=backend)
         want = deform_bf16_reference(model, 5, center)
         full = model.deform(5, center)
-    for name in ("means", "quats", "opacities", "colors", "scales"):
-        g, w, f = (getattr(x, name) for x in (got, want, full))
-        if name == "scales":
-            g, w, f = g.log(), w.log(), f.log()
-        peak = f.abs().max()
+    for name, g, w, f, peak in attributes(got, want, full):
         # Summation order differs from torch's, so a value can round to the neighbouring bf16 now and then.
         assert (g - w).abs().max() <= 2e-2 * peak, name
         assert (g - w).abs().mean() <= 1e-4 * peak, name
@@ -163,7 +170,36 @@ def test_bf16_deform_matches_its_torch_oracle(window, n, backend):
         assert (g - f).abs().max() <= 1e-1 * peak, name  # bf16's 8-bit mantissa, large random weights
 
 
-@pytest.mark.parametrize("precision", ["fp32", pytest.param("bf16", marks=needs_bf16)])
+INT16_NEEDS = "the int16 deformation needs the native build on a CPU with AVX2"
+needs_int16 = pytest.mark.skipif(not int16_available(), reason=INT16_NEEDS)
+
+
+@needs_int16
+@pytest.mark.parametrize("window, n", [(3, 1000), (5, 333), (1, 17), (16, 40)])
+def test_int16_deform_matches_its_torch_oracle(window, n):
+    """The kernel's integer sums are exact, so it differs from its oracle only where float32 rounding (its fast
+    tanh and exp, the order of the last products) moves a value across a rounding boundary of the next
+    layer's integers. Rows of zeros and rows 1000 times larger than the rest exercise the per-row scales."""
+    model = random_model(n=n, window=window)
+    with torch.no_grad():
+        model.features[:, : n // 7] = 0.0
+        model.features[:, n // 2: n // 2 + 3] *= 1000.0
+    center = torch.tensor([0.3, -0.2, -4.0])
+    with torch.no_grad():
+        got = deform_native(model, 5, center, precision="int16")
+        want = deform_int16_reference(model, 5, center)
+        full = model.deform(5, center)
+    for name, g, w, f, peak in attributes(got, want, full):
+        assert torch.isfinite(g).all(), name
+        assert (g - w).abs().max() <= 2e-3 * peak, name
+        assert (g - w).abs().mean() <= 2e-5 * peak, name
+        # int16 is not float32 (the oracle is another function), but it is close: 12-14 bits per value.
+        assert (w - f).abs().max() > 1e-6 * peak, name
+        assert (g - f).abs().max() <= 1e-2 * peak, name
+
+
+@pytest.mark.parametrize("precision", ["fp32", pytest.param("bf16", marks=needs_bf16),
+                                       pytest.param("int16", marks=needs_int16)])
 def test_a_nan_feature_is_refused_not_drawn(precision):
     """NaN must come out of the native deformation as NaN (its fast tanh clamps its input and its relu
     compares, and both let NaN pass, as torch does), so that the splatter refuses the frame instead of
@@ -179,17 +215,20 @@ def test_a_nan_feature_is_refused_not_drawn(precision):
         FrameRenderer(model, native=True, precision=precision).render(2, cam)
 
 
-@needs_bf16
-def test_bf16_renders_close_to_fp32():
+@pytest.mark.parametrize("precision, bound", [pytest.param("bf16", 1e-4, marks=needs_bf16),
+                                              pytest.param("int16", 1e-6, marks=needs_int16)])
+def test_reduced_precision_renders_close_to_fp32(precision, bound):
+    """Image MSE against the float32 deformation's: below `bound` (PSNR above 40 dB for bf16, 60 dB for
+    int16), and not the float32 image."""
     model = random_model(n=3000)
     with torch.no_grad():
         for p in model.field.parameters():
             p.mul_(0.25)  # offsets of a realistic size (fitted fields), not saturated
     cam = Camera("c", intrinsics(96, 72, 50.0), look_at((0.0, 0.0, -3.0), (0.0, 0.0, 0.0)), 96, 72)
     a = FrameRenderer(model, native=True).render(4, cam)
-    b = FrameRenderer(model, native=True, precision="bf16").render(4, cam)
+    b = FrameRenderer(model, native=True, precision=precision).render(4, cam)
     mse = (a.double() - b.double()).square().mean().item()
-    assert 0 < mse < 1e-4  # PSNR above 40 dB, and not the float32 image
+    assert 0 < mse < bound
 
 
 def test_precision_errors_are_clear():
@@ -200,6 +239,9 @@ def test_precision_errors_are_clear():
     if not bf16_available():
         with pytest.raises(NativeUnavailableError, match="AVX512-BF16 or AMX-BF16"):
             check_precision("bf16")
+    if not int16_available():
+        with pytest.raises(NativeUnavailableError, match="AVX2"):
+            check_precision("int16")
 
 
 @needs_bf16

@@ -85,12 +85,12 @@ def test_splat_gradients_reach_kept_gaussians_only():
 
 
 @pytest.mark.skipif(not available(), reason="needs the native build")
-@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+@pytest.mark.parametrize("precision", ["fp32", "bf16", "int16"])
 def test_the_native_deformation_applies_the_same_guard_band(precision):
-    from stgs.model.native_deform import bf16_available
+    from stgs.model.native_deform import runnable_precisions
 
-    if precision == "bf16" and not bf16_available():
-        pytest.skip("the bf16 deformation needs a CPU with AVX512-BF16 or AMX-BF16")
+    if precision not in runnable_precisions():
+        pytest.skip(f"the {precision} deformation cannot run on this CPU")
     half_w, half_h = W / 2, H / 2
     points = [point_at_pixel(W / 2 + (GUARD_BAND - 0.01) * half_w, H / 2, 2.0),
               point_at_pixel(W / 2 + (GUARD_BAND + 0.01) * half_w, H / 2, 2.0),

@@ -1,7 +1,8 @@
 """The kernels other CPUs get, built here into private caches and held to the same oracle as the default
 build, in separate processes: -march=x86-64-v3 (AVX2 and FMA, no AVX-512: the AVX2 inference compositor
-beside the portable tracked one) and -march=x86-64-v2 (no AVX: every stage the portable `#pragma omp simd`
-kernel). Each is checked against the reference and, stage by stage, against the torch twins.
+beside the portable tracked one, and the int16 deformation) and -march=x86-64-v2 (no AVX: every stage the
+portable `#pragma omp simd` kernel, and no int16 deformation). Each is checked against the reference and,
+stage by stage, against the torch twins.
 """
 
 from __future__ import annotations
@@ -46,8 +47,23 @@ CHECK = textwrap.dedent("""
         got = deform_native(model, 2, torch.zeros(3))
     assert torch.allclose(want.means, got.means, rtol=1e-4, atol=1e-5)
     assert torch.allclose(want.colors, got.colors, rtol=1e-4, atol=1e-5)
-    from stgs.model.native_deform import bf16_available
+    from stgs.model.native_deform import bf16_available, check_precision, int16_available
+    from stgs.model.precision_oracles import deform_int16_reference
+    from stgs.native.build import NativeUnavailableError
     assert not bf16_available()  # no AMX tiles in these builds: bf16 reports itself unavailable
+    if os.environ["STGS_NATIVE_ARCH"] == "x86-64-v3":  # AVX2: the int16 kernel is built, and right
+        assert int16_available()
+        with torch.no_grad():
+            got = deform_native(model, 2, torch.zeros(3), precision="int16")
+            want = deform_int16_reference(model, 2, torch.zeros(3))
+        assert (got.means - want.means).abs().max() <= 2e-3 * want.means.abs().max()
+    else:  # no AVX2: int16 says so
+        assert not int16_available()
+        try:
+            check_precision("int16")
+            raise AssertionError("int16 ran without AVX2")
+        except NativeUnavailableError as err:
+            assert "AVX2" in str(err)
     print("portable ok")
 """)
 

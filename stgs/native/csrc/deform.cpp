@@ -145,26 +145,15 @@ void stgs_deform(int64_t n, int window, const float* const* window_feats, const 
   const stgs::DeformIO io{xyz, log_scale, rotation, opacity_logit, color, camera_center, viewmat, K, width,
                           height, out_means, out_quats, out_scales, out_opac, out_colors, guard};
   const int in_t = window * kFeat;
-  const int64_t blocks = (n + kBlock - 1) / kBlock;
-#pragma omp parallel for num_threads(nthreads) schedule(dynamic, 8)
-  for (int64_t blk = 0; blk < blocks; ++blk) {
-    const int64_t first = blk * kBlock;
-    const int rows = int(std::min<int64_t>(kBlock, n - first));
+  stgs::for_each_block(n, kBlock, nthreads, [&](int64_t first, int rows) {
     alignas(64) float xin[kBlock * kMaxWindow * kFeat];
     alignas(64) float h[kBlock * kHidden];
     alignas(64) float hidden2[kBlock * 2 * kHidden];
     alignas(64) float app_in[kBlock * (kHidden + 3)];
     alignas(64) float out2[kBlock * kOut];
-    for (int b = 0; b < rows; ++b)
-      for (int w = 0; w < window; ++w)
-        std::memcpy(&xin[b * in_t + w * kFeat], window_feats[w] + (first + b) * kFeat,
-                    kFeat * sizeof(float));
+    stgs::gather_window(window_feats, window, first, rows, xin);
     matmul_rows<kHidden>(xin, rows, in_t, in_t, temporal_t, h);
-    for (int b = 0; b < rows; ++b) {
-      float* hb = &h[b * kHidden];
-#pragma omp simd
-      for (int m = 0; m < kHidden; ++m) hb[m] = stgs::fast_tanh(hb[m] + pe_bias[m]);
-    }
+    stgs::tanh_hidden(h, rows, pe_bias);
     // D_v and D_cov: [dx(3) ds(3) dq(4)] in out2.
     matmul_rows<2 * kHidden>(h, rows, kHidden, kHidden, geo1_t, hidden2);
     relu_inplace(hidden2, rows * 2 * kHidden);
@@ -179,7 +168,7 @@ void stgs_deform(int64_t n, int window, const float* const* window_feats, const 
       std::memcpy(row + kHidden, dir, 3 * sizeof(float));
       slot[b] = kept++;
     });
-    if (kept == 0) continue;
+    if (kept == 0) return;
     // D_o and D_c on [h, view direction]: [do(1) dc(3)] in out2.
     matmul_rows<2 * kHidden>(app_in, kept, kHidden + 3, kHidden + 3, app1_t, hidden2);
     relu_inplace(hidden2, kept * 2 * kHidden);
@@ -187,7 +176,7 @@ void stgs_deform(int64_t n, int window, const float* const* window_feats, const 
     for (int b = 0; b < rows; ++b)
       if (keep[b])
         stgs::deformed_appearance(io, first + b, &out2[slot[b] * kOut]);
-  }
+  });
 }
 
 }  // extern "C"

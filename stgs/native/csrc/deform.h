@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 
 #include "fastmath.h"
 
@@ -208,6 +209,31 @@ int cull_block(const DeformIO& io, int64_t first, int rows, const float* d, int 
     }
   }
   return kept;
+}
+
+// body(first, rows) for every block of `block` Gaussians (the last one shorter), in parallel.
+template <class Body>
+void for_each_block(int64_t n, int block, int nthreads, Body body) {
+  const int64_t blocks = (n + block - 1) / block;
+#pragma omp parallel for num_threads(nthreads) schedule(dynamic, 8)
+  for (int64_t blk = 0; blk < blocks; ++blk) body(blk * block, int(std::min<int64_t>(block, n - blk * block)));
+}
+
+// D_t's input rows of Gaussians first .. first + rows - 1: their W feature frames side by side (row b at
+// xin + b * W * kFeat).
+inline void gather_window(const float* const* window_feats, int window, int64_t first, int rows, float* xin) {
+  for (int b = 0; b < rows; ++b)
+    for (int w = 0; w < window; ++w)
+      std::memcpy(&xin[(b * window + w) * kFeat], window_feats[w] + (first + b) * kFeat, kFeat * sizeof(float));
+}
+
+// h = tanh(h + γ(t)'s bias) over rows of kHidden: the hidden state of D_t.
+inline void tanh_hidden(float* h, int rows, const float* pe_bias) {
+  for (int b = 0; b < rows; ++b) {
+    float* hb = &h[b * kHidden];
+#pragma omp simd
+    for (int m = 0; m < kHidden; ++m) hb[m] = fast_tanh(hb[m] + pe_bias[m]);
+  }
 }
 
 // Opacity and colour of Gaussian g from the appearance decoders' outputs d = [do(1) dc(3)].

@@ -73,7 +73,7 @@ void stgs_raster_kept_free(void* kept);
 
 void stgs_raster_free(void* handle);
 
-// --- deformation (deform.cpp, deform_bf16.cpp) ---
+// --- deformation (deform.cpp, deform_bf16.cpp, deform_int16.cpp) ---
 
 // The deformation field of one frame in float32 for n Gaussians (DESIGN.md; weights packed
 // by stgs/model/native_deform.py). window_feats holds `window` pointers, to the frame's
@@ -101,6 +101,20 @@ int stgs_deform_bf16(int64_t n, int window, const float* const* window_feats, co
                      const float* camera_center, const double* viewmat, const double* K, int width,
                      int height, float* out_means, float* out_quats, float* out_scales, float* out_opac,
                      float* out_colors, const double* guard, int backend, int nthreads);
+
+// 1 when stgs_deform_int16 was built (the compiler targets AVX2), else 0.
+int stgs_deform_int16_available(void);
+
+// stgs_deform with int16 products and exact int32 sums (deform_int16.cpp): layer_weights holds the
+// five layers (temporal, geo1, geo2, app1, app2) as (K/2) x M x 2 int16, col_scales their column
+// scales, qx their input bounds (stgs/model/native_deform.py packs them). 0, or -1 (nothing
+// written) where it was not built or the window is out of range.
+int stgs_deform_int16(int64_t n, int window, const float* const* window_feats, const float* xyz,
+                      const float* log_scale, const float* rotation, const float* opacity_logit,
+                      const float* color, const int16_t* const* layer_weights, const float* const* col_scales,
+                      const float* qx, const float* pe_bias, const float* camera_center, const double* viewmat,
+                      const double* K, int width, int height, float* out_means, float* out_quats,
+                      float* out_scales, float* out_opac, float* out_colors, const double* guard, int nthreads);
 
 // STGS_ABI_END
 
