@@ -5,9 +5,10 @@
 One scene (looped and packed as bench.realtime does), played by `stgs play` in its own process once per knob
 setting, every frame rendered as fast as it can (not --realtime, so each setting's full cost shows) at the
 scene's first camera. Per setting: per-frame decode + dequantise, wait, deform and splat (medians), frames per
-second, the ring's memory, and the PSNR of the streamed frames against the uncompressed model's at the same
-camera and size (first, middle and last frame of each of the scene's own GOPs; streamed frames equal the
-whole-GOP decode bit for bit, so the comparison decodes each GOP whole).
+second, the ring's memory, and the PSNR of the streamed frames (in the setting's precision) against the
+uncompressed model's (float32) at the same camera and size (first, middle and last frame of each of the
+scene's own GOPs; streamed frames equal the whole-GOP decode bit for bit, so the comparison decodes each GOP
+whole).
 """
 
 from __future__ import annotations
@@ -39,14 +40,15 @@ VARIANTS = [{}, {"qp": 16}, {"qp": 32}, {"precision": "bf16"}, {"precision": "in
             {"ring": 4}, {"ring": 16}, {"render_threads": 1}]
 
 
-def streamed_psnr(model_dir: Path, dash: Path, qp: int, camera: Camera, gops: int) -> float:
+def streamed_psnr(model_dir: Path, dash: Path, qp: int, camera: Camera, gops: int, precision: str = "fp32") -> float:
     """Mean PSNR of the first, middle and last frame of the scene's first `gops` GOPs, streamed at `qp`
-    (decoded whole: bit-exact with the stream) against the uncompressed model, at `camera`."""
+    (decoded whole: bit-exact with the stream) and deformed in `precision`, against the uncompressed model
+    deformed in float32, at `camera`."""
     meta, models = load_model(model_dir)
     streamed_gop = packaged_gops(dash)[rep_id(qp)]
     values = []
     for k in range(min(gops, meta.num_gops)):
-        streamed, local = FrameRenderer(streamed_gop(k)), FrameRenderer(models[k])
+        streamed, local = FrameRenderer(streamed_gop(k), precision=precision), FrameRenderer(models[k])
         for i in sorted({0, meta.shape.gop_size // 2, meta.shape.gop_size - 1}):
             values.append(psnr(streamed.render(i, camera).clamp(0, 1), local.render(i, camera).clamp(0, 1)))
     return statistics.mean(values)
@@ -84,7 +86,7 @@ async def measure(model: Path, work: Path, seconds: float) -> list[str]:
             stats = frame_stats(log)
             width, height = (int(v) for v in s["size"].split("x"))
             camera = resize(cameras[0], width, height)
-            quality = await asyncio.to_thread(streamed_psnr, model, dash, s["qp"], camera, 2)
+            quality = await asyncio.to_thread(streamed_psnr, model, dash, s["qp"], camera, 2, s["precision"])
             ring_mb = s["ring"] * n * 16 * 4 / 2**20
             frame_ms = stats["render"][0]
             rows.append(f"| {label(variant)} | {stats['decode'][0]:.1f} | {stats['wait'][0]:.1f} | "
