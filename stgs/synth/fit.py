@@ -175,8 +175,8 @@ def fit_gop(scene: ProceduralScene | FoldedScene, times: list[float], shape: GOP
                 + 10 * (opac - targets["opacity"][frames][:, idx]).square().mean()
                 + 10 * (color - true_color).square().mean())
         if smoothness > 0:
-            loss = loss + smoothness * feature_roughness(model.features, shape.grid_side,
-                                                                idx if sampled else None)
+            anchors = idx if sampled else None
+            loss = loss + smoothness * feature_roughness(model.features, shape.grid_side, anchors)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

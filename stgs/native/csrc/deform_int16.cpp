@@ -144,6 +144,8 @@ void qmatmul_rows(const int16_t* q, int rows, int K, int ldq, const float* row_s
                   float* y) {
   static_assert(M % 16 == 0 && Cols % 8 == 0 && Cols <= M, "M: a multiple of 16, Cols: of 8");
   const int pairs = (K + 1) / 2;
+  // 32-column strips two rows at a time (8 accumulators, the weights as memory operands), then the narrow
+  // layers' 8-column strips four rows at a time: the fastest shapes in a harness on AMD Zen 3.
   int c0 = 0;
   for (; c0 + 32 <= Cols; c0 += 32) {
     int r = 0;
