@@ -76,9 +76,10 @@ async def measure(model: Path, work: Path, seconds: float) -> list[str]:
     async with loopback(dash) as base:
         url = base + MANIFEST
         await play_process(url, work / "warmup.json", ["--camera", cameras[0].name, "--duration", "1"])
+        runnable = runnable_precisions()
         for variant in VARIANTS:
             s = {**BASE, **variant}
-            if s["precision"] not in runnable_precisions():
+            if s["precision"] not in runnable:
                 rows.append(f"| {label(variant)} | {s['precision']} cannot run on this CPU: not run | | | | | | |")
                 continue
             log = await play_process(url, work / f"knob-{name}-{label(variant).replace(' ', '_')}.json",

@@ -196,7 +196,8 @@ def main(argv: list[str] | None = None) -> int:
     if not args.model and not args.dash:
         parser.error("give at least one --model or --dash")
     qps = [int(q) for q in args.qps.split(",")]
-    precisions = [p for p in args.precisions.split(",") if p in runnable_precisions()]
+    runnable = runnable_precisions()
+    precisions = [p for p in args.precisions.split(",") if p in runnable]
     skipped = sorted(set(args.precisions.split(",")) - set(precisions))
     threads = [None] if args.decode_threads is None else [int(t) for t in args.decode_threads.split(",")]
     aheads = [None] if args.render_ahead is None else [int(r) for r in args.render_ahead.split(",")]
