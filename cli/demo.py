@@ -108,12 +108,15 @@ def format_rows(stats: dict) -> dict[str, dict]:
             for rid, rep in stats["representations"].items()}
 
 
-def run(out: Path, progress: bool = True) -> int:
+def run(out: Path, progress: bool = True, fit_steps: int | None = None) -> int:
     from stgs.client.view import ViewSpec
     from stgs.packager import PackConfig, pack
 
     out = Path(out)
     cfg = dataclasses.replace(PRESETS["demo"], effects=(*PRESETS["demo"].effects, "static_background"))
+    if fit_steps is not None:
+        cfg = dataclasses.replace(cfg, fit_steps=fit_steps)
+    cfg.validate()
     print(f"stgs demo: native kernels {'on' if available() else 'OFF (pure-torch reference)'}")
     clock = time.perf_counter()
     report = synthesize(cfg, out / "model", progress=progress)

@@ -1,4 +1,7 @@
-"""`stgs demo`, the README's main command, end to end (a few minutes: the scene twice, layered and folded)."""
+"""`stgs demo`, the README's main command, end to end (a few minutes: the scene twice, layered and folded).
+
+The demo fits the default scene with 150 Adam steps per GOP instead of 400 (`--fit-steps`): every stage runs
+as in the default demo, on a rougher model (about 43 dB against 53.6), in under half the time."""
 
 from __future__ import annotations
 
@@ -11,7 +14,7 @@ from tests.conftest import run_stgs as stgs
 
 def test_demo_streams_the_default_scene_end_to_end(tmp_path):
     out = tmp_path / "demo"
-    result = stgs("demo", "--out", str(out), "--quiet")
+    result = stgs("demo", "--out", str(out), "--quiet", "--fit-steps", "150")
     assert result.returncode == 0, result.stderr
     assert "streamed frames vs ground truth" in result.stdout and "dB PSNR" in result.stdout
     summary = json.loads((out / "summary.json").read_text())
