@@ -254,7 +254,7 @@ _positive_seconds = _seconds_parser(positive=True)
 
 def add_play(sub: argparse._SubParsersAction) -> None:
     from stgs.client.abr import RULES
-    from stgs.client.config import RENDER_AHEAD
+    from stgs.client.clock import RENDER_AHEAD
     from stgs.model.native_deform import PRECISIONS
 
     p = sub.add_parser("play", help="stream a packaged scene over HTTP and render it on the CPU",
@@ -508,12 +508,13 @@ def add_sim(sub: argparse._SubParsersAction) -> None:
 
 
 def run_sim(args: argparse.Namespace) -> int:
+    from stgs.harness.scenario import load_scenario
+
+    sc = load_scenario(args.scenario)  # before the heavy imports: a mistake in it is reported at once
     from stgs.harness.ladder import load_ladder
     from stgs.harness.report import sabre_manifest, summary_table, write_json
     from stgs.harness.runner import run_batch, run_load, run_scenario
-    from stgs.harness.scenario import load_scenario
 
-    sc = load_scenario(args.scenario)
     args.out.mkdir(parents=True, exist_ok=True)
     if args.export_sabre:
         write_json(args.export_sabre, sabre_manifest(load_ladder(sc.scene)))

@@ -1,6 +1,22 @@
-"""stgs.client: the reference player (`stgs play`): manifest, downloader, ABR, pre-decode, CPU render, metrics."""
+"""stgs.client: the reference player (`stgs play`): manifest, downloader, ABR, pre-decode, CPU render, metrics.
 
-from stgs.client.config import PlaybackError, PlayConfig
-from stgs.client.player import play
+The player's entry points load on first use (PEP 562), so that `stgs.client.abr` and the other light modules
+(the harness reads the ABR rules' names when it validates a scenario) do not import torch and PyAV."""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from stgs.client.config import PlaybackError, PlayConfig
+    from stgs.client.player import play
 
 __all__ = ["PlayConfig", "PlaybackError", "play"]
+_HOMES = {"PlayConfig": "stgs.client.config", "PlaybackError": "stgs.client.config", "play": "stgs.client.player"}
+
+
+def __getattr__(name: str):
+    if name in _HOMES:
+        return getattr(importlib.import_module(_HOMES[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

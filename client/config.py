@@ -7,15 +7,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from stgs.client.abr import RULES, AbrSettings
+from stgs.client.clock import RENDER_AHEAD
 from stgs.client.download import DownloadSettings
 from stgs.client.urlpolicy import UrlPolicySettings
 from stgs.client.view import ViewSpec
 from stgs.errors import FieldError, StgsError
 from stgs.model.native_deform import check_precision
 from stgs.native.build import NativeUnavailableError
-
-RENDER_AHEAD = 2
-"""Default frame slots a frame may render before its own (PlayConfig.render_ahead)."""
 
 
 class PlaybackError(StgsError):

@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from stgs.client.config import RENDER_AHEAD
+from stgs.client.clock import RENDER_AHEAD
 from stgs.errors import StgsError
 
 DECODE_KEYS = ("keyframe_ms", "frame_ms", "ring_frames", "render_ahead", "static_ms")

@@ -16,6 +16,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -81,22 +82,34 @@ def library_path() -> Path:
 
 
 def build(verbose: bool = False) -> Path:
-    """Compile the kernels unless an up-to-date build is cached; returns the library path."""
+    """Compile the kernels unless an up-to-date build is cached; returns the library path.
+
+    Each source compiles in its own g++ process, as many at once as there are cores, then one link."""
     target = library_path()
     if target.exists():
         return target
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
-    os.close(fd)
-    cmd = [compiler(), *FLAGS, "-I", str(CSRC), *(str(CSRC / s) for s in SOURCES), "-o", tmp]
-    if verbose:
-        print("building native kernels:", " ".join(cmd), file=sys.stderr)
-    proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
-    if proc.returncode != 0:
-        os.unlink(tmp)
-        raise NativeUnavailableError(f"native build failed: {proc.stderr.strip()[:2000]}")
-    os.replace(tmp, target)
+    cxx = compiler()
+    compile_flags = [f for f in FLAGS if f != "-shared"]
+    with tempfile.TemporaryDirectory(dir=target.parent, prefix=".build-") as work:
+        objects = [str(Path(work) / f"{Path(s).stem}.o") for s in SOURCES]
+        commands = [[cxx, *compile_flags, "-I", str(CSRC), "-c", str(CSRC / s), "-o", o]
+                    for s, o in zip(SOURCES, objects, strict=True)]
+        tmp = str(Path(work) / "lib.so")
+        commands.append([cxx, *FLAGS, *objects, "-o", tmp])
+        if verbose:
+            print("building native kernels:", *(" ".join(c) for c in commands), sep="\n  ", file=sys.stderr)
+        with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+            compiled = list(pool.map(_run_compiler, commands[:-1]))
+        for proc in [*compiled, *([_run_compiler(commands[-1])] if all(p.returncode == 0 for p in compiled) else [])]:
+            if proc.returncode != 0:
+                raise NativeUnavailableError(f"native build failed: {proc.stderr.strip()[:2000]}")
+        os.replace(tmp, target)
     return target
+
+
+def _run_compiler(cmd: list[str]) -> subprocess.CompletedProcess:
+    return subprocess.run(cmd, capture_output=True, text=True, check=False)
 
 
 _LIB: Any = None

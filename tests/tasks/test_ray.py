@@ -22,9 +22,9 @@ from tests.conftest import run_stgs as stgs
 ray_cluster_utils = pytest.importorskip("ray.cluster_utils")
 
 SCENE = SynthConfig(grid_side=16, num_gops=2, gop_size=6, width=96, height=72, num_cameras=8, fit_steps=30)
-FLAGS = ("--gop-size", "6", "--grid-side", "16", "--coarse-iterations", "60", "--iterations", "240",
+FLAGS = ("--gop-size", "6", "--grid-side", "16", "--coarse-iterations", "30", "--iterations", "120",
          "--threads", "1", "--quiet")
-CONFIG = {"gop_size": 6, "grid_side": 16, "coarse_iterations": 60, "iterations": 240, "threads": 1}
+CONFIG = {"gop_size": 6, "grid_side": 16, "coarse_iterations": 30, "iterations": 120, "threads": 1}
 REPORT_TIMES = {"seconds", "coarse_seconds", "static_seconds", "curve"}
 """Fields of train_report.json that hold wall times (they differ between any two runs)."""
 
