@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -240,6 +242,13 @@ def test_bad_scenarios_are_one_line(tmp_path, body, message):
     assert result.returncode == 2 and len(lines) == 1 and lines[0].startswith("stgs: "), result.stderr
     if message:
         assert message in lines[0]
+
+
+def test_a_scenario_is_read_without_torch():
+    """`stgs sim` validates its scenario before the player's heavy imports, so a mistake costs no start-up."""
+    code = "import sys, stgs.harness.scenario; print(sorted({'torch', 'av'} & set(sys.modules)))"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert result.stdout.strip() == "[]"
 
 
 # fps = G: one-second GOPs
