@@ -100,16 +100,16 @@ def build(verbose: bool = False) -> Path:
         if verbose:
             print("building native kernels:", *(" ".join(c) for c in commands), sep="\n  ", file=sys.stderr)
         with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
-            compiled = list(pool.map(_run_compiler, commands[:-1]))
-        for proc in [*compiled, *([_run_compiler(commands[-1])] if all(p.returncode == 0 for p in compiled) else [])]:
-            if proc.returncode != 0:
-                raise NativeUnavailableError(f"native build failed: {proc.stderr.strip()[:2000]}")
+            list(pool.map(_run_compiler, commands[:-1]))  # list(): the first failure raises here
+        _run_compiler(commands[-1])
         os.replace(tmp, target)
     return target
 
 
-def _run_compiler(cmd: list[str]) -> subprocess.CompletedProcess:
-    return subprocess.run(cmd, capture_output=True, text=True, check=False)
+def _run_compiler(cmd: list[str]) -> None:
+    proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    if proc.returncode != 0:
+        raise NativeUnavailableError(f"native build failed: {proc.stderr.strip()[:2000]}")
 
 
 _LIB: Any = None
