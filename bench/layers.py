@@ -37,7 +37,8 @@ from stgs.camera import Camera, look_at
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.view import FrameRenderer
 from stgs.synth import SynthConfig, ground_truth_cameras, synthesize, truth_static_layer
-from stgs.synth.scene import DEFAULT_EFFECTS, ProceduralScene
+from stgs.synth.config import DEFAULT_EFFECTS
+from stgs.synth.scene import ProceduralScene
 
 
 def gop_from_truth(n: int, gop_size: int = 60, seed: int = 0) -> GOPModel:

@@ -26,7 +26,8 @@ from stgs.metrics import psnr
 from stgs.packager.packer import PackConfig, Packer
 from stgs.packager.segments import measure
 from stgs.synth import PRESETS, SynthConfig, synthesize
-from stgs.synth.scene import DEFAULT_EFFECTS, ProceduralScene
+from stgs.synth.config import DEFAULT_EFFECTS
+from stgs.synth.scene import ProceduralScene
 
 
 def codec_rows(model_dir: Path, out: Path, qps: list[int], presets: list[str], sort: bool) -> list[dict]:

@@ -20,7 +20,8 @@ from stgs.metrics import psnr
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.native.build import available
 from stgs.render import rasterize
-from stgs.synth.scene import DEFAULT_EFFECTS, ProceduralScene
+from stgs.synth.config import DEFAULT_EFFECTS
+from stgs.synth.scene import ProceduralScene
 
 SLOW_MS = 2000.0
 """A first run slower than this counts as the measurement (no warm-up for the slow reference)."""

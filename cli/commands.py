@@ -67,7 +67,7 @@ def _add_ray(p: argparse.ArgumentParser, what: str) -> None:
 
 def add_synth(sub: argparse._SubParsersAction) -> None:
     from stgs.synth import PRESETS
-    from stgs.synth.scene import EFFECTS
+    from stgs.synth.config import EFFECTS
 
     p = sub.add_parser("synth", help="generate a synthetic dynamic scene: ground truth + model dir",
                        description="Generate a procedural dynamic scene, render its ground-truth "
@@ -113,9 +113,9 @@ def synth_config_from_args(args: argparse.Namespace):
 
 
 def run_synth(args: argparse.Namespace) -> int:
+    cfg = synth_config_from_args(args)  # a mistake is reported before the generator loads
     from stgs.synth import synthesize
 
-    cfg = synth_config_from_args(args)
     report = synthesize(cfg, args.out, progress=not args.quiet)
     layered = "static_background" in cfg.effects and not cfg.fold
     static = f" + a static layer of {cfg.static_grid_side ** 2}" if layered else ""
@@ -136,8 +136,7 @@ def _qps(text: str) -> tuple[int, ...]:
 
 
 def add_pack(sub: argparse._SubParsersAction) -> None:
-    from stgs.codec.video import PRESETS
-    from stgs.packager import DEFAULT_QPS
+    from stgs.codec.video import DEFAULT_QPS, PRESETS
 
     p = sub.add_parser("pack", help="package a model dir as an MPEG-DASH tree",
                        description="PLAS-sort each GOP, write its keyframe segment (lossless JPEG XL "
@@ -255,7 +254,7 @@ _positive_seconds = _seconds_parser(positive=True)
 def add_play(sub: argparse._SubParsersAction) -> None:
     from stgs.client.abr import RULES
     from stgs.client.clock import RENDER_AHEAD
-    from stgs.model.native_deform import PRECISIONS
+    from stgs.model.precision import PRECISIONS
 
     p = sub.add_parser("play", help="stream a packaged scene over HTTP and render it on the CPU",
                        description="Stream a StreamSTGS scene from its MPD URL: the ABR rule picks each GOP's "
@@ -436,9 +435,11 @@ def train_overrides(args: argparse.Namespace) -> dict:
 
 
 def run_train(args: argparse.Namespace) -> int:
-    from stgs.train import budget, train
+    from stgs.train import budget
 
-    cfg = budget(args.budget, **train_overrides(args))
+    cfg = budget(args.budget, **train_overrides(args))  # a mistake is reported before the trainer loads
+    from stgs.train import train
+
     report = train(args.dataset, args.out, cfg, progress=not args.quiet, resume=args.resume, kind=args.kind,
                    ray=args.ray, retries=args.ray_retries)
     for g in report["gops"]:
@@ -625,26 +626,29 @@ def bench_suite(name: str):
 
 
 def run_bench(args: argparse.Namespace) -> int:
+    from stgs.synth import PRESETS
     from stgs.tree import MANIFEST
 
+    # Every flag is checked before the suite (torch and the rest) loads: a mistake is reported at once.
     if args.dash is not None and not (args.dash / MANIFEST).is_file():
         raise UsageError(f"--dash {args.dash}: no {MANIFEST} there")
     if args.suite == "train" and not args.runs:
         raise UsageError("bench train needs --runs DIR[,DIR...] (model dirs of finished stgs train runs)")
-    suite = bench_suite("realtime" if args.suite == "play" else args.suite)
+    name = "realtime" if args.suite == "play" else args.suite
     if args.suite == "train":
-        return suite.main([Path(d) for d in args.runs.split(",") if d], args.plot or Path("docs/train_curves.png"))
+        return bench_suite(name).main([Path(d) for d in args.runs.split(",") if d],
+                                      args.plot or Path("docs/train_curves.png"))
     if args.suite in ("sim", "abr"):
-        return suite.main(args.dash)
+        return bench_suite(name).main(args.dash)
     if args.suite == "serve":
-        return suite.main(args.dash, _int_list(args.clients, "--clients"), args.seconds)
-    from stgs.synth import PRESETS
-
+        clients = _int_list(args.clients, "--clients")
+        return bench_suite(name).main(args.dash, clients, args.seconds)
     scene = args.scene or "demo"
     if scene not in PRESETS:
         raise UsageError(f"--scene must be one of {', '.join(sorted(PRESETS))}")
     if args.suite == "play":
-        return suite.cli(args.dash, PRESETS[scene], _int_list(args.qps, "--qps"), args.width, args.height)
+        qps = _int_list(args.qps, "--qps")
+        return bench_suite(name).cli(args.dash, PRESETS[scene], qps, args.width, args.height)
     if args.suite == "pack":
         from stgs.codec.video import PRESETS as X265_PRESETS
 
@@ -652,14 +656,17 @@ def run_bench(args: argparse.Namespace) -> int:
         unknown = sorted(set(presets) - set(X265_PRESETS))
         if unknown:
             raise UsageError(f"--presets: unknown x265 preset(s) {unknown}")
-        return suite.main(_int_list(args.qps, "--qps"), presets, _int_list(args.sides, "--sides"),
-                          args.plot or Path("docs/rate_distortion.png"), PRESETS[scene])
+        qps, sides = _int_list(args.qps, "--qps"), _int_list(args.sides, "--sides")
+        return bench_suite(name).main(qps, presets, sides, args.plot or Path("docs/rate_distortion.png"),
+                                      PRESETS[scene])
     if args.suite == "synth":
         if args.preset not in PRESETS:
             raise UsageError(f"--preset must be one of {', '.join(sorted(PRESETS))}")
-        return suite.main(_int_list(args.steps, "--steps"), args.preset, _float_list(args.smoothness, "--smoothness"),
-                          _int_list(args.qps, "--qps"))
-    return suite.main(_int_list(args.sizes, "--sizes"), args.width, args.height, args.repeats, args.reference_max)
+        steps, smoothness = _int_list(args.steps, "--steps"), _float_list(args.smoothness, "--smoothness")
+        qps = _int_list(args.qps, "--qps")
+        return bench_suite(name).main(steps, args.preset, smoothness, qps)
+    sizes = _int_list(args.sizes, "--sizes")
+    return bench_suite(name).main(sizes, args.width, args.height, args.repeats, args.reference_max)
 
 
 COMMANDS = {"synth": add_synth, "train": add_train, "eval": add_eval, "pack": add_pack, "serve": add_serve,

@@ -48,7 +48,7 @@ class PlayConfig:
     """Native deform + splat (None: when built)."""
     precision: str = "fp32"
     """Arithmetic of the native deformation: fp32, bf16 (faster where the CPU has AVX512-BF16 or AMX) or int16
-    (faster on AVX2 CPUs); the last two cost accuracy (stgs.model.native_deform.PRECISIONS)."""
+    (faster on AVX2 CPUs); the last two cost accuracy (stgs.model.precision.PRECISIONS)."""
     max_decoded: int = 2
     """Decoded GOP models held at once (the one playing + pre-decoded ones)."""
     ring_frames: int = 8

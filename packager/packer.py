@@ -28,7 +28,7 @@ from tqdm import tqdm
 from stgs.codec.mp4 import hevc_codecs
 from stgs.codec.plas import PLASConfig
 from stgs.codec.static import decode_static, pack_static
-from stgs.codec.video import PRESETS, VideoTiming
+from stgs.codec.video import DEFAULT_QPS, PRESETS, VideoTiming
 from stgs.errors import FieldError, StgsError
 from stgs.fsio import atomic_write_bytes
 from stgs.model.static import StaticLayer
@@ -50,8 +50,6 @@ from stgs.tree import (
     static_path,
     version_dir,
 )
-
-DEFAULT_QPS = (16, 20, 24, 28, 32)
 
 
 @dataclass

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import pytest
 
 from stgs.cli import build_parser, main
@@ -21,6 +24,15 @@ def test_every_subcommand_has_help(capsys):
         assert done.value.code == 0 and "usage: stgs " + name in capsys.readouterr().out
     result = stgs("--help")
     assert result.returncode == 0 and all(name in result.stdout for name in SUBCOMMANDS)
+
+
+def test_the_parsers_load_neither_torch_nor_opencv():
+    """Every subcommand's help, choices and defaults come from light modules: help and a mistyped flag are
+    instant, and the heavy stack loads only when a command runs."""
+    code = ("import sys; from stgs.cli import build_parser; build_parser(); "
+            "print(sorted({'torch', 'cv2', 'OpenImageIO'} & set(sys.modules)))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert result.stdout.strip() == "[]"
 
 
 @pytest.mark.parametrize("args,message", [

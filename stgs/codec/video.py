@@ -30,6 +30,8 @@ from stgs.memory import filled_heap
 
 PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow")
 """x265 presets, fastest first."""
+DEFAULT_QPS = (16, 20, 24, 28, 32)
+"""The feature-video QP ladder `stgs pack` encodes unless told otherwise (one Representation per QP)."""
 PIXEL_FORMAT = "gray12le"
 """The feature video's pixels: one 12-bit channel, stored little-endian in 16 bits."""
 CODEC_TAG = "hvc1"

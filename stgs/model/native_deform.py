@@ -26,12 +26,9 @@ from stgs.model.gop import (
     frame_time,
     positional_encoding,
 )
+from stgs.model.precision import PRECISIONS
 from stgs.native.abi import ffi, ptr
 from stgs.native.build import NativeUnavailableError, available, load
-
-PRECISIONS = ("fp32", "bf16", "int16")
-"""Arithmetic of the native deformation: float32; bf16 inputs/weights with float32 accumulation; int16
-inputs/weights (one scale per input row and per weight column) with exact int32 sums."""
 
 BF16_BACKENDS = {"amx": 2, "avx512-bf16": 1}
 """The bf16 deformation's back ends, preferred first, with their bit in stgs_deform_bf16_backends: AMX tiles

@@ -120,7 +120,7 @@ class FrameRenderer:
 
     def __init__(self, model: GOPModel, native: bool | None = None, precision: str = "fp32",
                  static: StaticLayer | StaticDrawer | None = None):
-        """precision: arithmetic of the native deformation (stgs.model.native_deform.PRECISIONS: "fp32", "bf16"
+        """precision: arithmetic of the native deformation (stgs.model.precision.PRECISIONS: "fp32", "bf16"
         or "int16", the last two accuracy knobs); static: the scene's static layer, or a drawer of it shared
         with the other GOPs' renderers."""
         self.model = model

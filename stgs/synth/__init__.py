@@ -17,274 +17,29 @@ same scene is written as format 1 instead: every GOP fits the backdrop too
 
 from __future__ import annotations
 
-import dataclasses
-import json
-import shutil
-import tempfile
-import time
-import tomllib
-from dataclasses import dataclass, field
-from pathlib import Path
+import importlib
+from typing import TYPE_CHECKING
 
-import torch
-from tqdm import tqdm
+from stgs.synth.config import DEFAULT_EFFECTS, EFFECTS, PRESETS, SCENE_TARGET, SynthConfig, config_from_toml
 
-from stgs.camera import Camera, orbit
-from stgs.errors import StgsError
-from stgs.fsio import DIR_MODE, atomic_write_bytes, load_png, save_png
-from stgs.metrics import psnr
-from stgs.model.gop import GOPShape
-from stgs.model.static import StaticLayer
-from stgs.model.store import load_model, load_static, save_model
-from stgs.model.view import FrameRenderer, in_guard_band
-from stgs.render import rasterize
-from stgs.synth.fit import fit_gop
-from stgs.synth.scene import DEFAULT_EFFECTS, EFFECTS, FOREGROUND, FoldedScene, ProceduralScene, TruthFrame
-from stgs.tree import CAMERAS, GROUND_TRUTH_DIR, MASKS_DIR, MODEL_META
+if TYPE_CHECKING:
+    from stgs.synth.generate import (
+        SynthReport,
+        ground_truth_cameras,
+        load_ground_truth,
+        measure_fidelity,
+        synthesize,
+        truth_static_layer,
+    )
 
-SCENE_TARGET = (0.0, 0.55, 0.0)
+__all__ = ["DEFAULT_EFFECTS", "EFFECTS", "PRESETS", "SCENE_TARGET", "SynthConfig", "SynthReport", "config_from_toml",
+           "ground_truth_cameras", "load_ground_truth", "measure_fidelity", "synthesize", "truth_static_layer"]
+_GENERATOR = ("SynthReport", "ground_truth_cameras", "load_ground_truth", "measure_fidelity", "synthesize",
+              "truth_static_layer")
 
 
-@dataclass
-class SynthConfig:
-    """Everything that determines a synthetic scene (one config object flows through a run)."""
-
-    grid_side: int = 32
-    """S: the scene's capacity is N = S² Gaussian slots."""
-    num_gops: int = 2
-    """GOPs in the scene."""
-    gop_size: int = 30
-    """Frames per GOP (G)."""
-    window: int = 3
-    """Sliding window W of temporal features."""
-    fps: float = 30.0
-    """Playback frame rate."""
-    width: int = 160
-    """Ground-truth image width."""
-    height: int = 120
-    """Ground-truth image height."""
-    num_cameras: int = 6
-    """Ground-truth cameras on a ring around the scene."""
-    effects: tuple[str, ...] = DEFAULT_EFFECTS
-    """Effects to simulate; nothing that is not named here is animated (static_background: a layered scene)."""
-    static_grid_side: int = 32
-    """S_s of the static layer (the backdrop's S_s² Gaussians) when static_background is on."""
-    fit_steps: int = 300
-    """Adam steps of the parameter-space fit per GOP."""
-    feature_smoothness: float = 0.3
-    """Weight of the fit's feature roughness term (grid and time neighbours; 0: off): fewer feature bits."""
-    seed: int = 0
-    """Seed of the scene layout and the fit."""
-    fidelity_stride: int = 5
-    """Evaluate rendered fidelity on every n-th frame (all cameras)."""
-    fold: bool = False
-    """With static_background: fold the backdrop into every GOP (a format-1 model of the layered scene)."""
-
-    def validate(self) -> None:
-        checks = [(self.grid_side >= 4, "grid_side must be >= 4"),
-                  (self.num_gops >= 1, "num_gops must be >= 1"),
-                  (self.gop_size >= 2, "gop_size must be >= 2"),
-                  (1 <= self.window <= 8, "window must be in 1..8"),
-                  (0 < self.fps <= 240, "fps must be in (0, 240]"),
-                  (8 <= self.width <= 4096 and 8 <= self.height <= 4096,
-                   "width and height must be in 8..4096"),
-                  (self.num_cameras >= 1, "num_cameras must be >= 1"),
-                  (self.fit_steps >= 0, "fit_steps must be >= 0"),
-                  (0 <= self.feature_smoothness < 1e6, "feature_smoothness must be in [0, 1e6)"),
-                  (self.fidelity_stride >= 1, "fidelity_stride must be >= 1"),
-                  (self.static_grid_side >= 4, "static_grid_side must be >= 4")]
-        for ok, message in checks:
-            if not ok:
-                raise StgsError(f"synth config: {message}")
-        unknown = sorted(set(self.effects) - set(EFFECTS))
-        if unknown:
-            raise StgsError(f"synth config: unknown effect(s) {unknown}; known: {', '.join(EFFECTS)}")
-        if self.fold and "static_background" not in self.effects:
-            raise StgsError("synth config: fold needs the static_background effect (a layered scene to fold)")
-
-
-PRESETS = {
-    "small": SynthConfig(),
-    "demo": SynthConfig(grid_side=64, num_gops=2, gop_size=30, width=320, height=240, fit_steps=400),
-    "large": SynthConfig(grid_side=256, num_gops=2, gop_size=60, width=640, height=360,
-                         num_cameras=8, fit_steps=600),
-}
-"""Named configs: small (tests, seconds), demo (the README's demo), large (65k Gaussians, 640x360)."""
-
-
-def config_from_toml(path: Path, base: SynthConfig | None = None) -> SynthConfig:
-    """A SynthConfig from a TOML file whose keys are SynthConfig field names."""
-    try:
-        doc = tomllib.loads(Path(path).read_text())
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise StgsError(f"{path}: cannot read synth config ({exc})") from exc
-    names = {f.name: f for f in dataclasses.fields(SynthConfig)}
-    unknown = sorted(set(doc) - set(names))
-    if unknown:
-        raise StgsError(f"{path}: unknown key(s) {unknown}; known: {', '.join(names)}")
-    values = {}
-    for key, value in doc.items():
-        if key == "effects":
-            if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
-                raise StgsError(f"{path}: 'effects' must be a list of names")
-            value = tuple(value)
-        elif key == "fold":
-            if not isinstance(value, bool):
-                raise StgsError(f"{path}: 'fold' must be true or false")
-        elif not isinstance(value, (int, float)) or isinstance(value, bool):
-            raise StgsError(f"{path}: '{key}' must be a number")
-        values[key] = value
-    return dataclasses.replace(base or SynthConfig(), **values)
-
-
-@dataclass
-class SynthReport:
-    """What `synthesize` measured."""
-
-    fit: list[dict] = field(default_factory=list)
-    """Per GOP: position/colour/opacity RMSE of the fit and its seconds."""
-    fidelity_psnr: float = 0.0
-    """Mean PSNR (dB) of model renders vs the ground-truth images."""
-    fidelity_views: int = 0
-    """Number of (frame, camera) views in that mean."""
-
-    def to_json(self) -> dict:
-        return dataclasses.asdict(self)
-
-
-def ground_truth_cameras(cfg: SynthConfig) -> list[Camera]:
-    return orbit(cfg.num_cameras, radius=3.2, height=1.4, target=SCENE_TARGET, width=cfg.width,
-                 height_px=cfg.height, prefix="cam")
-
-
-def _draw(frames: list[TruthFrame], camera: Camera, colors: list[torch.Tensor] | None = None) -> torch.Tensor:
-    cat = lambda key: torch.cat([getattr(t, key) for t in frames])  # noqa: E731
-    colors = colors if colors is not None else [t.colors(camera.center) for t in frames]
-    return rasterize(cat("means"), cat("quats"), cat("log_scales").exp(), cat("opacities"), torch.cat(colors),
-                     camera.viewmat.float(), camera.K.float(), camera.width, camera.height)
-
-
-def render_truth(scene: ProceduralScene, time_s: float, camera: Camera) -> torch.Tensor:
-    """The true image (the static backdrop, if any, and the objects in one depth order). The backdrop is
-    drawn with the model's guard band (stgs.model.view): beside a camera, a wall Gaussian seen at a grazing
-    angle would otherwise veil the whole image."""
-    frames = [scene.at(time_s)]
-    if scene.static is not None:
-        s = scene.static
-        frames.append(dataclasses.replace(s, opacities=s.opacities * in_guard_band(s.means, camera).float()))
-    return _draw(frames, camera)
-
-
-def foreground_mask(scene: ProceduralScene, time_s: float, camera: Camera) -> torch.Tensor:
-    """(H, W) bool: where the foreground objects alone cover more than half of a pixel."""
-    t = scene.at(time_s)
-    keep = torch.zeros(scene.capacity, dtype=torch.bool)
-    for name in FOREGROUND:
-        keep[scene.slices[name]] = True
-    return _draw([t.select(keep)], camera, [torch.ones(int(keep.sum()), 3)])[..., 0] > 0.5
-
-
-def truth_static_layer(scene: ProceduralScene) -> StaticLayer | None:
-    """The backdrop as a static layer: the truth's attributes themselves (it never moves)."""
-    if scene.static is None:
-        return None
-    layer = StaticLayer(len(scene.static.means))
-    scene.static.copy_into(layer, 1e-6)
-    return layer
-
-
-def write_ground_truth(out: Path, scene: ProceduralScene, cfg: SynthConfig, cameras: list[Camera],
-                       progress: bool) -> None:
-    frames = cfg.num_gops * cfg.gop_size
-    gt = out / GROUND_TRUTH_DIR
-    for f in tqdm(range(frames), desc="ground truth", unit="frame", disable=not progress):
-        for cam in cameras:
-            save_png(gt / cam.name / f"{f:05d}.png", render_truth(scene, f / cfg.fps, cam))
-            mask = foreground_mask(scene, f / cfg.fps, cam)
-            save_png(gt / MASKS_DIR / cam.name / f"{f:05d}.png", mask[..., None].float().expand(-1, -1, 3))
-    doc = {"fps": cfg.fps, "num_frames": frames, "pattern": "{camera}/{frame:05d}.png",
-           "cameras": [c.to_json() for c in cameras]}
-    atomic_write_bytes(gt / CAMERAS, (json.dumps(doc, indent=2) + "\n").encode())
-
-
-def load_ground_truth(model_dir: Path) -> tuple[dict, list[Camera]]:
-    """cameras.json of a synthetic model dir and its cameras."""
-    path = Path(model_dir) / GROUND_TRUTH_DIR / CAMERAS
-    if not path.is_file():
-        raise StgsError(f"{model_dir}: no ground truth ({path} missing)")
-    doc = json.loads(path.read_text())
-    return doc, [Camera.from_json(c) for c in doc["cameras"]]
-
-
-def measure_fidelity(model_dir: Path, stride: int = 5) -> tuple[float, int]:
-    """Mean PSNR of the model's renders vs its stored ground truth, over every stride-th frame."""
-    meta, gops = load_model(model_dir)
-    static = load_static(model_dir, meta)
-    doc, cameras = load_ground_truth(model_dir)
-    values = []
-    for k, gop in enumerate(gops):
-        renderer = FrameRenderer(gop, static=static)
-        for i in range(0, meta.shape.gop_size, stride):
-            f = k * meta.shape.gop_size + i
-            for cam in cameras:
-                truth = load_png(Path(model_dir) / GROUND_TRUTH_DIR /
-                                 doc["pattern"].format(camera=cam.name, frame=f))
-                values.append(psnr(renderer.render(i, cam).clamp(0, 1), truth))
-    return sum(values) / len(values), len(values)
-
-
-def _replace_dir(staging: Path, out: Path) -> None:
-    """Move a finished staging folder to `out`, replacing an older model dir there."""
-    if out.exists():
-        if not out.is_dir():
-            raise StgsError(f"{out}: exists and is not a folder")
-        if any(out.iterdir()) and not (out / MODEL_META).is_file():
-            raise StgsError(f"{out}: folder is not empty and not a model dir; refusing to overwrite")
-        old = out.with_name(f".{out.name}.old-{time.time_ns()}")
-        out.rename(old)
-        staging.rename(out)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        staging.rename(out)
-
-
-def synthesize(cfg: SynthConfig, out: Path, progress: bool = True) -> SynthReport:
-    """Generate the scene, its ground truth and a fitted model dir at `out` (atomically)."""
-    cfg.validate()
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    shape = GOPShape(capacity=cfg.grid_side ** 2, gop_size=cfg.gop_size, window=cfg.window)
-    layered = "static_background" in cfg.effects
-    scene = ProceduralScene(shape.capacity, tuple(cfg.effects), cfg.seed,
-                            cfg.static_grid_side ** 2 if layered else 0)
-    fit_scene = FoldedScene(scene) if cfg.fold else scene
-    if cfg.fold:
-        shape = dataclasses.replace(shape, capacity=fit_scene.capacity)
-    cameras = ground_truth_cameras(cfg)
-    report = SynthReport()
-    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-", dir=out.parent))
-    staging.chmod(DIR_MODE)  # mkdtemp makes 0700
-    try:
-        write_ground_truth(staging, scene, cfg, cameras, progress)
-        gops = []
-        for k in tqdm(range(cfg.num_gops), desc="fit GOPs", unit="gop", disable=not progress):
-            start = time.perf_counter()
-            times = [(k * cfg.gop_size + i) / cfg.fps for i in range(cfg.gop_size)]
-            result = fit_gop(fit_scene, times, shape, cfg.fit_steps, seed=cfg.seed + k,
-                             smoothness=cfg.feature_smoothness)
-            gops.append(result.model)
-            report.fit.append({"gop": k, "position_rmse": result.position_rmse,
-                               "color_rmse": result.color_rmse,
-                               "opacity_rmse": result.opacity_rmse,
-                               "seconds": time.perf_counter() - start})
-        extra = {"generator": "stgs.synth", "config": dataclasses.asdict(cfg),
-                 "ground_truth": GROUND_TRUTH_DIR}
-        save_model(staging, gops, cfg.fps, extra, static=None if cfg.fold else truth_static_layer(scene))
-        report.fidelity_psnr, report.fidelity_views = measure_fidelity(staging, cfg.fidelity_stride)
-        atomic_write_bytes(staging / "synth_report.json",
-                           (json.dumps(report.to_json(), indent=2) + "\n").encode())
-        _replace_dir(staging, out)
-    finally:
-        if staging.exists():
-            shutil.rmtree(staging, ignore_errors=True)
-    return report
+def __getattr__(name: str):
+    # The generator (torch) loads on first use, so that the presets and effects stay light (PEP 562).
+    if name in _GENERATOR:
+        return getattr(importlib.import_module("stgs.synth.generate"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

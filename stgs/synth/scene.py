@@ -25,11 +25,8 @@ from dataclasses import dataclass
 import torch
 
 from stgs.render.project import normalize_quats
+from stgs.synth.config import EFFECTS
 
-EFFECTS = ("rigid", "nonrigid", "color", "appear", "view_dependent", "static_background")
-"""Every effect the generator knows."""
-DEFAULT_EFFECTS = EFFECTS[:5]
-"""The effects of a single-layer scene (static_background adds a static layer)."""
 FOREGROUND = ("ring", "blob", "sparks")
 """The objects a foreground mask covers."""
 BACKDROP_RADIUS = 5.0

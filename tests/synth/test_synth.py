@@ -16,8 +16,9 @@ from stgs.errors import StgsError
 from stgs.model.gop import GOPShape
 from stgs.model.store import load_model, load_static, read_meta
 from stgs.synth import SynthConfig, config_from_toml, synthesize
+from stgs.synth.config import DEFAULT_EFFECTS
 from stgs.synth.fit import feature_roughness, fit_gop
-from stgs.synth.scene import DEFAULT_EFFECTS, ProceduralScene
+from stgs.synth.scene import ProceduralScene
 
 TINY = SynthConfig(grid_side=16, num_gops=2, gop_size=6, width=48, height=36, num_cameras=2,
                    fit_steps=150, fidelity_stride=3)

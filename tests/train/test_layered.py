@@ -19,7 +19,8 @@ from stgs.model.static import StaticLayer
 from stgs.model.store import load_static, read_meta
 from stgs.model.view import splat, static_view
 from stgs.synth import SynthConfig, ground_truth_cameras, synthesize, truth_static_layer
-from stgs.synth.scene import DEFAULT_EFFECTS, ProceduralScene
+from stgs.synth.config import DEFAULT_EFFECTS
+from stgs.synth.scene import ProceduralScene
 from stgs.train import budget, train
 from stgs.train import losses as loss_module
 from stgs.train.layers import fit_view_dependent, migrate, motion_scores, moving_masks
