@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""A/B of the frame path (native deform + splat at 640x360, and the splat alone) between two source trees.
+"""A/B of the frame path (native deform + splat at 640x360, the splat alone, the deformation alone) between two
+source trees.
 
 This machine's speed drifts by up to 20 % over minutes, so kernel changes are
 judged by alternating the two builds in one run, never by comparing tables
@@ -59,15 +60,19 @@ for precision in runnable_precisions():
         g = renderer.gaussians(frame, cam)
         for _ in range(3):
             renderer.render(frame, cam)
-        times, splats = [], []
+        times, splats, deforms = [], [], []
         for _ in range(frames):
             start = time.perf_counter()
             renderer.render(frame, cam)
             mid = time.perf_counter()
             renderer.splat(g, cam)
+            end = time.perf_counter()
+            renderer.gaussians(frame, cam)
             times.append((mid - start) * 1e3)
-            splats.append((time.perf_counter() - mid) * 1e3)
+            splats.append((end - mid) * 1e3)
+            deforms.append((time.perf_counter() - end) * 1e3)
     result[precision] = statistics.median(times)
+    result[precision + " deform"] = statistics.median(deforms)
     result.setdefault("splat", statistics.median(splats))
 print(json.dumps(result))
 """
@@ -108,7 +113,8 @@ def main() -> int:
             continue
         old = statistics.median(run[key] for run in runs["old"])
         new = statistics.median(run[key] for run in runs["new"])
-        label = "splat alone (fp32 deformation's Gaussians)" if key == "splat" else f"{key} deformation + splat"
+        label = ("splat alone (fp32 deformation's Gaussians)" if key == "splat" else
+                 f"{key.split()[0]} deformation alone" if key.endswith(" deform") else f"{key} deformation + splat")
         print(f"| {label} | {old:.1f} | {new:.1f} | {new / old:.2f} |")
     return 0
 
