@@ -1,0 +1,208 @@
+"""Subcommands that make and measure a model dir: `stgs synth`, `stgs train`, `stgs eval`."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+
+from stgs.cli.args import add_ray, effect_list, name_list, positive_int
+
+
+def add_synth(sub: argparse._SubParsersAction) -> None:
+    from stgs.synth import PRESETS
+    from stgs.synth.config import EFFECTS
+
+    p = sub.add_parser("synth", help="generate a synthetic dynamic scene: ground truth + model dir",
+                       description="Generate a procedural dynamic scene, render its ground-truth "
+                       "multi-view images and fit a StreamSTGS model dir to it in parameter space.")
+    p.add_argument("out", type=Path, help="output model dir (replaced if it is a model dir)")
+    p.add_argument("--preset", choices=sorted(PRESETS), default="small",
+                   help="base configuration (default: small)")
+    p.add_argument("--config", type=Path, help="TOML file overriding SynthConfig fields")
+    p.add_argument("--grid-side", type=positive_int, help="S: capacity N = S² Gaussians")
+    p.add_argument("--gops", type=positive_int, dest="num_gops", help="number of GOPs")
+    p.add_argument("--gop-size", type=positive_int, help="frames per GOP")
+    p.add_argument("--width", type=positive_int, help="ground-truth image width")
+    p.add_argument("--height", type=positive_int, help="ground-truth image height")
+    p.add_argument("--cameras", type=positive_int, dest="num_cameras", help="ground-truth cameras")
+    p.add_argument("--fit-steps", type=int, help="Adam steps of the parameter fit per GOP")
+    p.add_argument("--feature-smoothness", type=float,
+                   help="weight of the fit's feature roughness term, grid and time neighbours (default 0.3; "
+                   "0: off, noise-like features that cost several times the bits)")
+    p.add_argument("--seed", type=int, help="random seed")
+    p.add_argument("--effects", type=effect_list,
+                   help=f"comma-separated effects to simulate (known: {','.join(EFFECTS)}; static_background "
+                   "makes a layered scene, model format 2)")
+    p.add_argument("--static-grid-side", type=positive_int,
+                   help="S_s: Gaussians S_s² of the static layer with static_background (default 32)")
+    p.add_argument("--fold", action="store_true", default=None,
+                   help="with static_background: fold the backdrop into every GOP (the same scene as a "
+                   "single-layer, format-1 model, to compare with the layered one)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(run=run_synth)
+
+
+def synth_config_from_args(args: argparse.Namespace):
+    from stgs.synth import PRESETS, config_from_toml
+
+    cfg = PRESETS[args.preset]
+    if args.config:
+        cfg = config_from_toml(args.config, cfg)
+    overrides = {f.name: getattr(args, f.name) for f in dataclasses.fields(cfg)
+                 if getattr(args, f.name, None) is not None}
+    cfg = dataclasses.replace(cfg, **overrides)
+    cfg.validate()
+    return cfg
+
+
+def run_synth(args: argparse.Namespace) -> int:
+    cfg = synth_config_from_args(args)  # a mistake is reported before the generator loads
+    from stgs.synth import synthesize
+
+    report = synthesize(cfg, args.out, progress=not args.quiet)
+    layered = "static_background" in cfg.effects and not cfg.fold
+    static = f" + a static layer of {cfg.static_grid_side ** 2}" if layered else ""
+    if cfg.fold:
+        static = f" (backdrop of {cfg.static_grid_side ** 2} folded into every GOP)"
+    print(f"wrote {args.out}: {cfg.grid_side ** 2} Gaussians{static}, {cfg.num_gops} GOPs x "
+          f"{cfg.gop_size} frames, effects {','.join(cfg.effects) or 'none'}")
+    print(f"fidelity of the model vs ground truth: {report.fidelity_psnr:.2f} dB PSNR "
+          f"over {report.fidelity_views} views")
+    return 0
+
+
+def add_train(sub: argparse._SubParsersAction) -> None:
+    from stgs.train.config import BUDGETS
+
+    p = sub.add_parser("train", help="train a StreamSTGS model dir from multi-view video (CPU)",
+                       description="Per-GOP StreamSTGS training: triangulated initial points, a coarse canonical "
+                       "stage, then per GOP canonical Gaussians + temporal features + deformation field with the "
+                       "paper's losses, relocation and pruning. Writes a model dir `stgs pack` accepts.")
+    p.add_argument("dataset", type=Path, help="Panoptic folder (train_meta.json), N3DV folder "
+                   "(poses_bounds.npy + cam*.mp4) or a stgs synth model dir")
+    p.add_argument("out", type=Path, help="output model dir")
+    p.add_argument("--budget", choices=sorted(BUDGETS), default="quick",
+                   help="quick (CI, minutes), cpu (a 60-frame GOP at 640x360 in ~1 h), paper (12k it, ~150k Gaussians)")
+    p.add_argument("--kind", choices=["auto", "panoptic", "n3dv", "synth"], default="auto", help="dataset layout")
+    p.add_argument("--holdout", type=name_list, help="comma-separated validation cameras (default: the dataset's)")
+    p.add_argument("--gops", type=positive_int, dest="max_gops", help="train at most this many GOPs")
+    p.add_argument("--gop-size", type=positive_int, help="frames per GOP (default 60)")
+    p.add_argument("--start-frame", type=int, help="first frame")
+    p.add_argument("--grid-side", type=positive_int,
+                   help="S: capacity N = S² Gaussians per GOP (layered: of the dynamic layer)")
+    p.add_argument("--layers", choices=["single", "layered"],
+                   help="single (default): every GOP holds every Gaussian, model format 1; layered: a static layer "
+                   "fitted once (stage A) + smaller per-GOP dynamic layers (stage B), model format 2, which "
+                   "`stgs pack` cannot carry yet")
+    p.add_argument("--static-grid-side", type=positive_int,
+                   help="S_s: Gaussians S_s² of the static layer (layered; default: the budget's)")
+    p.add_argument("--no-migrate", dest="migrate", action="store_false", default=None,
+                   help="layered: static Gaussians the data shows moving stay static (no migration)")
+    p.add_argument("--static-sh", type=int, choices=[0, 1], dest="static_sh_degree",
+                   help="layered: view-dependent colour of the static layer, 0 (default) none, 1 a degree-1 term "
+                   "fitted after stage A")
+    p.add_argument("--static-sh-iterations", type=int,
+                   help="layered, --static-sh 1: iterations of that fit (default 500)")
+    p.add_argument("--iterations", type=positive_int, help="iterations per GOP")
+    p.add_argument("--coarse-iterations", type=int,
+                   help="iterations of the coarse canonical stage (layered: of stage A, the static layer)")
+    p.add_argument("--position-lr", type=float,
+                   help="initial position learning rate × the scene extent (decays 100× over a stage; "
+                   "default: the budget's)")
+    p.add_argument("--scale", type=float, help="training image scale (0.5 = half size)")
+    p.add_argument("--window", type=positive_int, help="sliding window W (default 3)")
+    p.add_argument("--background-share", type=float,
+                   help="share of the Gaussians first placed on the walls and floor of a rig that surrounds the "
+                   "scene (default: the budget's, 0.5 for cpu and paper, 0 for quick; 0 turns it off)")
+    p.add_argument("--init-frames", type=positive_int,
+                   help="frames spread over the trained span whose views are triangulated for the initial points "
+                   "(default 6; 1: the first frame only)")
+    p.add_argument("--no-aux", dest="aux", action="store_false", default=None,
+                   help="no transformer-guided auxiliary pass")
+    p.add_argument("--no-dynamic-density", dest="dynamic", action="store_false", default=None,
+                   help="no extra loss on dynamic pixels")
+    p.add_argument("--no-temporal-reg", dest="temporal_weight", action="store_const", const=0.0,
+                   help="no temporal Huber consistency of features")
+    p.add_argument("--no-relocate", dest="relocate", action="store_false", default=None,
+                   help="no relocation of dead Gaussians")
+    p.add_argument("--seed", type=int, help="random seed (default 0)")
+    p.add_argument("--threads", type=positive_int,
+                   help="torch threads (default: torch's; with --ray, 1 per task). The same seed and threads give "
+                   "the same bytes, locally or on Ray")
+    add_ray(p, "the base stage, then one task per GOP,")
+    p.add_argument("--resume", action="store_true", help="continue an interrupted run from its checkpoints")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(run=run_train)
+
+
+TRAIN_OVERRIDES = ("max_gops", "gop_size", "start_frame", "grid_side", "iterations", "coarse_iterations", "scale",
+                   "window", "aux", "dynamic", "temporal_weight", "relocate", "seed", "threads", "holdout",
+                   "background_share", "init_frames", "layers", "static_grid_side", "migrate",
+                   "static_sh_degree", "static_sh_iterations")
+
+
+def train_overrides(args: argparse.Namespace) -> dict:
+    """TrainConfig fields the command line sets (the rest come from the budget)."""
+    from stgs.train.config import BUDGETS
+
+    overrides = {k: getattr(args, k) for k in TRAIN_OVERRIDES if getattr(args, k) is not None}
+    if args.position_lr is not None:  # TrainConfig.validate checks the rates
+        overrides["lr"] = dataclasses.replace(BUDGETS[args.budget].lr, position=args.position_lr,
+                                              position_final=args.position_lr / 100)
+    return overrides
+
+
+def run_train(args: argparse.Namespace) -> int:
+    from stgs.train import budget
+
+    cfg = budget(args.budget, **train_overrides(args))  # a mistake is reported before the trainer loads
+    from stgs.train import train
+
+    report = train(args.dataset, args.out, cfg, progress=not args.quiet, resume=args.resume, kind=args.kind,
+                   ray=args.ray, retries=args.ray_retries)
+    for g in report["gops"]:
+        val = f", validation {g['val_psnr']:.2f} dB" if g["val_psnr"] is not None else ""
+        print(f"GOP {g['gop']}: {g['iterations']} iterations in {g['seconds']:.0f} s, train {g['train_psnr']:.2f} dB"
+              f"{val}, {g['relocated']} relocated, {g['pruned']} pruned")
+    if "static_capacity" in report:
+        print(f"static layer: {report['static_capacity']} Gaussians in {report['static_seconds']:.0f} s "
+              f"(moving pixels from {report['moving_mask_source']}; {report['migrated']} Gaussians migrated to the "
+              "dynamic layers)")
+    print(f"wrote {args.out} ({report['capacity']} Gaussians per GOP, {len(report['gops'])} GOP(s))")
+    return 0
+
+
+def add_eval(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("eval", help="PSNR/SSIM of a model dir (and its packaged stream) on held-out cameras",
+                       description="Render the validation cameras of every GOP from the uncompressed model and, "
+                       "with --dash, from every Representation of its DASH tree; compare with the dataset.")
+    p.add_argument("model_dir", type=Path, help="model dir (stgs train output)")
+    p.add_argument("dataset", type=Path, help="the dataset it was trained on")
+    p.add_argument("--dash", type=Path, help="the model's packaged tree (stgs pack output) to evaluate per QP")
+    p.add_argument("--holdout", type=name_list,
+                   help="validation cameras (default: those the model was trained without)")
+    p.add_argument("--stride", type=positive_int, default=1, help="evaluate every n-th frame (default: 1)")
+    p.add_argument("--out", type=Path, help="where eval.json and eval_grid.png go (default: MODEL_DIR)")
+    p.add_argument("--lpips", choices=["alex", "vgg", "off"], default="alex",
+                   help="LPIPS network, computed only where torchvision's cache ($TORCH_HOME/hub/checkpoints) "
+                   "already holds its ImageNet backbone; nothing is downloaded (default: alex)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(run=run_eval)
+
+
+def run_eval(args: argparse.Namespace) -> int:
+    from stgs.evaluate import evaluate
+
+    result = evaluate(args.model_dir, args.dataset, args.out or args.model_dir, args.dash, args.holdout,
+                      args.stride, progress=not args.quiet, lpips_net=None if args.lpips == "off" else args.lpips)
+    for name, stream in result["streams"].items():
+        regions = (f" (foreground {stream['psnr_foreground']:.2f} dB, background {stream['psnr_background']:.2f} dB)"
+                   if "psnr_foreground" in stream and "psnr_background" in stream else "")
+        lpips = f", LPIPS ({args.lpips}) {stream['lpips']:.4f}" if "lpips" in stream else ""
+        print(f"{name}: PSNR {stream['psnr']:.2f} dB{regions}, SSIM {stream['ssim']:.4f}{lpips} over "
+              f"{len(stream['gops'])} GOP(s)")
+    if result["lpips"] and not result["lpips"]["computed"]:
+        print(f"LPIPS not computed: {result['lpips']['reason']}")
+    print(f"wrote {(args.out or args.model_dir) / 'eval.json'}")
+    return 0
