@@ -27,8 +27,9 @@ from stgs.client.abr import AbrSettings
 from stgs.client.manifest import Presentation
 from stgs.harness.ladder import Ladder, load_ladder
 from stgs.harness.report import metrics
-from stgs.harness.scenario import MAHIMAHI_PACKET_BITS, Trace, load_trace, scenario_from_dict
+from stgs.harness.scenario import scenario_from_dict
 from stgs.harness.sim import simulate
+from stgs.harness.trace import MAHIMAHI_PACKET_BITS, Trace, load_trace
 from stgs.packager import PackConfig, pack
 from stgs.synth import PRESETS, synthesize
 from stgs.tree import MANIFEST

@@ -46,7 +46,8 @@ from stgs.codec.mp4 import MP4Error, hevc_codecs, media_timeline, set_timeline, 
 from stgs.codec.static import StaticSegmentError, decode_static, encode_static
 from stgs.codec.video import VideoTiming, encode_gop
 from stgs.errors import StgsError
-from stgs.harness.scenario import load_scenario, load_trace
+from stgs.harness.scenario import load_scenario
+from stgs.harness.trace import load_trace
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.static import StaticLayer
 from stgs.mpd import MPDError, parse_mpd

@@ -20,7 +20,8 @@ from pathlib import Path
 from stgs.client.abr import AbrSettings
 from stgs.fsio import atomic_write_bytes, save_figure
 from stgs.harness.ladder import Ladder
-from stgs.harness.scenario import Effects, Trace
+from stgs.harness.scenario import Effects
+from stgs.harness.trace import Trace
 
 REBUFFER_PENALTY = 4.3
 """μ of the linear QoE (Pensieve's value for bit rates in Mbit/s)."""

@@ -24,8 +24,9 @@ from stgs.harness.report import (
     write_json,
     write_timeline,
 )
-from stgs.harness.scenario import TRACE_FORMATS, Scenario, load_trace
+from stgs.harness.scenario import Scenario
 from stgs.harness.sim import simulate
+from stgs.harness.trace import TRACE_FORMATS, load_trace
 from stgs.tree import MANIFEST
 
 ENGINES = ("sim", "emulate")

@@ -7,7 +7,7 @@ import statistics
 import pytest
 
 from bench.abr import SETS, generate, long_ladder, write
-from stgs.harness.scenario import load_trace
+from stgs.harness.trace import load_trace
 from tests.harness.test_sim import EXAMPLE, hand_ladder
 
 

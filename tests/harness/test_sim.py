@@ -17,8 +17,9 @@ from stgs.harness.decode import DecoderModel
 from stgs.harness.ladder import Ladder, load_ladder
 from stgs.harness.network import Network
 from stgs.harness.report import metrics, sabre_manifest, timeline
-from stgs.harness.scenario import Effects, constant, load_trace, scenario_from_dict, steps
+from stgs.harness.scenario import Effects, scenario_from_dict
 from stgs.harness.sim import simulate
+from stgs.harness.trace import constant, load_trace, steps
 from stgs.packager import PackConfig, pack
 from stgs.synth import SynthConfig, synthesize
 from tests.conftest import run_stgs as stgs
