@@ -113,19 +113,26 @@ void quantize_rows(const float* x, int rows, int K, int ldx, float qx, int16_t* 
 }
 
 // y[r, c0 .. c0 + 8 V) = sum over pairs p of q[r, 2p .. 2p+1] · w[p, c, 0 .. 1], scaled, for R rows.
+// Always inlined with its loops unrolled, so that the accumulators stay in registers (as deform.cpp's
+// matmul_strip).
 template <int M, int R, int V>
-void qmatmul_strip(const int16_t* q, int pairs, int ldq, const int16_t* w, const float* row_scale,
-                   const float* col_scale, float* y) {
+__attribute__((always_inline)) inline void qmatmul_strip(const int16_t* q, int pairs, int ldq, const int16_t* w,
+                                                         const float* row_scale, const float* col_scale, float* y) {
   __m256i acc[R][V];
+#pragma GCC unroll 16
   for (int r = 0; r < R; ++r)
+#pragma GCC unroll 4
     for (int j = 0; j < V; ++j) acc[r][j] = _mm256_setzero_si256();
   for (int p = 0; p < pairs; ++p) {
     __m256i wv[V];
+#pragma GCC unroll 4
     for (int j = 0; j < V; ++j) wv[j] = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(w + (p * M + 8 * j) * 2));
+#pragma GCC unroll 16
     for (int r = 0; r < R; ++r) {
       int32_t pair;
       std::memcpy(&pair, q + r * ldq + 2 * p, sizeof(pair));
       const __m256i xb = _mm256_set1_epi32(pair);
+#pragma GCC unroll 4
       for (int j = 0; j < V; ++j) acc[r][j] = _mm256_add_epi32(acc[r][j], _mm256_madd_epi16(xb, wv[j]));
     }
   }
