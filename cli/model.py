@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import sys
 from pathlib import Path
 
 from stgs.cli.args import add_ray, effect_list, name_list, positive_int
@@ -153,12 +154,26 @@ def train_overrides(args: argparse.Namespace) -> dict:
     return overrides
 
 
+def gop_sizes_covering(frames: int, gop_size: int, most: int = 2) -> list[int]:
+    """Up to `most` GOP sizes from half to twice `gop_size` that divide `frames` exactly, the closest first."""
+    sizes = [g for g in range(max(2, gop_size // 2), 2 * gop_size + 1) if frames % g == 0]
+    return sorted(sizes, key=lambda g: (abs(g - gop_size), -g))[:most]  # a tie: the longer GOP, fewer keyframes
+
+
 def run_train(args: argparse.Namespace) -> int:
     from stgs.train import budget
 
     cfg = budget(args.budget, **train_overrides(args))  # a mistake is reported before the trainer loads
+    from stgs.data import open_dataset
     from stgs.train import train
 
+    num_frames = open_dataset(args.dataset, args.kind).num_frames
+    tail = cfg.untrained_tail(num_frames)
+    if tail is not None:
+        sizes = " or ".join(f"--gop-size {g}" for g in gop_sizes_covering(num_frames - cfg.start_frame, cfg.gop_size))
+        hint = f"; {sizes} would cover all {num_frames - cfg.start_frame}" if sizes else ""
+        print(f"stgs: note: frames {tail[0]}-{tail[1]} do not fill a GOP of {cfg.gop_size} and are not trained{hint}",
+              file=sys.stderr)
     report = train(args.dataset, args.out, cfg, progress=not args.quiet, resume=args.resume, kind=args.kind,
                    ray=args.ray, retries=args.ray_retries)
     for g in report["gops"]:

@@ -117,6 +117,16 @@ class TrainConfig:
     threads: int | None = None
     """torch threads (None: torch's default)."""
 
+    def untrained_tail(self, num_frames: int) -> tuple[int, int] | None:
+        """First and last frame of a dataset of `num_frames` after the last whole GOP, which no GOP can hold
+        (every GOP has gop_size frames); None when the GOPs cover the span, when max_gops stops them first, or when
+        not one GOP fits (the trainer refuses that)."""
+        usable = num_frames - self.start_frame
+        whole = usable // self.gop_size
+        if whole == 0 or usable % self.gop_size == 0 or (self.max_gops is not None and self.max_gops < whole):
+            return None
+        return self.start_frame + whole * self.gop_size, num_frames - 1
+
     def validate(self) -> None:
         checks = [(self.grid_side >= 2, "grid_side must be >= 2"), (self.gop_size >= 2, "gop_size must be >= 2"),
                   (1 <= self.window <= 8, "window must be in 1..8"), (0 < self.scale <= 1, "scale must be in (0, 1]"),

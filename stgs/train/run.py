@@ -106,7 +106,8 @@ def finish(trainer: Trainer) -> dict:
     report = {"dataset": trainer.ds.name, "budget": cfg.budget, "gops": reports, "coarse_seconds": coarse_s,
               "triangulated_points": info.pop("triangulated_points"),
               "background_points": info.pop("background_points"), "capacity": trainer.shape.capacity,
-              "train_cameras": trainer.train_names, "validation_cameras": trainer.val_names, "layers": cfg.layers}
+              "train_cameras": trainer.train_names, "validation_cameras": trainer.val_names, "layers": cfg.layers,
+              "frames": trainer.ds.num_frames, "untrained_tail": trainer.tail_frames}
     if base.static is not None:
         report |= {"static_capacity": base.static.capacity, "static_seconds": coarse_s} | info
     atomic_write_bytes(trainer.out / TRAIN_REPORT, (json.dumps(report, indent=1) + "\n").encode())

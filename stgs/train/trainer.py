@@ -95,6 +95,8 @@ class Trainer:
         self.train_names, self.val_names = split(self.ds, cfg.holdout)
         usable = self.ds.num_frames - cfg.start_frame
         self.num_gops = usable // cfg.gop_size
+        self.tail_frames = cfg.untrained_tail(self.ds.num_frames)
+        """Frames after the last whole GOP, which no GOP holds (TrainConfig.untrained_tail)."""
         if cfg.max_gops is not None:
             self.num_gops = min(self.num_gops, cfg.max_gops)
         if self.num_gops < 1:

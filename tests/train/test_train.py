@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from stgs.cli.model import gop_sizes_covering
 from stgs.data import open_dataset, split
 from stgs.errors import StgsError
 from stgs.metrics import psnr
@@ -225,6 +226,23 @@ def test_bad_training_input_is_one_line(scene, tmp_path):
     (tmp_path / "full" / "keep.txt").write_text("x")
     result = stgs("train", str(scene), str(tmp_path / "full"), "--gop-size", "6", "--quiet")
     assert result.returncode == 2 and "not a model dir" in result.stderr
+
+
+def test_frames_after_the_last_whole_gop_are_reported(scene, trained, tmp_path):
+    assert budget("quick", gop_size=4).untrained_tail(6) == (4, 5)
+    assert budget("quick", gop_size=2, start_frame=1).untrained_tail(6) == (5, 5)
+    assert budget("quick", gop_size=6).untrained_tail(6) is None  # the GOPs cover the span
+    assert budget("quick", gop_size=2, max_gops=1).untrained_tail(5) is None  # fewer GOPs asked for
+    assert budget("quick", gop_size=50).untrained_tail(6) is None  # not one GOP: the trainer's own error
+    assert trained[1]["untrained_tail"] is None and trained[1]["frames"] == SCENE.gop_size
+    assert gop_sizes_covering(150, 60) == [50, 75] and gop_sizes_covering(97, 60) == [97]
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "keep.txt").write_text("x")  # the run stops at the output check, after the note
+    result = stgs("train", str(scene), str(tmp_path / "full"), "--gop-size", "4", "--quiet")
+    note, error = result.stderr.strip().splitlines()
+    assert note == ("stgs: note: frames 4-5 do not fill a GOP of 4 and are not trained; --gop-size 3 or "
+                    "--gop-size 6 would cover all 6")
+    assert result.returncode == 2 and "not a model dir" in error
 
 
 PANOPTIC = SHARED / "data" / "panoptic-basketball"
