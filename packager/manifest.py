@@ -15,19 +15,8 @@ from dataclasses import dataclass, field
 from fractions import Fraction
 
 from stgs.model.gop import GOPShape
-from stgs.mpd import (
-    FEATURE_SCHEME,
-    KEYFRAME_SCHEME,
-    MPD,
-    STATIC_SCHEME,
-    AdaptationSet,
-    Descriptor,
-    KeyframeDescriptor,
-    Period,
-    Representation,
-    SegmentTemplate,
-    StaticLayerDescriptor,
-)
+from stgs.mpd import MPD, AdaptationSet, Descriptor, Period, Representation, SegmentTemplate
+from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_SCHEME, STATIC_SCHEME, KeyframeDescriptor, StaticLayerDescriptor
 from stgs.tree import (
     KEYFRAME_MIME_TYPE,
     KEYFRAME_REP,

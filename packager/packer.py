@@ -33,7 +33,7 @@ from stgs.errors import FieldError, StgsError
 from stgs.fsio import atomic_write_bytes
 from stgs.model.static import StaticLayer
 from stgs.model.store import SceneMeta, load_static, read_meta
-from stgs.mpd import StaticLayerDescriptor
+from stgs.mpd_profile import StaticLayerDescriptor
 from stgs.packager.manifest import ManifestBuilder, SegmentRecord, StaticRecord
 from stgs.packager.segments import FeatureEncoder, PreparedGOP, measure, prepare_gop
 from stgs.packager.state import PackState, check_output_dir, pack_id

@@ -19,7 +19,8 @@ from stgs.codec.static import StaticSegmentError, decode_static, encode_static
 from stgs.metrics import psnr
 from stgs.model.store import load_model, load_static, read_meta
 from stgs.model.view import FrameRenderer
-from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, STATIC_SCHEME, parse_mpd
+from stgs.mpd import parse_mpd
+from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_SCHEME, STATIC_SCHEME
 from stgs.packager import MANIFEST, STATS, PackConfig, pack
 from stgs.server.catalogue import catalogue
 from stgs.synth import SynthConfig, load_ground_truth, synthesize

@@ -5,7 +5,6 @@ from __future__ import annotations
 import pytest
 
 from stgs.mpd import (
-    KEYFRAME_SCHEME,
     MPD,
     AdaptationSet,
     Descriptor,
@@ -18,6 +17,7 @@ from stgs.mpd import (
     parse_duration,
     parse_mpd,
 )
+from stgs.mpd_profile import KEYFRAME_SCHEME
 
 
 @pytest.mark.parametrize("seconds,text", [(0, "PT0S"), (2, "PT2S"), (2.5, "PT2.5S"), (61.25, "PT1M1.25S"),

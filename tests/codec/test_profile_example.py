@@ -6,7 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, PROFILE_STGS, parse_mpd
+from stgs.mpd import PROFILE_STGS, parse_mpd
+from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_SCHEME
 from tests.conftest import SHARED
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "manifests" / "example.mpd"

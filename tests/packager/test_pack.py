@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 from safetensors.torch import load_file, save_file
 
-from stgs.mpd import FEATURE_SCHEME, KEYFRAME_SCHEME, expand_template, parse_mpd
+from stgs.mpd import expand_template, parse_mpd
+from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_SCHEME
 from stgs.packager import MANIFEST, STATS, PackConfig, pack
 from stgs.synth import SynthConfig, synthesize
 from tests.conftest import SHARED
