@@ -170,8 +170,9 @@ def run_train(args: argparse.Namespace) -> int:
     num_frames = open_dataset(args.dataset, args.kind).num_frames
     tail = cfg.untrained_tail(num_frames)
     if tail is not None:
-        sizes = " or ".join(f"--gop-size {g}" for g in gop_sizes_covering(num_frames - cfg.start_frame, cfg.gop_size))
-        hint = f"; {sizes} would cover all {num_frames - cfg.start_frame}" if sizes else ""
+        usable = num_frames - cfg.start_frame
+        sizes = " or ".join(f"--gop-size {g}" for g in gop_sizes_covering(usable, cfg.gop_size))
+        hint = f"; {sizes} would cover all {usable}" if sizes else ""
         print(f"stgs: note: frames {tail[0]}-{tail[1]} do not fill a GOP of {cfg.gop_size} and are not trained{hint}",
               file=sys.stderr)
     report = train(args.dataset, args.out, cfg, progress=not args.quiet, resume=args.resume, kind=args.kind,

@@ -5,18 +5,14 @@ The player's entry points load on first use (PEP 562), so that `stgs.client.abr`
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
+
+from stgs.lazy import lazy_attributes
 
 if TYPE_CHECKING:
     from stgs.client.config import PlaybackError, PlayConfig
     from stgs.client.player import play
 
 __all__ = ["PlayConfig", "PlaybackError", "play"]
-_HOMES = {"PlayConfig": "stgs.client.config", "PlaybackError": "stgs.client.config", "play": "stgs.client.player"}
-
-
-def __getattr__(name: str):
-    if name in _HOMES:
-        return getattr(importlib.import_module(_HOMES[name]), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, {"PlayConfig": "stgs.client.config", "PlaybackError": "stgs.client.config",
+                                         "play": "stgs.client.player"})

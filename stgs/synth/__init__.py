@@ -17,9 +17,9 @@ same scene is written as format 1 instead: every GOP fits the backdrop too
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
 
+from stgs.lazy import lazy_attributes
 from stgs.synth.config import DEFAULT_EFFECTS, EFFECTS, PRESETS, SCENE_TARGET, SynthConfig, config_from_toml
 
 if TYPE_CHECKING:
@@ -34,12 +34,7 @@ if TYPE_CHECKING:
 
 __all__ = ["DEFAULT_EFFECTS", "EFFECTS", "PRESETS", "SCENE_TARGET", "SynthConfig", "SynthReport", "config_from_toml",
            "ground_truth_cameras", "load_ground_truth", "measure_fidelity", "synthesize", "truth_static_layer"]
-_GENERATOR = ("SynthReport", "ground_truth_cameras", "load_ground_truth", "measure_fidelity", "synthesize",
-              "truth_static_layer")
-
-
-def __getattr__(name: str):
-    # The generator (torch) loads on first use, so that the presets and effects stay light (PEP 562).
-    if name in _GENERATOR:
-        return getattr(importlib.import_module("stgs.synth.generate"), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+# The generator (torch) loads on first use, so that the presets and effects stay light.
+__getattr__ = lazy_attributes(__name__, dict.fromkeys(("SynthReport", "ground_truth_cameras", "load_ground_truth",
+                                                       "measure_fidelity", "synthesize", "truth_static_layer"),
+                                                      "stgs.synth.generate"))

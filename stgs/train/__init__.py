@@ -5,9 +5,9 @@ line lists the budgets without it."""
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
 
+from stgs.lazy import lazy_attributes
 from stgs.train.config import BUDGETS, TrainConfig, budget
 
 if TYPE_CHECKING:
@@ -15,10 +15,4 @@ if TYPE_CHECKING:
     from stgs.train.trainer import DivergedError
 
 __all__ = ["BUDGETS", "DivergedError", "TrainConfig", "budget", "train"]
-_HOMES = {"train": "stgs.train.run", "DivergedError": "stgs.train.trainer"}
-
-
-def __getattr__(name: str):
-    if name in _HOMES:
-        return getattr(importlib.import_module(_HOMES[name]), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, {"train": "stgs.train.run", "DivergedError": "stgs.train.trainer"})
