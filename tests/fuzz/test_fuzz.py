@@ -8,7 +8,8 @@ import time
 
 import pytest
 
-from bench.fuzz import MEMORY_BOUND_MB, SEED_MPD, SEED_VALUES, TARGETS, HangError, Target, check, fuzz, peak_rss_mb
+from bench.fuzz import MEMORY_BOUND_MB, TARGETS, HangError, Target, check, fuzz, peak_rss_mb
+from bench.fuzz_inputs import SEED_MPD, SEED_VALUES
 
 CASES = {"mpd": 2000, "keyframe": 1500, "static": 1000, "mp4": 2000, "trace": 1500, "scenario": 1500}
 
