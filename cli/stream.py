@@ -29,6 +29,9 @@ def add_pack(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--qps", type=qp_list, default=DEFAULT_QPS,
                    help=f"comma-separated feature-video QPs (default: {','.join(map(str, DEFAULT_QPS))})")
     p.add_argument("--preset", choices=PRESETS, default="medium", help="x265 preset (default: medium)")
+    p.add_argument("--no-loop-filters", action="store_true",
+                   help="encode without HEVC's deblocking and SAO filters (the decoder then skips them; "
+                   "docs/PACKAGING.md weighs bytes, PSNR and decode time)")
     p.add_argument("--codec", default="hevc", help="feature-video codec (default and only: hevc)")
     p.add_argument("--jobs", type=positive_int, help="parallel encodes (default: core count)")
     p.add_argument("--no-sort", action="store_true", help="skip the PLAS sort (for comparisons)")
@@ -42,8 +45,8 @@ def add_pack(sub: argparse._SubParsersAction) -> None:
 def run_pack(args: argparse.Namespace) -> int:
     from stgs.packager import MANIFEST, PackConfig, pack
 
-    cfg = PackConfig(qps=args.qps, preset=args.preset, codec=args.codec, sort=not args.no_sort,
-                     resume=args.resume)
+    cfg = PackConfig(qps=args.qps, preset=args.preset, loop_filters=not args.no_loop_filters, codec=args.codec,
+                     sort=not args.no_sort, resume=args.resume)
     if args.jobs:
         cfg.jobs = args.jobs
     stats = pack(args.model_dir, args.out_dir, cfg, progress=not args.quiet, ray=args.ray,

@@ -60,6 +60,8 @@ class PackConfig:
     """Feature-video QPs, one Representation each."""
     preset: str = "medium"
     """x265 preset."""
+    loop_filters: bool = True
+    """Keep x265's in-loop deblocking and SAO filters (False: off, in the stream, so decoders skip them)."""
     codec: str = "hevc"
     """Feature-video codec (only HEVC so far)."""
     jobs: int = field(default_factory=lambda: os.cpu_count() or 1)
@@ -87,7 +89,7 @@ class PackConfig:
 
     def digest_fields(self) -> dict:
         """What determines the output bytes (not jobs or resume)."""
-        return {"qps": list(self.qps), "preset": self.preset, "codec": self.codec,
+        return {"qps": list(self.qps), "preset": self.preset, "loop_filters": self.loop_filters, "codec": self.codec,
                 "plas": asdict(self.plas), "sort": self.sort, "stats_views": self.stats_views,
                 "stats_frames": self.stats_frames, "format": 1}
 
@@ -111,7 +113,7 @@ class Packer:
         shape = self.meta.shape
         self.timing = VideoTiming.for_gop(shape.num_features, shape.gop_size, self.meta.fps)
         self.state: PackState | None = None
-        self.encoder = FeatureEncoder(self.timing, shape.num_features, cfg.preset)
+        self.encoder = FeatureEncoder(self.timing, shape.num_features, cfg.preset, cfg.loop_filters)
         self.builder = ManifestBuilder(shape, self.side, self.meta.fps, self.version_dir, self.timing.timescale,
                                        self.timing.segment_ticks(shape.num_features), self.timing.rate)
 

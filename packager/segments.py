@@ -107,13 +107,13 @@ class FeatureEncoder:
     """Encodes GOPs' feature frames at a QP into (init, media) placed on the Representation's timeline; every GOP
     of one QP must give the same init segment (one per Representation)."""
 
-    def __init__(self, timing: VideoTiming, num_features: int, preset: str):
-        self.timing, self.num_features, self.preset = timing, num_features, preset
+    def __init__(self, timing: VideoTiming, num_features: int, preset: str, loop_filters: bool = True):
+        self.timing, self.num_features, self.preset, self.loop_filters = timing, num_features, preset, loop_filters
         self.init_segments: dict[int, bytes] = {}
         self._lock = threading.Lock()
 
     def encode(self, k: int, qp: int, frames: np.ndarray) -> tuple[bytes, bytes]:
-        init, media = split_fragmented(encode_gop(frames, qp, self.timing, self.preset))
+        init, media = split_fragmented(encode_gop(frames, qp, self.timing, self.preset, loop_filters=self.loop_filters))
         media = set_timeline(media, k + 1, k * self.timing.segment_ticks(self.num_features))
         with self._lock:
             first = self.init_segments.setdefault(qp, init)

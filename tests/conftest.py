@@ -1,4 +1,5 @@
-"""Shared helpers: random scenes and cameras for the splatter tests, the stgs command in a subprocess."""
+"""Shared helpers: random scenes and cameras for the splatter tests, the stgs command in a subprocess, the loop-filter
+flags of an HEVC stream."""
 
 from __future__ import annotations
 
@@ -36,3 +37,17 @@ def run_stgs(*args, cwd=None) -> subprocess.CompletedProcess:
     """Run the stgs command in a subprocess (as a user would), capturing its output."""
     return subprocess.run([sys.executable, "-m", "stgs.cli", *args], capture_output=True, text=True,
                           cwd=cwd, env={**os.environ, "PYTHONWARNINGS": "ignore"}, timeout=600)
+
+
+def loop_filter_flags(data: bytes, path: Path) -> dict[str, str]:
+    """The SPS/PPS flags that switch SAO and deblocking in the HEVC stream `data` (written to `path`), as FFmpeg's
+    trace_headers bitstream filter reads them."""
+    path.write_bytes(data)
+    trace = subprocess.run(["ffmpeg", "-v", "trace", "-i", str(path), "-c", "copy", "-bsf:v", "trace_headers",
+                            "-f", "null", "-"], capture_output=True, text=True, check=True).stderr
+    flags = {}
+    for line in trace.splitlines():
+        for name in ("sample_adaptive_offset_enabled_flag", "pps_deblocking_filter_disabled_flag"):
+            if name in line:
+                flags.setdefault(name, line.split()[-1])
+    return flags

@@ -68,25 +68,30 @@ class VideoTiming:
         return num_features * self.frame_ticks
 
 
-def x265_params(qp: int, keyint: int, crf: bool = False) -> str:
-    """x265 settings; crf=True uses the value as a CRF instead of a constant QP (benchmarks only)."""
-    return ":".join([f"{'crf' if crf else 'qp'}={qp}", f"keyint={keyint}", f"min-keyint={keyint}", "scenecut=0",
-                     "open-gop=0", "info=0", "pools=1", "frame-threads=1", "lookahead-threads=0",
-                     "log-level=error"])
+def x265_params(qp: int, keyint: int, crf: bool = False, loop_filters: bool = True) -> str:
+    """x265 settings; crf=True uses the value as a CRF instead of a constant QP (benchmarks only);
+    loop_filters=False turns the in-loop deblocking and SAO filters off (the stream says so, and the decoder
+    skips them)."""
+    params = [f"{'crf' if crf else 'qp'}={qp}", f"keyint={keyint}", f"min-keyint={keyint}", "scenecut=0",
+              "open-gop=0", "info=0", "pools=1", "frame-threads=1", "lookahead-threads=0", "log-level=error"]
+    if not loop_filters:
+        params += ["no-deblock=1", "no-sao=1"]  # "deblock=0" would read as a deblocking offset, not "off"
+    return ":".join(params)
 
 
 def encode_gop(frames: np.ndarray, qp: int, timing: VideoTiming, preset: str = "medium",
-               crf: bool = False) -> bytes:
-    """(E, H, W) uint16 12-bit frames -> a single-fragment fragmented MP4 (HEVC Rext, gray 12-bit)."""
+               crf: bool = False, loop_filters: bool = True) -> bytes:
+    """(E, H, W) uint16 12-bit frames -> a single-fragment fragmented MP4 (HEVC Rext, gray 12-bit); see
+    x265_params for crf and loop_filters."""
     if frames.ndim != 3 or frames.dtype != np.uint16:
         raise ValueError("encode_gop takes (E, H, W) uint16 frames")
     if preset not in PRESETS:
         raise StgsError(f"unknown x265 preset {preset!r}; choose from {', '.join(PRESETS)}")
     with filled_heap:  # libx265 reads memory it never wrote: see stgs.memory.FilledHeap
-        return _encode(frames, qp, timing, preset, crf)
+        return _encode(frames, qp, timing, preset, x265_params(qp, frames.shape[0], crf, loop_filters))
 
 
-def _encode(frames: np.ndarray, qp: int, timing: VideoTiming, preset: str, crf: bool) -> bytes:
+def _encode(frames: np.ndarray, qp: int, timing: VideoTiming, preset: str, params: str) -> bytes:
     e, h, w = frames.shape
     out = io.BytesIO()
     muxer = {"movflags": "+frag_keyframe+empty_moov+default_base_moof", "fflags": "+bitexact",
@@ -94,7 +99,7 @@ def _encode(frames: np.ndarray, qp: int, timing: VideoTiming, preset: str, crf: 
     try:
         with av.open(out, "w", format="mp4", options=muxer) as container:
             stream = container.add_stream("libx265", rate=timing.rate, options={
-                "preset": preset, "x265-params": x265_params(qp, e, crf), "flags": "+bitexact"})
+                "preset": preset, "x265-params": params, "flags": "+bitexact"})
             stream.width, stream.height, stream.pix_fmt = w, h, PIXEL_FORMAT
             stream.codec_tag = CODEC_TAG
             stream.codec_context.thread_count = 1

@@ -9,6 +9,7 @@ import pytest
 
 from stgs.codec.mp4 import split_fragmented
 from stgs.codec.video import VideoError, VideoTiming, decode_segment, encode_gop, iter_frames
+from tests.conftest import loop_filter_flags
 
 E, H, W = 6, 16, 32
 
@@ -33,6 +34,20 @@ def test_encode_is_deterministic_whatever_ran_before():
         encode_gop(rng.integers(0, 4096, (4, 32, 48)).astype(np.uint16), 20 + other, timing, "fast")
         assert encode_gop(noisy, 16, timing, "medium") == first
     assert encode_gop(noisy, 30, timing, "medium") != first
+
+
+def test_loop_filters_off_is_in_the_stream_and_decodes(tmp_path):
+    rng = np.random.default_rng(2)
+    frames = (rng.integers(0, 16, (E, 64, 64)) * 256).astype(np.uint16)
+    timing = VideoTiming.for_gop(E, E, 6.0)
+    with_filters = encode_gop(frames, 24, timing, "medium")
+    without = encode_gop(frames, 24, timing, "medium", loop_filters=False)
+    assert loop_filter_flags(with_filters, tmp_path / "on.mp4")["sample_adaptive_offset_enabled_flag"] == "1"
+    assert loop_filter_flags(without, tmp_path / "off.mp4") == {"sample_adaptive_offset_enabled_flag": "0",
+                                                    "pps_deblocking_filter_disabled_flag": "1"}
+    decoded = decode_segment(*split_fragmented(without), E, 64, 64)
+    assert np.abs(decoded.astype(int) - frames).mean() < 256
+    assert encode_gop(frames, 24, timing, "medium", loop_filters=False) == without
 
 
 def test_frames_one_at_a_time_equal_the_whole_decode(segment):

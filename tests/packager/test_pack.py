@@ -15,7 +15,7 @@ from stgs.mpd import expand_template, parse_mpd
 from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_SCHEME
 from stgs.packager import MANIFEST, STATS, PackConfig, pack
 from stgs.synth import SynthConfig, synthesize
-from tests.conftest import SHARED
+from tests.conftest import SHARED, loop_filter_flags
 from tests.conftest import run_stgs as stgs
 
 SCENE = SynthConfig(grid_side=16, num_gops=2, gop_size=6, width=64, height=48, num_cameras=2, fit_steps=200)
@@ -191,6 +191,20 @@ def test_different_input_gets_new_segment_names(scene, packed, tmp_path):
     assert not names & {p.relative_to(out).parts[0] for p in out.iterdir() if p.name.startswith("v-")}
 
 
+def test_no_loop_filters_reaches_every_segment(scene, packed, tmp_path):
+    out = tmp_path / "dash"
+    result = stgs("pack", str(scene), str(out), "--qps", "20", "--no-loop-filters", "--quiet")
+    assert result.returncode == 0, result.stderr
+    video = parse_mpd((out / MANIFEST).read_bytes()).adaptation_set(FEATURE_SCHEME)
+    init = (out / video.segment_template.initialization.replace("$RepresentationID$", "qp20")).read_bytes()
+    for k in range(SCENE.num_gops):
+        media = (out / expand_template(video.segment_template.media, "qp20", k)).read_bytes()
+        flags = loop_filter_flags(init + media, tmp_path / f"{k}.mp4")
+        assert flags == {"sample_adaptive_offset_enabled_flag": "0", "pps_deblocking_filter_disabled_flag": "1"}
+    default = parse_mpd((packed[0] / MANIFEST).read_bytes()).adaptation_set(FEATURE_SCHEME)
+    assert video.segment_template.media != default.segment_template.media  # another pack id, other names
+
+
 def corrupt_copy(scene: Path, tmp_path: Path, edit) -> Path:
     import shutil
 
@@ -249,8 +263,9 @@ def test_pack_cli_rejects_bad_options(scene, tmp_path):
 
 def test_defaults_and_what_names_the_output():
     cfg = PackConfig()
-    assert cfg.qps == QPS and cfg.preset == "medium" and cfg.sort and cfg.codec == "hevc"
+    assert cfg.qps == QPS and cfg.preset == "medium" and cfg.sort and cfg.codec == "hevc" and cfg.loop_filters
     assert dataclasses.replace(cfg, sort=False).digest_fields() != cfg.digest_fields()
+    assert dataclasses.replace(cfg, loop_filters=False).digest_fields() != cfg.digest_fields()
     assert dataclasses.replace(cfg, jobs=7, resume=True).digest_fields() == cfg.digest_fields()
 
 
