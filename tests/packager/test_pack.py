@@ -191,7 +191,7 @@ def test_different_input_gets_new_segment_names(scene, packed, tmp_path):
     assert not names & {p.relative_to(out).parts[0] for p in out.iterdir() if p.name.startswith("v-")}
 
 
-def test_no_loop_filters_reaches_every_segment(scene, packed, tmp_path):
+def test_no_loop_filters_reaches_every_segment(scene, tmp_path):
     out = tmp_path / "dash"
     result = stgs("pack", str(scene), str(out), "--qps", "20", "--no-loop-filters", "--quiet")
     assert result.returncode == 0, result.stderr
@@ -201,8 +201,6 @@ def test_no_loop_filters_reaches_every_segment(scene, packed, tmp_path):
         media = (out / expand_template(video.segment_template.media, "qp20", k)).read_bytes()
         flags = loop_filter_flags(init + media, tmp_path / f"{k}.mp4")
         assert flags == {"sample_adaptive_offset_enabled_flag": "0", "pps_deblocking_filter_disabled_flag": "1"}
-    default = parse_mpd((packed[0] / MANIFEST).read_bytes()).adaptation_set(FEATURE_SCHEME)
-    assert video.segment_template.media != default.segment_template.media  # another pack id, other names
 
 
 def corrupt_copy(scene: Path, tmp_path: Path, edit) -> Path:
