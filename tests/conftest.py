@@ -39,6 +39,10 @@ def run_stgs(*args, cwd=None) -> subprocess.CompletedProcess:
                           cwd=cwd, env={**os.environ, "PYTHONWARNINGS": "ignore"}, timeout=600)
 
 
+LOOP_FILTERS_OFF = {"sample_adaptive_offset_enabled_flag": "0", "pps_deblocking_filter_disabled_flag": "1"}
+"""The SPS/PPS flags that switch SAO and deblocking, as an HEVC stream without the in-loop filters sets them."""
+
+
 def loop_filter_flags(data: bytes, path: Path) -> dict[str, str]:
     """The SPS/PPS flags that switch SAO and deblocking in the HEVC stream `data` (written to `path`), as FFmpeg's
     trace_headers bitstream filter reads them."""
@@ -47,7 +51,7 @@ def loop_filter_flags(data: bytes, path: Path) -> dict[str, str]:
                             "-f", "null", "-"], capture_output=True, text=True, check=True).stderr
     flags = {}
     for line in trace.splitlines():
-        for name in ("sample_adaptive_offset_enabled_flag", "pps_deblocking_filter_disabled_flag"):
+        for name in LOOP_FILTERS_OFF:
             if name in line:
                 flags.setdefault(name, line.split()[-1])
     return flags

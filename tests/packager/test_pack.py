@@ -15,7 +15,7 @@ from stgs.mpd import expand_template, parse_mpd
 from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_SCHEME
 from stgs.packager import MANIFEST, STATS, PackConfig, pack
 from stgs.synth import SynthConfig, synthesize
-from tests.conftest import SHARED, loop_filter_flags
+from tests.conftest import LOOP_FILTERS_OFF, SHARED, loop_filter_flags
 from tests.conftest import run_stgs as stgs
 
 SCENE = SynthConfig(grid_side=16, num_gops=2, gop_size=6, width=64, height=48, num_cameras=2, fit_steps=200)
@@ -200,7 +200,7 @@ def test_no_loop_filters_reaches_every_segment(scene, tmp_path):
     for k in range(SCENE.num_gops):
         media = (out / expand_template(video.segment_template.media, "qp20", k)).read_bytes()
         flags = loop_filter_flags(init + media, tmp_path / f"{k}.mp4")
-        assert flags == {"sample_adaptive_offset_enabled_flag": "0", "pps_deblocking_filter_disabled_flag": "1"}
+        assert flags == LOOP_FILTERS_OFF
 
 
 def corrupt_copy(scene: Path, tmp_path: Path, edit) -> Path:
