@@ -105,6 +105,9 @@ def add_train(sub: argparse._SubParsersAction) -> None:
                    "fitted after stage A")
     p.add_argument("--static-sh-iterations", type=int,
                    help="layered, --static-sh 1: iterations of that fit (default 500)")
+    p.add_argument("--dynamic-warmup", type=float,
+                   help="layered: share of each GOP's iterations that fit the dynamic layer without its "
+                   "deformation first (default: the budget's, 0.2)")
     p.add_argument("--iterations", type=positive_int, help="iterations per GOP")
     p.add_argument("--coarse-iterations", type=int,
                    help="iterations of the coarse canonical stage (layered: of stage A, the static layer)")
@@ -140,7 +143,7 @@ def add_train(sub: argparse._SubParsersAction) -> None:
 TRAIN_OVERRIDES = ("max_gops", "gop_size", "start_frame", "grid_side", "iterations", "coarse_iterations", "scale",
                    "window", "aux", "dynamic", "temporal_weight", "relocate", "seed", "threads", "holdout",
                    "background_share", "init_frames", "layers", "static_grid_side", "migrate",
-                   "static_sh_degree", "static_sh_iterations")
+                   "static_sh_degree", "static_sh_iterations", "dynamic_warmup")
 
 
 def train_overrides(args: argparse.Namespace) -> dict:

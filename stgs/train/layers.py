@@ -128,8 +128,13 @@ def migrate(model: GOPModel, scores: torch.Tensor, threshold: float, limit: int,
 @torch.no_grad()
 def init_dynamic(model: GOPModel, init: InitialPoints, migrated: Migrated | None) -> int:
     """A GOP's dynamic layer at its start: the migrated Gaussians first (as they were in the static layer),
-    then `init`'s points (3DGS-style attributes) in the remaining slots. Returns how many were migrated in."""
+    then `init`'s points (3DGS-style attributes) in the remaining slots, and no opacity offset (ΔO = 0: the
+    opacity decoder's output layer starts at zero). Returns how many were migrated in.
+
+    The seeded opacities (0.02–0.1) are as small as a randomly initialised ΔO; where ΔO is negative the
+    opacity clamps at 0 and neither it nor ΔO gets a gradient again: a whole layer can start dead."""
     init_canonical(model, init)
+    model.field.d_opacity[-1].weight.zero_()
     if migrated is None or len(migrated.index) == 0:
         return 0
     m = min(len(migrated.index), model.shape.capacity)

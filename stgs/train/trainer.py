@@ -260,9 +260,10 @@ class Trainer:
         bar = tqdm(range(start, cfg.iterations), desc=f"GOP {k}", unit="it", disable=not self.progress)
         loss_value = math.nan
         window = []  # losses since the last curve point: one view's loss is too noisy to show a trend
+        warmup = cfg.dynamic_warmup * cfg.iterations if self.layered else 0
         for it in bar:
             opt.set_progress(it / cfg.iterations)
-            loss, img, target, opac = self.gop_loss(model, aux, views, static)
+            loss, img, target, opac = self.gop_loss(model, aux, views, static, deform=it >= warmup)
             self._step(opt, loss, f"GOP {k}", it, model)
             loss_value = loss.item()
             window.append(loss_value)
@@ -297,8 +298,9 @@ class Trainer:
         return model, report
 
     def gop_loss(self, model: GOPModel, aux: AuxTransformer | None, views: Views,
-                 static: list[Gaussians] | None = None):
-        """One iteration's loss; `static`: the frozen static layer as each training camera draws it."""
+                 static: list[Gaussians] | None = None, deform: bool = True):
+        """One iteration's loss; `static`: the frozen static layer as each training camera draws it; `deform`
+        False: the canonical Gaussians alone (the dynamic layer's warm-up, TrainConfig.dynamic_warmup)."""
         cfg = self.cfg
         i = int(torch.randint(len(views.frames), (1,), generator=self.gen))
         c = int(torch.randint(len(views.cameras), (1,), generator=self.gen))
@@ -307,15 +309,15 @@ class Trainer:
         window = model.window_features(i) + noise
         t = frame_time(i, self.shape.gop_size)
         center = cam.center.float()
-        h = model.field.hidden(window, t)
-        g = model.apply_offsets(model.field.decode(h, model.xyz, center))
+        h = model.field.hidden(window, t) if deform else None
+        g = model.apply_offsets(model.field.decode(h, model.xyz, center)) if deform else model.canonical()
         img = splat(g if static is None else merge(static[c], g), cam)
         ssim_values = ssim_map(img, target)
         loss = losses.photometric(img, target, cfg.lambda_ssim, ssim_values=ssim_values)
         if cfg.dynamic and views.dynamic is not None:
             loss = loss + cfg.dynamic_weight * losses.photometric(img, target, cfg.lambda_ssim, views.dynamic[c],
                                                                   ssim_values)
-        if aux is not None:
+        if aux is not None and deform:
             h_aux = aux(aux.tokens(model, i, window))  # the same noisy window the MLP sees
             g_aux = model.apply_offsets(model.field.decode(h_aux, model.xyz, center))
             img_aux = splat(g_aux if static is None else merge(static[c], g_aux), cam)

@@ -138,6 +138,26 @@ def test_view_dependent_fit_recovers_a_view_dependent_static_layer():
     assert end >= start + 3.0, (start, end)
 
 
+def test_the_dynamic_layer_starts_with_no_opacity_offset_and_warms_up_without_its_field(scene, tmp_path):
+    trainer = Trainer(scene, tmp_path / "m", budget("quick", **LAYERED, coarse_iterations=5), progress=False)
+    views = load_views(trainer.ds, trainer.train_names, [0, 2, 4], 1.0, False)
+    trainer.stage_a(views)
+    model = trainer.start_model(0, None)
+    # The layer starts with no opacity offset: its seeded opacities are what it draws.
+    drawn = model.deform(0, views.cameras[0].center.float()).opacities
+    assert torch.equal(drawn, model.canonical().opacities)
+    static = [static_view(trainer.static, cam) for cam in views.cameras]
+    for deform in (False, True):
+        model.zero_grad(set_to_none=True)
+        trainer.gop_loss(model, None, views, static, deform=deform)[0].backward()
+        assert model.opacity_logit.grad is not None and model.opacity_logit.grad.abs().sum() > 0
+        field = [p.grad for p in model.field.parameters()]
+        if deform:
+            assert all(g is not None for g in field) and sum(g.abs().sum() for g in field) > 0
+        else:
+            assert all(g is None for g in field)
+
+
 def test_layered_seed_determinism_and_resume_in_both_stages(scene, tmp_path, monkeypatch):
     cfg = budget("quick", **LAYERED, coarse_iterations=20, iterations=20, checkpoint_every=10, threads=2)
     train(scene, tmp_path / "a", cfg, progress=False)
@@ -169,7 +189,8 @@ def test_layered_seed_determinism_and_resume_in_both_stages(scene, tmp_path, mon
 def test_bad_layer_settings_are_clear_errors(scene, tmp_path):
     for overrides, message in [({"layers": "triple"}, "layers must be one of"),
                                ({"layers": "layered", "static_grid_side": 1}, "static_grid_side"),
-                               ({"migrate_score": 1.5}, "migrate_score")]:
+                               ({"migrate_score": 1.5}, "migrate_score"),
+                               ({"layers": "layered", "dynamic_warmup": 1.0}, "dynamic_warmup")]:
         with pytest.raises(StgsError, match=message):
             budget("quick", **overrides)
     assert dataclasses.replace(budget("quick", layers="layered")).grid_side == 16  # the budget's layered sizes
