@@ -50,7 +50,7 @@ class TrainConfig:
     """Layered: view-dependent colour of the static layer (0: none; 1: degree-1 term fitted after stage A)."""
     static_sh_iterations: int = 500
     """Layered, static_sh_degree 1: iterations of the colour + sh1 fit (geometry and opacity frozen)."""
-    dynamic_warmup: float = 0.0
+    dynamic_warmup: float = 0.2
     """Layered: share of each GOP's iterations that fit the dynamic layer's canonical Gaussians before its
     deformation field is switched on (format 1 starts its GOPs from the fitted coarse stage instead)."""
     gop_size: int = 60
@@ -169,16 +169,14 @@ BUDGETS = {
 paper: 12k iterations, ~150k Gaussians, for a bigger machine."""
 
 LAYERED = {
-    "quick": {"grid_side": 16, "static_grid_side": 24, "dynamic_warmup": 0.2},
-    "cpu": {"grid_side": 96, "static_grid_side": 160, "coarse_iterations": 2500, "iterations": 2500,
-            "dynamic_warmup": 0.2},
-    "paper": {"grid_side": 256, "static_grid_side": 448, "coarse_iterations": 5000, "iterations": 10000,
-              "dynamic_warmup": 0.2},
+    "quick": {"grid_side": 16, "static_grid_side": 24},
+    "cpu": {"grid_side": 96, "static_grid_side": 160, "coarse_iterations": 2500, "iterations": 2500},
+    "paper": {"grid_side": 256, "static_grid_side": 448, "coarse_iterations": 5000, "iterations": 10000},
 }
 """What --layers layered changes in each budget (unless set explicitly): a smaller dynamic layer, a static layer
 that together with it holds about twice the single layer's Gaussians, and iterations moved from the per-GOP
 stage to stage A (which nothing refines later) so that one GOP takes the single layer's wall time (cpu:
-measured on Panoptic; paper: the same split, not measured), and the dynamic layer's warm-up (docs/TRAINING.md)."""
+measured on Panoptic; paper: the same split, not measured)."""
 
 SWITCHES = {"aux": "--no-aux", "dynamic": "--no-dynamic-density", "temporal_weight": "--no-temporal-reg",
             "relocate": "--no-relocate", "migrate": "--no-migrate"}

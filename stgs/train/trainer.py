@@ -309,8 +309,11 @@ class Trainer:
         window = model.window_features(i) + noise
         t = frame_time(i, self.shape.gop_size)
         center = cam.center.float()
-        h = model.field.hidden(window, t) if deform else None
-        g = model.apply_offsets(model.field.decode(h, model.xyz, center)) if deform else model.canonical()
+        if deform:
+            h = model.field.hidden(window, t)
+            g = model.apply_offsets(model.field.decode(h, model.xyz, center))
+        else:
+            h, g = None, model.canonical()
         img = splat(g if static is None else merge(static[c], g), cam)
         ssim_values = ssim_map(img, target)
         loss = losses.photometric(img, target, cfg.lambda_ssim, ssim_values=ssim_values)
