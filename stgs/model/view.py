@@ -15,8 +15,6 @@ is the model's drawing rule, as frustum culling is in other 3DGS renderers
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import torch
 
 from stgs.camera import Camera, orbit
@@ -24,9 +22,7 @@ from stgs.model.gop import Gaussians, GOPModel
 from stgs.model.static import StaticLayer, merge
 from stgs.native.build import available
 from stgs.render import Backend, rasterize
-
-if TYPE_CHECKING:
-    from stgs.render.fixed import FixedLayerView
+from stgs.render.fixed import FixedLayerView
 
 GUARD_BAND = 1.3
 """A Gaussian is drawn only when its mean projects within this many times the image's half-extent
@@ -71,6 +67,32 @@ def static_view(static: StaticLayer, camera: Camera) -> Gaussians:
                      (g.opacities * in_guard_band(g.means, camera).to(g.opacities.dtype)).detach(), g.colors.detach())
 
 
+Backdrop = Gaussians | FixedLayerView
+"""A frozen static layer as one camera draws it (static_backdrops)."""
+
+
+def static_backdrops(static: StaticLayer, cameras: list[Camera]) -> list[Backdrop]:
+    """The frozen static layer as each camera draws it, for training a dynamic layer over it: natively kept
+    (projected, binned and rendered once, stgs.render.fixed), so that each draw composites and differentiates
+    only the tiles the dynamic layer reaches; otherwise its Gaussians, splatted with the dynamic ones."""
+    views = [static_view(static, cam) for cam in cameras]
+    if not available():
+        return views
+    return [FixedLayerView(g.means, g.quats, g.scales, g.opacities, g.colors, cam.viewmat.float(), cam.K.float(),
+                           cam.width, cam.height) for g, cam in zip(views, cameras, strict=True)]
+
+
+def splat_over(backdrop: Backdrop | None, g: Gaussians, camera: Camera) -> torch.Tensor:
+    """(H, W, 3) image of `g` (deformed, differentiable) drawn with a backdrop of `static_backdrops` for
+    `camera` in one splat (g alone for None): the image of `splat` of both layers."""
+    if backdrop is None:
+        return splat(g, camera)
+    if isinstance(backdrop, Gaussians):
+        return splat(merge(backdrop, g), camera)
+    opacities = g.opacities * in_guard_band(g.means, camera).to(g.opacities.dtype)
+    return backdrop.draw(g.means, g.quats, g.scales, opacities, g.colors)
+
+
 def camera_key(camera: Camera) -> tuple:
     """Everything about a camera that changes how a static Gaussian is drawn (pose, intrinsics, size)."""
     return (camera.viewmat.numpy().tobytes(), camera.K.numpy().tobytes(), camera.width, camera.height)
@@ -104,8 +126,6 @@ class StaticDrawer:
             self._kept = (key, None)
             return None
         if self._kept[1] is None:
-            from stgs.render.fixed import FixedLayerView
-
             s = self.gaussians(camera)
             self._kept = (key, FixedLayerView(s.means, s.quats, s.scales, s.opacities, s.colors,
                                               camera.viewmat.float(), camera.K.float(), camera.width,

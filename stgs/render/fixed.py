@@ -9,7 +9,12 @@ dynamic Gaussians, merges each reached tile's two lists front to back (equal dep
 both would give them) and composites only those tiles, copying the others from the kept image. The image is
 bit for bit the one `rasterize` makes of both layers, the static layer first (tests/render/test_fixed.py);
 the saving follows the static layer's share of the binning and of the tiles (docs/BENCHMARKS.md, "A kept
-static layer"). Inference only (native float32 CPU, no gradients).
+static layer"). Native float32 CPU only. With moving Gaussians that need gradients (training over a frozen
+layer: a layered scene's GOP stage), `draw` is differentiable in them. The tiles they reach are composited as the
+differentiable `rasterize` of both layers composites them (its tracked kernel, bit for bit); the others are
+copied from the kept image (the inference kernel: float32 rounding apart) and carry no gradient for them, so
+the backward pass visits only the reached tiles and its gradients are those of one composite of both layers
+(the background and the kept layer get none).
 """
 
 from __future__ import annotations
@@ -21,7 +26,8 @@ import torch
 from stgs.native.abi import ptr
 from stgs.native.build import load
 from stgs.render import _check_inputs, needs_grad
-from stgs.render.native import f32, project_native
+from stgs.render.native import RasterHandle, f32, project_native
+from stgs.render.project import project
 
 
 class FixedLayerView:
@@ -56,11 +62,16 @@ class FixedLayerView:
     def draw(self, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
              colors: torch.Tensor) -> torch.Tensor:
         """(H, W, 3) float32 image of the kept layer with these moving Gaussians, as `rasterize` of both
-        (the kept layer first) from the kept camera over the kept background."""
+        (the kept layer first) from the kept camera over the kept background; differentiable in the moving
+        Gaussians when they need gradients."""
         _check_inputs(means, quats, scales, opacities, colors, self.viewmat, self.K, self.width, self.height,
                       self.background)
         if means.dtype != torch.float32:
             raise ValueError("FixedLayerView.draw takes float32 Gaussians")
+        if needs_grad(means, quats, scales, opacities, colors):
+            p = project(means.double(), quats.double(), scales.double(), opacities, self.viewmat, self.K)
+            return OverKeptLayer.apply(self, p.means2d.float(), p.conics.float(), opacities, colors,
+                                       p.depths.float(), p.extents.float())
         p = project_native(means, quats, scales, opacities, self.viewmat, self.K)
         out = torch.empty(self.height, self.width, 3)
         opacities, colors = f32(opacities), f32(colors)
@@ -74,3 +85,26 @@ class FixedLayerView:
         if self._kept is not None:
             load().stgs_raster_kept_free(self._kept)
             self._kept = None
+
+
+class OverKeptLayer(torch.autograd.Function):
+    """A kept layer's image with moving Gaussians (projected, float32) over it, and their gradients."""
+
+    @staticmethod
+    def forward(ctx, layer: FixedLayerView, means2d, conics, opacities, colors, depths, extents):
+        inputs = [f32(t) for t in (means2d, conics, opacities, colors, depths, extents)]
+        out = torch.empty(layer.height, layer.width, 3)
+        handle = load().stgs_raster_over_train(layer._kept, means2d.shape[0], *(ptr(t) for t in inputs), ptr(out),
+                                               torch.get_num_threads())
+        ctx.handle = RasterHandle(handle, layer.width, layer.height)  # holds the inputs the backward reads
+        ctx.kept, ctx.moving, ctx.background = layer.count, means2d.shape[0], layer.background
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        n = ctx.kept + ctx.moving
+        grads = [torch.zeros(n, 2), torch.zeros(n, 3), torch.zeros(n), torch.zeros(n, 3)]
+        grad_out, grad_background = f32(grad_out), torch.zeros(3)  # held: the call writes and reads them
+        load().stgs_raster_backward(ctx.handle.handle, n, ptr(ctx.background), ptr(grad_out),
+                                    *(ptr(g) for g in grads), ptr(grad_background), torch.get_num_threads())
+        return (None, *(g[ctx.kept:] for g in grads), None, None)

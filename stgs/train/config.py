@@ -170,13 +170,13 @@ paper: 12k iterations, ~150k Gaussians, for a bigger machine."""
 
 LAYERED = {
     "quick": {"grid_side": 16, "static_grid_side": 24},
-    "cpu": {"grid_side": 96, "static_grid_side": 160, "coarse_iterations": 2500, "iterations": 2500},
+    "cpu": {"grid_side": 96, "static_grid_side": 160, "coarse_iterations": 3500, "iterations": 2000},
     "paper": {"grid_side": 256, "static_grid_side": 448, "coarse_iterations": 5000, "iterations": 10000},
 }
 """What --layers layered changes in each budget (unless set explicitly): a smaller dynamic layer, a static layer
 that together with it holds about twice the single layer's Gaussians, and iterations moved from the per-GOP
-stage to stage A (which nothing refines later) so that one GOP takes the single layer's wall time (cpu:
-measured on Panoptic; paper: the same split, not measured)."""
+stage to stage A (which nothing refines later) so that one GOP takes the single layer's wall time (cpu: the
+best of three splits measured on Panoptic at that time, docs/BENCHMARKS.md; paper: not measured)."""
 
 SWITCHES = {"aux": "--no-aux", "dynamic": "--no-dynamic-density", "temporal_weight": "--no-temporal-reg",
             "relocate": "--no-relocate", "migrate": "--no-migrate"}

@@ -16,7 +16,8 @@ Layered (cfg.layers, model format 2): step 3 is stage A, which fits the static
 layer on the pixels that do not move (stgs.train.layers); Gaussians the data
 shows moving migrate out of it; step 4 is stage B, which fits each GOP's
 smaller dynamic layer, started from the migrated Gaussians and the GOP's
-triangulated points, drawn over the frozen static layer in one splat.
+triangulated points, drawn over the frozen static layer in one splat (the
+layer kept per training camera: stgs.model.view.static_backdrops).
 
 Checkpoints (safetensors + JSON, no pickle) under OUT/.train/ allow --resume;
 a non-finite loss stops the run with the last good checkpoint kept. Each stage
@@ -47,9 +48,9 @@ from stgs.data import open_dataset, split
 from stgs.errors import StgsError
 from stgs.memory import reuse_large_allocations
 from stgs.metrics import psnr, ssim, ssim_map
-from stgs.model.gop import Gaussians, GOPModel, GOPShape, frame_time
-from stgs.model.static import StaticLayer, merge
-from stgs.model.view import splat, static_view
+from stgs.model.gop import GOPModel, GOPShape, frame_time
+from stgs.model.static import StaticLayer
+from stgs.model.view import Backdrop, splat, splat_over, static_backdrops
 from stgs.train import losses
 from stgs.train.aux import AuxTransformer
 from stgs.train.base import BaseStage
@@ -242,7 +243,7 @@ class Trainer:
         setup = time.perf_counter()
         self.seed_stage(gop_stem(k))
         model = self.start_model(k, coarse)
-        static = [static_view(self.static, cam) for cam in views.cameras] if self.static is not None else None
+        static = static_backdrops(self.static, views.cameras) if self.static is not None else None
         with torch.no_grad():
             model.features.zero_()
             model.features.add_(torch.randn(model.features.shape, generator=self.gen) * 1e-2)
@@ -298,8 +299,8 @@ class Trainer:
         return model, report
 
     def gop_loss(self, model: GOPModel, aux: AuxTransformer | None, views: Views,
-                 static: list[Gaussians] | None = None, deform: bool = True):
-        """One iteration's loss; `static`: the frozen static layer as each training camera draws it; `deform`
+                 static: list[Backdrop] | None = None, deform: bool = True):
+        """One iteration's loss; `static`: the frozen static layer's backdrop for each training camera; `deform`
         False: the canonical Gaussians alone (the dynamic layer's warm-up, TrainConfig.dynamic_warmup)."""
         cfg = self.cfg
         i = int(torch.randint(len(views.frames), (1,), generator=self.gen))
@@ -314,7 +315,8 @@ class Trainer:
             g = model.apply_offsets(model.field.decode(h, model.xyz, center))
         else:
             h, g = None, model.canonical()
-        img = splat(g if static is None else merge(static[c], g), cam)
+        backdrop = static[c] if static is not None else None
+        img = splat_over(backdrop, g, cam)
         ssim_values = ssim_map(img, target)
         loss = losses.photometric(img, target, cfg.lambda_ssim, ssim_values=ssim_values)
         if cfg.dynamic and views.dynamic is not None:
@@ -323,7 +325,7 @@ class Trainer:
         if aux is not None and deform:
             h_aux = aux(aux.tokens(model, i, window))  # the same noisy window the MLP sees
             g_aux = model.apply_offsets(model.field.decode(h_aux, model.xyz, center))
-            img_aux = splat(g_aux if static is None else merge(static[c], g_aux), cam)
+            img_aux = splat_over(backdrop, g_aux, cam)
             loss = loss + cfg.aux_ssim_weight * (1 - losses.ssim(img_aux, target))
             loss = loss + cfg.distill_weight * losses.self_distillation(h, h_aux)
         if cfg.temporal_weight:

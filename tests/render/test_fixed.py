@@ -12,6 +12,8 @@ from stgs.model.view import FrameRenderer, StaticDrawer
 from stgs.native.build import available
 from stgs.render import rasterize
 from stgs.render.fixed import FixedLayerView
+from stgs.render.native import NativeComposite, bin_native, f32, project_native
+from stgs.render.project import project
 from tests.conftest import pinhole, random_scene
 from tests.model.test_gop import random_model
 from tests.model.test_layers import random_static
@@ -48,6 +50,56 @@ def test_draw_equals_one_rasterize_of_both_layers(spread, reused):
         image = layer.draw(*moved)
         assert torch.equal(image, both(fixed, moved, view, K, bg))
         assert layer.last_reused_tiles in reused, layer.last_reused_tiles
+
+
+@pytest.mark.parametrize("spread", [0.05, 3.0])
+def test_draw_with_gradients_equals_one_composite_of_both_layers(spread):
+    """Moving Gaussians that need gradients (training over a frozen layer): the image and every gradient are
+    bit for bit those of one native composite of both layers (the kept layer projected natively, the moving
+    one by torch, as `rasterize` projects what it differentiates), though only the reached tiles are visited."""
+    view, K = (t.float() for t in pinhole(WIDTH, HEIGHT, 60.0))
+    fixed, moving = layers(3000, 300, spread, seed=5)
+    bg = torch.tensor([0.2, 0.4, 0.1])
+    weights = torch.rand(HEIGHT, WIDTH, 3, generator=torch.Generator().manual_seed(1))
+    layer = FixedLayerView(*fixed, view, K, WIDTH, HEIGHT, bg)
+
+    def gradients(draw):
+        params = [t.clone().requires_grad_() for t in moving]
+        image = draw(params)
+        (image * weights).sum().backward()
+        return image.detach(), [t.grad for t in params]
+
+    def one_composite(params):
+        kept = project_native(*fixed[:4], view, K)
+        moved = project(*(t.double() for t in params[:3]), params[3], view, K)
+        cat = {f: torch.cat([getattr(kept, f), getattr(moved, f).float()])
+               for f in ("means2d", "conics", "depths", "extents")}
+        return NativeComposite.apply(cat["means2d"], cat["conics"], torch.cat([fixed[3], params[3]]),
+                                     torch.cat([fixed[4], params[4]]), bg, cat["depths"], cat["extents"], WIDTH,
+                                     HEIGHT)
+
+    image, grads = gradients(lambda params: layer.draw(*params))
+    expected, expected_grads = gradients(one_composite)
+    # The tiles the moving layer reaches are composited as one composite of both does it; the others are the
+    # kept image, drawn by the inference kernel (float32 rounding apart from the tracked one).
+    moved = project(*(t.double() for t in moving[:3]), moving[3], view, K)
+    bins = bin_native(*(f32(t) for t in (moved.means2d, moved.conics, moving[3], moved.depths, moved.extents)),
+                      WIDTH, HEIGHT).bins()
+    per_tile = (bins.tile_start[1:] > bins.tile_start[:-1]).reshape(bins.tiles_y, bins.tiles_x)
+    reached = per_tile.repeat_interleave(16, 0).repeat_interleave(16, 1)[:HEIGHT, :WIDTH]
+    assert int(reached.sum()) > 0 and (spread > 1 or not reached.all())
+    assert torch.equal(image[reached], expected[reached])
+    assert torch.equal(image[~reached], layer.image[~reached])
+    torch.testing.assert_close(image, expected, atol=1e-6, rtol=0)
+    for name, got, want in zip(("means", "quats", "scales", "opacities", "colors"), grads, expected_grads,
+                               strict=True):
+        assert torch.equal(got, want), name
+        assert want.abs().sum() > 0, name  # the moving layer shows in the image
+    # And the same as rasterize of both layers, which projects both by torch (float32 rounding apart).
+    plain, plain_grads = gradients(lambda params: both(fixed, params, view, K, bg))
+    torch.testing.assert_close(image, plain, atol=1e-5, rtol=0)
+    for got, want in zip(grads, plain_grads, strict=True):
+        torch.testing.assert_close(got, want, atol=1e-3, rtol=1e-3)
 
 
 def test_no_moving_gaussians_is_the_kept_image():
@@ -145,3 +197,24 @@ def test_the_static_tiles_benchmark_times_equal_images(tmp_path):
     assert cells[:3] == [tmp_path.name, "400 + 36", "fp32"] and len(cells) == 11
     assert 0 <= float(cells[3].rstrip(" %")) <= 100
     assert all(float(c) > 0 for c in cells[4:7] + cells[8:])
+
+
+def test_the_backdrop_benchmark_times_equal_training_steps(tmp_path):
+    """bench.backdrop on a small layered model dir: one row, each kept step checked against the one-splat step
+    (image and colour gradients; a difference ends the benchmark)."""
+    import json
+
+    from bench.backdrop import measure
+    from stgs.model.store import save_model
+    from stgs.tree import CAMERAS_FORMAT
+
+    save_model(tmp_path, [random_model(n=36, gop_size=4, seed=2)], 30.0, static=random_static(400, seed=1))
+    cams = [Camera(name, intrinsics(80, 60, 60.0), look_at(eye, (0.0, 0.0, 0.0)), 80, 60)
+            for name, eye in (("a", (0.0, 0.3, -2.5)), ("b", (0.6, 0.2, -2.4)))]
+    doc = {"format": CAMERAS_FORMAT, "version": 1, "cameras": [c.to_json() for c in cams]}
+    (tmp_path / "cameras.json").write_text(json.dumps(doc))
+    row = measure(tmp_path, steps=3, rounds=2)
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[:2] == [tmp_path.name, "400 + 36"] and len(cells) == 7
+    assert 0 < float(cells[2].split(" %")[0]) <= 100
+    assert all(float(c) > 0 for c in cells[3:])

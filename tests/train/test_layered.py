@@ -17,7 +17,7 @@ from stgs.metrics import psnr
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.static import StaticLayer
 from stgs.model.store import load_static, read_meta
-from stgs.model.view import splat, static_view
+from stgs.model.view import splat, static_backdrops, static_view
 from stgs.synth import SynthConfig, ground_truth_cameras, synthesize, truth_static_layer
 from stgs.synth.config import DEFAULT_EFFECTS
 from stgs.synth.scene import ProceduralScene
@@ -146,7 +146,7 @@ def test_the_dynamic_layer_starts_with_no_opacity_offset_and_warms_up_without_it
     # The layer starts with no opacity offset: its seeded opacities are what it draws.
     drawn = model.deform(0, views.cameras[0].center.float()).opacities
     assert torch.equal(drawn, model.canonical().opacities)
-    static = [static_view(trainer.static, cam) for cam in views.cameras]
+    static = static_backdrops(trainer.static, views.cameras)
     for deform in (False, True):
         model.zero_grad(set_to_none=True)
         trainer.gop_loss(model, None, views, static, deform=deform)[0].backward()

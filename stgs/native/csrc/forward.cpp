@@ -238,6 +238,11 @@ void render_tile_infer(const RasterCtx& ctx, int tile, const float* bg, float* o
   kRenderTile(ctx, tile, bg, out, nullptr, nullptr);
 }
 
+void render_tile_tracked(const RasterCtx& ctx, int tile, const float* bg, float* out, float* trans_final,
+                         int32_t* n_contrib) {
+  kRenderTile(ctx, tile, bg, out, trans_final, n_contrib);
+}
+
 }  // namespace stgs::splat
 
 using namespace stgs::splat;

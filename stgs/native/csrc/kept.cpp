@@ -5,6 +5,9 @@
 // first: the merge orders equal depths the same way, so every list, and so every pixel, is
 // the one stgs_raster_forward makes of both layers (tests/render/test_fixed.py). A tile no
 // moving Gaussian reaches holds the kept layer's list alone and is copied from its image.
+// For training, the same tiles are composited with the backward pass's bookkeeping and the
+// others get an empty list, so the backward pass visits only the tiles the moving Gaussians
+// reach (no other tile has a gradient for them).
 
 #include <omp.h>
 
@@ -51,6 +54,25 @@ void merge_lists(const KeptLayer& kl, const RasterCtx& moving, const float* dept
   }
   while (a < a_end) *out++ = *a++;
   while (b < b_end) *out++ = offset + *b++;
+}
+
+// Sizes ctx's tile lists: a tile a moving Gaussian reaches gets room for both of its lists, any
+// other an empty one. Returns the tiles left empty (their pixels are the kept image's).
+int64_t plan_lists(const KeptLayer& kl, const RasterCtx& moving, RasterCtx& ctx) {
+  const int tiles = ctx.tiles_x * ctx.tiles_y;
+  ctx.tile_start.resize(tiles + 1);
+  int64_t total = 0, reused = 0;
+  for (int t = 0; t < tiles; ++t) {
+    ctx.tile_start[t] = total;
+    if (reached(moving, t))
+      total += kl.layer.tile_start[t + 1] - kl.layer.tile_start[t] + moving.tile_start[t + 1] -
+               moving.tile_start[t];
+    else
+      ++reused;
+  }
+  ctx.tile_start[tiles] = total;
+  ctx.ids.resize(total);
+  return reused;
 }
 
 void copy_tile(const RasterCtx& ctx, int tile, const float* src, float* out) {
@@ -100,21 +122,10 @@ int64_t stgs_raster_over(void* kept, int64_t n, const float* xy, const float* co
   RasterCtx& merged = kl->merged;
   RasterCtx* moving = acquire_ctx();
   bin_gaussians(*moving, n, xy, conic, opac, color, depth, extent, merged.width, merged.height, nthreads);
-  const int64_t n_kept = kl->count;
-  merged.splats.resize(n_kept + n);
-  std::copy(moving->splats.begin(), moving->splats.end(), merged.splats.begin() + n_kept);
+  merged.splats.resize(kl->count + n);
+  std::copy(moving->splats.begin(), moving->splats.end(), merged.splats.begin() + kl->count);
+  const int64_t reused = plan_lists(*kl, *moving, merged);
   const int tiles = merged.tiles_x * merged.tiles_y;
-  int64_t total = 0, reused = 0;
-  for (int t = 0; t < tiles; ++t) {  // only reached tiles get a (merged) list
-    merged.tile_start[t] = total;
-    if (reached(*moving, t))
-      total += kl->layer.tile_start[t + 1] - kl->layer.tile_start[t] + moving->tile_start[t + 1] -
-               moving->tile_start[t];
-    else
-      ++reused;
-  }
-  merged.tile_start[tiles] = total;
-  merged.ids.resize(total);
 #pragma omp parallel for num_threads(nthreads) schedule(dynamic, 1)
   for (int t = 0; t < tiles; ++t) {
     if (reached(*moving, t)) {
@@ -126,6 +137,45 @@ int64_t stgs_raster_over(void* kept, int64_t n, const float* xy, const float* co
   }
   release_ctx(moving);
   return reused;
+}
+
+void* stgs_raster_over_train(void* kept, int64_t n, const float* xy, const float* conic, const float* opac,
+                             const float* color, const float* depth, const float* extent, float* out,
+                             int nthreads) {
+  const auto* kl = static_cast<const KeptLayer*>(kept);
+  const RasterCtx& shape = kl->merged;
+  RasterCtx* moving = acquire_ctx();
+  bin_gaussians(*moving, n, xy, conic, opac, color, depth, extent, shape.width, shape.height, nthreads);
+  RasterCtx* ctx = acquire_ctx();
+  ctx->width = shape.width;
+  ctx->height = shape.height;
+  ctx->tiles_x = shape.tiles_x;
+  ctx->tiles_y = shape.tiles_y;
+  ctx->splats.assign(shape.splats.begin(), shape.splats.begin() + kl->count);
+  ctx->splats.insert(ctx->splats.end(), moving->splats.begin(), moving->splats.end());
+  plan_lists(*kl, *moving, *ctx);
+  ctx->for_backward = true;
+  const int64_t pixels = int64_t(shape.width) * shape.height;
+  ctx->trans_final.resize(pixels);
+  ctx->n_contrib.resize(pixels);
+  const int tiles = ctx->tiles_x * ctx->tiles_y;
+#pragma omp parallel for num_threads(nthreads) schedule(dynamic, 1)
+  for (int t = 0; t < tiles; ++t) {
+    if (reached(*moving, t)) {
+      merge_lists(*kl, *moving, depth, t, ctx->ids.data() + ctx->tile_start[t]);
+      render_tile_tracked(*ctx, t, kl->bg.data(), out, ctx->trans_final.data(), ctx->n_contrib.data());
+    } else {  // an empty list: the backward pass finds nothing to differentiate there
+      copy_tile(*ctx, t, kl->image.data(), out);
+      const TileBox box = tile_box(*ctx, t);
+      for (int v = 0; v < box.h; ++v) {
+        const int64_t pix = int64_t(box.y0 + v) * ctx->width + box.x0;
+        std::fill_n(ctx->trans_final.data() + pix, box.w, 0.0f);
+        std::fill_n(ctx->n_contrib.data() + pix, box.w, 0);
+      }
+    }
+  }
+  release_ctx(moving);
+  return ctx;
 }
 
 void stgs_raster_kept_free(void* kept) { delete static_cast<KeptLayer*>(kept); }

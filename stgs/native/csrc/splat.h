@@ -93,6 +93,11 @@ void bin_gaussians(RasterCtx& ctx, int64_t n, const float* xy, const float* coni
 // inference kernel).
 void render_tile_infer(const RasterCtx& ctx, int tile, const float* bg, float* out);
 
+// Composites one tile with the bookkeeping the backward pass reads (forward.cpp: the kernel
+// stgs_raster_forward runs for_backward).
+void render_tile_tracked(const RasterCtx& ctx, int tile, const float* bg, float* out, float* trans_final,
+                         int32_t* n_contrib);
+
 // -0.5 q of the Gaussian at a pixel offset; q >= 0 up to rounding, which callers clip.
 inline float raw_power(const Splat& s, float dx, float dy) {
   return -0.5f * (s.a * dx * dx + 2.0f * s.b * dx * dy + s.c * dy * dy);
