@@ -27,8 +27,8 @@ them here or on Ray and writes the model dir).
 This module holds the stages; the parts: `views` (training images), `seeding`
 (initial points and attributes; geometry in `init`), `losses`, `ops`
 (relocation, sorting, pruning and the Adam-state surgery they need),
-`checkpoint`, `aux` (the auxiliary transformer), `dynamic` (dynamic masks).
-Its two loops (coarse, per GOP) with their loss make it longer than most modules.
+`checkpoint`, `aux` (the auxiliary transformer), `dynamic` (dynamic masks),
+`objective` (what a GOP-stage iteration minimises).
 """
 
 from __future__ import annotations
@@ -47,16 +47,17 @@ from stgs.codec.attributes import OPACITY_LOGIT_RANGE
 from stgs.data import open_dataset, split
 from stgs.errors import StgsError
 from stgs.memory import reuse_large_allocations
-from stgs.metrics import psnr, ssim, ssim_map
-from stgs.model.gop import GOPModel, GOPShape, frame_time
+from stgs.metrics import psnr, ssim
+from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.static import StaticLayer
-from stgs.model.view import Backdrop, splat, splat_over, static_backdrops
+from stgs.model.view import Backdrop, splat, static_backdrops
 from stgs.train import losses
 from stgs.train.aux import AuxTransformer
 from stgs.train.base import BaseStage
 from stgs.train.checkpoint import Checkpoints
 from stgs.train.config import TrainConfig, stage_seed
 from stgs.train.layers import Migrated, fit_view_dependent, init_dynamic, migrate, motion_scores, moving_masks
+from stgs.train.objective import GOPLoss, canonical_regularisers, gop_loss
 from stgs.train.ops import Optimizer, prune, relocate, sort
 from stgs.train.seeding import init_canonical, init_frames, initial_points
 from stgs.train.views import Views, scene_extent
@@ -180,7 +181,7 @@ class Trainer:
             mask = ~moving[f, c] if moving is not None else None
             loss = losses.photometric(img, views.target(f, c), cfg.lambda_ssim, mask)
             if regularised:
-                loss = loss + self.canonical_regularisers(model, g.opacities)
+                loss = loss + canonical_regularisers(cfg, model, g.opacities)
             self._step(opt, loss, stage, it, model)
             if sorting and (it + 1) % cfg.sort_every == 0 and it + 1 < cfg.coarse_iterations:
                 sort(model, opt, torch.zeros(2, shape.capacity), cfg.seed)
@@ -299,53 +300,9 @@ class Trainer:
         return model, report
 
     def gop_loss(self, model: GOPModel, aux: AuxTransformer | None, views: Views,
-                 static: list[Backdrop] | None = None, deform: bool = True):
-        """One iteration's loss; `static`: the frozen static layer's backdrop for each training camera; `deform`
-        False: the canonical Gaussians alone (the dynamic layer's warm-up, TrainConfig.dynamic_warmup)."""
-        cfg = self.cfg
-        i = int(torch.randint(len(views.frames), (1,), generator=self.gen))
-        c = int(torch.randint(len(views.cameras), (1,), generator=self.gen))
-        cam, target = views.cameras[c], views.target(i, c)
-        noise = (torch.rand(model.features.shape[1], cfg.window * 16, generator=self.gen) - 0.5) * cfg.feature_noise
-        window = model.window_features(i) + noise
-        t = frame_time(i, self.shape.gop_size)
-        center = cam.center.float()
-        if deform:
-            h = model.field.hidden(window, t)
-            g = model.apply_offsets(model.field.decode(h, model.xyz, center))
-        else:
-            h, g = None, model.canonical()
-        backdrop = static[c] if static is not None else None
-        img = splat_over(backdrop, g, cam)
-        ssim_values = ssim_map(img, target)
-        loss = losses.photometric(img, target, cfg.lambda_ssim, ssim_values=ssim_values)
-        if cfg.dynamic and views.dynamic is not None:
-            loss = loss + cfg.dynamic_weight * losses.photometric(img, target, cfg.lambda_ssim, views.dynamic[c],
-                                                                  ssim_values)
-        if aux is not None and deform:
-            h_aux = aux(aux.tokens(model, i, window))  # the same noisy window the MLP sees
-            g_aux = model.apply_offsets(model.field.decode(h_aux, model.xyz, center))
-            img_aux = splat_over(backdrop, g_aux, cam)
-            loss = loss + cfg.aux_ssim_weight * (1 - losses.ssim(img_aux, target))
-            loss = loss + cfg.distill_weight * losses.self_distillation(h, h_aux)
-        if cfg.temporal_weight:
-            idx = torch.randint(self.shape.capacity, (min(cfg.temporal_sample, self.shape.capacity),),
-                                generator=self.gen)
-            loss = loss + cfg.temporal_weight * losses.temporal_huber(model.features[:, idx], cfg.huber_delta)
-        loss = loss + self.canonical_regularisers(model, g.opacities)
-        if cfg.smooth_weight:
-            loss = loss + cfg.smooth_weight * losses.grid_smoothness(model.features[i], self.shape.grid_side)
-        return loss, img, target, g.opacities.detach()
-
-    def canonical_regularisers(self, model: GOPModel, opacities: torch.Tensor) -> torch.Tensor:
-        """Opacity L1 and the smoothness of the (PLAS-sorted) colour and scale grids."""
-        cfg = self.cfg
-        loss = cfg.opacity_weight * losses.opacity_l1(opacities)
-        if cfg.smooth_weight:
-            side = model.shape.grid_side
-            loss = loss + cfg.smooth_weight * (losses.grid_smoothness(model.color, side)
-                                               + losses.grid_smoothness(model.log_scale, side))
-        return loss
+                 static: list[Backdrop] | None = None, deform: bool = True) -> GOPLoss:
+        """One iteration's loss (stgs.train.objective), drawn with this run's generator."""
+        return gop_loss(self.cfg, self.gen, model, aux, views, static, deform)
 
     @torch.no_grad()
     def validate(self, model: GOPModel, views: Views, limit: int = 6) -> tuple[float, float]:

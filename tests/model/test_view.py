@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -108,3 +110,33 @@ def test_the_native_deformation_applies_the_same_guard_band(precision):
     drawn = renderer.gaussians(1, CAM).opacities > 0
     assert renderer.guarded and drawn.tolist() == in_guard_band(model.xyz, CAM).tolist() == [
         True, False, True, False, False, True]
+
+
+@pytest.mark.skipif(not available(), reason="needs the native build")
+def test_a_kept_backdrop_draws_and_differentiates_as_the_splat_of_both_layers():
+    """splat_over: the static layer kept per camera (static_backdrops) against its Gaussians splatted with the
+    moving ones; the guard band applies to the moving layer in both (a grazing Gaussian is not drawn)."""
+    from stgs.model.view import splat_over, static_backdrops, static_view
+    from tests.model.test_gop import random_model
+    from tests.model.test_layers import random_static
+
+    static = random_static(400, seed=3)
+    model = random_model(n=64, gop_size=4, seed=4)
+    (kept,) = static_backdrops(static, [CAM])
+    plain = static_view(static, CAM)
+    weights = torch.rand(H, W, 3, generator=torch.Generator().manual_seed(0))
+    results = []
+    for backdrop in (kept, plain):
+        model.zero_grad(set_to_none=True)
+        fields = [f.name for f in dataclasses.fields(Gaussians)]
+        grazing = Gaussians(*(getattr(grazing_gaussian(), f).clone().requires_grad_() for f in fields))
+        d = model.deform(1, CAM.center.float())
+        g = Gaussians(*(torch.cat([getattr(d, f), getattr(grazing, f)]) for f in fields))
+        image = splat_over(backdrop, g, CAM)
+        (image * weights).sum().backward()
+        results.append((image.detach(), model.color.grad.clone(), model.xyz.grad.clone(), grazing.colors.grad))
+    (image, color, xyz, veil), (want_image, want_color, want_xyz, want_veil) = results
+    torch.testing.assert_close(image, want_image, atol=1e-5, rtol=0)
+    torch.testing.assert_close(color, want_color, atol=1e-4, rtol=1e-3)
+    torch.testing.assert_close(xyz, want_xyz, atol=1e-3, rtol=1e-2)
+    assert color.abs().sum() > 0 and veil.abs().max() == 0 and want_veil.abs().max() == 0

@@ -1,0 +1,81 @@
+"""What one GOP-stage iteration minimises (stgs.train.trainer's per-GOP loop), and the canonical regularisers
+the coarse stage and stage A share with it.
+
+One random (frame, camera) pair per iteration: the temporal features of the frame's window with feature noise
+λ·U(−0.5, 0.5) go through the deformation field; the deformed Gaussians are drawn (over the frozen static layer's
+backdrop for that camera in a layered scene) and compared with the target (L1 + SSIM, again on the dynamic
+mask's pixels); the auxiliary transformer's pass, the temporal Huber term on a sample of Gaussians, the
+canonical regularisers and the smoothness of the frame's feature grid are added (stgs.train.losses).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+from stgs.metrics import ssim_map
+from stgs.model.gop import GOPModel, frame_time
+from stgs.model.view import Backdrop, splat_over
+from stgs.train import losses
+from stgs.train.aux import AuxTransformer
+from stgs.train.config import TrainConfig
+from stgs.train.views import Views
+
+
+class GOPLoss(NamedTuple):
+    loss: torch.Tensor
+    image: torch.Tensor
+    """The drawn image (with gradients)."""
+    target: torch.Tensor
+    opacities: torch.Tensor
+    """The drawn Gaussians' opacities, detached (for relocation's running average)."""
+
+
+def canonical_regularisers(cfg: TrainConfig, model: GOPModel, opacities: torch.Tensor) -> torch.Tensor:
+    """Opacity L1 and the smoothness of the (PLAS-sorted) colour and scale grids."""
+    loss = cfg.opacity_weight * losses.opacity_l1(opacities)
+    if cfg.smooth_weight:
+        side = model.shape.grid_side
+        loss = loss + cfg.smooth_weight * (losses.grid_smoothness(model.color, side)
+                                           + losses.grid_smoothness(model.log_scale, side))
+    return loss
+
+
+def gop_loss(cfg: TrainConfig, gen: torch.Generator, model: GOPModel, aux: AuxTransformer | None, views: Views,
+             static: list[Backdrop] | None = None, deform: bool = True) -> GOPLoss:
+    """One iteration's loss, drawing its pair and noise from `gen`; `static`: the frozen static layer's backdrop
+    for each training camera; `deform` False: the canonical Gaussians alone (the dynamic layer's warm-up,
+    TrainConfig.dynamic_warmup)."""
+    shape = model.shape
+    i = int(torch.randint(len(views.frames), (1,), generator=gen))
+    c = int(torch.randint(len(views.cameras), (1,), generator=gen))
+    cam, target = views.cameras[c], views.target(i, c)
+    noise = (torch.rand(model.features.shape[1], cfg.window * 16, generator=gen) - 0.5) * cfg.feature_noise
+    window = model.window_features(i) + noise
+    center = cam.center.float()
+    if deform:
+        h = model.field.hidden(window, frame_time(i, shape.gop_size))
+        g = model.apply_offsets(model.field.decode(h, model.xyz, center))
+    else:
+        h, g = None, model.canonical()
+    backdrop = static[c] if static is not None else None
+    img = splat_over(backdrop, g, cam)
+    ssim_values = ssim_map(img, target)
+    loss = losses.photometric(img, target, cfg.lambda_ssim, ssim_values=ssim_values)
+    if cfg.dynamic and views.dynamic is not None:
+        loss = loss + cfg.dynamic_weight * losses.photometric(img, target, cfg.lambda_ssim, views.dynamic[c],
+                                                              ssim_values)
+    if aux is not None and deform:
+        h_aux = aux(aux.tokens(model, i, window))  # the same noisy window the MLP sees
+        g_aux = model.apply_offsets(model.field.decode(h_aux, model.xyz, center))
+        img_aux = splat_over(backdrop, g_aux, cam)
+        loss = loss + cfg.aux_ssim_weight * (1 - losses.ssim(img_aux, target))
+        loss = loss + cfg.distill_weight * losses.self_distillation(h, h_aux)
+    if cfg.temporal_weight:
+        idx = torch.randint(shape.capacity, (min(cfg.temporal_sample, shape.capacity),), generator=gen)
+        loss = loss + cfg.temporal_weight * losses.temporal_huber(model.features[:, idx], cfg.huber_delta)
+    loss = loss + canonical_regularisers(cfg, model, g.opacities)
+    if cfg.smooth_weight:
+        loss = loss + cfg.smooth_weight * losses.grid_smoothness(model.features[i], shape.grid_side)
+    return GOPLoss(loss, img, target, g.opacities.detach())
