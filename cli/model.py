@@ -95,7 +95,7 @@ def add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--layers", choices=["single", "layered"],
                    help="single (default): every GOP holds every Gaussian, model format 1; layered: a static layer "
                    "fitted once (stage A) + smaller per-GOP dynamic layers (stage B), model format 2 (`stgs pack` "
-                   "sends its static layer once; measured on a real capture with --budget cpu: about 0.5 dB better "
+                   "sends its static layer once; measured on a real capture with --budget cpu: 0.2-0.6 dB better "
                    "held out at about the same training time, docs/TRAINING.md)")
     p.add_argument("--static-grid-side", type=positive_int,
                    help="S_s: Gaussians S_s² of the static layer (layered; default: the budget's)")

@@ -24,7 +24,7 @@ class Optimizer:
     """Adam over named parameter groups, with per-Gaussian row surgery (permute, reset) for sorting and relocation."""
 
     def __init__(self, model: GOPModel, cfg: TrainConfig, extent: float, aux: AuxTransformer | None,
-                 canonical_only: bool = False):
+                 canonical_only: bool = False, fused: bool = True):
         lr = cfg.lr
         groups = [("xyz", [model.xyz], lr.position * extent), ("log_scale", [model.log_scale], lr.scale),
                   ("rotation", [model.rotation], lr.rotation), ("opacity_logit", [model.opacity_logit], lr.opacity),
@@ -33,7 +33,9 @@ class Optimizer:
             groups += [("features", [model.features], lr.features), ("field", list(model.field.parameters()), lr.field)]
             if aux is not None:
                 groups.append(("aux", list(aux.parameters()), lr.aux))
-        self.opt = torch.optim.Adam([{"params": p, "lr": r, "name": n} for n, p, r in groups], eps=1e-15)
+        # The fused CPU kernel: one pass over each parameter (every step updates all the temporal features).
+        self.opt = torch.optim.Adam([{"params": p, "lr": r, "name": n} for n, p, r in groups], eps=1e-15,
+                                    fused=fused)
         self.model, self.cfg, self.extent = model, cfg, extent
 
     def set_progress(self, fraction: float) -> None:

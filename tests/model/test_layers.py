@@ -46,7 +46,10 @@ def test_format1_dirs_load_and_render_unchanged(tmp_path):
     expected = load_file(str(FORMAT1 / "expected_renders.safetensors"))
     for name, image in expected.items():
         k, i = int(name[3]), int(name.split("frame")[1])
-        assert torch.equal(FrameRenderer(gops[k], native=False).render(i, CAM), image), name
+        # The bytes load unchanged (below); the render matches up to float32 rounding, whose last bits depend on
+        # the CPU torch's kernels run on (an AVX-512 Xeon and an AVX2 EPYC differ by up to 1e-6).
+        torch.testing.assert_close(FrameRenderer(gops[k], native=False).render(i, CAM), image, atol=1e-5, rtol=0,
+                                   msg=name)
     # Saved again without a static layer: byte for byte the files the earlier build wrote.
     save_model(tmp_path / "again", gops, meta.fps, meta.extra)
     for name in ("model.json", "gop_0000.safetensors", "gop_0001.safetensors"):

@@ -1,0 +1,118 @@
+"""A/B of the GOP stage's Adam step: torch's fused CPU kernel (stgs.train.ops.Optimizer's) against its
+per-parameter loop.
+
+    python -m bench.optimizer --capacities 9216,16384 --steps 30
+    python -m bench.optimizer --model MODEL_DIR --steps 40      # whole iterations on a trained model's GOP 0
+
+Per capacity N: the parameter groups of a GOP model of N Gaussians (60-frame GOP, window 3: 62 × N × 16 temporal
+features, the canonical attributes and the deformation field), as `Optimizer` builds them, with fixed random
+gradients. Each implementation steps `steps` times from the same start; the median step is timed (the two
+alternate, so the machine's drift hits both alike), and the parameters after the last step are compared (the
+two differ by float32 rounding only). With --model: whole GOP-stage iterations on a trained model dir's GOP 0
+(the deformation at one frame, the splat from one of its cameras, L1 + SSIM against a fixed target, the temporal
+Huber term on 8,192 Gaussians, the backward pass and the step), the two optimizers on two copies of the model,
+alternating. Prints Markdown for docs/BENCHMARKS.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import statistics
+import subprocess
+import time
+from pathlib import Path
+
+import torch
+
+from client.view import parse_scene_cameras
+from stgs.model.gop import GOPModel, GOPShape
+from stgs.model.store import load_gop, read_meta
+from stgs.model.view import splat
+from stgs.train import budget, losses
+from stgs.train.ops import Optimizer
+from stgs.tree import CAMERAS
+
+
+def measure(capacity: int, steps: int) -> str:
+    torch.manual_seed(0)
+    start = GOPModel(GOPShape(capacity, 60, 3))
+    grads = [torch.randn_like(p) * 1e-3 for p in start.parameters()]
+    cfg = budget("cpu")
+    runs = {}
+    for fused in (False, True):
+        model = GOPModel(start.shape)
+        model.load_state_dict(start.state_dict())
+        for p, g in zip(model.parameters(), grads, strict=True):
+            p.grad = g.clone()
+        runs[fused] = (model, Optimizer(model, cfg, 1.0, None, fused=fused), [])
+    for _ in range(steps):
+        for _, opt, times in runs.values():
+            begin = time.perf_counter()
+            opt.opt.step()
+            times.append(time.perf_counter() - begin)
+    loop, fused = (runs[f] for f in (False, True))
+    pairs = zip(loop[0].parameters(), fused[0].parameters(), strict=True)
+    diff = max(float((a - b).detach().abs().max()) for a, b in pairs)
+    ms = {f: 1000 * statistics.median(run[2]) for f, run in runs.items()}
+    values = sum(p.numel() for p in start.parameters())
+    return (f"| {capacity:,} | {values / 1e6:.1f} M | {ms[False]:.1f} | {ms[True]:.1f} | {ms[True] / ms[False]:.2f} "
+            f"| {diff:.1e} |")
+
+
+def measure_iterations(model_dir: Path, steps: int) -> str:
+    import json
+
+    meta = read_meta(model_dir)
+    cams = parse_scene_cameras(json.loads((model_dir / CAMERAS).read_text()))
+    gen = torch.Generator().manual_seed(0)
+    target = torch.rand(cams[0].height, cams[0].width, 3, generator=gen)
+    runs = {}
+    for fused in (False, True):
+        model = load_gop(model_dir, meta, 0)
+        runs[fused] = (model, Optimizer(model, budget("cpu"), 1.0, None, fused=fused), [], [])
+    for it in range(steps + 2):
+        frame, cam = it % model.shape.gop_size, cams[it % len(cams)]
+        sample = torch.randint(model.shape.capacity, (8192,), generator=gen)
+        for model, opt, whole, step in runs.values():
+            begin = time.perf_counter()
+            image = splat(model.deform(frame, cam.center.float()), cam)
+            loss = losses.photometric(image, target, 0.2) + losses.temporal_huber(model.features[:, sample])
+            opt.opt.zero_grad(set_to_none=True)
+            loss.backward()
+            stepping = time.perf_counter()
+            opt.opt.step()
+            end = time.perf_counter()
+            if it >= 2:  # warm-up
+                whole.append(end - begin)
+                step.append(end - stepping)
+    ms = {f: (1000 * statistics.median(r[2]), 1000 * statistics.median(r[3])) for f, r in runs.items()}
+    return (f"| {model_dir.name} | {model.shape.capacity:,} | {ms[False][0]:.0f} ({ms[False][1]:.0f}) | "
+            f"{ms[True][0]:.0f} ({ms[True][1]:.0f}) | {ms[True][0] / ms[False][0]:.2f} |")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--capacities", default="9216,16384", help="comma-separated Gaussian counts N")
+    parser.add_argument("--steps", type=int, default=30)
+    parser.add_argument("--model", type=Path, action="append", help="a trained model dir: time whole iterations")
+    args = parser.parse_args()
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    print(f"<!-- python -m bench.optimizer, {platform.processor() or platform.machine()}, "
+          f"torch threads {torch.get_num_threads()}, commit {commit} -->")
+    if args.model:
+        print("| scene | Gaussians N | iteration ms (of it the step), per-parameter loop | fused | fused / loop |")
+        print("|---|---|---|---|---|")
+        for model_dir in args.model:
+            print(measure_iterations(model_dir, args.steps), flush=True)
+        return 0
+    print("| Gaussians N | parameters | Adam step ms, per-parameter loop | fused | fused / loop | "
+          f"largest parameter difference after {args.steps} steps |")
+    print("|---|---|---|---|---|---|")
+    for n in args.capacities.split(","):
+        print(measure(int(n), args.steps), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
