@@ -28,7 +28,7 @@ import torch
 
 from client.view import parse_scene_cameras
 from stgs.model.store import load_gop, load_static, read_meta
-from stgs.model.view import in_guard_band, splat_over, static_backdrops, static_view
+from stgs.model.view import guarded_opacities, splat_over, static_backdrops, static_view
 from stgs.render.native import bin_native, f32
 from stgs.render.project import project
 from stgs.train import losses
@@ -37,7 +37,7 @@ from stgs.tree import CAMERAS
 
 def reached_share(g, cam) -> float:
     """Share of the image's tiles that a guarded Gaussian of g reaches."""
-    opacities = (g.opacities * in_guard_band(g.means, cam).float()).detach()
+    opacities = guarded_opacities(g, cam).detach()
     p = project(g.means.detach().double(), g.quats.detach().double(), g.scales.detach().double(), opacities,
                 cam.viewmat, cam.K)
     bins = bin_native(*(f32(t) for t in (p.means2d, p.conics, opacities, p.depths, p.extents)), cam.width,

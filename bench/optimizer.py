@@ -17,6 +17,7 @@ alternating. Prints Markdown for docs/BENCHMARKS.md.
 from __future__ import annotations
 
 import argparse
+import json
 import platform
 import statistics
 import subprocess
@@ -61,8 +62,6 @@ def measure(capacity: int, steps: int) -> str:
 
 
 def measure_iterations(model_dir: Path, steps: int) -> str:
-    import json
-
     meta = read_meta(model_dir)
     cams = parse_scene_cameras(json.loads((model_dir / CAMERAS).read_text()))
     gen = torch.Generator().manual_seed(0)
@@ -71,9 +70,10 @@ def measure_iterations(model_dir: Path, steps: int) -> str:
     for fused in (False, True):
         model = load_gop(model_dir, meta, 0)
         runs[fused] = (model, Optimizer(model, budget("cpu"), 1.0, None, fused=fused), [], [])
+    shape = meta.shape
     for it in range(steps + 2):
-        frame, cam = it % model.shape.gop_size, cams[it % len(cams)]
-        sample = torch.randint(model.shape.capacity, (8192,), generator=gen)
+        frame, cam = it % shape.gop_size, cams[it % len(cams)]
+        sample = torch.randint(shape.capacity, (8192,), generator=gen)
         for model, opt, whole, step in runs.values():
             begin = time.perf_counter()
             image = splat(model.deform(frame, cam.center.float()), cam)
@@ -87,7 +87,7 @@ def measure_iterations(model_dir: Path, steps: int) -> str:
                 whole.append(end - begin)
                 step.append(end - stepping)
     ms = {f: (1000 * statistics.median(r[2]), 1000 * statistics.median(r[3])) for f, r in runs.items()}
-    return (f"| {model_dir.name} | {model.shape.capacity:,} | {ms[False][0]:.0f} ({ms[False][1]:.0f}) | "
+    return (f"| {model_dir.name} | {shape.capacity:,} | {ms[False][0]:.0f} ({ms[False][1]:.0f}) | "
             f"{ms[True][0]:.0f} ({ms[True][1]:.0f}) | {ms[True][0] / ms[False][0]:.2f} |")
 
 

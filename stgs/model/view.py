@@ -50,11 +50,16 @@ def in_guard_band(means: torch.Tensor, camera: Camera, margin: float = GUARD_BAN
     return (z > near) & (cam[:, 0].abs() <= limit_x * z) & (cam[:, 1].abs() <= limit_y * z)
 
 
+def guarded_opacities(g: Gaussians, camera: Camera) -> torch.Tensor:
+    """g's opacities with those outside the guard band (in_guard_band) set to 0, as the frame path draws them."""
+    return g.opacities * in_guard_band(g.means, camera).to(g.opacities.dtype)
+
+
 def splat(g: Gaussians, camera: Camera, background: torch.Tensor | None = None,
           backend: Backend = "auto", guarded: bool = False) -> torch.Tensor:
     """(H, W, 3) image of deformed Gaussians from `camera` (differentiable); the guard band is applied unless
     `guarded` says g already had it (FrameRenderer.gaussians of a native renderer)."""
-    opacities = g.opacities if guarded else g.opacities * in_guard_band(g.means, camera).to(g.opacities.dtype)
+    opacities = g.opacities if guarded else guarded_opacities(g, camera)
     dtype = g.means.dtype
     return rasterize(g.means, g.quats, g.scales, opacities, g.colors, camera.viewmat.to(dtype),
                      camera.K.to(dtype), camera.width, camera.height, background, backend=backend)
@@ -64,7 +69,7 @@ def static_view(static: StaticLayer, camera: Camera) -> Gaussians:
     """The static layer as `camera` draws it: activated, view-dependent colour evaluated, guard band applied."""
     g = static.gaussians(camera.center.float())
     return Gaussians(g.means.detach(), g.quats.detach(), g.scales.detach(),
-                     (g.opacities * in_guard_band(g.means, camera).to(g.opacities.dtype)).detach(), g.colors.detach())
+                     guarded_opacities(g, camera).detach(), g.colors.detach())
 
 
 Backdrop = Gaussians | FixedLayerView
@@ -89,8 +94,7 @@ def splat_over(backdrop: Backdrop | None, g: Gaussians, camera: Camera) -> torch
         return splat(g, camera)
     if isinstance(backdrop, Gaussians):
         return splat(merge(backdrop, g), camera)
-    opacities = g.opacities * in_guard_band(g.means, camera).to(g.opacities.dtype)
-    return backdrop.draw(g.means, g.quats, g.scales, opacities, g.colors)
+    return backdrop.draw(g.means, g.quats, g.scales, guarded_opacities(g, camera), g.colors)
 
 
 def camera_key(camera: Camera) -> tuple:
