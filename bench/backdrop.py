@@ -17,7 +17,6 @@ reaches, which bounds what the kept layer saves. Prints Markdown for docs/BENCHM
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import statistics
 import subprocess
@@ -26,13 +25,12 @@ from pathlib import Path
 
 import torch
 
-from client.view import parse_scene_cameras
+from stgs.client.view import read_scene_cameras
 from stgs.model.store import load_gop, load_static, read_meta
 from stgs.model.view import guarded_opacities, splat_over, static_backdrops, static_view
 from stgs.render.native import bin_native, f32
 from stgs.render.project import project
 from stgs.train import losses
-from stgs.tree import CAMERAS
 
 
 def reached_share(g, cam) -> float:
@@ -61,7 +59,7 @@ def measure(model_dir: Path, steps: int, rounds: int) -> str:
     if static is None:
         raise SystemExit(f"{model_dir} has no static layer (format 1)")
     model = load_gop(model_dir, meta, 0)
-    cams = parse_scene_cameras(json.loads((model_dir / CAMERAS).read_text()))
+    cams = read_scene_cameras(model_dir)
     start = time.perf_counter()
     kept = static_backdrops(static, cams)
     keep_ms = (time.perf_counter() - start) * 1e3 / len(cams)

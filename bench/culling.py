@@ -11,7 +11,6 @@ band in the splatter instead) and the largest pixel difference between the two i
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
 from collections.abc import Callable
@@ -20,7 +19,7 @@ from pathlib import Path
 import torch
 
 from stgs.camera import resize
-from stgs.client.view import parse_scene_cameras
+from stgs.client.view import read_scene_cameras
 from stgs.model.native_deform import PackedWeights, deform_native
 from stgs.model.store import load_gop, read_meta
 from stgs.model.view import guard_limits, splat
@@ -30,7 +29,7 @@ from stgs.tree import CAMERAS, GROUND_TRUTH_DIR
 
 def first_camera(model_dir: Path):
     if (model_dir / CAMERAS).is_file():
-        return parse_scene_cameras(json.loads((model_dir / CAMERAS).read_text()))[0]
+        return read_scene_cameras(model_dir)[0]
     if (model_dir / GROUND_TRUTH_DIR / CAMERAS).is_file():
         return load_ground_truth(model_dir)[1][0]
     raise SystemExit(f"{model_dir}: no cameras")

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import platform
 import statistics
 from pathlib import Path
@@ -24,7 +23,7 @@ import torch
 
 from bench.realtime import frame_stats, loop_model, play_process
 from stgs.camera import Camera, resize
-from stgs.client.view import parse_scene_cameras
+from stgs.client.view import read_scene_cameras
 from stgs.evaluate import packaged_gops
 from stgs.metrics import psnr
 from stgs.model.native_deform import runnable_precisions
@@ -32,7 +31,7 @@ from stgs.model.store import load_model, read_meta
 from stgs.model.view import FrameRenderer
 from stgs.packager import PackConfig, pack
 from stgs.server.app import loopback
-from stgs.tree import CAMERAS, MANIFEST, rep_id
+from stgs.tree import MANIFEST, rep_id
 
 BASE = {"qp": 24, "precision": "fp32", "size": "640x360", "ring": 8, "render_threads": None}
 VARIANTS = [{}, {"qp": 16}, {"qp": 32}, {"precision": "bf16"}, {"precision": "int16"}, {"size": "320x180"},
@@ -70,7 +69,7 @@ async def measure(model: Path, work: Path, seconds: float) -> list[str]:
     dash = work / f"{name}-dash"
     qps = sorted({v.get("qp", BASE["qp"]) for v in VARIANTS})
     pack(looped, dash, PackConfig(qps=tuple(qps), resume=True), progress=False)
-    cameras = parse_scene_cameras(json.loads((dash / CAMERAS).read_text()))
+    cameras = read_scene_cameras(dash)
     n = read_meta(looped).shape.capacity
     rows = []
     async with loopback(dash) as base:

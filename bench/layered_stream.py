@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.realtime import play_process
-from stgs.client.view import parse_scene_cameras
+from stgs.client.view import read_scene_cameras
 from stgs.packager.manifest import kb_per_frame
 from stgs.server.app import loopback
 from stgs.tree import CAMERAS, MANIFEST, STATS
@@ -74,7 +74,7 @@ def equal_psnr_rows(reference: dict[str, dict], candidate: dict[str, dict], key:
 async def play_rows(tree: Path, work: Path, qps: list[int], size: str) -> dict[int, dict]:
     view = ["--size", size]
     if (tree / CAMERAS).is_file():
-        view += ["--camera", parse_scene_cameras(json.loads((tree / CAMERAS).read_text()))[0].name]
+        view += ["--camera", read_scene_cameras(tree)[0].name]
     out = {}
     async with loopback(tree) as base:
         url = base + MANIFEST

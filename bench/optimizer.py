@@ -17,7 +17,6 @@ alternating. Prints Markdown for docs/BENCHMARKS.md.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import statistics
 import subprocess
@@ -26,13 +25,12 @@ from pathlib import Path
 
 import torch
 
-from client.view import parse_scene_cameras
+from stgs.client.view import read_scene_cameras
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.store import load_gop, read_meta
 from stgs.model.view import splat
 from stgs.train import budget, losses
 from stgs.train.ops import Optimizer
-from stgs.tree import CAMERAS
 
 
 def measure(capacity: int, steps: int) -> str:
@@ -63,7 +61,7 @@ def measure(capacity: int, steps: int) -> str:
 
 def measure_iterations(model_dir: Path, steps: int) -> str:
     meta = read_meta(model_dir)
-    cams = parse_scene_cameras(json.loads((model_dir / CAMERAS).read_text()))
+    cams = read_scene_cameras(model_dir)
     gen = torch.Generator().manual_seed(0)
     target = torch.rand(cams[0].height, cams[0].width, 3, generator=gen)
     runs = {}

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from stgs.client.manifest import Presentation
-from stgs.client.view import parse_scene_cameras
+from stgs.client.view import read_scene_cameras
 from stgs.model.native_deform import runnable_precisions
 from stgs.model.store import read_meta
 from stgs.packager import PackConfig, pack
@@ -156,7 +156,7 @@ async def run_scene(source: Path, work: Path, seconds: float, qps: list[int], se
     seconds = stats["segment_seconds"] * len(stats["gops"])
     view = ["--size", size]
     if (dash / CAMERAS).is_file():  # the scene's first camera, else the player's default orbit
-        view += ["--camera", parse_scene_cameras(json.loads((dash / CAMERAS).read_text()))[0].name]
+        view += ["--camera", read_scene_cameras(dash)[0].name]
     rows, verdicts = [], []
     async with loopback(dash) as base:
         url = base + MANIFEST

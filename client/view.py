@@ -62,6 +62,16 @@ def parse_scene_cameras(doc: object) -> list[Camera]:
     return _cameras(doc["cameras"], CAMERAS)
 
 
+def read_scene_cameras(folder: Path) -> list[Camera]:
+    """The cameras of the cameras.json in a model dir or packaged tree."""
+    path = Path(folder) / CAMERAS
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise StgsError(f"{path}: cannot read the scene's cameras ({exc})") from None
+    return parse_scene_cameras(doc)
+
+
 def _cameras(items: list, where: str) -> list[Camera]:
     if len(items) > MAX_PATH_CAMERAS:
         raise StgsError(f"{where}: more than {MAX_PATH_CAMERAS} cameras")

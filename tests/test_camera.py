@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import json
 import math
 
+import pytest
 import torch
 
 from stgs.camera import Camera, intrinsics, look_at, rig_focus, rig_orbit, surrounds
-from stgs.client.view import ViewSpec, build_trajectory
+from stgs.client.view import ViewSpec, build_trajectory, read_scene_cameras
+from stgs.errors import StgsError
 from stgs.model.gop import GOPModel, GOPShape
+from stgs.tree import CAMERAS, CAMERAS_FORMAT
 
 FOCUS = (0.0, -1.0, 0.0)
 
@@ -52,3 +56,17 @@ def test_the_default_orbit_follows_a_surrounding_rig_only():
     assert not surrounds(forward)
     framing = build_trajectory(spec, forward, model, 6).cameras
     assert min(float(c.center.norm()) for c in framing) > 10.0
+
+
+def test_read_scene_cameras_reads_a_dir_and_names_the_file_when_it_cannot(tmp_path):
+    cam = dome(1)[0]
+    (tmp_path / CAMERAS).write_text(json.dumps({"format": CAMERAS_FORMAT, "version": 1, "cameras": [cam.to_json()]}))
+    assert [c.name for c in read_scene_cameras(tmp_path)] == ["d0"]
+    (tmp_path / CAMERAS).write_text("{not json")
+    with pytest.raises(StgsError, match=r"cameras\.json: cannot read"):
+        read_scene_cameras(tmp_path)
+    with pytest.raises(StgsError, match=r"cameras\.json: cannot read"):
+        read_scene_cameras(tmp_path / "missing")
+    (tmp_path / CAMERAS).write_text(json.dumps({"format": "other", "cameras": []}))
+    with pytest.raises(StgsError, match="not a streamstgs-cameras document"):
+        read_scene_cameras(tmp_path)

@@ -4,7 +4,6 @@ accounting in real time, seeking, and a feature segment that breaks mid-GOP."""
 from __future__ import annotations
 
 import gc
-import json
 import time
 import weakref
 
@@ -13,7 +12,7 @@ import numpy as np
 import pytest
 
 from stgs.client import PlayConfig, framepath, play
-from stgs.client.view import ViewSpec, parse_scene_cameras
+from stgs.client.view import ViewSpec, read_scene_cameras
 from stgs.codec.mp4 import set_timeline, split_fragmented
 from stgs.codec.video import VideoTiming, decode_segment, encode_gop
 from stgs.errors import FieldError
@@ -21,7 +20,7 @@ from stgs.evaluate import packaged_gops
 from stgs.fsio import to_uint8
 from stgs.model.store import load_model
 from stgs.model.view import FrameRenderer
-from stgs.tree import CAMERAS, rep_id
+from stgs.tree import rep_id
 from tests.client.conftest import QUICK, SCENE, copy_tree, segment, serving
 
 G = SCENE.gop_size
@@ -34,7 +33,7 @@ def whole_gop_renderer(root, qp: int, k: int) -> FrameRenderer:
 
 
 def assert_frames_equal_whole_decode(scene, root, frames_dir, qp: int, expected: list[int]) -> None:
-    cameras = parse_scene_cameras(json.loads((root / CAMERAS).read_text()))
+    cameras = read_scene_cameras(root)
     cam = next(c for c in cameras if c.name == "cam00")  # the camera the player draws from
     pngs = sorted(frames_dir.glob("*.png"))
     assert [int(p.stem) for p in pngs] == expected
