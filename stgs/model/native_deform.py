@@ -6,7 +6,7 @@ skips the view-dependent decoders of Gaussians that cannot reach the image.
 Three precisions: float32 (AVX-512, AVX2 or portable); bf16 inputs and
 weights with float32 accumulation, on AMX tiles or AVX512-BF16 vectors where
 the CPU (and, for AMX, the kernel) allow it; and int16 inputs and weights with
-exact int32 sums (AVX2 `vpmaddwd`), for CPUs without bf16 arithmetic. The
+exact int32 sums (AVX2 `vpmaddwd`, or AVX512-VNNI `vpdpwssd`), for CPUs without bf16 arithmetic. The
 reduced precisions are accuracy knobs (docs/BENCHMARKS.md).
 """
 
@@ -49,9 +49,19 @@ def bf16_available() -> bool:
     return bool(bf16_backends())
 
 
+INT16_KERNELS = {1: "avx2", 2: "avx512bw", 3: "avx512-vnni"}
+"""The int16 deformation's kernels by stgs_deform_int16_available's value: the widest the native build's
+-march allows. They give the same bits (exact int32 sums, the same float epilogue)."""
+
+
+def int16_kernel() -> str | None:
+    """The kernel the native int16 deformation runs here, or None where it cannot run."""
+    return INT16_KERNELS.get(load().stgs_deform_int16_available()) if available() else None
+
+
 def int16_available() -> bool:
     """True when the native int16 deformation can run here (the native build targets AVX2)."""
-    return available() and bool(load().stgs_deform_int16_available())
+    return int16_kernel() is not None
 
 
 def runnable_precisions() -> list[str]:

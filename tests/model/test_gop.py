@@ -174,6 +174,24 @@ INT16_NEEDS = "the int16 deformation needs the native build on a CPU with AVX2"
 needs_int16 = pytest.mark.skipif(not int16_available(), reason=INT16_NEEDS)
 
 
+def int16_parity_case() -> dict[str, torch.Tensor]:
+    """The int16 deformation of a fixed model, whole and culled by a camera, at two frames: the AVX-512 and AVX2
+    kernels must give it bit for bit (tests/render/test_portable_build.py). 1,001 rows and the culling leave
+    blocks and kept appearance rows of every remainder the kernels' strips handle."""
+    model = random_model(n=1001, seed=3)
+    cam = Camera("c", intrinsics(64, 48, 60.0), look_at((0.0, 0.0, -3.0), (0.0, 0.0, 0.0), (0.0, -1.0, 0.0)), 64, 48)
+    out = {}
+    with torch.no_grad():
+        model.features[:, 100:120] *= 1000.0  # per-row scales far apart
+        for frame in (0, 5):
+            for culled in (False, True):
+                kw = {"viewmat": cam.viewmat, "K": cam.K, "width": 64, "height": 48} if culled else {}
+                g = deform_native(model, frame, cam.center.float(), precision="int16", **kw)
+                for name in ("means", "quats", "scales", "opacities", "colors"):
+                    out[f"{frame}-{culled}-{name}"] = getattr(g, name)
+    return out
+
+
 @needs_int16
 @pytest.mark.parametrize("window, n", [(3, 1000), (5, 333), (1, 17), (16, 40)])
 def test_int16_deform_matches_its_torch_oracle(window, n):

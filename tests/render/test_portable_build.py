@@ -1,6 +1,7 @@
 """The kernels other CPUs get, built here into private caches and held to the same oracle as the default
 build, in separate processes: -march=x86-64-v3 (AVX2 and FMA, no AVX-512: the AVX2 inference compositor
-beside the portable tracked one, and the int16 deformation) and -march=x86-64-v2 (no AVX: every stage the
+beside the portable tracked one, and the int16 deformation, which must equal this machine's AVX-512 int16
+kernel bit for bit where it has one) and -march=x86-64-v2 (no AVX: every stage the
 portable `#pragma omp simd` kernel, and no int16 deformation). Each is checked against the reference and,
 stage by stage, against the torch twins.
 """
@@ -14,6 +15,10 @@ import sys
 import textwrap
 
 import pytest
+import torch
+
+from stgs.model.native_deform import int16_kernel
+from tests.model.test_gop import int16_parity_case
 
 CHECK = textwrap.dedent("""
     import torch
@@ -57,6 +62,8 @@ CHECK = textwrap.dedent("""
             got = deform_native(model, 2, torch.zeros(3), precision="int16")
             want = deform_int16_reference(model, 2, torch.zeros(3))
         assert (got.means - want.means).abs().max() <= 2e-3 * want.means.abs().max()
+        from tests.model.test_gop import int16_parity_case
+        torch.save(int16_parity_case(), os.environ["STGS_INT16_OUT"])
     else:  # no AVX2: int16 says so
         assert not int16_available()
         try:
@@ -71,12 +78,18 @@ CHECK = textwrap.dedent("""
 @pytest.mark.skipif(platform.machine() != "x86_64", reason="the -march levels named here are x86-64's")
 @pytest.mark.parametrize("arch", ["x86-64-v3", "x86-64-v2"])
 def test_portable_kernels_match_reference(tmp_path, arch):
-    env = {**os.environ, "STGS_NATIVE_ARCH": arch, "STGS_NATIVE_CACHE": str(tmp_path)}
+    env = {**os.environ, "STGS_NATIVE_ARCH": arch, "STGS_NATIVE_CACHE": str(tmp_path),
+           "STGS_INT16_OUT": str(tmp_path / "int16.pt")}
     root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     result = subprocess.run([sys.executable, "-c", CHECK], capture_output=True, text=True, env=env,
                             cwd=root, timeout=300)
     assert result.returncode == 0 and "portable ok" in result.stdout, result.stderr[-3000:]
     assert list(tmp_path.glob("libstgs_native-*.so")), "the portable library was built"
+    if arch == "x86-64-v3" and int16_kernel() not in (None, "avx2"):  # this build's AVX-512 int16 kernel
+        avx2, here = torch.load(tmp_path / "int16.pt"), int16_parity_case()
+        assert avx2.keys() == here.keys()
+        for key in here:
+            assert torch.equal(here[key], avx2[key]), f"{int16_kernel()} and avx2 int16 kernels differ in {key}"
     # Every stage of the portable build against its torch twin too (the tile lists id for id).
     stages = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "no:xdist",
                              "tests/render/test_stages.py"], capture_output=True, text=True, env=env, cwd=root,

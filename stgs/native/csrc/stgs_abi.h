@@ -112,7 +112,8 @@ int stgs_deform_bf16(int64_t n, int window, const float* const* window_feats, co
                      int height, float* out_means, float* out_quats, float* out_scales, float* out_opac,
                      float* out_colors, const double* guard, int backend, int nthreads);
 
-// 1 when stgs_deform_int16 was built (the compiler targets AVX2), else 0.
+// The kernel stgs_deform_int16 runs: 0 not built (the compiler does not target AVX2), 1 AVX2 (vpmaddwd),
+// 2 AVX512BW (vpmaddwd on 512-bit registers), 3 AVX512-VNNI (vpdpwssd). All give the same bits.
 int stgs_deform_int16_available(void);
 
 // stgs_deform with int16 products and exact int32 sums (deform_int16.cpp): layer_weights holds the
