@@ -112,7 +112,7 @@ def bench_size(n: int, width: int, height: int, repeats: int, reference_max: int
 
 def deform_rows(n: int, width: int, height: int, repeats: int) -> list[str]:
     """Deformation alone and deformation + splat per precision; accuracy against the fp32 deformation's image."""
-    from stgs.model.native_deform import bf16_backends, runnable_precisions
+    from stgs.model.native_deform import bf16_backends, int16_kernel, runnable_precisions
     from stgs.model.view import FrameRenderer
 
     cam = bench_camera(width, height)
@@ -133,7 +133,8 @@ def deform_rows(n: int, width: int, height: int, repeats: int) -> list[str]:
             fp32_image = image if fp32_image is None else fp32_image
             accuracy = "(itself) | 0" if precision == "fp32" else \
                 f"{psnr(image.clamp(0, 1), fp32_image.clamp(0, 1)):.1f} | {(image - fp32_image).abs().max().item():.1e}"
-            name = f"native {precision}" + (f" ({backends[0]})" if precision == "bf16" else "")
+            kernel = {"bf16": backends[0] if backends else None, "int16": int16_kernel()}.get(precision)
+            name = f"native {precision}" + (f" ({kernel})" if kernel else "")
             rows.append(f"| {n} | {name} | {deform_ms:.1f} | **{total_ms:.1f}** | {accuracy} |")
     return rows
 
