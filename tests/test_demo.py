@@ -49,10 +49,11 @@ def test_bench_render_smoke():
     assert result.returncode == 0, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("| 300 |")]
     backends = [r.split("|")[2].strip() for r in rows]
-    from stgs.model.native_deform import bf16_backends, int16_available
+    from stgs.model.native_deform import bf16_backends, int16_kernel
 
     bf16 = [f"native bf16 ({bf16_backends()[0]})"] if bf16_backends() else []  # the back end it ran on
-    deforms = ["torch fp32", "native fp32", *bf16, *(["native int16"] if int16_available() else [])]
+    int16 = [f"native int16 ({int16_kernel()})"] if int16_kernel() else []  # and the int16 kernel
+    deforms = ["torch fp32", "native fp32", *bf16, *int16]
     assert backends == ["reference fp64", "reference fp32", "native fp32", *deforms]
     reduced = [r.split("|") for r in rows if "native bf16" in r or "native int16" in r]
     for cells in reduced:  # image PSNR against the fp32 deformation: finite and high, not identical
