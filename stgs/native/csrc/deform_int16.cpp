@@ -181,6 +181,7 @@ void quantize_rows(const float* x, int rows, int K, int ldx, float qx, int16_t* 
   }
 }
 
+#if STGS_INT16_KERNEL == 1
 // y[r, c0 .. c0 + 8 V) = sum over pairs p of q[r, 2p .. 2p+1] · w[p, c, 0 .. 1], scaled, for R rows.
 // Always inlined with its loops unrolled, so that the accumulators stay in registers (as deform.cpp's
 // matmul_strip).
@@ -213,8 +214,7 @@ __attribute__((always_inline)) inline void qmatmul_strip(const int16_t* q, int p
     }
   }
 }
-
-#if STGS_INT16_KERNEL >= 2
+#else
 // acc + the pair products of x and w, summed per int32 lane (exact: see the header).
 __attribute__((always_inline)) inline __m512i add_pair_products(__m512i acc, __m512i x, __m512i w) {
 #if STGS_INT16_KERNEL == 3
@@ -224,7 +224,8 @@ __attribute__((always_inline)) inline __m512i add_pair_products(__m512i acc, __m
 #endif
 }
 
-// qmatmul_strip on 512-bit registers: y[r, c0 .. c0 + 16 V) for R rows.
+// y[r, c0 .. c0 + 16 V) = sum over pairs p of q[r, 2p .. 2p+1] · w[p, c, 0 .. 1], scaled, for R rows:
+// qmatmul_strip on 512-bit registers.
 template <int M, int R, int V>
 __attribute__((always_inline)) inline void qmatmul_strip512(const int16_t* q, int pairs, int ldq, const int16_t* w,
                                                             const float* row_scale, const float* col_scale,
