@@ -40,7 +40,7 @@
 #define STGS_HAVE_INT16 0
 #endif
 
-// The kernel stgs_deform_int16_available reports (the ABI's STGS_INT16_* values).
+// The kernel stgs_deform_int16_available reports (its values: stgs_abi.h).
 #if defined(__AVX512BW__) && defined(__AVX512VNNI__)
 #define STGS_INT16_KERNEL 3
 #elif defined(__AVX512BW__)
