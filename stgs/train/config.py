@@ -176,8 +176,8 @@ LAYERED = {
 """What --layers layered changes in each budget (unless set explicitly): a smaller dynamic layer, a static layer
 that together with it holds about twice the single layer's Gaussians, and iterations moved from the per-GOP
 stage to stage A (which nothing refines later) so that one GOP takes the single layer's wall time (cpu: the
-best of three splits measured on Panoptic at that time, docs/BENCHMARKS.md, before the fused Adam step, which
-saves format 1 more and has not been rebalanced for; paper: not measured)."""
+best of three splits measured on Panoptic at that time, docs/BENCHMARKS.md; with the fused Adam step, which came
+later, a pair measured it at 0.94x format 1's wall time; paper: not measured)."""
 
 SWITCHES = {"aux": "--no-aux", "dynamic": "--no-dynamic-density", "temporal_weight": "--no-temporal-reg",
             "relocate": "--no-relocate", "migrate": "--no-migrate"}
