@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+from scipy.spatial import cKDTree
 
 from stgs.camera import Camera, surrounds
 from stgs.data import Dataset
@@ -101,14 +102,28 @@ def init_frames(frames: list[int], count: int) -> list[int]:
     return [frames[round(i * (len(frames) - 1) / (count - 1))] for i in range(count)]
 
 
+def mean_neighbour_distance(points: torch.Tensor, k: int = 3) -> torch.Tensor:
+    """(N,) float32: each point's mean distance to its k nearest other points (fewer where N <= k; 1 for a lone
+    point). A k-d tree, so memory grows with N, not N² (a full distance matrix of 150,000 points is 90 GB)."""
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {tuple(points.shape)}")
+    if not torch.isfinite(points).all():
+        raise ValueError("points must be finite")
+    n = len(points)
+    if n < 2:
+        return torch.ones(n)
+    xyz = points.detach().double().numpy()
+    # The k + 1 nearest of each point include itself at distance 0 (first, or beside an equal duplicate).
+    distances, _ = cKDTree(xyz).query(xyz, k=min(k, n - 1) + 1)
+    return torch.from_numpy(distances[:, 1:].mean(1)).float()
+
+
 def init_canonical(model: GOPModel, init: InitialPoints, opacity: float = 0.1, filler_opacity: float = 0.02) -> None:
     """3DGS-style initial attributes: scale from the mean distance to the 3 nearest points."""
     points = init.points
     with torch.no_grad():
         model.xyz.copy_(points)
-        d = torch.cdist(points, points)
-        d.fill_diagonal_(float("inf"))
-        nn3 = d.topk(min(3, len(points) - 1), largest=False).values.mean(1) if len(points) > 1 else torch.ones(1)
+        nn3 = mean_neighbour_distance(points)
         model.log_scale.copy_(torch.log(nn3.clamp(1e-4, 1e2))[:, None].expand(-1, 3))
         model.rotation.copy_(torch.tensor([1.0, 0.0, 0.0, 0.0]))
         start = torch.where(init.anchored, opacity, filler_opacity)
