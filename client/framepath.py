@@ -80,6 +80,8 @@ class FramePath:
         """The GOP the presenter has reached (playing it, or waiting for it)."""
         self.started = {k: asyncio.Event() for k in gops}
         """Set once GOP k's start time is known (its stall, if any, counted)."""
+        self.first_shown: float | None = None
+        """now() when the first rendered frame went to the output (its slot, or when it was rendered if later)."""
 
     def frame_count(self, k: int) -> int:
         """Frames of GOP k that are played (fewer than G in a last GOP cut by the duration)."""
@@ -179,6 +181,8 @@ class FramePath:
                 await self.sleep(early)
             f = k * self.G + i
             if frame is not None:
+                if self.first_shown is None:
+                    self.first_shown = self.now()
                 await asyncio.to_thread(self.sink.write, f, frame.image)
             elif gop.renderer is not None:  # rendering (or its features) could not make the frame's slot
                 rec.dropped += 1

@@ -3,10 +3,13 @@
 A GOP is ready to play when its keyframe (five JPEG XL images) is decoded and the first window of its
 feature video (stgs.codec.stream) is in the ring, and, in a layered (format-2) scene, the static layer
 (decoded once, on its own thread as soon as it arrives, and drawn with every GOP); the rest of the
-feature video decodes while the GOP plays. A keyframe that does not decode is downloaded once more; a
-feature segment that does not decode, at the start or in the middle of the GOP, is replaced by the lowest
-rung's (the fetch schedule decides both), resuming at the frame the renderer needs. A static layer that
-does not decode ends the playback with one error (the dynamic layer alone is not the scene).
+feature video decodes while the GOP plays. The feature video needs only the keyframe's feature ranges
+(its header): it starts decoding (once the previous GOP's has finished) before the keyframe's images
+decode and the renderer is built, so that on two cores the two overlap. A keyframe that does not decode
+is downloaded once more; a feature segment that does not decode, at the start or in the middle of the GOP,
+is replaced by the lowest rung's (the fetch schedule decides both), resuming at the frame the renderer
+needs. A static layer that does not decode ends the playback with one error (the dynamic layer alone is
+not the scene).
 """
 
 from __future__ import annotations
@@ -16,13 +19,15 @@ import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 
+import torch
+
 from stgs.client.config import PlaybackError, PlayConfig
 from stgs.client.fetchsteps import Fetched, Step
 from stgs.client.manifest import Presentation
 from stgs.client.playlog import GOPRecord
 from stgs.client.schedule import FetchSchedule
 from stgs.client.threads import ThreadBudget
-from stgs.codec.keyframe import Keyframe, KeyframeError, decode_keyframe
+from stgs.codec.keyframe import Keyframe, KeyframeError, KeyframeSegment, parse_keyframe
 from stgs.codec.static import StaticSegmentError, decode_static
 from stgs.codec.stream import FeatureStream
 from stgs.model.view import FrameRenderer, StaticDrawer
@@ -95,46 +100,82 @@ class GOPDecoder:
         for stream in self.streams:
             stream.close()
 
-    def decode_keyframe(self, item: Fetched) -> Keyframe:
+    def parse_keyframe(self, item: Fetched) -> KeyframeSegment:
+        return parse_keyframe(item.keyframe, self.pres.shape, item.index, self.pres.max_keyframe_bytes())
+
+    def decode_keyframe(self, segment: KeyframeSegment) -> Keyframe:
         start = time.perf_counter()
-        kf = decode_keyframe(item.keyframe, self.pres.shape, item.index, self.pres.max_keyframe_bytes())
-        self.records[item.index].keyframe_decode_s = time.perf_counter() - start
+        kf = segment.decode()
+        self.records[segment.gop].keyframe_decode_s = time.perf_counter() - start
         return kf
 
-    def open_stream(self, item: Fetched, kf: Keyframe, first: int, after: FeatureStream | None) -> FeatureStream:
+    def open_stream(self, item: Fetched, ranges: torch.Tensor, first: int,
+                    after: FeatureStream | None) -> FeatureStream:
         self.pres.check_feature_segment(item.init, item.media, item.index)
         stream = FeatureStream(item.init + item.media, self.pres.shape.num_features, self.pres.grid_side,
-                               kf.feature_ranges, self.cfg.ring_frames, self.budget.decode, first,
+                               ranges, self.cfg.ring_frames, self.budget.decode, first,
                                name=f"GOP {item.index} features")
         self.streams = [s for s in self.streams if not s.finished]  # close() needs only the running ones
         self.streams.append(stream)
         return stream.start(after)
 
+    def start_stream(self, item: Fetched, ranges: torch.Tensor, after: FeatureStream | None
+                     ) -> FeatureStream | ValueError:
+        """GOP `item.index`'s feature stream from frame 0, decoding once `after` has finished; the error
+        instead when its segment does not match the manifest."""
+        try:
+            stream = self.open_stream(item, ranges, 0, after)
+        except ValueError as exc:
+            return exc
+        self.last = stream
+        return stream
+
     async def first_window(self, stream: FeatureStream, first: int) -> None:
         await asyncio.to_thread(stream.window, first, self.window)
 
-    async def decode(self, item: Fetched) -> ReadyGOP:
-        """GOP `item.index` ready to play (its keyframe decoded, its first feature window in the ring)."""
+    async def keyframe(self, item: Fetched) -> tuple[Keyframe, FeatureStream | ValueError]:
+        """GOP `item.index`'s keyframe decoded and its feature stream (start_stream) started, a keyframe that
+        does not parse or decode downloaded once more."""
         k, rec = item.index, self.records[item.index]
-        if not self.cfg.decode:
-            return ReadyGOP(k, None)
         try:
-            kf = await asyncio.to_thread(self.decode_keyframe, item)
+            return await self.keyframe_and_stream(item)
         except KeyframeError as exc:
             item.keyframe = (await self.drive(self.schedule.refetch_keyframe(k, rec, str(exc)))).keyframe
-            try:
-                kf = await asyncio.to_thread(self.decode_keyframe, item)
-            except KeyframeError as again:
-                raise PlaybackError(f"keyframe segment of GOP {k}: {again}") from None
+        try:
+            return await self.keyframe_and_stream(item)
+        except KeyframeError as again:
+            raise PlaybackError(f"keyframe segment of GOP {k}: {again}") from None
+
+    async def keyframe_and_stream(self, item: Fetched) -> tuple[Keyframe, FeatureStream | ValueError]:
+        """The feature stream starts as soon as the keyframe's feature ranges are read, so that its first
+        frames decode while the keyframe's images do (on the other core); KeyframeError stops it again."""
+        after = self.last
+        segment = await asyncio.to_thread(self.parse_keyframe, item)
+        stream = self.start_stream(item, segment.feature_ranges, after)
+        try:
+            return await asyncio.to_thread(self.decode_keyframe, segment), stream
+        except KeyframeError:
+            if isinstance(stream, FeatureStream):
+                stream.close()
+                self.last = after
+            raise
+
+    async def decode(self, item: Fetched) -> ReadyGOP:
+        """GOP `item.index` ready to play (its keyframe decoded, its first feature window in the ring)."""
+        k = item.index
+        if not self.cfg.decode:
+            return ReadyGOP(k, None)
+        kf, stream = await self.keyframe(item)
         static = await self.static_layer()
         renderer = await asyncio.to_thread(FrameRenderer, kf.to_model(None), self.cfg.native, self.cfg.precision,
                                            static)
-        try:
-            stream = self.open_stream(item, kf, 0, self.last)
-            self.last = stream
-            await self.first_window(stream, 0)
-        except ValueError as exc:
-            stream = await self.fall_back(item, kf, 0, str(exc))
+        if isinstance(stream, FeatureStream):
+            try:
+                await self.first_window(stream, 0)
+            except ValueError as exc:
+                stream = exc
+        if isinstance(stream, ValueError):
+            stream = await self.fall_back(item, kf, 0, str(stream))
         return ReadyGOP(k, renderer, stream, item, kf)
 
     async def fall_back(self, item: Fetched, kf: Keyframe, first: int, reason: str) -> FeatureStream:
@@ -146,7 +187,7 @@ class GOPDecoder:
             rec.events.append(f"the fallback resumes at frame {first} of the GOP")
         item.rung, item.init, item.media = lowest.rung, lowest.init, lowest.media
         try:
-            stream = self.open_stream(item, kf, first, None)
+            stream = self.open_stream(item, kf.feature_ranges, first, None)
             self.last = stream
             await self.first_window(stream, first)
         except ValueError as exc:

@@ -250,6 +250,14 @@ class Session:
             group.create_task(self.frame_path.render_loop(ready))
             group.create_task(self.frame_path.present_loop(ready, slots))
 
+    def time_to_first_frame(self) -> float | None:
+        """Seconds from the manifest's request to the first rendered frame shown (without decoding: to the
+        first frame's slot); None when playback never began."""
+        shown = self.frame_path.first_shown
+        if shown is None:
+            shown = self.clock.t0 if not self.cfg.decode else None
+        return None if shown is None else (shown / self.speed - self.requested) * self.speed
+
     def summary(self, error: BaseException | None) -> dict:
         return playback_log([self.records[k] for k in self.gops], self.clock, url=self.cfg.url,
                             abr=self.schedule.rule.name, wasted_bytes=self.schedule.wasted_bytes,
@@ -260,8 +268,7 @@ class Session:
                                    "ring_frames": self.cfg.ring_frames,
                                    "render_ahead": self.cfg.render_ahead, "fps": self.pres.fps,
                                    "process_peak_rss_mb": process_peak_rss_mb(),
-                                   "time_to_first_frame_s": None if self.clock.t0 is None else
-                                   (self.clock.t0 / self.speed - self.requested) * self.speed,
+                                   "time_to_first_frame_s": self.time_to_first_frame(),
                                    "error_detail": getattr(error, "detail", None)})
 
 

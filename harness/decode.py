@@ -2,13 +2,15 @@
 
 Mirrors stgs.client.gopdecode and stgs.codec.stream, real-time playback with instantaneous rendering:
 
-- GOP k's keyframe decodes once it is downloaded and a decode slot is free (at most two GOPs decoded at
-  once) and the previous GOP is ready, in `keyframe_s`;
-- its feature frames decode one after another, `frame_s` each, starting once the keyframe is decoded and
-  GOP k-1's feature decoding has ended; feature frame j waits for room in the ring of `ring` frames, i.e.
+- GOP k is taken up once it is downloaded, a decode slot is free (at most two GOPs decoded at once) and
+  the previous GOP is ready; its keyframe then decodes in `keyframe_s`;
+- its feature frames decode one after another, `frame_s` each, beside the keyframe (the player starts
+  the feature stream from the keyframe's header), starting once the GOP is taken up and GOP k-1's feature
+  decoding has ended; feature frame j waits for room in the ring of `ring` frames, i.e.
   for frame j - ring to be released; decoding ends after the last frame, or when the GOP's playback ends
   (the player closes its stream: the frame being decoded finishes, the rest is never decoded);
-- GOP k is ready when its first window (W frames) is decoded: it starts at max(its due time, ready);
+- GOP k is ready when its keyframe, the static layer (format 2) and its first window (W frames) are
+  decoded: it starts at max(its due time, ready);
 - frame m of the GOP is drawn if its window (frames m … m+W-1) is decoded before its slot
   [start + m/fps, start + (m+1)/fps) ends, released when drawn: once its window is decoded, the frame before
   it released, and no earlier than `render_ahead` slots before its own (stgs.client.framepath); otherwise
@@ -45,8 +47,8 @@ class DecodeSpec:
     many slots after they are ready at the start and after a stall. A [decode] table defaults to the player's
     default; without one the simulated player neither decodes nor renders (0)."""
     static_ms: float = 0.0
-    """A layered scene's static-layer decode, once (the log's static_decode_s): the first GOP's features start
-    decoding once both its keyframe and the static layer are decoded, as in the player."""
+    """A layered scene's static-layer decode, once (the log's static_decode_s): no GOP is ready before the
+    static layer is decoded, as in the player."""
 
     def frame_s(self, rep: str) -> float:
         """Seconds per feature frame of Representation `rep`."""
@@ -120,11 +122,13 @@ class DecoderModel:
     def plan(self, downloaded: float, slot: float, keyframe_s: float, frame_s: float,
              not_before: float = 0.0) -> GOPPlan:
         """The next GOP's decoding: downloaded at `downloaded`, a decode slot free at `slot`, its keyframe
-        costing `keyframe_s` and its feature frames `frame_s` each, its features not before `not_before` (the
+        costing `keyframe_s` and its feature frames `frame_s` each, ready not before `not_before` (the
         static layer decoded); nothing is committed until `start`."""
-        keyframe_done = max(downloaded, slot, self.keyframe_free) + keyframe_s
-        first = max(keyframe_done, self.features_free, not_before)
-        return GOPPlan(keyframe_done, first, frame_s, first + self.window * frame_s)  # the first window fits
+        taken = max(downloaded, slot, self.keyframe_free)  # the player takes the GOP up
+        keyframe_done = taken + keyframe_s
+        first = max(taken, self.features_free)  # its features decode beside the keyframe (the other core)
+        ready = max(keyframe_done, not_before, first + self.window * frame_s)  # the first window fits the ring
+        return GOPPlan(keyframe_done, first, frame_s, ready)
 
     def start(self, plan: GOPPlan, start: float) -> int:
         """The planned GOP plays from `start`; returns its dropped frames."""

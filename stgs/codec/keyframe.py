@@ -190,11 +190,34 @@ def expected_tensors(shape: GOPShape) -> dict[str, tuple[int, ...] | None]:
     return want
 
 
-def decode_keyframe(data: bytes, shape: GOPShape, gop: int, max_bytes: int) -> Keyframe:
+@dataclass
+class KeyframeSegment:
+    """A keyframe segment parsed and checked against the manifest; its images are not decoded yet (a player
+    starts the feature video, which needs only the feature ranges, while they decode)."""
+
+    gop: int
+    shape: GOPShape
+    tensors: dict[str, torch.Tensor]
+
+    @property
+    def feature_ranges(self) -> torch.Tensor:
+        """(2, 16) range of the feature codes."""
+        return self.tensors["range.features"]
+
+    def decode(self) -> Keyframe:
+        """Decode the JPEG XL images (KeyframeError when one does not decode or is not the announced size)."""
+        attributes = decode_images(self.tensors, SPECS, self.shape.grid_side, "keyframe", KeyframeError)
+        field = {k[len("field."):]: v for k, v in self.tensors.items() if k.startswith("field.")}
+        return Keyframe(self.gop, self.shape, attributes, field, self.feature_ranges)
+
+
+def parse_keyframe(data: bytes, shape: GOPShape, gop: int, max_bytes: int) -> KeyframeSegment:
     """Parse and check a keyframe segment against the shape and GOP index the manifest announced."""
-    what = "keyframe"
-    tensors = read_container(data, keyframe_metadata(gop, shape), expected_tensors(shape), max_bytes, what,
+    tensors = read_container(data, keyframe_metadata(gop, shape), expected_tensors(shape), max_bytes, "keyframe",
                              KeyframeError)
-    attributes = decode_images(tensors, SPECS, shape.grid_side, what, KeyframeError)
-    field = {k[len("field."):]: v for k, v in tensors.items() if k.startswith("field.")}
-    return Keyframe(gop, shape, attributes, field, tensors["range.features"])
+    return KeyframeSegment(gop, shape, tensors)
+
+
+def decode_keyframe(data: bytes, shape: GOPShape, gop: int, max_bytes: int) -> Keyframe:
+    """parse_keyframe, then its images decoded."""
+    return parse_keyframe(data, shape, gop, max_bytes).decode()

@@ -4,6 +4,7 @@ accounting in real time, seeking, and a feature segment that breaks mid-GOP."""
 from __future__ import annotations
 
 import gc
+import threading
 import time
 import weakref
 
@@ -13,6 +14,8 @@ import pytest
 
 from stgs.client import PlayConfig, framepath, play
 from stgs.client.view import ViewSpec, read_scene_cameras
+from stgs.codec import stream
+from stgs.codec.keyframe import KeyframeError, KeyframeSegment
 from stgs.codec.mp4 import set_timeline, split_fragmented
 from stgs.codec.video import VideoTiming, decode_segment, encode_gop
 from stgs.errors import FieldError
@@ -118,6 +121,8 @@ async def test_rendering_ahead_absorbs_a_slow_first_frame_per_gop(scene, tmp_pat
     rendered = sorted(int(p.stem) for p in (tmp_path / "f").glob("*.png"))
     if ahead == 0:
         assert [f for f in range(SCENE.num_gops * G) if f not in rendered] == [1, G + 1, 2 * G + 1]
+        # the first frame is shown once it is rendered, 2.2 intervals into its slot: start-up counts that
+        assert log["time_to_first_frame_s"] >= log["gops"][0]["play_start_s"] + 2.2 * interval
     else:
         assert log["dropped_frames"] == 0 and rendered == list(range(SCENE.num_gops * G))
         for gop in log["gops"][1:]:  # drawn before its slot: a GOP's first frame during the GOP before
@@ -170,3 +175,49 @@ async def test_a_feature_segment_that_ends_mid_gop_falls_back_from_that_frame(sc
     assert any("fallback from qp16" in e and "decodes to 5 frames" in e for e in events), events
     assert any("resumes at frame 3" in e for e in events), events  # frames 3..5 are the first window past 5
     assert [g["qp"] for g in log["gops"]] == [16, 32, 16]
+
+
+async def test_the_first_feature_frames_decode_while_the_keyframe_does(scene, tmp_path, monkeypatch):
+    """The feature stream starts from the keyframe's header, before its images decode: a keyframe decode
+    that waits for the stream's first frame finishes (sequentially it would wait for ever)."""
+    first_frame = threading.Event()
+    real_frames, real_decode = stream.iter_frames, KeyframeSegment.decode
+    overlapped = []
+
+    def frames(*args, **kwargs):
+        for frame in real_frames(*args, **kwargs):
+            first_frame.set()
+            yield frame
+
+    def decode(self):
+        overlapped.append(first_frame.wait(timeout=20))
+        first_frame.clear()
+        return real_decode(self)
+
+    monkeypatch.setattr(stream, "iter_frames", frames)
+    monkeypatch.setattr(KeyframeSegment, "decode", decode)
+    async with serving(scene / "dash") as url:
+        log = await play(PlayConfig(url, qp=32, view=CAM, out=tmp_path / "f", download=QUICK, duration_s=1.0))
+    assert log["error"] is None and overlapped == [True]
+    assert_frames_equal_whole_decode(scene, scene / "dash", tmp_path / "f", 32, list(range(G)))
+
+
+async def test_a_keyframe_that_fails_to_decode_once_restarts_its_feature_stream(scene, tmp_path, monkeypatch):
+    """GOP 1's keyframe images fail on the first try, after its feature stream has started: the keyframe is
+    downloaded again, the stream restarted, and every frame is still the whole-GOP decode's."""
+    real_decode = KeyframeSegment.decode
+    failures = []
+
+    def flaky(self):
+        if self.gop == 1 and not failures:
+            failures.append(self.gop)
+            raise KeyframeError("keyframe image position: test failure")
+        return real_decode(self)
+
+    monkeypatch.setattr(KeyframeSegment, "decode", flaky)
+    async with serving(scene / "dash") as url:
+        log = await play(PlayConfig(url, qp=24, view=CAM, out=tmp_path / "f", download=QUICK, ring_frames=3))
+    assert log["error"] is None and failures == [1]
+    assert any("test failure" in e for e in log["gops"][1]["events"]), log["gops"][1]["events"]
+    assert [r["kind"] for r in log["gops"][1]["requests"]].count("keyframe") == 2
+    assert_frames_equal_whole_decode(scene, scene / "dash", tmp_path / "f", 24, list(range(SCENE.num_gops * G)))

@@ -310,12 +310,12 @@ def test_the_per_frame_decode_model_agrees_with_emulation_when_decoding_is_the_b
     The decode costs are paced (machine-independent) and chosen off the model's edges: at 250 ms a GOP's
     end coincides with a feature frame's completion, and a millisecond of jitter decides whether one more
     frame (250 ms) is decoded before the next GOP's."""
-    from stgs.client import gopdecode
     from stgs.codec import stream
+    from stgs.codec.keyframe import KeyframeSegment
     from stgs.harness.emulate import emulate
 
     frame_s, keyframe_s = 0.235, 0.1
-    real_frames, real_keyframe = stream.iter_frames, gopdecode.decode_keyframe
+    real_frames, real_keyframe = stream.iter_frames, KeyframeSegment.decode
 
     def slow_frames(*args, **kwargs):  # a decoder this much slower than the machine's
         frames = real_frames(*args, **kwargs)
@@ -334,7 +334,7 @@ def test_the_per_frame_decode_model_agrees_with_emulation_when_decoding_is_the_b
         return keyframe
 
     monkeypatch.setattr(stream, "iter_frames", slow_frames)
-    monkeypatch.setattr(gopdecode, "decode_keyframe", slow_keyframe)
+    monkeypatch.setattr(KeyframeSegment, "decode", slow_keyframe)
     ladder = load_ladder(str(packed))
     _, top = rates(ladder)
 
@@ -363,16 +363,20 @@ def test_the_decode_model_by_hand():
     """G = 6 frames at 6 fps, W = 3, ring 4, 0.25 s per feature frame, everything downloaded at 0."""
     model = DecoderModel(ring=4, window=3, gop_size=6, fps=6.0)
     plan = model.plan(downloaded=0.0, slot=0.0, keyframe_s=0.1, frame_s=0.25)
-    assert plan.ready == pytest.approx(0.1 + 3 * 0.25)  # keyframe, then the first window
+    assert plan.keyframe_done == pytest.approx(0.1) and plan.features_start == 0.0  # side by side
+    assert plan.ready == pytest.approx(3 * 0.25)  # the first window, the keyframe long done
     drops = model.start(plan, plan.ready)
-    # feature frame j is decoded at 0.1 + 0.25 (j + 1) (the ring never fills: frames are released in time);
-    # frame m (window m..m+2) is drawn if 0.1 + 0.25 (m + 3) < 0.85 + (m + 1) / 6: m = 0, 1 only
+    # feature frame j is decoded at 0.25 (j + 1) (the ring never fills: frames are released in time);
+    # frame m (window m..m+2) is drawn if 0.25 (m + 3) < 0.75 + (m + 1) / 6: m = 0, 1 only
     assert drops == 4
-    # the GOP ends at 1.85, when frame 6 is decoded: frame 7 is never decoded
-    assert model.features_free == pytest.approx(1.85)
+    # the GOP ends at 1.75, when frame 6 is decoded: frame 7 is never decoded
+    assert model.features_free == pytest.approx(1.75)
     nxt = model.plan(downloaded=0.0, slot=0.0, keyframe_s=0.1, frame_s=0.25)
-    assert nxt.keyframe_done == pytest.approx(0.95)  # after GOP 0 was ready
-    assert nxt.features_start == pytest.approx(1.85) and nxt.ready == pytest.approx(2.6)
+    assert nxt.keyframe_done == pytest.approx(0.85)  # taken up once GOP 0 was ready
+    assert nxt.features_start == pytest.approx(1.75) and nxt.ready == pytest.approx(2.5)
+    # a static layer still decoding holds the GOP back, not its features
+    late = DecoderModel(ring=4, window=3, gop_size=6, fps=6.0).plan(0.0, 0.0, 0.1, 0.25, not_before=2.0)
+    assert late.features_start == 0.0 and late.ready == pytest.approx(2.0)
 
 
 def test_scaled_time_emulation_agrees_too(packed):
