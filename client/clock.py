@@ -15,8 +15,8 @@ from dataclasses import dataclass
 STALL_EPSILON_S = 1e-3
 """A GOP ready less than this after its due time did not stall."""
 RENDER_AHEAD = 2
-"""Default frame slots the renderer may work ahead of a frame's due time (the first frame is shown that many
-slots after its GOP is ready)."""
+"""Default frame slots the renderer may work ahead of a frame's due time (the first frame of a GOP that
+stalled is shown that many slots after it is ready; of the first GOP, at least that many)."""
 
 
 @dataclass

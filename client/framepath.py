@@ -7,10 +7,14 @@ Two asyncio tasks share the Session's clock and records:
   rendering no earlier than PlayConfig.render_ahead frame intervals before its slot, and is dropped when its
   slot ends before it can start (rendering behind, or its features not decoded yet); drawn or dropped, its
   features are released in order. Without real time every frame renders as soon as the one before it.
-- the presenter keeps the clock: GOP k starts at its due time; the first GOP, and one not ready when due (a
-  stall), start `render_ahead` slots after they are ready, so that the renderer has its lead there too;
-  each frame goes to the output at the start of its slot (or when it is rendered, if later), a dropped one
-  repeats the last; GOP k ends when its last frame's interval does.
+- the presenter keeps the clock: GOP k starts at its due time; one not ready when due (a stall) starts
+  `render_ahead` slots after it is ready, so that the renderer has its lead there too; the first GOP of a
+  real-time playback too, or once its first frame is rendered if that is later: the first frame is drawn
+  before the clock starts, because it is the slow one (cold caches, and a layered scene's static layer drawn
+  whole), and started earlier it would take the lead of the frames after it (a trained 101,632-Gaussian
+  scene: 106 and 65 ms for its first two frames, one dropped); each frame goes to the output at the start of
+  its slot (or when it is rendered, if later), a dropped one repeats the last; GOP k ends when its last
+  frame's interval does.
 
 Rendering ahead lets a frame slower than a slot borrow the time the frames before it did not use: the first
 frames of a GOP share the cores with the keyframe decode of the GOP after next and take twice as long as
@@ -82,6 +86,9 @@ class FramePath:
         """Set once GOP k's start time is known (its stall, if any, counted)."""
         self.first_shown: float | None = None
         """now() when the first rendered frame went to the output (its slot, or when it was rendered if later)."""
+        self.first_drawn = asyncio.Event()
+        """Set once the first GOP's first frame is rendered before the clock starts (real time only)."""
+        self.first_drawn_at = 0.0
 
     def frame_count(self, k: int) -> int:
         """Frames of GOP k that are played (fewer than G in a last GOP cut by the duration)."""
@@ -89,18 +96,29 @@ class FramePath:
 
     # --- the renderer ---
 
+    @property
+    def first_sets_clock(self) -> bool:
+        """Whether the first frame is rendered before the clock starts (see the module docstring)."""
+        return self.cfg.realtime and self.cfg.decode
+
     async def render_loop(self, ready: dict[int, asyncio.Future]) -> None:
         for k in self.gops:
             gop = await ready[k]
-            if self.arrived >= k:  # the presenter waits for GOP k: its start (after a stall) sets the slots
-                await self.started[k].wait()
+            first = None
             if k == self.k0:
                 self.open_output(gop)
-            await self.render_gop(gop, self.clock.due(k))
+                if self.first_sets_clock and self.frame_count(k):
+                    first = await self.render_frame(gop, 0, self.trajectory.camera(0), None)
+                    self.first_drawn_at = self.now()
+                    self.first_drawn.set()
+            if self.arrived >= k:  # the presenter waits for GOP k: its start (after a stall) sets the slots
+                await self.started[k].wait()
+            await self.render_gop(gop, self.clock.due(k), first)
 
-    async def render_gop(self, gop: ReadyGOP, gop_start: float) -> None:
+    async def render_gop(self, gop: ReadyGOP, gop_start: float, first: FrameTiming | None = None) -> None:
         """Render GOP `gop.index`'s frames in order into the queue (`gop_start`: when its first slot begins; GOP
-        k+1 is rendered ahead only once it is ready, so no stall can move it)."""
+        k+1 is rendered ahead only once it is ready, so no stall can move it; `first`: its frame 0, rendered
+        before the clock started)."""
         k, rec, interval = gop.index, self.records[gop.index], 1 / self.fps
         for i in range(self.frame_count(k)):
             deadline = None
@@ -110,7 +128,9 @@ class FramePath:
                 if (early := slot - self.cfg.render_ahead * interval - self.now()) > 0:
                     await self.sleep(early)
             frame = None
-            if gop.renderer is not None and (deadline is None or self.now() < deadline):
+            if i == 0 and first is not None:
+                frame = first
+            elif gop.renderer is not None and (deadline is None or self.now() < deadline):
                 frame = await self.render_frame(gop, i, self.trajectory.camera(k * self.G + i - self.k0 * self.G),
                                                 deadline)
             if gop.features is not None:
@@ -200,7 +220,11 @@ class FramePath:
         result = await fut
         ready = arrived if was_ready else self.now()
         rec.boundary_wait_s = ready - (self.t_start if k == self.k0 else arrived)
-        rec.stall_s = self.clock.start(k, ready, arrived, self.lead)
+        lead = self.lead
+        if k == self.k0 and self.first_sets_clock and self.frame_count(k):
+            await self.first_drawn.wait()
+            lead = max(lead, self.first_drawn_at - ready)
+        rec.stall_s = self.clock.start(k, ready, arrived, lead)
         rec.play_start_s = self.clock.due(k) - self.t_start
         self.started[k].set()
         return result

@@ -102,8 +102,8 @@ async def test_a_slow_renderer_drops_frames_and_the_count_is_exact(scene, tmp_pa
 @pytest.mark.parametrize("ahead", [0, 2])
 async def test_rendering_ahead_absorbs_a_slow_first_frame_per_gop(scene, tmp_path, monkeypatch, ahead):
     """The first frame of every GOP takes 2.2 frame intervals, the others are fast: rendered in its own slot it
-    makes the next frame miss its slot, once per GOP; rendered up to two slots early it borrows the time the
-    fast frames left (and the first GOP starts two slots after it is ready, so it has that lead too)."""
+    makes the next frame miss its slot, once per GOP after the first (whose first frame is drawn before the
+    clock starts); rendered up to two slots early it borrows the time the fast frames left."""
     real = framepath.FramePath.render
     interval = 1 / SCENE.fps
 
@@ -120,13 +120,42 @@ async def test_rendering_ahead_absorbs_a_slow_first_frame_per_gop(scene, tmp_pat
     assert log["error"] is None and log["render_ahead"] == ahead and log["stalls"]["count"] == 0
     rendered = sorted(int(p.stem) for p in (tmp_path / "f").glob("*.png"))
     if ahead == 0:
-        assert [f for f in range(SCENE.num_gops * G) if f not in rendered] == [1, G + 1, 2 * G + 1]
-        # the first frame is shown once it is rendered, 2.2 intervals into its slot: start-up counts that
-        assert log["time_to_first_frame_s"] >= log["gops"][0]["play_start_s"] + 2.2 * interval
+        assert [f for f in range(SCENE.num_gops * G) if f not in rendered] == [G + 1, 2 * G + 1]
     else:
         assert log["dropped_frames"] == 0 and rendered == list(range(SCENE.num_gops * G))
         for gop in log["gops"][1:]:  # drawn before its slot: a GOP's first frame during the GOP before
             assert gop["render_at_s"][0] < gop["play_start_s"] - interval
+    # the first frame is shown once it is rendered, 2.2 intervals after the GOP is ready: start-up counts that
+    assert log["time_to_first_frame_s"] >= log["startup_delay_s"] + 2.2 * interval
+    assert_frames_equal_whole_decode(scene, scene / "dash", tmp_path / "f", 32, rendered)
+
+
+@pytest.mark.parametrize("ahead", [0, 2])
+async def test_a_slow_first_frame_of_the_playback_sets_the_clock(scene, tmp_path, monkeypatch, ahead):
+    """The playback's first frame takes 4.5 frame intervals (a cold start), every other frame is fast: the clock
+    starts once it is drawn, so it takes no slot from the frames after it (started two slots after the GOP was
+    ready, frame 1 would miss its slot), and start-up is when it is shown."""
+    real = framepath.FramePath.render
+    interval = 1 / SCENE.fps
+    slow = []
+
+    def slow_first(self, ready, i, camera, deadline):
+        frame = real(self, ready, i, camera, deadline)
+        if not slow:
+            slow.append((ready.index, i))
+            time.sleep(4.5 * interval)
+        return frame
+
+    monkeypatch.setattr(framepath.FramePath, "render", slow_first)
+    async with serving(scene / "dash") as url:
+        log = await play(PlayConfig(url, qp=32, realtime=True, view=CAM, out=tmp_path / "f", download=QUICK,
+                                    render_ahead=ahead, start_s=1.0))
+    assert log["error"] is None and slow == [(1, 0)] and log["stalls"]["count"] == 0
+    assert log["dropped_frames"] == 0, [g["dropped"] for g in log["gops"]]
+    first = log["gops"][0]
+    assert first["play_start_s"] - first["boundary_wait_s"] >= 4.5 * interval  # the clock waited for frame 0
+    assert log["time_to_first_frame_s"] >= log["startup_delay_s"] + 4.5 * interval
+    rendered = sorted(int(p.stem) for p in (tmp_path / "f").glob("*.png"))
     assert_frames_equal_whole_decode(scene, scene / "dash", tmp_path / "f", 32, rendered)
 
 
