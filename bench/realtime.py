@@ -13,7 +13,9 @@ loopback and the real `stgs play --realtime` plays it in its own process at the 
 640x360, for the whole duration; then a seek: `--start` at the middle, 4 seconds. Start-up and seek are
 noisy on a loaded loopback (the server shares the cores): each is measured `--repeats` times, the whole run
 counting as one start-up and the others playing 4 seconds from the start, and the table gives the median
-and the worst. Prints Markdown for docs/BENCHMARKS.md; the logs stay in --work.
+and the worst. A virtual machine's host may take CPU time from it (steal): the table gives the share taken
+during each whole run (/proc/stat), since a busy host drops frames the player would not. Prints Markdown
+for docs/BENCHMARKS.md; the logs stay in --work.
 """
 
 from __future__ import annotations
@@ -58,6 +60,24 @@ def loop_model(src: Path, dst: Path, seconds: float) -> Path:
     doc.setdefault("extra", {})["looped_from"] = str(src)
     (dst / MODEL_META).write_text(json.dumps(doc, indent=1) + "\n")
     return dst
+
+
+def cpu_times() -> tuple[int, int] | None:
+    """(steal, total) jiffies of all CPUs since boot from /proc/stat; None where there is none (not Linux)."""
+    try:
+        fields = Path("/proc/stat").read_text().split("\n", 1)[0].split()
+    except OSError:
+        return None
+    values = [int(v) for v in fields[1:9]]  # user nice system idle iowait irq softirq steal
+    return (values[7] if len(values) > 7 else 0), sum(values)
+
+
+def steal_share(before: tuple[int, int] | None, after: tuple[int, int] | None) -> float | None:
+    """Share of the CPU time the hypervisor gave to others between two cpu_times() (a busy host: the run's
+    timings and drops measure the host, not the player)."""
+    if before is None or after is None or after[1] <= before[1]:
+        return None
+    return (after[0] - before[0]) / (after[1] - before[1])
 
 
 async def play_process(url: str, log: Path, args: list[str]) -> dict:
@@ -108,8 +128,9 @@ def latency_cell(logs: list[dict]) -> str:
 
 
 def row(name: str, n: int, qp: int, setting: Setting, kbps: float, log: dict, starts: list[dict],
-        seeks: list[dict]) -> str:
-    """starts: the runs whose start-up is reported (`log` and the repeats); seeks: the seek runs."""
+        seeks: list[dict], steal: float | None = None) -> str:
+    """starts: the runs whose start-up is reported (`log` and the repeats); seeks: the seek runs; steal: the
+    host's steal share during `log`'s run."""
     s = frame_stats(log)
     ok = held_realtime(log)
     cells = [name, f"{n:,}", str(qp), setting.precision, str(log["threads"]["decode"]), str(log["render_ahead"]),
@@ -118,13 +139,13 @@ def row(name: str, n: int, qp: int, setting: Setting, kbps: float, log: dict, st
              "yes" if ok else "no",
              *(f"{s[k][0]:.1f} / {s[k][1]:.1f}" for k in ("decode", "wait", "deform", "splat")),
              latency_cell(starts), latency_cell(seeks),
-             f"{log['process_peak_rss_mb']:.0f}"]
+             f"{log['process_peak_rss_mb']:.0f}", "–" if steal is None else f"{steal * 100:.0f}"]
     return "| " + " | ".join(cells) + " |"
 
 
 HEADER = ("| scene | Gaussians | QP | deformation | decoder threads | render ahead | feature Mbit/s | frames | "
           "dropped | stalls | 30 fps held | decode + dequantise ms (median / p95) | wait ms | deform ms | splat ms | "
-          "start-up s, median (worst) | seek s, median (worst) | peak RSS MB |\n" + "|---" * 18 + "|")
+          "start-up s, median (worst) | seek s, median (worst) | peak RSS MB | host steal % |\n" + "|---" * 19 + "|")
 
 
 @dataclass(frozen=True)
@@ -182,7 +203,9 @@ async def run_scene(source: Path, work: Path, seconds: float, qps: list[int], se
             for qp in qps:
                 tag = f"{name}-qp{qp}-{setting.tag}"
                 common = [*view, "--realtime", "--qp", str(qp), *setting.flags()]
+                before = cpu_times()
                 log = await play_process(url, work / f"{tag}.json", common)
+                steal = steal_share(before, cpu_times())
                 starts, seeks = [log], []
                 for r in range(repeats):
                     suffix = "" if r == 0 else f"-{r}"
@@ -193,7 +216,7 @@ async def run_scene(source: Path, work: Path, seconds: float, qps: list[int], se
                                                     [*common, "--start", f"{seconds / 2:g}",
                                                      "--duration", f"{SEEK_SECONDS:g}"]))
                 kbps = stats["representations"][f"qp{qp}"]["bandwidth"] / 1e3
-                rows.append(row(name, n, qp, setting, kbps, log, starts, seeks))
+                rows.append(row(name, n, qp, setting, kbps, log, starts, seeks, steal))
                 verdicts.append((n, qp, setting.tag, held_realtime(log), work / f"{tag}.json"))
                 print(rows[-1], flush=True)
     return rows, verdicts
