@@ -96,10 +96,10 @@ class FramePath:
 
     # --- the renderer ---
 
-    @property
-    def first_sets_clock(self) -> bool:
-        """Whether the first frame is rendered before the clock starts (see the module docstring)."""
-        return self.cfg.realtime and self.cfg.decode
+    def draws_first_early(self, k: int) -> bool:
+        """Whether GOP k's frame 0 is rendered before the clock starts: the first GOP's, in real time, when it
+        plays at least one frame (see the module docstring)."""
+        return k == self.k0 and self.cfg.realtime and self.cfg.decode and self.frame_count(k) > 0
 
     async def render_loop(self, ready: dict[int, asyncio.Future]) -> None:
         for k in self.gops:
@@ -107,10 +107,10 @@ class FramePath:
             first = None
             if k == self.k0:
                 self.open_output(gop)
-                if self.first_sets_clock and self.frame_count(k):
-                    first = await self.render_frame(gop, 0, self.trajectory.camera(0), None)
-                    self.first_drawn_at = self.now()
-                    self.first_drawn.set()
+            if self.draws_first_early(k):
+                first = await self.render_frame(gop, 0, self.trajectory.camera(0), None)
+                self.first_drawn_at = self.now()
+                self.first_drawn.set()
             if self.arrived >= k:  # the presenter waits for GOP k: its start (after a stall) sets the slots
                 await self.started[k].wait()
             await self.render_gop(gop, self.clock.due(k), first)
@@ -221,7 +221,7 @@ class FramePath:
         ready = arrived if was_ready else self.now()
         rec.boundary_wait_s = ready - (self.t_start if k == self.k0 else arrived)
         lead = self.lead
-        if k == self.k0 and self.first_sets_clock and self.frame_count(k):
+        if self.draws_first_early(k):
             await self.first_drawn.wait()
             lead = max(lead, self.first_drawn_at - ready)
         rec.stall_s = self.clock.start(k, ready, arrived, lead)
