@@ -114,6 +114,9 @@ class TrainConfig:
     init_frames: int = 6
     """Frames, spread over the trained span, whose views are triangulated for the initial points (1: the
     first frame only; people who move are then seeded only where they start)."""
+    hull_seeds: bool = True
+    """Layered: seed each GOP's dynamic layer on the surface of the visual hull of the dataset's foreground masks,
+    where it has them and the cameras surround the scene (stgs.train.hull), instead of filler points."""
     background_share: float = 0.0
     """Share of the capacity first placed on the rig's walls and floor, for the background a rig that
     surrounds the action sees behind it (0: none; ignored for forward-facing rigs)."""
@@ -180,7 +183,7 @@ best of three splits measured on Panoptic at that time, docs/BENCHMARKS.md; with
 later, a pair measured it at 0.94x format 1's wall time; paper: not measured)."""
 
 SWITCHES = {"aux": "--no-aux", "dynamic": "--no-dynamic-density", "temporal_weight": "--no-temporal-reg",
-            "relocate": "--no-relocate", "migrate": "--no-migrate"}
+            "relocate": "--no-relocate", "migrate": "--no-migrate", "hull_seeds": "--no-hull-seeds"}
 """Config fields the ablation switches turn off."""
 
 

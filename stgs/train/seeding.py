@@ -12,6 +12,7 @@ from scipy.spatial import cKDTree
 from stgs.camera import Camera, surrounds
 from stgs.data import Dataset
 from stgs.model.gop import GOPModel
+from stgs.train.hull import HullConfig, hull_surface_points
 from stgs.train.init import (
     MIN_TRIANGULATED,
     background_shell_points,
@@ -39,15 +40,20 @@ class InitialPoints:
 
 
 def initial_points(ds: Dataset, names: list[str], frames: list[int], count: int, gen: torch.Generator,
-                   limit: int = 0, background_share: float = 0.0) -> InitialPoints:
+                   limit: int = 0, background_share: float = 0.0, hull: HullConfig | None = None) -> InitialPoints:
     """`count` starting points, triangulated at each of `frames` (people who move are seeded where they are
     at each of those times); `background_share` of them on the rig's walls and floor
-    (background_shell_points) when the cameras surround the scene."""
+    (background_shell_points) when the cameras surround the scene; with `hull`, where the dataset has every
+    camera's foreground mask at a frame and the cameras surround the scene, the capacity left after those goes
+    to points on the surface of the masks' visual hull (stgs.train.hull) before any filler."""
     cams, images = _training_views(ds, names, frames[0])  # the walls and floor are coloured from the first frame
-    found_at = [triangulate(cams, images, [ds.mask(frames[0], c.name) for c in cams])]
-    for frame in frames[1:]:  # one more frame's images held at a time
-        later_cams, later_images = _training_views(ds, names, frame)
-        found_at.append(triangulate(later_cams, later_images, [ds.mask(frame, c.name) for c in later_cams]))
+    found_at, hull_at = [], []
+    for i, frame in enumerate(frames):  # one more frame's images held at a time
+        at_cams, at_images = (cams, images) if i == 0 else _training_views(ds, names, frame)
+        masks = [ds.mask(frame, c.name) for c in at_cams]
+        found_at.append(triangulate(at_cams, at_images, masks))
+        if hull is not None and all(m is not None for m in masks) and surrounds(at_cams):
+            hull_at.append(hull_surface_points(at_cams, at_images, masks, hull))
     # A time with too few points to describe the scene there (tiny images, no texture) contributes none: a few
     # points from each of several such times would draw every seeded copy around them instead of random points.
     found_at = [(p, c) for p, c in found_at if len(p) >= MIN_TRIANGULATED]
@@ -72,6 +78,12 @@ def initial_points(ds: Dataset, names: list[str], frames: list[int], count: int,
         pts, col = pts[keep], col[keep]
     parts.append(pts)
     colors.append(col)
+    hull_points = sum(len(p) for p, _ in hull_at)
+    if hull_points and count > len(pts):
+        keep = torch.randperm(hull_points, generator=gen)[:count - len(pts)]
+        parts.append(torch.cat([p for p, _ in hull_at])[keep])
+        colors.append(torch.cat([c for _, c in hull_at])[keep])
+        count -= len(keep)
     anchored = sum(len(p) for p in parts)
     extra_random = (count - len(pts)) // 2 if found else count - len(pts)
     jitter_n = count - len(pts) - extra_random

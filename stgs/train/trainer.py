@@ -56,6 +56,7 @@ from stgs.train.aux import AuxTransformer
 from stgs.train.base import BaseStage
 from stgs.train.checkpoint import Checkpoints
 from stgs.train.config import TrainConfig, stage_seed
+from stgs.train.hull import HullConfig
 from stgs.train.layers import Migrated, fit_view_dependent, init_dynamic, migrate, motion_scores, moving_masks
 from stgs.train.objective import GOPLoss, canonical_regularisers, gop_loss
 from stgs.train.ops import Optimizer, prune, relocate, sort
@@ -221,7 +222,7 @@ class Trainer:
         else:
             frames = init_frames(self.gop_frames(k), self.cfg.init_frames)
             init = initial_points(self.ds, self.train_names, frames, self.shape.capacity, self.gen,
-                                  self.cfg.init_points, 0.0)
+                                  self.cfg.init_points, 0.0, HullConfig() if self.cfg.hull_seeds else None)
             init_dynamic(model, init, self.migrated)
         return model
 

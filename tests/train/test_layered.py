@@ -8,6 +8,7 @@ import dataclasses
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -23,6 +24,7 @@ from stgs.synth.config import DEFAULT_EFFECTS
 from stgs.synth.scene import ProceduralScene
 from stgs.train import budget, train
 from stgs.train import losses as loss_module
+from stgs.train.init import in_view
 from stgs.train.layers import fit_view_dependent, migrate, motion_scores, moving_masks
 from stgs.train.trainer import Trainer
 from stgs.train.views import Views, load_views
@@ -156,6 +158,39 @@ def test_the_dynamic_layer_starts_with_no_opacity_offset_and_warms_up_without_it
             assert all(g is not None for g in field) and sum(g.abs().sum() for g in field) > 0
         else:
             assert all(g is None for g in field)
+
+
+def test_the_dynamic_layer_is_seeded_on_the_moving_objects_hull(scene, tmp_path):
+    """With the scene's masks, every slot of the dynamic layer starts on the objects (the visual hull's
+    surface) instead of faint filler; --no-hull-seeds gives the filler back."""
+    ds = open_dataset(scene)
+    started = {}
+    for hull in (True, False):
+        trainer = Trainer(scene, tmp_path / f"m{hull}", budget("quick", **LAYERED, hull_seeds=hull), progress=False)
+        trainer.migrated = None
+        started[hull] = trainer.start_model(0, None)
+    opacity = {k: torch.sigmoid(m.opacity_logit.detach()) for k, m in started.items()}
+    assert torch.allclose(opacity[True], torch.tensor(0.1))  # all anchored, none faint
+    assert (opacity[False] < 0.05).float().mean() > 0.5
+    frames = trainer.gop_frames(0)
+    cams = [c for c in ds.cameras(0) if c.name in trainer.train_names]
+
+    def on_objects(model) -> float:
+        """Median over the points of the share of cameras seeing them on a masked pixel at some frame."""
+        xyz = model.xyz.detach().double().numpy()
+        hits, seen = np.zeros(len(xyz)), np.zeros(len(xyz))
+        for cam in cams:
+            uv, inside = in_view(cam, xyz)
+            x = np.clip(uv[:, 0].astype(int), 0, cam.width - 1)
+            y = np.clip(uv[:, 1].astype(int), 0, cam.height - 1)
+            masked = np.zeros(len(xyz), bool)
+            for f in frames:
+                masked |= ds.mask(f, cam.name).numpy()[y, x]
+            hits += inside & masked
+            seen += inside
+        return float(np.median(hits / np.maximum(seen, 1)))
+
+    assert on_objects(started[True]) > 0.9 > 0.5 > on_objects(started[False])
 
 
 def test_layered_seed_determinism_and_resume_in_both_stages(scene, tmp_path, monkeypatch):
