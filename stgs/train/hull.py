@@ -23,6 +23,8 @@ from stgs.train.init import in_view
 
 _COARSE_FACTOR = 2
 """The coarse pass's voxels are this many fine voxels wide."""
+MAX_FINE_SIDE = 512
+"""Most fine voxels along one side of the carved box (about 205 by default)."""
 
 
 @dataclass
@@ -40,6 +42,12 @@ class HullConfig:
     facing: float = 0.2
     """A camera colours a surface voxel when the cosine between the voxel's outward normal and the direction
     to the camera exceeds this."""
+
+    def __post_init__(self) -> None:
+        if not (self.voxel > 0 and self.extent > 0 and self.min_views >= 1 and self.max_misses >= 0):
+            raise ValueError("hull: voxel and extent must be > 0, min_views >= 1 and max_misses >= 0")
+        if 2 * self.extent / self.voxel > MAX_FINE_SIDE:  # the grids (bool and float32) grow with its cube
+            raise ValueError(f"hull: extent / voxel gives a grid of more than {MAX_FINE_SIDE} voxels a side")
 
 
 def _carve(points: np.ndarray, cameras: list[Camera], masks: list[np.ndarray], cfg: HullConfig) -> np.ndarray:

@@ -90,6 +90,9 @@ def test_no_foreground_gives_no_points():
     assert pts.shape == (0, 3) and colors.shape == (0, 3)
     with pytest.raises(ValueError, match="masks"):
         hull_surface_points(cams, images, masks[:-1])
+    for bad in ({"voxel": 0.0}, {"extent": -1.0}, {"min_views": 0}, {"max_misses": -1}, {"voxel": 1e-4}):
+        with pytest.raises(ValueError, match="hull:"):
+            HullConfig(**bad)
 
 
 def test_the_players_hull_lands_on_the_players_in_the_held_out_cameras():
