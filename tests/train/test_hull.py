@@ -66,7 +66,7 @@ def test_the_hull_of_a_sphere_is_on_its_surface_and_takes_its_colours():
     r = (pts.double().numpy() - CENTRE) / RADIUS
     dist = np.linalg.norm(r, axis=1)
     # A hull from 16 views is a little larger than the sphere (by at most the polygon's corner, ~4 % here)
-    # and its surface voxels are within one voxel (4 cm: 0.125 R at voxel 1/64 of a 4-unit rig) of it.
+    # and its surface voxels are within one voxel (0.0625 units: 0.125 R at voxel 1/64 of a 4-unit rig) of it.
     assert np.median(dist) == pytest.approx(1.0, abs=0.06) and dist.min() > 0.8 and dist.max() < 1.2
     side = r[:, 0]
     clear = np.abs(side) > 0.3  # far from the colour boundary

@@ -167,8 +167,7 @@ def test_the_dynamic_layer_is_seeded_on_the_moving_objects_hull(scene, tmp_path)
     started = {}
     for hull in (True, False):
         trainer = Trainer(scene, tmp_path / f"m{hull}", budget("quick", **LAYERED, hull_seeds=hull), progress=False)
-        trainer.migrated = None
-        started[hull] = trainer.start_model(0, None)
+        started[hull] = trainer.start_model(0, None)  # no stage A: nothing migrated
     opacity = {k: torch.sigmoid(m.opacity_logit.detach()) for k, m in started.items()}
     assert torch.allclose(opacity[True], torch.tensor(0.1))  # all anchored, none faint
     assert (opacity[False] < 0.05).float().mean() > 0.5
