@@ -50,19 +50,21 @@ class HullConfig:
             raise ValueError(f"hull: extent / voxel gives a grid of more than {MAX_FINE_SIDE} voxels a side")
 
 
+def _pixels(cam: Camera, mask: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(P,) bool whether `cam` sees each point, and its (P,) pixel column and row (clipped to the image)."""
+    uv, inside = in_view(cam, points)
+    h, w = mask.shape
+    return inside, np.clip(uv[:, 0].astype(np.int64), 0, w - 1), np.clip(uv[:, 1].astype(np.int64), 0, h - 1)
+
+
 def _carve(points: np.ndarray, cameras: list[Camera], masks: list[np.ndarray], cfg: HullConfig) -> np.ndarray:
     """(P,) bool: the points inside the visual hull."""
     seen = np.zeros(len(points), np.int32)
     misses = np.zeros(len(points), np.int32)
     for cam, mask in zip(cameras, masks, strict=True):
-        uv, inside = in_view(cam, points)
-        h, w = mask.shape
-        x = np.clip(uv[inside, 0].astype(np.int64), 0, w - 1)
-        y = np.clip(uv[inside, 1].astype(np.int64), 0, h - 1)
-        hit = np.zeros(len(points), bool)
-        hit[inside] = mask[y, x]
+        inside, x, y = _pixels(cam, mask, points)
         seen += inside
-        misses += inside & ~hit
+        misses += inside & ~mask[y, x]
     return (seen >= cfg.min_views) & (misses <= cfg.max_misses)
 
 
@@ -116,10 +118,7 @@ def hull_surface_points(cameras: list[Camera], images: list[torch.Tensor], masks
     samples = np.full((len(points), len(cameras), 3), np.nan, np.float32)
     facing = np.zeros((len(points), len(cameras)), bool)
     for k, (cam, img, mask) in enumerate(zip(cameras, images, mask_arrays, strict=True)):
-        uv, inside = in_view(cam, points)
-        h, w = mask.shape
-        x = np.clip(uv[:, 0].astype(np.int64), 0, w - 1)
-        y = np.clip(uv[:, 1].astype(np.int64), 0, h - 1)
+        inside, x, y = _pixels(cam, mask, points)
         ok = inside & mask[y, x]
         samples[ok, k] = img.numpy()[y[ok], x[ok]]
         to_cam = cam.center.numpy() - points

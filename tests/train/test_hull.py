@@ -10,12 +10,10 @@ import pytest
 import torch
 
 from stgs.camera import Camera, intrinsics, look_at
-from stgs.data import open_dataset, split
 from stgs.train.hull import HullConfig, hull_surface_points
 from stgs.train.init import in_view
-from tests.conftest import SHARED
+from tests.train.conftest import HELD_OUT, shares_per_point
 
-PANOPTIC = SHARED / "data" / "panoptic-basketball"
 RADIUS = 0.5
 CENTRE = np.array([0.2, -0.1, 0.3])
 
@@ -95,18 +93,15 @@ def test_no_foreground_gives_no_points():
             HullConfig(**bad)
 
 
-def test_the_players_hull_lands_on_the_players_in_the_held_out_cameras():
+def test_the_players_hull_lands_on_the_players_in_the_held_out_cameras(panoptic):
     """Carved from the 24 training cameras, seen from the 3 cameras it never used."""
-    if not PANOPTIC.is_dir():
-        pytest.skip("../shared/data/panoptic-basketball is absent")
-    ds = open_dataset(PANOPTIC)
-    train, held_out = split(ds, ["1", "14", "27"])
+    ds, train = panoptic
     frame = 30
     cams = [c for c in ds.cameras(frame) if c.name in train]
     pts, colors = hull_surface_points(cams, [ds.image(frame, c.name) for c in cams],
                                       [ds.mask(frame, c.name) for c in cams])
     assert len(pts) > 2000
-    for cam in [c for c in ds.cameras(frame) if c.name in held_out]:
+    for cam in [c for c in ds.cameras(frame) if c.name in HELD_OUT]:
         uv, inside = in_view(cam, pts.double().numpy())
         mask = ds.mask(frame, cam.name).numpy()
         x = uv[inside, 0].astype(int)
@@ -120,42 +115,16 @@ def test_the_players_hull_lands_on_the_players_in_the_held_out_cameras():
         assert error < 0.12, (cam.name, error)
 
 
-@pytest.fixture(scope="module")
-def panoptic_training():
-    if not PANOPTIC.is_dir():
-        pytest.skip("../shared/data/panoptic-basketball is absent")
-    ds = open_dataset(PANOPTIC)
-    train, _ = split(ds, ["1", "14", "27"])
-    return ds, train
-
-
-def _shares_on_people(ds, names, frames, pts: torch.Tensor) -> np.ndarray:
-    """Per point, the share of the training cameras that see it that see it on a foreground pixel at any of
-    `frames`."""
-    hits = np.zeros(len(pts))
-    seen = np.zeros(len(pts))
-    for cam in [c for c in ds.cameras(frames[0]) if c.name in names]:
-        uv, inside = in_view(cam, pts.double().numpy())
-        x = np.clip(uv[:, 0].astype(int), 0, cam.width - 1)
-        y = np.clip(uv[:, 1].astype(int), 0, cam.height - 1)
-        on = np.zeros(len(pts), bool)
-        for f in frames:
-            on |= ds.mask(f, cam.name).numpy()[y, x]
-        hits += inside & on
-        seen += inside
-    return hits / np.maximum(seen, 1)
-
-
-def test_hull_seeds_fill_the_capacity_on_the_people(panoptic_training):
+def test_hull_seeds_fill_the_capacity_on_the_people(panoptic):
     from stgs.train.seeding import initial_points
 
-    ds, names = panoptic_training
+    ds, names = panoptic
+    cams = [c for c in ds.cameras(0) if c.name in names]
     init = initial_points(ds, names, [0, 48], 4096, torch.Generator().manual_seed(0), hull=HullConfig())
     plain = initial_points(ds, names, [0, 48], 4096, torch.Generator().manual_seed(0))
     assert init.triangulated == plain.triangulated < 4096
     assert init.anchored.all() and not plain.anchored[plain.triangulated:].any()  # no filler left
     hull = init.points[init.triangulated:]
-    assert np.median(_shares_on_people(ds, names, [0, 48], hull)) > 0.9
+    assert np.median(shares_per_point(ds, cams, [0, 48], hull)) > 0.9
     filler = plain.points[plain.triangulated:]
-    assert np.median(_shares_on_people(ds, names, [0, 48], filler)) < 0.5
-
+    assert np.median(shares_per_point(ds, cams, [0, 48], filler)) < 0.5

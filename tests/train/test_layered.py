@@ -24,11 +24,11 @@ from stgs.synth.config import DEFAULT_EFFECTS
 from stgs.synth.scene import ProceduralScene
 from stgs.train import budget, train
 from stgs.train import losses as loss_module
-from stgs.train.init import in_view
 from stgs.train.layers import fit_view_dependent, migrate, motion_scores, moving_masks
 from stgs.train.trainer import Trainer
 from stgs.train.views import Views, load_views
 from tests.conftest import run_stgs as stgs
+from tests.train.conftest import shares_per_point
 
 SCENE = SynthConfig(grid_side=16, num_gops=1, gop_size=6, width=96, height=72, num_cameras=8, fit_steps=30,
                     effects=(*DEFAULT_EFFECTS, "static_background"), static_grid_side=16)
@@ -176,18 +176,7 @@ def test_the_dynamic_layer_is_seeded_on_the_moving_objects_hull(scene, tmp_path)
 
     def on_objects(model) -> float:
         """Median over the points of the share of cameras seeing them on a masked pixel at some frame."""
-        xyz = model.xyz.detach().double().numpy()
-        hits, seen = np.zeros(len(xyz)), np.zeros(len(xyz))
-        for cam in cams:
-            uv, inside = in_view(cam, xyz)
-            x = np.clip(uv[:, 0].astype(int), 0, cam.width - 1)
-            y = np.clip(uv[:, 1].astype(int), 0, cam.height - 1)
-            masked = np.zeros(len(xyz), bool)
-            for f in frames:
-                masked |= ds.mask(f, cam.name).numpy()[y, x]
-            hits += inside & masked
-            seen += inside
-        return float(np.median(hits / np.maximum(seen, 1)))
+        return float(np.median(shares_per_point(ds, cams, frames, model.xyz.detach())))
 
     assert on_objects(started[True]) > 0.9 > 0.5 > on_objects(started[False])
 

@@ -18,8 +18,8 @@ from stgs.model.store import load_model
 from stgs.synth import SynthConfig, synthesize
 from stgs.train import DivergedError, budget, train
 from stgs.train import losses as loss_module
-from tests.conftest import SHARED
 from tests.conftest import run_stgs as stgs
+from tests.train.conftest import PANOPTIC, mask_hits
 
 SCENE = SynthConfig(grid_side=16, num_gops=1, gop_size=6, width=96, height=72, num_cameras=8, fit_steps=30)
 TINY = {"gop_size": 6, "grid_side": 16, "max_gops": 1}
@@ -245,31 +245,9 @@ def test_frames_after_the_last_whole_gop_are_reported(scene, trained, tmp_path):
     assert result.returncode == 2 and "not a model dir" in error
 
 
-PANOPTIC = SHARED / "data" / "panoptic-basketball"
-
-
-@pytest.fixture(scope="module")
-def panoptic_frame0():
-    """The Panoptic dataset and its training cameras (1, 14, 27 held out) at frame 0."""
-    if not PANOPTIC.is_dir():
-        pytest.skip("../shared/data/panoptic-basketball is absent")
-    ds = open_dataset(PANOPTIC)
-    train_cams, _ = split(ds, ["1", "14", "27"])
-    return ds, [c for c in ds.cameras(0) if c.name in train_cams]
-
-
 def _foreground_shares(ds, cams, frame: int, pts: torch.Tensor) -> list[float]:
     """Per camera, the share of points that land inside its foreground mask at `frame`."""
-    from stgs.train.init import in_view
-
-    shares = []
-    for cam in cams:
-        mask = ds.mask(frame, cam.name).numpy()
-        uv, inside = in_view(cam, pts.double().numpy())
-        x = np.clip(uv[:, 0].astype(int), 0, cam.width - 1)
-        y = np.clip(uv[:, 1].astype(int), 0, cam.height - 1)
-        shares.append(float((mask[y, x] & inside).mean()))
-    return shares
+    return [float(share) for share in mask_hits(ds, cams, [frame], pts)[1].mean(1)]
 
 
 def test_triangulated_points_land_in_the_foreground(panoptic_frame0):

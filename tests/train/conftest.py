@@ -1,0 +1,51 @@
+"""The Panoptic capture for the training tests that need real data, and where points land in its masks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from stgs.data import open_dataset, split
+from stgs.train.init import in_view
+from tests.conftest import SHARED
+
+PANOPTIC = SHARED / "data" / "panoptic-basketball"
+HELD_OUT = ["1", "14", "27"]
+
+
+@pytest.fixture(scope="session")
+def panoptic():
+    """The Panoptic dataset and its training camera names (HELD_OUT held out)."""
+    if not PANOPTIC.is_dir():
+        pytest.skip("../shared/data/panoptic-basketball is absent")
+    ds = open_dataset(PANOPTIC)
+    return ds, split(ds, HELD_OUT)[0]
+
+
+@pytest.fixture(scope="module")
+def panoptic_frame0(panoptic):
+    """The Panoptic dataset and its training cameras at frame 0."""
+    ds, names = panoptic
+    return ds, [c for c in ds.cameras(0) if c.name in names]
+
+
+def mask_hits(ds, cams, frames: list[int], pts: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """(C, P) bool each: whether camera c sees point p, and whether it sees it on a masked pixel at any of
+    `frames`."""
+    xyz = pts.double().numpy()
+    seen, hits = np.zeros((len(cams), len(xyz)), bool), np.zeros((len(cams), len(xyz)), bool)
+    for c, cam in enumerate(cams):
+        uv, inside = in_view(cam, xyz)
+        x = np.clip(uv[:, 0].astype(int), 0, cam.width - 1)
+        y = np.clip(uv[:, 1].astype(int), 0, cam.height - 1)
+        for f in frames:
+            hits[c] |= ds.mask(f, cam.name).numpy()[y, x]
+        seen[c], hits[c] = inside, hits[c] & inside
+    return seen, hits
+
+
+def shares_per_point(ds, cams, frames: list[int], pts: torch.Tensor) -> np.ndarray:
+    """(P,) per point, the share of the cameras that see it that see it on a masked pixel at any of `frames`."""
+    seen, hits = mask_hits(ds, cams, frames, pts)
+    return hits.sum(0) / np.maximum(seen.sum(0), 1)
