@@ -25,6 +25,7 @@ from pathlib import Path
 
 import torch
 
+from bench import ms_cell
 from stgs.client.view import read_scene_cameras
 from stgs.model.store import load_gop, load_static, read_meta
 from stgs.model.view import guarded_opacities, splat_over, static_backdrops, static_view
@@ -96,7 +97,8 @@ def measure(model_dir: Path, steps: int, rounds: int) -> str:
     med = {k: statistics.median(v) for k, v in times.items()}
     return (f"| {model_dir.name} | {meta.static.capacity:,} + {meta.shape.capacity:,} | "
             f"{100 * statistics.mean(shares):.0f} % ({100 * min(shares):.0f}–{100 * max(shares):.0f} %) | "
-            f"{med['plain']:.0f} | {med['kept']:.0f} | {med['kept'] / med['plain']:.2f} | {keep_ms:.0f} |")
+            f"{ms_cell(med['plain'])} | {ms_cell(med['kept'])} | {med['kept'] / med['plain']:.2f} | "
+            f"{ms_cell(keep_ms)} |")
 
 
 def main() -> int:

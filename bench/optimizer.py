@@ -25,6 +25,7 @@ from pathlib import Path
 
 import torch
 
+from bench import ms_cell
 from stgs.client.view import read_scene_cameras
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.store import load_gop, read_meta
@@ -55,8 +56,8 @@ def measure(capacity: int, steps: int) -> str:
     diff = max(float((a - b).detach().abs().max()) for a, b in pairs)
     ms = {f: 1000 * statistics.median(run[2]) for f, run in runs.items()}
     values = sum(p.numel() for p in start.parameters())
-    return (f"| {capacity:,} | {values / 1e6:.1f} M | {ms[False]:.1f} | {ms[True]:.1f} | {ms[True] / ms[False]:.2f} "
-            f"| {diff:.1e} |")
+    return (f"| {capacity:,} | {values / 1e6:.1f} M | {ms_cell(ms[False])} | {ms_cell(ms[True])} | "
+            f"{ms[True] / ms[False]:.2f} | {diff:.1e} |")
 
 
 def measure_iterations(model_dir: Path, steps: int) -> str:
@@ -85,8 +86,8 @@ def measure_iterations(model_dir: Path, steps: int) -> str:
                 whole.append(end - begin)
                 step.append(end - stepping)
     ms = {f: (1000 * statistics.median(r[2]), 1000 * statistics.median(r[3])) for f, r in runs.items()}
-    return (f"| {model_dir.name} | {shape.capacity:,} | {ms[False][0]:.0f} ({ms[False][1]:.0f}) | "
-            f"{ms[True][0]:.0f} ({ms[True][1]:.0f}) | {ms[True][0] / ms[False][0]:.2f} |")
+    return (f"| {model_dir.name} | {shape.capacity:,} | {ms_cell(ms[False][0])} ({ms_cell(ms[False][1])}) | "
+            f"{ms_cell(ms[True][0])} ({ms_cell(ms[True][1])}) | {ms[True][0] / ms[False][0]:.2f} |")
 
 
 def main() -> int:

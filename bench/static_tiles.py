@@ -24,6 +24,7 @@ from pathlib import Path
 
 import torch
 
+from bench import ms_cell
 from bench.culling import first_camera
 from stgs.camera import Camera, look_at, resize
 from stgs.model.static import merge
@@ -92,8 +93,9 @@ def measure(model_dir: Path, frames: int, rounds: int, precision: str = "fp32") 
     static_n, dynamic_n = meta.static.capacity, meta.shape.capacity
     copied = 100 * statistics.median(reused) / tiles
     return [f"| {model_dir.name} | {static_n:,} + {dynamic_n:,} | {precision} | {copied:.0f} % | "
-            f"{med['deform']:.1f} | {med['every']:.1f} | {med['kept']:.1f} | {med['kept'] / med['every']:.2f} | "
-            f"{med['settle']:.1f} | {med['moving every']:.1f} | {med['moving']:.1f} |"]
+            f"{ms_cell(med['deform'])} | {ms_cell(med['every'])} | {ms_cell(med['kept'])} | "
+            f"{med['kept'] / med['every']:.2f} | "
+            f"{ms_cell(med['settle'])} | {ms_cell(med['moving every'])} | {ms_cell(med['moving'])} |"]
 
 
 def main() -> int:
