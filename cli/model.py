@@ -95,7 +95,7 @@ def add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--layers", choices=["single", "layered"],
                    help="single (default): every GOP holds every Gaussian, model format 1; layered: a static layer "
                    "fitted once (stage A) + smaller per-GOP dynamic layers (stage B), model format 2 (`stgs pack` "
-                   "sends its static layer once; measured on a real capture with --budget cpu: 0.5-1.5 dB better "
+                   "sends its static layer once; measured on a real capture with --budget cpu: 0.3-1.3 dB better "
                    "held out at about the same training time, docs/TRAINING.md)")
     p.add_argument("--static-grid-side", type=positive_int,
                    help="S_s: Gaussians S_s² of the static layer (layered; default: the budget's)")
@@ -126,6 +126,9 @@ def add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-hull-seeds", dest="hull_seeds", action="store_false", default=None,
                    help="layered: seed the dynamic layers with triangulated and filler points only, not on the "
                    "visual hull of the dataset's foreground masks")
+    p.add_argument("--no-camera-colour", dest="camera_colour", action="store_false", default=None,
+                   help="fit the scene to every training camera's colours as recorded, without learning each "
+                   "camera's colour gain and offset beside it")
     p.add_argument("--no-aux", dest="aux", action="store_false", default=None,
                    help="no transformer-guided auxiliary pass")
     p.add_argument("--no-dynamic-density", dest="dynamic", action="store_false", default=None,
@@ -147,7 +150,7 @@ def add_train(sub: argparse._SubParsersAction) -> None:
 TRAIN_OVERRIDES = ("max_gops", "gop_size", "start_frame", "grid_side", "iterations", "coarse_iterations", "scale",
                    "window", "aux", "dynamic", "temporal_weight", "relocate", "seed", "threads", "holdout",
                    "background_share", "init_frames", "layers", "static_grid_side", "migrate",
-                   "static_sh_degree", "static_sh_iterations", "dynamic_warmup", "hull_seeds")
+                   "static_sh_degree", "static_sh_iterations", "dynamic_warmup", "hull_seeds", "camera_colour")
 
 
 def train_overrides(args: argparse.Namespace) -> dict:

@@ -1,7 +1,8 @@
 """The base stage's result: what every GOP's training starts from, saved so that GOPs can train anywhere.
 
 Single-layer training (format 1): the coarse canonical model. Layered training (format 2): the static layer and
-the Gaussians that migrated out of it. Both go into one safetensors file in the run's state folder, with the
+the Gaussians that migrated out of it. Either: the training cameras' colour responses (stgs.train.camera_colour),
+which every GOP's images go through. All go into one safetensors file in the run's state folder, with the
 stage's counts and timing as JSON metadata (no pickle); a GOP task, in this process or on a Ray worker, loads it.
 """
 
@@ -17,6 +18,7 @@ from safetensors.torch import load_file, save_file
 
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.static import StaticLayer
+from stgs.train.camera_colour import CameraColour
 from stgs.train.layers import MIGRATED_ATTRIBUTES, Migrated
 
 BASE_FILE = "base.safetensors"
@@ -31,6 +33,8 @@ class BaseStage:
     """The static layer (layered training)."""
     migrated: Migrated | None = None
     """The static Gaussians the data shows moving (layered training)."""
+    colour: CameraColour | None = None
+    """The training cameras' colour responses (TrainConfig.camera_colour)."""
     info: dict = field(default_factory=dict)
     """Counts and seconds for the training report (triangulated and background points, layer facts)."""
 
@@ -44,6 +48,8 @@ class BaseStage:
             tensors |= {"migrated.index": self.migrated.index.contiguous(),
                         "migrated.scores": self.migrated.scores.contiguous()}
             tensors |= {f"migrated.{k}": v.contiguous() for k, v in self.migrated.attributes.items()}
+        if self.colour is not None:
+            tensors |= {f"colour.{k}": v.detach().contiguous() for k, v in self.colour.state_dict().items()}
         meta = {"info": self.info, "static_sh_degree": self.static.sh_degree if self.static is not None else None}
         tmp = path.with_suffix(".tmp")
         save_file(tensors, str(tmp), metadata={"base": json.dumps(meta)})
@@ -69,4 +75,7 @@ class BaseStage:
         if "migrated.index" in tensors:
             base.migrated = Migrated(tensors["migrated.index"], {k: tensors[f"migrated.{k}"] for k in
                                                                  MIGRATED_ATTRIBUTES}, tensors["migrated.scores"])
+        if colour := part("colour."):
+            base.colour = CameraColour(colour["log_gain"].shape[0]).requires_grad_(False)
+            base.colour.load_state_dict(colour)
         return base

@@ -1,5 +1,6 @@
-"""Training checkpoints: model, auxiliary transformer, Adam state, opacity accumulator and random generator in
-one safetensors file per stage (no pickle), the stage's progress in its JSON metadata, written atomically."""
+"""Training checkpoints: model, the modules trained beside it (auxiliary transformer, camera colours), Adam state,
+opacity accumulator and random generator in one safetensors file per stage (no pickle), the stage's progress in
+its JSON metadata, written atomically."""
 
 from __future__ import annotations
 
@@ -11,7 +12,6 @@ from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
 from stgs.model.gop import GOPModel
-from stgs.train.aux import AuxTransformer
 from stgs.train.ops import Optimizer
 
 
@@ -25,10 +25,12 @@ class Checkpoints:
         return self.folder / f"{name}.safetensors"
 
     def save(self, name: str, model: GOPModel, opt: Optimizer, gen: torch.Generator, extra: dict,
-             aux: AuxTransformer | None = None, accum: torch.Tensor | None = None) -> None:
+             modules: dict[str, torch.nn.Module | None] | None = None, accum: torch.Tensor | None = None) -> None:
+        """`modules`: the modules trained beside the model, by name (None values are skipped)."""
         tensors = {f"model.{k}": v.detach().contiguous() for k, v in model.state_dict().items()}
-        if aux is not None:
-            tensors |= {f"aux.{k}": v.detach().contiguous() for k, v in aux.state_dict().items()}
+        for prefix, module in (modules or {}).items():
+            if module is not None:
+                tensors |= {f"{prefix}.{k}": v.detach().contiguous() for k, v in module.state_dict().items()}
         for group in opt.opt.param_groups:
             for i, p in enumerate(group["params"]):
                 for key, t in opt.opt.state.get(p, {}).items():
@@ -44,8 +46,8 @@ class Checkpoints:
         tmp.replace(path)
 
     def load(self, name: str, model: GOPModel, opt: Optimizer, gen: torch.Generator,
-             aux: AuxTransformer | None = None) -> tuple[dict, torch.Tensor | None] | None:
-        """Restore `name` into model, aux, opt and `gen`; (its extra, its accumulator), or None when
+             modules: dict[str, torch.nn.Module | None] | None = None) -> tuple[dict, torch.Tensor | None] | None:
+        """Restore `name` into model, `modules`, opt and `gen`; (its extra, its accumulator), or None when
         not resuming or there is no such checkpoint."""
         path = self.path(name)
         if not (self.resume and path.is_file()):
@@ -54,8 +56,10 @@ class Checkpoints:
             extra = json.loads(f.metadata()["state"])
         tensors = load_file(str(path))
         model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
-        if aux is not None:
-            aux.load_state_dict({k[4:]: v for k, v in tensors.items() if k.startswith("aux.")})
+        for prefix, module in (modules or {}).items():
+            if module is not None:
+                module.load_state_dict({k[len(prefix) + 1:]: v for k, v in tensors.items()
+                                        if k.startswith(f"{prefix}.")})
         for group in opt.opt.param_groups:
             for i, p in enumerate(group["params"]):
                 prefix = f"adam.{group['name']}.{i}."

@@ -25,6 +25,8 @@ class LearningRates:
     field: float = 1.6e-3
     field_final: float = 1.6e-4
     aux: float = 1e-3
+    camera_colour: float = 1e-3
+    """The training cameras' colour gains and offsets (stgs.train.camera_colour)."""
 
 
 @dataclass
@@ -114,6 +116,11 @@ class TrainConfig:
     init_frames: int = 6
     """Frames, spread over the trained span, whose views are triangulated for the initial points (1: the
     first frame only; people who move are then seeded only where they start)."""
+    camera_colour: bool = True
+    """Learn each training camera's colour response (a per-channel gain and offset, zero-mean over the cameras) in
+    the base stage, and draw every stage's images through it, so that the cameras' differing colours are not
+    fitted as view-dependent geometry (stgs.train.camera_colour). Never shipped: the model keeps the colour of the
+    average training camera."""
     hull_seeds: bool = True
     """Layered: seed each GOP's dynamic layer on the surface of the visual hull of the dataset's foreground masks,
     where it has them and the cameras surround the scene (stgs.train.hull), instead of filler points."""
@@ -183,7 +190,8 @@ best of three splits measured on Panoptic at that time, docs/BENCHMARKS.md; with
 later, a pair measured it at 0.94x format 1's wall time; paper: not measured)."""
 
 SWITCHES = {"aux": "--no-aux", "dynamic": "--no-dynamic-density", "temporal_weight": "--no-temporal-reg",
-            "relocate": "--no-relocate", "migrate": "--no-migrate", "hull_seeds": "--no-hull-seeds"}
+            "relocate": "--no-relocate", "migrate": "--no-migrate", "hull_seeds": "--no-hull-seeds",
+            "camera_colour": "--no-camera-colour"}
 """Config fields the ablation switches turn off."""
 
 

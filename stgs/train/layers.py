@@ -32,6 +32,7 @@ from stgs.model.gop import GOPModel
 from stgs.model.static import STATIC_TENSORS, StaticLayer
 from stgs.model.view import splat
 from stgs.train import losses
+from stgs.train.camera_colour import CameraColour
 from stgs.train.dynamic import dynamic_mask
 from stgs.train.init import in_view
 from stgs.train.seeding import InitialPoints, init_canonical
@@ -144,7 +145,8 @@ def init_dynamic(model: GOPModel, init: InitialPoints, migrated: Migrated | None
 
 
 def fit_view_dependent(static: StaticLayer, views: Views, moving: torch.Tensor, iterations: int, lr: float,
-                       lambda_ssim: float, gen: torch.Generator, progress: bool = False) -> StaticLayer:
+                       lambda_ssim: float, gen: torch.Generator, progress: bool = False,
+                       colour: CameraColour | None = None) -> StaticLayer:
     """A degree-1 copy of `static` whose colour and sh1 are fitted for `iterations` on the pixels that do not
     move (one random training view per iteration); positions, scales, rotations and opacities stay."""
     layer = StaticLayer.from_canonical(static, sh_degree=1)
@@ -156,6 +158,8 @@ def fit_view_dependent(static: StaticLayer, views: Views, moving: torch.Tensor, 
         c = int(torch.randint(len(views.cameras), (1,), generator=gen))
         cam = views.cameras[c]
         img = splat(layer.gaussians(cam.center.float()), cam)
+        if colour is not None:
+            img = colour(img, c)
         loss = losses.photometric(img, views.target(f, c), lambda_ssim, ~moving[f, c])
         if not torch.isfinite(loss):
             raise StgsError(f"the static layer's view-dependent colour fit diverged (loss {loss.item()}); "

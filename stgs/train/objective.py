@@ -3,7 +3,8 @@ the coarse stage and stage A share with it.
 
 One random (frame, camera) pair per iteration: the temporal features of the frame's window with feature noise
 λ·U(−0.5, 0.5) go through the deformation field; the deformed Gaussians are drawn (over the frozen static layer's
-backdrop for that camera in a layered scene) and compared with the target (L1 + SSIM, again on the dynamic
+backdrop for that camera in a layered scene), through the camera's colour response
+(stgs.train.camera_colour) and compared with the target (L1 + SSIM, again on the dynamic
 mask's pixels); the auxiliary transformer's pass, the temporal Huber term on a sample of Gaussians, the
 canonical regularisers and the smoothness of the frame's feature grid are added (stgs.train.losses).
 """
@@ -19,6 +20,7 @@ from stgs.model.gop import GOPModel, frame_time
 from stgs.model.view import Backdrop, splat_over
 from stgs.train import losses
 from stgs.train.aux import AuxTransformer
+from stgs.train.camera_colour import CameraColour
 from stgs.train.config import TrainConfig
 from stgs.train.views import Views
 
@@ -43,10 +45,12 @@ def canonical_regularisers(cfg: TrainConfig, model: GOPModel, opacities: torch.T
 
 
 def gop_loss(cfg: TrainConfig, gen: torch.Generator, model: GOPModel, aux: AuxTransformer | None, views: Views,
-             static: list[Backdrop] | None = None, deform: bool = True) -> GOPLoss:
+             static: list[Backdrop] | None = None, deform: bool = True, colour: CameraColour | None = None
+             ) -> GOPLoss:
     """One iteration's loss, drawing its pair and noise from `gen`; `static`: the frozen static layer's backdrop
     for each training camera; `deform` False: the canonical Gaussians alone (the dynamic layer's warm-up,
-    TrainConfig.dynamic_warmup)."""
+    TrainConfig.dynamic_warmup); `colour`: the training cameras' colour responses the drawn images go through
+    (fitted in the base stage, frozen here)."""
     shape = model.shape
     i = int(torch.randint(len(views.frames), (1,), generator=gen))
     c = int(torch.randint(len(views.cameras), (1,), generator=gen))
@@ -61,6 +65,8 @@ def gop_loss(cfg: TrainConfig, gen: torch.Generator, model: GOPModel, aux: AuxTr
         h, g = None, model.canonical()
     backdrop = static[c] if static is not None else None
     img = splat_over(backdrop, g, cam)
+    if colour is not None:
+        img = colour(img, c)
     ssim_values = ssim_map(img, target)
     loss = losses.photometric(img, target, cfg.lambda_ssim, ssim_values=ssim_values)
     if cfg.dynamic and views.dynamic is not None:
@@ -70,6 +76,8 @@ def gop_loss(cfg: TrainConfig, gen: torch.Generator, model: GOPModel, aux: AuxTr
         h_aux = aux(aux.tokens(model, i, window))  # the same noisy window the MLP sees
         g_aux = model.apply_offsets(model.field.decode(h_aux, model.xyz, center))
         img_aux = splat_over(backdrop, g_aux, cam)
+        if colour is not None:
+            img_aux = colour(img_aux, c)
         loss = loss + cfg.aux_ssim_weight * (1 - losses.ssim(img_aux, target))
         loss = loss + cfg.distill_weight * losses.self_distillation(h, h_aux)
     if cfg.temporal_weight:

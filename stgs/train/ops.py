@@ -14,6 +14,7 @@ from stgs.codec.attributes import OPACITY_LOGIT_RANGE
 from stgs.codec.plas import PLASConfig, plas_order, sort_key
 from stgs.model.gop import GOPModel
 from stgs.train.aux import AuxTransformer
+from stgs.train.camera_colour import CameraColour
 from stgs.train.config import TrainConfig
 
 GAUSSIAN_AXIS = {"xyz": 0, "log_scale": 0, "rotation": 0, "opacity_logit": 0, "color": 0, "features": 1}
@@ -24,7 +25,8 @@ class Optimizer:
     """Adam over named parameter groups, with per-Gaussian row surgery (permute, reset) for sorting and relocation."""
 
     def __init__(self, model: GOPModel, cfg: TrainConfig, extent: float, aux: AuxTransformer | None,
-                 canonical_only: bool = False, fused: bool = True):
+                 canonical_only: bool = False, fused: bool = True, colour: CameraColour | None = None):
+        """`colour`: the training cameras' colour responses, fitted beside the model (the base stage)."""
         lr = cfg.lr
         groups = [("xyz", [model.xyz], lr.position * extent), ("log_scale", [model.log_scale], lr.scale),
                   ("rotation", [model.rotation], lr.rotation), ("opacity_logit", [model.opacity_logit], lr.opacity),
@@ -33,6 +35,8 @@ class Optimizer:
             groups += [("features", [model.features], lr.features), ("field", list(model.field.parameters()), lr.field)]
             if aux is not None:
                 groups.append(("aux", list(aux.parameters()), lr.aux))
+        if colour is not None:
+            groups.append(("camera_colour", list(colour.parameters()), lr.camera_colour))
         # The fused CPU kernel: one pass over each parameter (every step updates all the temporal features).
         self.opt = torch.optim.Adam([{"params": p, "lr": r, "name": n} for n, p, r in groups], eps=1e-15,
                                     fused=fused)

@@ -58,8 +58,11 @@ def base_stage(trainer: Trainer) -> BaseStage:
         base = BaseStage(static=trainer.static, migrated=trainer.migrated)
     else:
         base = BaseStage(coarse=trainer.coarse(views, trainer.shape))
+    base.colour = trainer.colour
     base.info = {"seconds": time.perf_counter() - start, "triangulated_points": trainer.triangulated,
                  "background_points": trainer.background_points} | trainer.layer_info
+    if base.colour is not None:
+        base.info["camera_colour"] = base.colour.summary(trainer.train_names)
     trainer.state.mkdir(parents=True, exist_ok=True)
     base.save(path)
     return trainer.use_base(base)
@@ -102,7 +105,7 @@ def finish(trainer: Trainer) -> dict:
     doc = {"format": CAMERAS_FORMAT, "version": 1, "cameras": [c.to_json() for c in cams]}
     atomic_write_bytes(trainer.out / CAMERAS, (json.dumps(doc, indent=1) + "\n").encode())
     info = dict(base.info)
-    coarse_s = info.pop("seconds")
+    coarse_s, colours = info.pop("seconds"), info.pop("camera_colour", None)
     report = {"dataset": trainer.ds.name, "budget": cfg.budget, "gops": reports, "coarse_seconds": coarse_s,
               "triangulated_points": info.pop("triangulated_points"),
               "background_points": info.pop("background_points"), "capacity": trainer.shape.capacity,
@@ -110,6 +113,8 @@ def finish(trainer: Trainer) -> dict:
               "frames": trainer.ds.num_frames, "untrained_tail": trainer.tail_frames}
     if base.static is not None:
         report |= {"static_capacity": base.static.capacity, "static_seconds": coarse_s} | info
+    if colours is not None:
+        report["camera_colour"] = colours
     atomic_write_bytes(trainer.out / TRAIN_REPORT, (json.dumps(report, indent=1) + "\n").encode())
     return report
 

@@ -4,7 +4,8 @@
 2. Initial points: triangulated from the calibrated views of a few frames
    spread over the trained span (stgs.train.init), topped up with jittered
    copies and random frustum points to the capacity N = S².
-3. Coarse stage: canonical 3DGS (no deformation) on frames from all times.
+3. Coarse stage: canonical 3DGS (no deformation) on frames from all times, and each training camera's colour
+   response (stgs.train.camera_colour), which every later stage's images go through.
 4. Per GOP, from the coarse canonical Gaussians: canonical Gaussians +
    temporal features + deformation field, one random (frame, camera) per
    iteration, feature noise λ·U(−0.5, 0.5), losses of stgs.train.losses,
@@ -27,7 +28,7 @@ them here or on Ray and writes the model dir).
 This module holds the stages; the parts: `views` (training images), `seeding`
 (initial points and attributes; geometry in `init`), `losses`, `ops`
 (relocation, sorting, pruning and the Adam-state surgery they need),
-`checkpoint`, `aux` (the auxiliary transformer), `dynamic` (dynamic masks),
+`checkpoint`, `aux` (the auxiliary transformer), `camera_colour`, `dynamic` (dynamic masks),
 `objective` (what a GOP-stage iteration minimises).
 """
 
@@ -54,6 +55,7 @@ from stgs.model.view import Backdrop, splat, static_backdrops
 from stgs.train import losses
 from stgs.train.aux import AuxTransformer
 from stgs.train.base import BaseStage
+from stgs.train.camera_colour import CameraColour
 from stgs.train.checkpoint import Checkpoints
 from stgs.train.config import TrainConfig, stage_seed
 from stgs.train.hull import HullConfig
@@ -111,6 +113,8 @@ class Trainer:
         self.static_shape = GOPShape(cfg.static_grid_side ** 2, 2, 1, 0) if self.layered else None
         self.static: StaticLayer | None = None
         self.migrated: Migrated | None = None
+        self.colour: CameraColour | None = None
+        """The training cameras' colour responses, fitted in the base stage (TrainConfig.camera_colour)."""
         self.layer_info: dict = {}
         self.base: BaseStage | None = None
         self.state = self.out / STATE_DIR
@@ -155,8 +159,9 @@ class Trainer:
         cfg = self.cfg
         self.seed_stage(stage)
         model = GOPModel(shape)
-        opt = Optimizer(model, cfg, self.extent, None, canonical_only=True)
-        resumed = self.checkpoints.load(stage, model, opt, self.gen)
+        colour = CameraColour(len(views.cameras)) if cfg.camera_colour else None
+        opt = Optimizer(model, cfg, self.extent, None, canonical_only=True, colour=colour)
+        resumed = self.checkpoints.load(stage, model, opt, self.gen, {"colour": colour})
         start = resumed[0]["iteration"] if resumed else 0
         if resumed:  # the counts the interrupted run found, for the report
             self.triangulated, self.background_points = resumed[0].get("triangulated"), resumed[0].get("background")
@@ -179,6 +184,8 @@ class Trainer:
             c = int(torch.randint(len(views.cameras), (1,), generator=self.gen))
             g = model.canonical()
             img = splat(g, views.cameras[c])
+            if colour is not None:
+                img = colour(img, c)
             mask = ~moving[f, c] if moving is not None else None
             loss = losses.photometric(img, views.target(f, c), cfg.lambda_ssim, mask)
             if regularised:
@@ -189,9 +196,11 @@ class Trainer:
             if cfg.relocate and (it + 1) % cfg.relocate_every == 0 and it < cfg.relocate_until * cfg.coarse_iterations:
                 relocate(model, opt, torch.sigmoid(model.opacity_logit.detach()), cfg.dead_opacity, self.gen)
             if (it + 1) % cfg.checkpoint_every == 0:
-                self.checkpoints.save(stage, model, opt, self.gen, self._coarse_state(it + 1))
+                self.checkpoints.save(stage, model, opt, self.gen, self._coarse_state(it + 1), {"colour": colour})
         if cfg.coarse_iterations:
-            self.checkpoints.save(stage, model, opt, self.gen, self._coarse_state(cfg.coarse_iterations))
+            self.checkpoints.save(stage, model, opt, self.gen, self._coarse_state(cfg.coarse_iterations),
+                                  {"colour": colour})
+        self.colour = colour.requires_grad_(False) if colour is not None else None
         return model
 
     def stage_a(self, views: Views) -> GOPModel:
@@ -209,7 +218,7 @@ class Trainer:
         if cfg.static_sh_degree:
             start = time.perf_counter()
             self.static = fit_view_dependent(self.static, views, moving.masks, cfg.static_sh_iterations,
-                                             cfg.lr.color, cfg.lambda_ssim, self.gen, self.progress)
+                                             cfg.lr.color, cfg.lambda_ssim, self.gen, self.progress, self.colour)
             self.layer_info["view_dependent_seconds"] = time.perf_counter() - start
         return model
 
@@ -253,7 +262,7 @@ class Trainer:
         opt = Optimizer(model, cfg, self.extent, aux)
         report = GOPReport(k)
         accum = torch.zeros(2, self.shape.capacity)  # running sum and count of deformed opacities
-        resumed = self.checkpoints.load(gop_stem(k), model, opt, self.gen, aux)
+        resumed = self.checkpoints.load(gop_stem(k), model, opt, self.gen, {"aux": aux})
         start = 0
         if resumed:
             extra, saved_accum = resumed
@@ -290,12 +299,13 @@ class Trainer:
             if (it + 1) % cfg.checkpoint_every == 0 and it + 1 < cfg.iterations:
                 report.seconds = time.perf_counter() - clock
                 self.checkpoints.save(gop_stem(k), model, opt, self.gen,
-                                      {"iteration": it + 1, "report": dataclasses.asdict(report)}, aux, accum)
+                                      {"iteration": it + 1, "report": dataclasses.asdict(report)}, {"aux": aux},
+                                      accum)
         report.pruned = prune(model, accum, cfg.dead_opacity)
         report.seconds = time.perf_counter() - clock
         report.iterations = cfg.iterations
         report.final_loss = loss_value
-        report.train_psnr = self.validate(model, views, limit=8)[0]
+        report.train_psnr = self.validate(model, views, limit=8, colour=self.colour)[0]
         if val is not None:
             report.val_psnr, report.val_ssim = self.validate(model, val)
         return model, report
@@ -303,11 +313,13 @@ class Trainer:
     def gop_loss(self, model: GOPModel, aux: AuxTransformer | None, views: Views,
                  static: list[Backdrop] | None = None, deform: bool = True) -> GOPLoss:
         """One iteration's loss (stgs.train.objective), drawn with this run's generator."""
-        return gop_loss(self.cfg, self.gen, model, aux, views, static, deform)
+        return gop_loss(self.cfg, self.gen, model, aux, views, static, deform, self.colour)
 
     @torch.no_grad()
-    def validate(self, model: GOPModel, views: Views, limit: int = 6) -> tuple[float, float]:
-        """Mean PSNR and SSIM of `limit` (frame, camera) pairs spread over the views."""
+    def validate(self, model: GOPModel, views: Views, limit: int = 6, colour: CameraColour | None = None
+                 ) -> tuple[float, float]:
+        """Mean PSNR and SSIM of `limit` (frame, camera) pairs spread over the views; `colour`: the training
+        cameras' colour responses (when `views` are the training views)."""
         from stgs.model.view import FrameRenderer
 
         renderer = FrameRenderer(model, static=self.static)
@@ -315,7 +327,8 @@ class Trainer:
         pairs = [(f, c) for f in range(len(views.frames)) for c in range(len(views.cameras))]
         step = max(1, len(pairs) // limit)
         for f, c in pairs[::step][:limit]:
-            image, target = renderer.render(f, views.cameras[c]).clamp(0, 1), views.target(f, c)
+            image = renderer.render(f, views.cameras[c])
+            image, target = (colour(image, c) if colour is not None else image).clamp(0, 1), views.target(f, c)
             psnrs.append(psnr(image, target))
             ssims.append(float(ssim(image, target)))
         return float(sum(psnrs) / len(psnrs)), float(sum(ssims) / len(ssims))
@@ -324,7 +337,7 @@ class Trainer:
 
     def use_base(self, base: BaseStage) -> BaseStage:
         """Train GOPs from `base` (the base stage's result)."""
-        self.base, self.static, self.migrated = base, base.static, base.migrated
+        self.base, self.static, self.migrated, self.colour = base, base.static, base.migrated, base.colour
         return base
 
     def coarse_frames(self) -> list[int]:

@@ -2,16 +2,46 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
 
 from stgs.data import open_dataset, split
+from stgs.metrics import psnr
+from stgs.model.view import splat, static_view
+from stgs.synth import SynthConfig, synthesize
+from stgs.synth.config import DEFAULT_EFFECTS
 from stgs.train.init import in_view
 from tests.conftest import SHARED
 
 PANOPTIC = SHARED / "data" / "panoptic-basketball"
 HELD_OUT = ["1", "14", "27"]
+
+SCENE = SynthConfig(grid_side=16, num_gops=1, gop_size=6, width=96, height=72, num_cameras=8, fit_steps=30,
+                    effects=(*DEFAULT_EFFECTS, "static_background"), static_grid_side=16)
+"""A small synthetic scene with a static background (layered training's tests)."""
+LAYERED = {"gop_size": 6, "max_gops": 1, "layers": "layered", "grid_side": 12, "static_grid_side": 16}
+"""Training overrides of the quick budget for SCENE."""
+
+
+@pytest.fixture(scope="session")
+def layered_scene(tmp_path_factory) -> Path:
+    """SCENE, synthesised once."""
+    out = tmp_path_factory.mktemp("layered") / "scene"
+    synthesize(SCENE, out, progress=False)
+    return out
+
+
+def background_psnr(static, ds, cameras, frames) -> float:
+    """Mean PSNR of the static layer alone outside the dataset's foreground masks."""
+    values = []
+    for cam in cameras:
+        for f in frames:
+            mask = ds.mask(f, cam.name)
+            values.append(psnr(splat(static_view(static, cam), cam).clamp(0, 1), ds.image(f, cam.name), mask=~mask))
+    return sum(values) / len(values)
 
 
 @pytest.fixture(scope="session")

@@ -19,8 +19,7 @@ from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.static import StaticLayer
 from stgs.model.store import load_static, read_meta
 from stgs.model.view import splat, static_backdrops, static_view
-from stgs.synth import SynthConfig, ground_truth_cameras, synthesize, truth_static_layer
-from stgs.synth.config import DEFAULT_EFFECTS
+from stgs.synth import ground_truth_cameras, truth_static_layer
 from stgs.synth.scene import ProceduralScene
 from stgs.train import budget, train
 from stgs.train import losses as loss_module
@@ -28,27 +27,12 @@ from stgs.train.layers import fit_view_dependent, migrate, motion_scores, moving
 from stgs.train.trainer import Trainer
 from stgs.train.views import Views, load_views
 from tests.conftest import run_stgs as stgs
-from tests.train.conftest import shares_per_point
-
-SCENE = SynthConfig(grid_side=16, num_gops=1, gop_size=6, width=96, height=72, num_cameras=8, fit_steps=30,
-                    effects=(*DEFAULT_EFFECTS, "static_background"), static_grid_side=16)
-LAYERED = {"gop_size": 6, "max_gops": 1, "layers": "layered", "grid_side": 12, "static_grid_side": 16}
+from tests.train.conftest import LAYERED, SCENE, background_psnr, shares_per_point
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("layered") / "scene"
-    synthesize(SCENE, out, progress=False)
-    return out
-
-
-def background_psnr(static, ds, cameras, frames) -> float:
-    values = []
-    for cam in cameras:
-        for f in frames:
-            mask = ds.mask(f, cam.name)
-            values.append(psnr(splat(static_view(static, cam), cam).clamp(0, 1), ds.image(f, cam.name), mask=~mask))
-    return sum(values) / len(values)
+def scene(layered_scene) -> Path:
+    return layered_scene
 
 
 def test_stage_a_recovers_the_static_background(scene, tmp_path):
@@ -97,6 +81,9 @@ def test_layered_training_writes_format2_and_eval_splits_the_error(scene, tmp_pa
     assert report["layers"] == "layered" and report["static_capacity"] == 256
     assert report["moving_mask_source"] == "dataset foreground masks" and report["migrated"] >= 0
     assert load_static(out, meta) is not None
+    colours = report["camera_colour"]  # each training camera's three gains and three offsets, learnt in stage A
+    assert list(colours) == report["train_cameras"]
+    assert all(len(v) == 6 and all(np.isfinite(v)) and min(v[:3]) > 0 for v in colours.values())
     result = stgs("eval", str(out), str(scene), "--out", str(tmp_path / "ev"), "--quiet")
     assert result.returncode == 0, result.stderr
     doc = json.loads((tmp_path / "ev" / "eval.json").read_text())
@@ -207,6 +194,8 @@ def test_layered_seed_determinism_and_resume_in_both_stages(scene, tmp_path, mon
         train(scene, run, cfg, progress=False, resume=True)
         for name in files:
             assert (run / name).read_bytes() == (tmp_path / "a" / name).read_bytes(), (stop, name)
+        reports = [json.loads((d / "train_report.json").read_text()) for d in (tmp_path / "a", run)]
+        assert reports[0]["camera_colour"] == reports[1]["camera_colour"], stop
 
 
 def test_bad_layer_settings_are_clear_errors(scene, tmp_path):

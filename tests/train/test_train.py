@@ -69,7 +69,8 @@ def test_quick_training_learns_the_scene(scene, trained):
     assert [c["name"] for c in cams["cameras"]] == [f"cam{i:02d}" for i in range(8)]
 
 
-@pytest.mark.parametrize("switch", ["--no-aux", "--no-dynamic-density", "--no-temporal-reg", "--no-relocate"])
+@pytest.mark.parametrize("switch", ["--no-aux", "--no-dynamic-density", "--no-temporal-reg", "--no-relocate",
+                                    "--no-camera-colour"])
 def test_every_component_switch_runs(scene, tmp_path, switch):
     out = tmp_path / "model"
     result = stgs("train", str(scene), str(out), "--gops", "1", "--gop-size", "6", "--grid-side", "16",
@@ -77,8 +78,11 @@ def test_every_component_switch_runs(scene, tmp_path, switch):
     assert result.returncode == 0, result.stderr
     config = json.loads((out / "model.json").read_text())["extra"]["config"]
     field, off = {"--no-aux": ("aux", False), "--no-dynamic-density": ("dynamic", False),
-                  "--no-temporal-reg": ("temporal_weight", 0.0), "--no-relocate": ("relocate", False)}[switch]
+                  "--no-temporal-reg": ("temporal_weight", 0.0), "--no-relocate": ("relocate", False),
+                  "--no-camera-colour": ("camera_colour", False)}[switch]
     assert config[field] == off
+    report = json.loads((out / "train_report.json").read_text())
+    assert ("camera_colour" in report) == (switch != "--no-camera-colour")
 
 
 def test_same_seed_same_model_and_resume_matches(scene, tmp_path, monkeypatch):
