@@ -68,8 +68,9 @@ def test_stage_a_learns_the_colour_of_a_tinted_camera(layered_scene, tmp_path):
     relative = gains[tinted] / others.mean(0)
     # Measured: (0.92, 1.05, 1.15) (the offsets take part of the tint: -0.05 red, +0.02 blue); the untinted
     # cameras' gains 0.91-1.06.
-    assert relative[0] < 0.96 and relative[2] > 1.08 and abs(relative[1] - 1) < 0.08, relative
-    assert (others - 1).abs().max() < 0.12, others
+    assert relative[0] < 0.96 and relative[2] > 1.06 and relative[2] - relative[0] > 0.15, relative
+    assert abs(relative[1] - 1) < relative[2] - relative[0], relative  # green moves least
+    assert (others - 1).abs().max() < 0.15, others
     assert not trainer.colour.log_gain.requires_grad, "frozen after the base stage"
     plain = Trainer(layered_scene, tmp_path / "p", dataclasses.replace(cfg, camera_colour=False), progress=False)
     plain.stage_a(views)
