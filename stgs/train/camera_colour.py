@@ -39,3 +39,8 @@ class CameraColour(torch.nn.Module):
             log_gain, offset = self.centred()
             return {name: [round(float(v), 4) for v in (*torch.exp(g), *o)]
                     for name, g, o in zip(names, log_gain, offset, strict=True)}
+
+
+def as_recorded(colour: CameraColour | None, image: torch.Tensor, camera: int) -> torch.Tensor:
+    """`image` through training camera `camera`'s colour response; `image` itself when no colours are learnt."""
+    return image if colour is None else colour(image, camera)

@@ -32,7 +32,7 @@ from stgs.model.gop import GOPModel
 from stgs.model.static import STATIC_TENSORS, StaticLayer
 from stgs.model.view import splat
 from stgs.train import losses
-from stgs.train.camera_colour import CameraColour
+from stgs.train.camera_colour import CameraColour, as_recorded
 from stgs.train.dynamic import dynamic_mask
 from stgs.train.init import in_view
 from stgs.train.seeding import InitialPoints, init_canonical
@@ -158,8 +158,7 @@ def fit_view_dependent(static: StaticLayer, views: Views, moving: torch.Tensor, 
         c = int(torch.randint(len(views.cameras), (1,), generator=gen))
         cam = views.cameras[c]
         img = splat(layer.gaussians(cam.center.float()), cam)
-        if colour is not None:
-            img = colour(img, c)
+        img = as_recorded(colour, img, c)
         loss = losses.photometric(img, views.target(f, c), lambda_ssim, ~moving[f, c])
         if not torch.isfinite(loss):
             raise StgsError(f"the static layer's view-dependent colour fit diverged (loss {loss.item()}); "

@@ -20,7 +20,7 @@ from stgs.model.gop import GOPModel, frame_time
 from stgs.model.view import Backdrop, splat_over
 from stgs.train import losses
 from stgs.train.aux import AuxTransformer
-from stgs.train.camera_colour import CameraColour
+from stgs.train.camera_colour import CameraColour, as_recorded
 from stgs.train.config import TrainConfig
 from stgs.train.views import Views
 
@@ -64,9 +64,7 @@ def gop_loss(cfg: TrainConfig, gen: torch.Generator, model: GOPModel, aux: AuxTr
     else:
         h, g = None, model.canonical()
     backdrop = static[c] if static is not None else None
-    img = splat_over(backdrop, g, cam)
-    if colour is not None:
-        img = colour(img, c)
+    img = as_recorded(colour, splat_over(backdrop, g, cam), c)
     ssim_values = ssim_map(img, target)
     loss = losses.photometric(img, target, cfg.lambda_ssim, ssim_values=ssim_values)
     if cfg.dynamic and views.dynamic is not None:
@@ -75,9 +73,7 @@ def gop_loss(cfg: TrainConfig, gen: torch.Generator, model: GOPModel, aux: AuxTr
     if aux is not None and deform:
         h_aux = aux(aux.tokens(model, i, window))  # the same noisy window the MLP sees
         g_aux = model.apply_offsets(model.field.decode(h_aux, model.xyz, center))
-        img_aux = splat_over(backdrop, g_aux, cam)
-        if colour is not None:
-            img_aux = colour(img_aux, c)
+        img_aux = as_recorded(colour, splat_over(backdrop, g_aux, cam), c)
         loss = loss + cfg.aux_ssim_weight * (1 - losses.ssim(img_aux, target))
         loss = loss + cfg.distill_weight * losses.self_distillation(h, h_aux)
     if cfg.temporal_weight:

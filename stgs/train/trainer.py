@@ -55,7 +55,7 @@ from stgs.model.view import Backdrop, splat, static_backdrops
 from stgs.train import losses
 from stgs.train.aux import AuxTransformer
 from stgs.train.base import BaseStage
-from stgs.train.camera_colour import CameraColour
+from stgs.train.camera_colour import CameraColour, as_recorded
 from stgs.train.checkpoint import Checkpoints
 from stgs.train.config import TrainConfig, stage_seed
 from stgs.train.hull import HullConfig
@@ -183,9 +183,7 @@ class Trainer:
             f = int(torch.randint(len(views.frames), (1,), generator=self.gen))
             c = int(torch.randint(len(views.cameras), (1,), generator=self.gen))
             g = model.canonical()
-            img = splat(g, views.cameras[c])
-            if colour is not None:
-                img = colour(img, c)
+            img = as_recorded(colour, splat(g, views.cameras[c]), c)
             mask = ~moving[f, c] if moving is not None else None
             loss = losses.photometric(img, views.target(f, c), cfg.lambda_ssim, mask)
             if regularised:
@@ -327,8 +325,8 @@ class Trainer:
         pairs = [(f, c) for f in range(len(views.frames)) for c in range(len(views.cameras))]
         step = max(1, len(pairs) // limit)
         for f, c in pairs[::step][:limit]:
-            image = renderer.render(f, views.cameras[c])
-            image, target = (colour(image, c) if colour is not None else image).clamp(0, 1), views.target(f, c)
+            image = as_recorded(colour, renderer.render(f, views.cameras[c]), c).clamp(0, 1)
+            target = views.target(f, c)
             psnrs.append(psnr(image, target))
             ssims.append(float(ssim(image, target)))
         return float(sum(psnrs) / len(psnrs)), float(sum(ssims) / len(ssims))

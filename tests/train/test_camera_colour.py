@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from stgs.train import budget
-from stgs.train.camera_colour import CameraColour
+from stgs.train.camera_colour import CameraColour, as_recorded
 from stgs.train.trainer import Trainer
 from stgs.train.views import load_views
 from tests.train.conftest import LAYERED
@@ -30,6 +30,7 @@ def test_the_identity_at_the_start_and_zero_mean_over_the_cameras():
     assert torch.allclose(offsets.mean(0), torch.zeros(3), atol=1e-6)
     expected = image * torch.exp(gains[1]) + offsets[1]
     assert torch.allclose(colour(image, 1), expected)
+    assert torch.equal(as_recorded(colour, image, 1), colour(image, 1)) and as_recorded(None, image, 1) is image
     # Shifting every camera alike changes nothing: the scene keeps the average camera's colour.
     with torch.no_grad():
         colour.log_gain.add_(0.3)
