@@ -30,11 +30,23 @@ def _read_json(path: Path) -> dict:
         raise StgsError(f"{path}: cannot read ({exc})") from None
 
 
+ABSENT_MEANS_OFF = {"camera_colour": ("single", "layered"), "hull_seeds": ("layered",)}
+"""Components added after runs were first recorded, and the layers that have them: a run of those layers whose
+config lacks the key trained without the component."""
+
+
+def switched_off(config: dict) -> list[str]:
+    """The ablation flags of the components a run's config (model.json's `extra.config`) trained without."""
+    layers = config.get("layers", "single")  # runs from before layered training were single-layer
+    return [flag for key, flag in SWITCHES.items()
+            if (key in config and not config[key]) or (key not in config and layers in ABSENT_MEANS_OFF.get(key, ()))]
+
+
 def run_label(model_dir: Path) -> str:
     """'all components' or the ablation switches the run was trained with, and its capacity, initial-point frames,
     position learning rate and seed when they are not the budget's."""
     config = _read_json(model_dir / MODEL_META).get("extra", {}).get("config", {})
-    off = [flag for key, flag in SWITCHES.items() if key in config and not config[key]]
+    off = switched_off(config)
     label = f"{config.get('budget', '?')}: " + (" ".join(off) if off else "all components")
     default, side = BUDGETS.get(config.get("budget")), config.get("grid_side")
     if default is not None and isinstance(side, int) and side != default.grid_side:

@@ -112,6 +112,9 @@ def add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--iterations", type=positive_int, help="iterations per GOP")
     p.add_argument("--coarse-iterations", type=int,
                    help="iterations of the coarse canonical stage (layered: of stage A, the static layer)")
+    p.add_argument("--coarse-low-res", type=float,
+                   help="share of the coarse stage's (stage A's) iterations drawn first at half the training "
+                   "resolution, about twice as fast each (default 0: none)")
     p.add_argument("--position-lr", type=float,
                    help="initial position learning rate × the scene extent (decays 100× over a stage; "
                    "default: the budget's)")
@@ -150,7 +153,8 @@ def add_train(sub: argparse._SubParsersAction) -> None:
 TRAIN_OVERRIDES = ("max_gops", "gop_size", "start_frame", "grid_side", "iterations", "coarse_iterations", "scale",
                    "window", "aux", "dynamic", "temporal_weight", "relocate", "seed", "threads", "holdout",
                    "background_share", "init_frames", "layers", "static_grid_side", "migrate",
-                   "static_sh_degree", "static_sh_iterations", "dynamic_warmup", "hull_seeds", "camera_colour")
+                   "static_sh_degree", "static_sh_iterations", "dynamic_warmup", "hull_seeds", "camera_colour",
+                   "coarse_low_res")
 
 
 def train_overrides(args: argparse.Namespace) -> dict:

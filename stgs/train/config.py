@@ -71,6 +71,9 @@ class TrainConfig:
     """Validation cameras (None: the dataset's convention)."""
     coarse_iterations: int = 1000
     """Canonical 3DGS stage on frames from all times (layered: stage A, the static layer, on static pixels)."""
+    coarse_low_res: float = 0.0
+    """Share of the coarse stage's (stage A's) iterations drawn first at half the training resolution (a quarter
+    of the pixels; about twice the iterations per second), before the rest at full resolution."""
     iterations: int = 600
     """Iterations per GOP."""
     feature_noise: float = 1e-3
@@ -156,7 +159,8 @@ class TrainConfig:
                    "migrate_score and migrate_share must be in [0, 1]"),
                   (self.static_sh_degree in (0, 1), "static_sh_degree must be 0 or 1"),
                   (self.static_sh_iterations >= 0, "static_sh_iterations must be >= 0"),
-                  (0 <= self.dynamic_warmup < 1, "dynamic_warmup must be in [0, 1)")]
+                  (0 <= self.dynamic_warmup < 1, "dynamic_warmup must be in [0, 1)"),
+                  (0 <= self.coarse_low_res < 1, "coarse_low_res must be in [0, 1)")]
         checks += [(math.isfinite(rate) and rate > 0, f"lr.{name} must be a positive number, got {rate}")
                    for name, rate in dataclasses.asdict(self.lr).items()]
         for ok, message in checks:

@@ -4,8 +4,9 @@
 2. Initial points: triangulated from the calibrated views of a few frames
    spread over the trained span (stgs.train.init), topped up with jittered
    copies and random frustum points to the capacity N = S².
-3. Coarse stage: canonical 3DGS (no deformation) on frames from all times, and each training camera's colour
-   response (stgs.train.camera_colour), which every later stage's images go through.
+3. Coarse stage: canonical 3DGS (no deformation) on frames from all times (the first `coarse_low_res` share of
+   its iterations at half resolution), and each training camera's colour response (stgs.train.camera_colour),
+   which every later stage's images go through.
 4. Per GOP, from the coarse canonical Gaussians: canonical Gaussians +
    temporal features + deformation field, one random (frame, camera) per
    iteration, feature noise λ·U(−0.5, 0.5), losses of stgs.train.losses,
@@ -29,7 +30,7 @@ This module holds the stages; the parts: `views` (training images), `seeding`
 (initial points and attributes; geometry in `init`), `losses`, `ops`
 (relocation, sorting, pruning and the Adam-state surgery they need),
 `checkpoint`, `aux` (the auxiliary transformer), `camera_colour`, `dynamic` (dynamic masks),
-`objective` (what a GOP-stage iteration minimises).
+`objective` (what a GOP-stage iteration minimises), `validation` (the report's running scores).
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ from stgs.codec.attributes import OPACITY_LOGIT_RANGE
 from stgs.data import open_dataset, split
 from stgs.errors import StgsError
 from stgs.memory import reuse_large_allocations
-from stgs.metrics import psnr, ssim
+from stgs.metrics import psnr
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.static import StaticLayer
 from stgs.model.view import Backdrop, splat, static_backdrops
@@ -63,10 +64,13 @@ from stgs.train.layers import Migrated, fit_view_dependent, init_dynamic, migrat
 from stgs.train.objective import GOPLoss, canonical_regularisers, gop_loss
 from stgs.train.ops import Optimizer, prune, relocate, sort
 from stgs.train.seeding import init_canonical, init_frames, initial_points
-from stgs.train.views import Views, scene_extent
+from stgs.train.validation import mean_scores
+from stgs.train.views import Views, downscaled, scene_extent
 from stgs.tree import CAMERAS, MODEL_META, TRAIN_REPORT, gop_stem
 
 STATE_DIR = ".train"
+LOW_RES = 0.5
+"""Image scale of the coarse stage's first iterations (TrainConfig.coarse_low_res)."""
 
 
 class DivergedError(StgsError):
@@ -177,15 +181,18 @@ class Trainer:
         if sorting and start == 0:
             sort(model, opt, torch.zeros(2, shape.capacity), cfg.seed)
         desc = "stage A: static layer" if moving is not None else "coarse canonical"
+        low_until = round(cfg.coarse_low_res * cfg.coarse_iterations)
+        low = downscaled(views, LOW_RES, moving) if start < low_until else None
         bar = tqdm(range(start, cfg.coarse_iterations), desc=desc, unit="it", disable=not self.progress)
         for it in bar:
             opt.set_progress(it / max(1, cfg.coarse_iterations))
             f = int(torch.randint(len(views.frames), (1,), generator=self.gen))
             c = int(torch.randint(len(views.cameras), (1,), generator=self.gen))
+            at, at_moving = low if it < low_until else (views, moving)
             g = model.canonical()
-            img = as_recorded(colour, splat(g, views.cameras[c]), c)
-            mask = ~moving[f, c] if moving is not None else None
-            loss = losses.photometric(img, views.target(f, c), cfg.lambda_ssim, mask)
+            img = as_recorded(colour, splat(g, at.cameras[c]), c)
+            mask = ~at_moving[f, c] if at_moving is not None else None
+            loss = losses.photometric(img, at.target(f, c), cfg.lambda_ssim, mask)
             if regularised:
                 loss = loss + canonical_regularisers(cfg, model, g.opacities)
             self._step(opt, loss, stage, it, model)
@@ -287,7 +294,7 @@ class Trainer:
             if (it + 1) % max(1, cfg.iterations // 10) == 0 or it + 1 == cfg.iterations:
                 paused = time.perf_counter()
                 seconds = paused - clock
-                vp, vs = self.validate(model, val) if val is not None else (None, None)
+                vp, vs = mean_scores(model, self.static, val) if val is not None else (None, None)
                 clock += time.perf_counter() - paused  # validation does not count as training time
                 report.curve.append({"iteration": it + 1, "seconds": seconds, "loss": sum(window) / len(window),
                                      "val_psnr": vp, "val_ssim": vs})
@@ -303,33 +310,15 @@ class Trainer:
         report.seconds = time.perf_counter() - clock
         report.iterations = cfg.iterations
         report.final_loss = loss_value
-        report.train_psnr = self.validate(model, views, limit=8, colour=self.colour)[0]
+        report.train_psnr = mean_scores(model, self.static, views, limit=8, colour=self.colour)[0]
         if val is not None:
-            report.val_psnr, report.val_ssim = self.validate(model, val)
+            report.val_psnr, report.val_ssim = mean_scores(model, self.static, val)
         return model, report
 
     def gop_loss(self, model: GOPModel, aux: AuxTransformer | None, views: Views,
                  static: list[Backdrop] | None = None, deform: bool = True) -> GOPLoss:
         """One iteration's loss (stgs.train.objective), drawn with this run's generator."""
         return gop_loss(self.cfg, self.gen, model, aux, views, static, deform, self.colour)
-
-    @torch.no_grad()
-    def validate(self, model: GOPModel, views: Views, limit: int = 6, colour: CameraColour | None = None
-                 ) -> tuple[float, float]:
-        """Mean PSNR and SSIM of `limit` (frame, camera) pairs spread over the views; `colour`: the training
-        cameras' colour responses (when `views` are the training views)."""
-        from stgs.model.view import FrameRenderer
-
-        renderer = FrameRenderer(model, static=self.static)
-        psnrs, ssims = [], []
-        pairs = [(f, c) for f in range(len(views.frames)) for c in range(len(views.cameras))]
-        step = max(1, len(pairs) // limit)
-        for f, c in pairs[::step][:limit]:
-            image = as_recorded(colour, renderer.render(f, views.cameras[c]), c).clamp(0, 1)
-            target = views.target(f, c)
-            psnrs.append(psnr(image, target))
-            ssims.append(float(ssim(image, target)))
-        return float(sum(psnrs) / len(psnrs)), float(sum(ssims) / len(ssims))
 
     # --- the run ---
 

@@ -49,6 +49,25 @@ def load_views(ds: Dataset, names: list[str], frames: list[int], scale: float, p
     return Views(cams, frames, images)
 
 
+def downscaled(views: Views, factor: float, moving: torch.Tensor | None = None
+               ) -> tuple[Views, torch.Tensor | None]:
+    """`views` at `factor` x their image size (area-averaged images, cameras resized), and `moving` ((F, C, H, W)
+    bool) with them: a smaller pixel is moving when any of the pixels it averages is."""
+    cams = [scale_camera(c, factor) for c in views.cameras]
+    w, h = cams[0].width, cams[0].height
+    f, c = views.images.shape[:2]
+    images = torch.empty(f, c, h, w, 3, dtype=torch.uint8)
+    small = None if moving is None else torch.empty(f, c, h, w, dtype=torch.bool)
+    for i in range(f):
+        for j in range(c):
+            images[i, j] = torch.from_numpy(cv2.resize(views.images[i, j].numpy(), (w, h),
+                                                       interpolation=cv2.INTER_AREA))
+            if small is not None:
+                area = cv2.resize(moving[i, j].numpy().astype("float32"), (w, h), interpolation=cv2.INTER_AREA)
+                small[i, j] = torch.from_numpy(area > 0)
+    return Views(cams, views.frames, images), small
+
+
 def scene_extent(cams: list[Camera]) -> float:
     centres = torch.stack([c.center for c in cams])
     return float((centres - centres.mean(0)).norm(dim=1).max()) * 1.1 + 1e-6

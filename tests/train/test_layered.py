@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from stgs.camera import Camera, intrinsics
 from stgs.data import open_dataset
 from stgs.errors import StgsError
 from stgs.metrics import psnr
@@ -25,7 +26,7 @@ from stgs.train import budget, train
 from stgs.train import losses as loss_module
 from stgs.train.layers import fit_view_dependent, migrate, motion_scores, moving_masks
 from stgs.train.trainer import Trainer
-from stgs.train.views import Views, load_views
+from stgs.train.views import Views, downscaled, load_views
 from tests.conftest import run_stgs as stgs
 from tests.train.conftest import LAYERED, SCENE, background_psnr, shares_per_point
 
@@ -198,11 +199,71 @@ def test_layered_seed_determinism_and_resume_in_both_stages(scene, tmp_path, mon
         assert reports[0]["camera_colour"] == reports[1]["camera_colour"], stop
 
 
+def test_low_resolution_views_average_the_pixels_and_keep_any_moving_one():
+    cam = Camera("c", intrinsics(8, 6, 60.0), torch.eye(4, dtype=torch.float64), 8, 6)
+    images = torch.randint(0, 256, (1, 1, 6, 8, 3), dtype=torch.uint8, generator=torch.Generator().manual_seed(0))
+    moving = torch.zeros(1, 1, 6, 8, dtype=torch.bool)
+    moving[0, 0, 3, 5] = True
+    small, small_moving = downscaled(Views([cam], [7], images), 0.5, moving)
+    assert small.images.shape == (1, 1, 3, 4, 3) and small.frames == [7]
+    blocks = images[0, 0].double().reshape(3, 2, 4, 2, 3).mean((1, 3))
+    assert (small.images[0, 0].double() - blocks).abs().max() <= 0.5
+    assert small_moving[0, 0].nonzero().tolist() == [[1, 2]]
+    assert (small.cameras[0].width, small.cameras[0].height) == (4, 3)
+    assert torch.allclose(small.cameras[0].K[:2], cam.K[:2] / 2)
+
+
+def test_stage_a_at_low_resolution_first_resumes_to_the_same_bytes(scene, tmp_path, monkeypatch):
+    cfg = budget("quick", **LAYERED, coarse_iterations=20, coarse_low_res=0.75, checkpoint_every=10, threads=2)
+    full = Trainer(scene, tmp_path / "a", cfg, progress=False)
+    full.prepare_output()
+    views = load_views(full.ds, full.train_names, [0, 2, 4], 1.0, False)
+    fitted = full.coarse(views, full.static_shape, moving_masks(full.ds, views, 0.05).masks, "static")
+    plain = Trainer(scene, tmp_path / "p", dataclasses.replace(cfg, coarse_low_res=0.0), progress=False)
+    plain.prepare_output()
+    other = plain.coarse(views, plain.static_shape, moving_masks(plain.ds, views, 0.05).masks, "static")
+    assert not torch.equal(fitted.xyz, other.xyz)  # the first 15 iterations drew other pixels
+    real, calls = loss_module.photometric, {"n": 0}
+
+    def interrupt(*args, **kwargs):  # the 13th iteration: inside the low-resolution share, after a checkpoint
+        calls["n"] += 1
+        if calls["n"] == 13:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(loss_module, "photometric", interrupt)
+    run = Trainer(scene, tmp_path / "r", cfg, progress=False)
+    run.prepare_output()
+    with pytest.raises(KeyboardInterrupt):
+        run.coarse(views, run.static_shape, moving_masks(run.ds, views, 0.05).masks, "static")
+    monkeypatch.setattr(loss_module, "photometric", real)
+    resumed = Trainer(scene, tmp_path / "r", cfg, progress=False, resume=True)
+    again = resumed.coarse(views, resumed.static_shape, moving_masks(resumed.ds, views, 0.05).masks, "static")
+    for name, value in fitted.state_dict().items():
+        assert torch.equal(value, again.state_dict()[name]), name
+
+
+def test_the_stage_a_benchmark_scores_the_static_layer_it_trains(scene, tmp_path):
+    from bench.stage_a import parse_settings, row
+
+    settings = parse_settings("gop_size=6,grid_side=12,static_grid_side=16,coarse_iterations=40,coarse_low_res=0.5")
+    assert settings == {"gop_size": 6, "grid_side": 12, "static_grid_side": 16, "coarse_iterations": 40,
+                        "coarse_low_res": 0.5}
+    held_out = open_dataset(scene).camera_names[-1]
+    cells = row(scene, [held_out], settings, 0, tmp_path / "w", "quick").strip("| ").split(" | ")
+    assert cells[:2] == ["gop_size 6, grid_side 12, static_grid_side 16, coarse_iterations 40, coarse_low_res 0.5",
+                         "0"]
+    seconds, held_out_psnr, fitted_psnr = (float(c) for c in cells[2:])
+    assert seconds >= 0 and 10 < held_out_psnr < 60 and 10 < fitted_psnr < 60
+
+
 def test_bad_layer_settings_are_clear_errors(scene, tmp_path):
     for overrides, message in [({"layers": "triple"}, "layers must be one of"),
                                ({"layers": "layered", "static_grid_side": 1}, "static_grid_side"),
                                ({"migrate_score": 1.5}, "migrate_score"),
-                               ({"layers": "layered", "dynamic_warmup": 1.0}, "dynamic_warmup")]:
+                               ({"layers": "layered", "dynamic_warmup": 1.0}, "dynamic_warmup"),
+                               ({"coarse_low_res": -0.1}, "coarse_low_res"),
+                               ({"coarse_low_res": 1.0}, "coarse_low_res")]:
         with pytest.raises(StgsError, match=message):
             budget("quick", **overrides)
     assert dataclasses.replace(budget("quick", layers="layered")).grid_side == 16  # the budget's layered sizes

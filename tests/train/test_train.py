@@ -197,7 +197,8 @@ def test_bench_train_eval_rows_show_lpips_where_computed():
 def test_bench_train_labels_name_what_differs_from_the_budget(tmp_path):
     from bench.train import run_label
 
-    config = {"budget": "cpu", "grid_side": 192, "aux": False, "lr": {"position": 8e-4}, "init_frames": 12}
+    config = {"budget": "cpu", "grid_side": 192, "aux": False, "lr": {"position": 8e-4}, "init_frames": 12,
+              "camera_colour": True}
     (tmp_path / "model.json").write_text(json.dumps({"extra": {"config": config}}))
     assert run_label(tmp_path) == "cpu: --no-aux, 36,864 Gaussians, init frames 12, position lr 0.0008"
     config.update(grid_side=128, aux=True, lr={"position": 1.6e-4}, init_frames=6)
@@ -209,6 +210,22 @@ def test_bench_train_labels_name_what_differs_from_the_budget(tmp_path):
     config.update(init_frames=6, seed=1)
     (tmp_path / "model.json").write_text(json.dumps({"extra": {"config": config}}))
     assert run_label(tmp_path) == "cpu: all components, seed 1"
+
+
+def test_bench_train_labels_a_run_from_before_a_component_as_trained_without_it(tmp_path):
+    from bench.train import run_label
+
+    def label(config: dict) -> str:
+        config = {"budget": "cpu", "init_frames": 6, **config}
+        (tmp_path / "model.json").write_text(json.dumps({"extra": {"config": config}}))
+        return run_label(tmp_path)
+
+    assert label({"camera_colour": True}) == "cpu: all components"
+    assert label({}) == "cpu: --no-camera-colour"  # before camera colours: trained without them
+    assert label({"camera_colour": True, "layers": "layered", "migrate": True}) == "cpu: --no-hull-seeds"
+    assert label({"camera_colour": True, "layers": "layered", "migrate": True, "hull_seeds": True}) == \
+        "cpu: all components"
+    assert label({"camera_colour": True, "layers": "single"}) == "cpu: all components"  # no hull seeds to miss
 
 
 def test_bench_train_tells_runs_with_the_same_settings_apart():

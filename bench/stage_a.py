@@ -1,0 +1,111 @@
+"""Stage A alone (the static layer of `stgs train --layers layered`): its wall time and how well the static layer
+draws the background, per setting and seed (`python -m bench.stage_a`, prints Markdown rows for
+docs/BENCHMARKS.md).
+
+Each row trains stage A (the budget's layered config, `cpu` by default, with `--set`'s overrides, `--no-aux`,
+one GOP, the `--holdout` cameras left out) in a fresh folder and draws the static layer alone at every 6th frame
+of the GOP: from the held-out cameras, and from every 6th training camera through its learnt colour response
+(what training fitted). PSNR over the pixels outside the dataset's foreground masks grown by
+stgs.train.layers.MASK_DILATE_PX, the pixels stage A fits. The background is most of a layered run's held-out
+error (nine-tenths of Panoptic's pixels, about two-thirds of the squared error), and this measures it in half a
+run's time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from stgs.data import Dataset, open_dataset
+from stgs.metrics import psnr
+from stgs.model.static import StaticLayer
+from stgs.model.view import splat, static_view
+from stgs.train.camera_colour import CameraColour, as_recorded
+from stgs.train.config import budget
+from stgs.train.layers import MASK_DILATE_PX
+from stgs.train.run import base_stage
+from stgs.train.trainer import Trainer
+
+FRAME_STEP = 6
+"""Every this many frames of the GOP are drawn, and every this many training cameras."""
+
+
+def background_psnr(static: StaticLayer, ds: Dataset, names: list[str], frames: list[int],
+                    colour: CameraColour | None = None, indices: list[int] | None = None) -> float:
+    """Mean PSNR of the static layer alone over the pixels outside the grown foreground masks; `colour` and
+    `indices` (the cameras' places among the training cameras): draw through their colour responses."""
+    kernel = np.ones((2 * MASK_DILATE_PX + 1,) * 2, np.uint8)
+    values = []
+    for frame in frames:
+        cams = {c.name: c for c in ds.cameras(frame)}
+        for k, name in enumerate(names):
+            cam = cams[name]
+            with torch.no_grad():
+                image = splat(static_view(static, cam), cam, guarded=True)
+                if colour is not None and indices is not None:
+                    image = as_recorded(colour, image, indices[k])
+            mask = ds.mask(frame, name)
+            if mask is None:
+                raise SystemExit(f"{ds.name}: camera {name} has no foreground mask at frame {frame}")
+            mask = cv2.resize(mask.numpy().astype(np.uint8), (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
+            keep = torch.from_numpy(cv2.dilate(mask, kernel) == 0)
+            values.append(psnr(image.clamp(0, 1), ds.image(frame, name), mask=keep))
+    return sum(values) / len(values)
+
+
+def parse_settings(text: str) -> dict:
+    """'coarse_low_res=0.6,coarse_iterations=5500' -> TrainConfig overrides (numbers as int or float)."""
+    out = {}
+    for part in filter(None, text.split(",")):
+        key, _, value = part.partition("=")
+        out[key.strip()] = float(value) if "." in value or "e" in value else int(value)
+    return out
+
+
+def row(dataset: Path, holdout: list[str], settings: dict, seed: int, work: Path, budget_name: str = "cpu") -> str:
+    """One table row: stage A trained in `work` with `settings` over the budget's layered config."""
+    cfg = budget(budget_name, layers="layered", holdout=holdout, max_gops=1, aux=False, seed=seed, **settings)
+    trainer = Trainer(dataset, work, cfg, progress=False)
+    trainer.prepare_output()
+    start = time.perf_counter()
+    base = base_stage(trainer)
+    seconds = time.perf_counter() - start
+    ds = open_dataset(dataset)
+    frames = list(range(0, cfg.gop_size, FRAME_STEP))
+    trained = trainer.train_names[::FRAME_STEP]
+    held_out = background_psnr(base.static, ds, trainer.val_names, frames)
+    fitted = background_psnr(base.static, ds, trained, frames, base.colour,
+                             [trainer.train_names.index(n) for n in trained])
+    label = ", ".join(f"{k} {v:g}" for k, v in settings.items()) or "the budget's"
+    return f"| {label} | {seed} | {seconds:.0f} | {held_out:.2f} | {fitted:.2f} |"
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--dataset", type=Path, required=True)
+    p.add_argument("--holdout", default="1,14,27")
+    p.add_argument("--set", action="append", default=[], metavar="K=V,...",
+                   help="one row's TrainConfig overrides (repeat for more rows; none: the budget's stage A)")
+    p.add_argument("--seeds", default="0")
+    p.add_argument("--budget", default="cpu")
+    args = p.parse_args()
+    settings = [parse_settings(s) for s in args.set] or [{}]
+    print(f"machine: {platform.processor() or platform.machine()}, torch threads {torch.get_num_threads()}")
+    print("| stage A | seed | s | held-out background PSNR | training cameras' background PSNR |")
+    print("|---|---|---|---|---|")
+    for seed in (int(s) for s in args.seeds.split(",")):
+        for setting in settings:
+            with tempfile.TemporaryDirectory() as work:
+                print(row(args.dataset, args.holdout.split(","), setting, seed, Path(work) / "run", args.budget),
+                      flush=True)
+
+
+if __name__ == "__main__":
+    main()
