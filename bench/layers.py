@@ -114,18 +114,15 @@ FAR_PX = 20
 
 
 def far_background_psnr(renderer: FrameRenderer, ds, names: list[str], frames: list[int], start: int) -> float:
-    import cv2
-    import numpy as np
-
     from stgs.metrics import psnr
+    from stgs.train.layers import grown_mask
 
-    kernel = np.ones((2 * FAR_PX + 1,) * 2, np.uint8)
     values = []
     for name in names:
         for i in frames:
             cam = next(c for c in ds.cameras(start + i) if c.name == name)
             mask = ds.mask(start + i, name)
-            near = torch.from_numpy(cv2.dilate(mask.numpy().astype(np.uint8), kernel) > 0)
+            near = grown_mask(mask, mask.shape[1], mask.shape[0], FAR_PX)
             values.append(psnr(renderer.render(i, cam).clamp(0, 1), ds.image(start + i, name), mask=~near))
     return sum(values) / len(values)
 

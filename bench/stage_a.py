@@ -5,8 +5,8 @@ docs/BENCHMARKS.md).
 Each row trains stage A (the budget's layered config, `cpu` by default, with `--set`'s overrides, `--no-aux`,
 one GOP, the `--holdout` cameras left out) in a fresh folder and draws the static layer alone at every 6th frame
 of the GOP: from the held-out cameras, and from every 6th training camera through its learnt colour response
-(what training fitted). PSNR over the pixels outside the dataset's foreground masks grown by
-stgs.train.layers.MASK_DILATE_PX, the pixels stage A fits. The background is most of a layered run's held-out
+(what training fitted). PSNR over the pixels outside the dataset's foreground masks grown as
+stgs.train.layers.grown_mask grows them, the pixels stage A fits. The background is most of a layered run's held-out
 error (nine-tenths of Panoptic's pixels, about two-thirds of the squared error), and this measures it in half a
 run's time.
 """
@@ -19,8 +19,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import cv2
-import numpy as np
 import torch
 
 from stgs.data import Dataset, open_dataset
@@ -29,7 +27,7 @@ from stgs.model.static import StaticLayer
 from stgs.model.view import splat, static_view
 from stgs.train.camera_colour import CameraColour, as_recorded
 from stgs.train.config import budget
-from stgs.train.layers import MASK_DILATE_PX
+from stgs.train.layers import grown_mask
 from stgs.train.run import base_stage
 from stgs.train.trainer import Trainer
 
@@ -41,7 +39,6 @@ def background_psnr(static: StaticLayer, ds: Dataset, names: list[str], frames: 
                     colour: CameraColour | None = None, indices: list[int] | None = None) -> float:
     """Mean PSNR of the static layer alone over the pixels outside the grown foreground masks; `colour` and
     `indices` (the cameras' places among the training cameras): draw through their colour responses."""
-    kernel = np.ones((2 * MASK_DILATE_PX + 1,) * 2, np.uint8)
     values = []
     for frame in frames:
         cams = {c.name: c for c in ds.cameras(frame)}
@@ -54,8 +51,7 @@ def background_psnr(static: StaticLayer, ds: Dataset, names: list[str], frames: 
             mask = ds.mask(frame, name)
             if mask is None:
                 raise SystemExit(f"{ds.name}: camera {name} has no foreground mask at frame {frame}")
-            mask = cv2.resize(mask.numpy().astype(np.uint8), (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
-            keep = torch.from_numpy(cv2.dilate(mask, kernel) == 0)
+            keep = ~grown_mask(mask, cam.width, cam.height)
             values.append(psnr(image.clamp(0, 1), ds.image(frame, name), mask=keep))
     return sum(values) / len(values)
 

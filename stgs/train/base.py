@@ -19,6 +19,7 @@ from safetensors.torch import load_file, save_file
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.static import StaticLayer
 from stgs.train.camera_colour import CameraColour
+from stgs.train.checkpoint import module_tensors, under
 from stgs.train.layers import MIGRATED_ATTRIBUTES, Migrated
 
 BASE_FILE = "base.safetensors"
@@ -41,15 +42,15 @@ class BaseStage:
     def save(self, path: Path) -> None:
         tensors: dict[str, torch.Tensor] = {}
         if self.coarse is not None:
-            tensors |= {f"coarse.{k}": v.detach().contiguous() for k, v in self.coarse.state_dict().items()}
+            tensors |= module_tensors("coarse", self.coarse)
         if self.static is not None:
-            tensors |= {f"static.{k}": v.detach().contiguous() for k, v in self.static.state_dict().items()}
+            tensors |= module_tensors("static", self.static)
         if self.migrated is not None:
             tensors |= {"migrated.index": self.migrated.index.contiguous(),
                         "migrated.scores": self.migrated.scores.contiguous()}
             tensors |= {f"migrated.{k}": v.contiguous() for k, v in self.migrated.attributes.items()}
         if self.colour is not None:
-            tensors |= {f"colour.{k}": v.detach().contiguous() for k, v in self.colour.state_dict().items()}
+            tensors |= module_tensors("colour", self.colour)
         meta = {"info": self.info, "static_sh_degree": self.static.sh_degree if self.static is not None else None}
         tmp = path.with_suffix(".tmp")
         save_file(tensors, str(tmp), metadata={"base": json.dumps(meta)})
@@ -61,21 +62,17 @@ class BaseStage:
         with safe_open(str(path), "pt") as f:
             meta = json.loads(f.metadata()["base"])
         tensors = load_file(str(path))
-
-        def part(prefix: str) -> dict[str, torch.Tensor]:
-            return {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
-
         base = cls(info=meta["info"])
-        if coarse := part("coarse."):
+        if coarse := under(tensors, "coarse"):
             base.coarse = GOPModel(shape)
             base.coarse.load_state_dict(coarse)
-        if static := part("static."):
+        if static := under(tensors, "static"):
             base.static = StaticLayer(static["xyz"].shape[0], meta["static_sh_degree"])
             base.static.load_state_dict(static)
         if "migrated.index" in tensors:
             base.migrated = Migrated(tensors["migrated.index"], {k: tensors[f"migrated.{k}"] for k in
                                                                  MIGRATED_ATTRIBUTES}, tensors["migrated.scores"])
-        if colour := part("colour."):
+        if colour := under(tensors, "colour"):
             base.colour = CameraColour(colour["log_gain"].shape[0]).requires_grad_(False)
             base.colour.load_state_dict(colour)
         return base

@@ -15,6 +15,17 @@ from stgs.model.gop import GOPModel
 from stgs.train.ops import Optimizer
 
 
+def module_tensors(prefix: str, module: torch.nn.Module) -> dict[str, torch.Tensor]:
+    """`module`'s state as tensors named `prefix.KEY` (what `under(tensors, prefix)` gives back)."""
+    return {f"{prefix}.{k}": v.detach().contiguous() for k, v in module.state_dict().items()}
+
+
+def under(tensors: dict[str, torch.Tensor], prefix: str) -> dict[str, torch.Tensor]:
+    """The tensors named `prefix.KEY`, by KEY."""
+    start = len(prefix) + 1
+    return {k[start:]: v for k, v in tensors.items() if k.startswith(f"{prefix}.")}
+
+
 class Checkpoints:
     """The checkpoints of one run in `folder`; `resume` says whether loading one is wanted at all."""
 
@@ -27,10 +38,10 @@ class Checkpoints:
     def save(self, name: str, model: GOPModel, opt: Optimizer, gen: torch.Generator, extra: dict,
              modules: dict[str, torch.nn.Module | None] | None = None, accum: torch.Tensor | None = None) -> None:
         """`modules`: the modules trained beside the model, by name (None values are skipped)."""
-        tensors = {f"model.{k}": v.detach().contiguous() for k, v in model.state_dict().items()}
+        tensors = module_tensors("model", model)
         for prefix, module in (modules or {}).items():
             if module is not None:
-                tensors |= {f"{prefix}.{k}": v.detach().contiguous() for k, v in module.state_dict().items()}
+                tensors |= module_tensors(prefix, module)
         for group in opt.opt.param_groups:
             for i, p in enumerate(group["params"]):
                 for key, t in opt.opt.state.get(p, {}).items():
@@ -55,16 +66,13 @@ class Checkpoints:
         with safe_open(str(path), "pt") as f:
             extra = json.loads(f.metadata()["state"])
         tensors = load_file(str(path))
-        model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
+        model.load_state_dict(under(tensors, "model"))
         for prefix, module in (modules or {}).items():
             if module is not None:
-                module.load_state_dict({k[len(prefix) + 1:]: v for k, v in tensors.items()
-                                        if k.startswith(f"{prefix}.")})
+                module.load_state_dict(under(tensors, prefix))
         for group in opt.opt.param_groups:
             for i, p in enumerate(group["params"]):
-                prefix = f"adam.{group['name']}.{i}."
-                state = {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
-                if state:
+                if state := under(tensors, f"adam.{group['name']}.{i}"):
                     opt.opt.state[p] = state
         gen.set_state(tensors["rng"])
         return extra, tensors.get("accum")

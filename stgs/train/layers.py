@@ -54,18 +54,22 @@ class MovingMasks:
     """"dataset foreground masks", "temporal variance" or both (per camera, whichever it had)."""
 
 
+def grown_mask(mask: torch.Tensor, width: int, height: int, px: int = MASK_DILATE_PX) -> torch.Tensor:
+    """(height, width) bool: a foreground `mask` at that size (nearest pixel), grown by `px` pixels."""
+    small = cv2.resize(mask.numpy().astype(np.uint8), (width, height), interpolation=cv2.INTER_NEAREST)
+    return torch.from_numpy(cv2.dilate(small, np.ones((2 * px + 1,) * 2, np.uint8)) > 0)
+
+
 def moving_masks(ds: Dataset, views: Views, theta: float) -> MovingMasks:
     """The moving pixels of every view in `views` (see the module docstring)."""
     f, c, h, w = views.images.shape[:4]
     masks = torch.zeros(f, c, h, w, dtype=torch.bool)
-    kernel = np.ones((2 * MASK_DILATE_PX + 1,) * 2, np.uint8)
     sources = set()
     for j, cam in enumerate(views.cameras):
         found = [ds.mask(frame, cam.name) for frame in views.frames]
         if all(m is not None for m in found):
             for i, m in enumerate(found):
-                m = cv2.resize(m.numpy().astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST)
-                masks[i, j] = torch.from_numpy(cv2.dilate(m, kernel) > 0)
+                masks[i, j] = grown_mask(m, w, h)
             sources.add("dataset foreground masks")
         elif f >= 2:
             masks[:, j] = dynamic_mask(views.images[:, j].float().div_(255.0), theta)
