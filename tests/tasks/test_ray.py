@@ -174,6 +174,11 @@ def test_a_bad_model_file_fails_the_pack_once_with_its_clear_error(cluster, loca
 def test_a_killed_driver_resumes_without_retraining_finished_gops(cluster, scene, local_model, tmp_path):
     out = tmp_path / "model"
     driver = popen_train(scene, out, cluster)
+    wait_for(lambda: all(starts(out, f"gop_{k:04d}") for k in (0, 1)), 180, "both GOPs to start")
+    # Frozen while its GOPs run on the workers, the driver cannot write the model dir: GOP 1 may finish between
+    # two polls of GOP 0's report (the workers run them side by side), and a driver still running would then
+    # finish the run before the kill.
+    driver.send_signal(signal.SIGSTOP)
     wait_for(lambda: (out / ".train" / "gop_0000.report.json").is_file(), 180, "GOP 0 to finish")
     driver.send_signal(signal.SIGKILL)
     driver.wait(timeout=30)
