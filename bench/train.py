@@ -30,7 +30,8 @@ def _read_json(path: Path) -> dict:
         raise StgsError(f"{path}: cannot read ({exc})") from None
 
 
-ABSENT_MEANS_OFF = {"camera_colour": ("single", "layered"), "hull_seeds": ("layered",)}
+ABSENT_MEANS_OFF = {"camera_colour": ("single", "layered"), "hull_seeds": ("layered",),
+                    "static_triangulation": ("layered",)}
 """Components added after runs were first recorded, and the layers that have them: a run of those layers whose
 config lacks the key trained without the component."""
 

@@ -129,6 +129,9 @@ def add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-hull-seeds", dest="hull_seeds", action="store_false", default=None,
                    help="layered: seed the dynamic layers with triangulated and filler points only, not on the "
                    "visual hull of the dataset's foreground masks")
+    p.add_argument("--no-static-triangulation", dest="static_triangulation", action="store_false", default=None,
+                   help="layered: seed the static layer with the points triangulated on the people (and filler) "
+                   "after its wall and floor share, not with points triangulated on the background")
     p.add_argument("--no-camera-colour", dest="camera_colour", action="store_false", default=None,
                    help="fit the scene to every training camera's colours as recorded, without learning each "
                    "camera's colour gain and offset beside it")
@@ -154,7 +157,7 @@ TRAIN_OVERRIDES = ("max_gops", "gop_size", "start_frame", "grid_side", "iteratio
                    "window", "aux", "dynamic", "temporal_weight", "relocate", "seed", "threads", "holdout",
                    "background_share", "init_frames", "layers", "static_grid_side", "migrate",
                    "static_sh_degree", "static_sh_iterations", "dynamic_warmup", "hull_seeds", "camera_colour",
-                   "coarse_low_res")
+                   "coarse_low_res", "static_triangulation")
 
 
 def train_overrides(args: argparse.Namespace) -> dict:

@@ -127,6 +127,10 @@ class TrainConfig:
     hull_seeds: bool = True
     """Layered: seed each GOP's dynamic layer on the surface of the visual hull of the dataset's foreground masks,
     where it has them and the cameras surround the scene (stgs.train.hull), instead of filler points."""
+    static_triangulation: bool = True
+    """Layered: triangulate the static layer's seeds outside the foreground masks, matching along the epipolar
+    lines (the walls' dots, seams and lamps; stgs.train.init.BACKGROUND_MATCHING), instead of on the people, whom
+    stage A does not fit."""
     background_share: float = 0.0
     """Share of the capacity first placed on the rig's walls and floor, for the background a rig that
     surrounds the action sees behind it (0: none; ignored for forward-facing rigs)."""
@@ -195,7 +199,7 @@ later, a pair measured it at 0.94x format 1's wall time; paper: not measured).""
 
 SWITCHES = {"aux": "--no-aux", "dynamic": "--no-dynamic-density", "temporal_weight": "--no-temporal-reg",
             "relocate": "--no-relocate", "migrate": "--no-migrate", "hull_seeds": "--no-hull-seeds",
-            "camera_colour": "--no-camera-colour"}
+            "camera_colour": "--no-camera-colour", "static_triangulation": "--no-static-triangulation"}
 """Config fields the ablation switches turn off."""
 
 

@@ -14,12 +14,16 @@ from stgs.data import Dataset
 from stgs.model.gop import GOPModel
 from stgs.train.hull import HullConfig, hull_surface_points
 from stgs.train.init import (
+    BACKGROUND_MATCHING,
     MIN_TRIANGULATED,
     background_shell_points,
     ground_height,
     random_frustum_points,
     triangulate,
 )
+
+REGIONS = ("foreground", "background")
+"""Where initial_points triangulates: where the people are (the dataset's masks), or outside them."""
 
 
 @dataclass
@@ -40,18 +44,27 @@ class InitialPoints:
 
 
 def initial_points(ds: Dataset, names: list[str], frames: list[int], count: int, gen: torch.Generator,
-                   limit: int = 0, background_share: float = 0.0, hull: HullConfig | None = None) -> InitialPoints:
+                   limit: int = 0, background_share: float = 0.0, hull: HullConfig | None = None,
+                   region: str = "foreground") -> InitialPoints:
     """`count` starting points, triangulated at each of `frames` (people who move are seeded where they are
     at each of those times); `background_share` of them on the rig's walls and floor
     (background_shell_points) when the cameras surround the scene; with `hull`, where the dataset has every
     camera's foreground mask at a frame and the cameras surround the scene, the capacity left after those goes
-    to points on the surface of the masks' visual hull (stgs.train.hull) before any filler."""
+    to points on the surface of the masks' visual hull (stgs.train.hull) before any filler. `region`
+    "background": triangulate outside the dataset's foreground masks instead (BACKGROUND_MATCHING; the whole
+    image where it has none), for a static layer."""
+    if region not in REGIONS:
+        raise ValueError(f"region must be one of {', '.join(REGIONS)}, got {region!r}")
     cams, images = _training_views(ds, names, frames[0])  # the walls and floor are coloured from the first frame
     found_at, hull_at = [], []
     for i, frame in enumerate(frames):  # one more frame's images held at a time
         at_cams, at_images = (cams, images) if i == 0 else _training_views(ds, names, frame)
         masks = [ds.mask(frame, c.name) for c in at_cams]
-        found_at.append(triangulate(at_cams, at_images, masks))
+        if region == "background":
+            found_at.append(triangulate(at_cams, at_images, [None if m is None else ~m for m in masks],
+                                        BACKGROUND_MATCHING))
+        else:
+            found_at.append(triangulate(at_cams, at_images, masks))
         if hull is not None and all(m is not None for m in masks) and surrounds(at_cams):
             hull_at.append(hull_surface_points(at_cams, at_images, masks, hull))
     # A time with too few points to describe the scene there (tiny images, no texture) contributes none: a few

@@ -170,8 +170,9 @@ class Trainer:
         if resumed:  # the counts the interrupted run found, for the report
             self.triangulated, self.background_points = resumed[0].get("triangulated"), resumed[0].get("background")
         else:
+            region = "background" if moving is not None and cfg.static_triangulation else "foreground"
             init = initial_points(self.ds, self.train_names, init_frames(views.frames, cfg.init_frames),
-                                  shape.capacity, self.gen, cfg.init_points, cfg.background_share)
+                                  shape.capacity, self.gen, cfg.init_points, cfg.background_share, region=region)
             self.triangulated, self.background_points = init.triangulated, init.background
             init_canonical(model, init)
         # Stage A's layer is final (no GOP stage refines it): it gets the GOP stage's regularisers, which

@@ -222,10 +222,11 @@ def test_bench_train_labels_a_run_from_before_a_component_as_trained_without_it(
 
     assert label({"camera_colour": True}) == "cpu: all components"
     assert label({}) == "cpu: --no-camera-colour"  # before camera colours: trained without them
-    assert label({"camera_colour": True, "layers": "layered", "migrate": True}) == "cpu: --no-hull-seeds"
-    assert label({"camera_colour": True, "layers": "layered", "migrate": True, "hull_seeds": True}) == \
-        "cpu: all components"
-    assert label({"camera_colour": True, "layers": "single"}) == "cpu: all components"  # no hull seeds to miss
+    layered = {"camera_colour": True, "layers": "layered", "migrate": True}
+    assert label(layered) == "cpu: --no-hull-seeds --no-static-triangulation"
+    assert label({**layered, "hull_seeds": True}) == "cpu: --no-static-triangulation"
+    assert label({**layered, "hull_seeds": True, "static_triangulation": True}) == "cpu: all components"
+    assert label({"camera_colour": True, "layers": "single"}) == "cpu: all components"  # no layers to miss them
 
 
 def test_bench_train_tells_runs_with_the_same_settings_apart():
