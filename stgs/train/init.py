@@ -114,7 +114,8 @@ def triangulate(cameras: list[Camera], images: list[torch.Tensor], masks: list[t
     sift = cv2.SIFT_create(nfeatures=cfg.max_features, contrastThreshold=cfg.contrast_threshold)
     feats = []
     for img, mask in zip(images, masks, strict=True):
-        kps, desc = sift.detectAndCompute(_to_gray(img), None if mask is None else grown(mask, cfg.region_grow_px))
+        kps, desc = sift.detectAndCompute(_to_gray(img), None if mask is None else
+                                         grown(mask.numpy().astype(np.uint8) * 255, cfg.region_grow_px))
         feats.append((np.array([k.pt for k in kps], dtype=np.float64).reshape(-1, 2) + 0.5, desc))
     centres = np.stack([c.center.numpy() for c in cameras])
     matcher = cv2.BFMatcher(cv2.NORM_L2)
@@ -157,9 +158,8 @@ def triangulate(cameras: list[Camera], images: list[torch.Tensor], masks: list[t
     return torch.from_numpy(pts[keep]).float(), torch.from_numpy(col[keep]).float()
 
 
-def grown(mask: torch.Tensor, px: int) -> np.ndarray:
-    """A bool (H, W) mask as the uint8 0/255 image OpenCV takes, grown by `px` pixels (negative: shrunk)."""
-    image = mask.numpy().astype(np.uint8) * 255
+def grown(image: np.ndarray, px: int) -> np.ndarray:
+    """A uint8 (H, W) mask image grown by `px` pixels with a square kernel (negative: shrunk; 0: as it is)."""
     if px == 0:
         return image
     kernel = np.ones((2 * abs(px) + 1,) * 2, np.uint8)

@@ -34,7 +34,7 @@ from stgs.model.view import splat
 from stgs.train import losses
 from stgs.train.camera_colour import CameraColour, as_recorded
 from stgs.train.dynamic import dynamic_mask
-from stgs.train.init import in_view
+from stgs.train.init import grown, in_view
 from stgs.train.seeding import InitialPoints, init_canonical
 from stgs.train.views import Views
 
@@ -57,7 +57,7 @@ class MovingMasks:
 def grown_mask(mask: torch.Tensor, width: int, height: int, px: int = MASK_DILATE_PX) -> torch.Tensor:
     """(height, width) bool: a foreground `mask` at that size (nearest pixel), grown by `px` pixels."""
     small = cv2.resize(mask.numpy().astype(np.uint8), (width, height), interpolation=cv2.INTER_NEAREST)
-    return torch.from_numpy(cv2.dilate(small, np.ones((2 * px + 1,) * 2, np.uint8)) > 0)
+    return torch.from_numpy(grown(small, px) > 0)
 
 
 def moving_masks(ds: Dataset, views: Views, theta: float) -> MovingMasks:
