@@ -12,7 +12,8 @@ second (`python -m bench.layers`, prints Markdown rows for docs/BENCHMARKS.md).
    threshold 0.02), deform + splat ms per frame over their first GOP from one camera (`--camera`), and the
    PSNR of the background far from the players (outside the dataset's masks grown by FAR_PX) at every 10th
    frame of the cameras they were not trained on: the static layer's own error, without the players' edges
-   and shadows.
+   and shadows; and the PSNR inside the masks (the players) from every PLAYER_CAMERA_STEP-th training camera
+   and from the held-out ones: whether the players are fitted and do not generalise, or are not fitted.
 4. With `--sh-model DIR --dataset D`: what the static layer's degree-1 view-dependent colour buys on a trained
    layered scene. Its static layer is given the fit `stgs train --static-sh 1` runs after stage A (same
    views, same masks, `--sh-iterations`), its dynamic layers are kept as they are, and `stgs eval` scores
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import platform
 import statistics
 import subprocess
@@ -111,9 +113,15 @@ def train_rows(work: Path, iterations: int, coarse: int) -> list[str]:
 
 FAR_PX = 20
 """--models: pixels closer than this to a player's mask do not count as background far from the players."""
+PLAYER_CAMERA_STEP = 4
+"""--models: the players are also scored from every this-many-th training camera (what training fitted)."""
 
 
-def far_background_psnr(renderer: FrameRenderer, ds, names: list[str], frames: list[int], start: int) -> float:
+def region_psnr(renderer: FrameRenderer, ds, names: list[str], frames: list[int], start: int,
+                players: bool = False) -> float:
+    """Mean PSNR over `names`' views at `frames` of the GOP: of the background far from the players (outside the masks
+    grown by FAR_PX), or with `players` inside the masks. Drawn without the training cameras' colour responses
+    (their error, a few hundredths, is small beside the players')."""
     from stgs.metrics import psnr
     from stgs.train.layers import grown_mask
 
@@ -122,8 +130,8 @@ def far_background_psnr(renderer: FrameRenderer, ds, names: list[str], frames: l
         for i in frames:
             cam = next(c for c in ds.cameras(start + i) if c.name == name)
             mask = ds.mask(start + i, name)
-            near = grown_mask(mask, mask.shape[1], mask.shape[0], FAR_PX)
-            values.append(psnr(renderer.render(i, cam).clamp(0, 1), ds.image(start + i, name), mask=~near))
+            keep = mask if players else ~grown_mask(mask, mask.shape[1], mask.shape[0], FAR_PX)
+            values.append(psnr(renderer.render(i, cam).clamp(0, 1), ds.image(start + i, name), mask=keep))
     return sum(values) / len(values)
 
 
@@ -151,9 +159,13 @@ def model_rows(dirs: list[Path], dataset: Path, camera: str) -> list[str]:
         s_total = f"{static.capacity:,} ({live(static.opacity_logit):,})" if static is not None else "-"
         d_live = live(gops[0].opacity_logit)
         held = meta.extra.get("validation_cameras") or [camera]
-        far = far_background_psnr(renderer, ds, held, list(range(0, meta.shape.gop_size, 10)), start)
+        trained = (meta.extra.get("train_cameras") or [])[::PLAYER_CAMERA_STEP]
+        frames = list(range(0, meta.shape.gop_size, 10))
+        far = region_psnr(renderer, ds, held, frames, start)
+        players = [region_psnr(renderer, ds, names, frames, start, players=True) if names else math.nan
+                   for names in (trained, held)]
         rows.append(f"| {d.name} | {s_total} | {meta.shape.capacity:,} ({d_live:,}) | "
-                    f"{statistics.median(times[1:]):.1f} | {far:.2f} |")
+                    f"{statistics.median(times[1:]):.1f} | {far:.2f} | {players[0]:.2f} / {players[1]:.2f} |")
     return rows
 
 
@@ -214,8 +226,8 @@ def main() -> None:
     print(f"machine: {platform.processor() or platform.machine()}, torch threads {torch.get_num_threads()}")
     if args.models:
         print("| scene | static Gaussians (live) | dynamic Gaussians per GOP (live) | deform + splat ms/frame | "
-              "held-out background far from the players, PSNR |")
-        print("|---|---|---|---|---|")
+              "held-out background far from the players, PSNR | players' PSNR, training / held-out cameras |")
+        print("|---|---|---|---|---|---|")
         print("\n".join(model_rows([Path(m) for m in args.models.split(",")], args.dataset, args.camera)))
         return
     if args.sh_model:

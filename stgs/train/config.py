@@ -81,11 +81,12 @@ class TrainConfig:
     lambda_ssim: float = 0.2
     """SSIM share of the photometric loss."""
     dynamic: bool = True
-    """Dynamic-aware density: an extra photometric term on dynamic pixels."""
+    """Dynamic-aware density: an extra photometric term on dynamic pixels (layered: on each frame's moving pixels,
+    stgs.train.run.gop_views)."""
     dynamic_theta: float = 0.05
     """A pixel is dynamic when its luminance std over `dynamic_frames` frames exceeds this."""
     dynamic_frames: int = 30
-    """The GOP's first frames, whose per-pixel std decides the dynamic mask."""
+    """The GOP's first frames, whose per-pixel std decides the dynamic mask (single layer)."""
     dynamic_weight: float = 1.0
     """Weight of the photometric term on dynamic pixels."""
     aux: bool = True

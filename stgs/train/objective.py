@@ -67,9 +67,9 @@ def gop_loss(cfg: TrainConfig, gen: torch.Generator, model: GOPModel, aux: AuxTr
     img = as_recorded(colour, splat_over(backdrop, g, cam), c)
     ssim_values = ssim_map(img, target)
     loss = losses.photometric(img, target, cfg.lambda_ssim, ssim_values=ssim_values)
-    if cfg.dynamic and views.dynamic is not None:
-        loss = loss + cfg.dynamic_weight * losses.photometric(img, target, cfg.lambda_ssim, views.dynamic[c],
-                                                              ssim_values)
+    dynamic = views.dynamic_pixels(i, c) if cfg.dynamic else None
+    if dynamic is not None:
+        loss = loss + cfg.dynamic_weight * losses.photometric(img, target, cfg.lambda_ssim, dynamic, ssim_values)
     if aux is not None and deform:
         h_aux = aux(aux.tokens(model, i, window))  # the same noisy window the MLP sees
         g_aux = model.apply_offsets(model.field.decode(h_aux, model.xyz, center))

@@ -27,8 +27,9 @@ from stgs.tasks import Task, open_runner
 from stgs.train.base import BASE_FILE, BaseStage
 from stgs.train.config import TrainConfig, config_from_dict
 from stgs.train.dynamic import gop_dynamic_masks
+from stgs.train.layers import moving_masks
 from stgs.train.trainer import Trainer
-from stgs.train.views import load_views, scale_camera
+from stgs.train.views import Views, load_views, scale_camera
 from stgs.tree import CAMERAS, CAMERAS_FORMAT, TRAIN_REPORT, gop_file, gop_stem
 
 LOG_DIR = "logs"
@@ -72,15 +73,25 @@ def gop_done(trainer: Trainer, k: int) -> bool:
     return (trainer.state / gop_file(k)).is_file() and (trainer.state / report_file(k)).is_file()
 
 
-def gop_stage(trainer: Trainer, k: int) -> dict:
-    """Train GOP k from the saved base stage; save it and its report in the state folder."""
-    cfg = trainer.cfg
-    base = trainer.base or saved_base(trainer)
-    frames = trainer.gop_frames(k)
+def gop_views(trainer: Trainer, k: int) -> tuple[Views, Views | None]:
+    """GOP k's training views with their dynamic-pixel masks, and its validation views (None without any).
+    A layered GOP's masks are each frame's moving pixels, as stage A's (the dataset's foreground masks, grown,
+    where it has them): its layer holds only what moves, and the players, standing still in some frames,
+    fall outside a mask of what varied over the GOP's first frames (format 1's)."""
+    cfg, frames = trainer.cfg, trainer.gop_frames(k)
     views = load_views(trainer.ds, trainer.train_names, frames, cfg.scale, trainer.progress)
-    if cfg.dynamic:
+    if cfg.dynamic and trainer.layered:
+        views.dynamic = moving_masks(trainer.ds, views, cfg.dynamic_theta).masks
+    elif cfg.dynamic:
         views.dynamic = gop_dynamic_masks(views.images, cfg.dynamic_frames, cfg.dynamic_theta)
     val = load_views(trainer.ds, trainer.val_names, frames, cfg.scale, False) if trainer.val_names else None
+    return views, val
+
+
+def gop_stage(trainer: Trainer, k: int) -> dict:
+    """Train GOP k from the saved base stage; save it and its report in the state folder."""
+    base = trainer.base or saved_base(trainer)
+    views, val = gop_views(trainer, k)
     model, report = trainer.train_gop(k, base.coarse, views, val)
     save_gop(model, trainer.state / gop_file(k))
     atomic_write_bytes(trainer.state / report_file(k), json.dumps(dataclasses.asdict(report)).encode())

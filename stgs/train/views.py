@@ -22,10 +22,16 @@ class Views:
     images: torch.Tensor
     """(F, C, H, W, 3) uint8."""
     dynamic: torch.Tensor | None = None
-    """(C, H, W) bool dynamic-pixel masks."""
+    """Bool dynamic-pixel masks: (C, H, W), one per camera, or (F, C, H, W), one per view."""
 
     def target(self, f: int, c: int) -> torch.Tensor:
         return self.images[f, c].float().div_(255.0)
+
+    def dynamic_pixels(self, f: int, c: int) -> torch.Tensor | None:
+        """(H, W) the dynamic pixels of view (f, c), or None without masks."""
+        if self.dynamic is None:
+            return None
+        return self.dynamic[f, c] if self.dynamic.ndim == 4 else self.dynamic[c]
 
 
 def scale_camera(cam: Camera, scale: float) -> Camera:

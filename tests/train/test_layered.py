@@ -25,6 +25,8 @@ from stgs.synth.scene import ProceduralScene
 from stgs.train import budget, train
 from stgs.train import losses as loss_module
 from stgs.train.layers import fit_view_dependent, migrate, motion_scores, moving_masks
+from stgs.train.objective import gop_loss
+from stgs.train.run import gop_views
 from stgs.train.trainer import Trainer
 from stgs.train.views import Views, downscaled, load_views
 from tests.conftest import run_stgs as stgs
@@ -146,6 +148,35 @@ def test_the_dynamic_layer_starts_with_no_opacity_offset_and_warms_up_without_it
             assert all(g is not None for g in field) and sum(g.abs().sum() for g in field) > 0
         else:
             assert all(g is None for g in field)
+
+
+def test_a_layered_gop_weights_each_frames_moving_pixels(scene, tmp_path):
+    """Stage B's dynamic-density term is drawn on the moving pixels of the drawn frame (the dataset's masks,
+    grown, as stage A's), where format 1's GOPs keep one mask per camera."""
+    layered = Trainer(scene, tmp_path / "l", budget("quick", **LAYERED), progress=False)
+    views, val = gop_views(layered, 0)
+    assert val is not None and val.dynamic is None
+    assert views.dynamic.shape == (*views.images.shape[:4],)
+    assert torch.equal(views.dynamic, moving_masks(layered.ds, views, layered.cfg.dynamic_theta).masks)
+    assert not torch.equal(views.dynamic[0], views.dynamic[-1])  # the objects move between the GOP's ends
+    single_cfg = budget("quick", **(LAYERED | {"layers": "single"}))
+    single, _ = gop_views(Trainer(scene, tmp_path / "s", single_cfg, progress=False), 0)
+    assert single.dynamic.shape == (views.images.shape[1], *views.images.shape[2:4])
+    assert torch.equal(single.dynamic_pixels(3, 1), single.dynamic[1])
+
+    model = layered.start_model(0, None)
+    drawn = int(torch.randint(len(views.frames), (1,), generator=torch.Generator().manual_seed(5)))
+
+    def loss(masks: torch.Tensor) -> float:
+        views.dynamic = masks
+        with torch.no_grad():
+            return float(gop_loss(layered.cfg, torch.Generator().manual_seed(5), model, None, views)[0])
+
+    none = torch.zeros_like(views.dynamic)
+    only_drawn, all_but_drawn = none.clone(), ~none
+    only_drawn[drawn], all_but_drawn[drawn] = True, False
+    assert loss(only_drawn) == loss(~none) > loss(none) == loss(all_but_drawn)
+    assert loss(~none) == loss(torch.ones(views.dynamic.shape[1:], dtype=torch.bool))
 
 
 def test_the_dynamic_layer_is_seeded_on_the_moving_objects_hull(scene, tmp_path):
