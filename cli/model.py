@@ -108,7 +108,7 @@ def add_train(sub: argparse._SubParsersAction) -> None:
                    help="layered, --static-sh 1: iterations of that fit (default 500)")
     p.add_argument("--dynamic-warmup", type=float,
                    help="layered: share of each GOP's iterations that fit the dynamic layer without its "
-                   "deformation first (default 0.2)")
+                   "deformation first (default 0: none)")
     p.add_argument("--iterations", type=positive_int, help="iterations per GOP")
     p.add_argument("--coarse-iterations", type=int,
                    help="iterations of the coarse canonical stage (layered: of stage A, the static layer)")

@@ -52,9 +52,10 @@ class TrainConfig:
     """Layered: view-dependent colour of the static layer (0: none; 1: degree-1 term fitted after stage A)."""
     static_sh_iterations: int = 500
     """Layered, static_sh_degree 1: iterations of the colour + sh1 fit (geometry and opacity frozen)."""
-    dynamic_warmup: float = 0.2
+    dynamic_warmup: float = 0.0
     """Layered: share of each GOP's iterations that fit the dynamic layer's canonical Gaussians before its
-    deformation field is switched on (format 1 starts its GOPs from the fitted coarse stage instead)."""
+    deformation field is switched on (0: from the start; since relocation judges the layer by its peak opacity a
+    warm-up no longer pays, docs/TRAINING.md)."""
     gop_size: int = 60
     """Frames per GOP (G)."""
     window: int = 3

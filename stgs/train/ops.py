@@ -81,7 +81,8 @@ def log_lerp(a: float, b: float, t: float) -> float:
 
 @torch.no_grad()
 def relocate(model: GOPModel, opt: Optimizer, avg: torch.Tensor, dead_opacity: float, gen: torch.Generator) -> int:
-    """Move dead Gaussians (average opacity `avg` below `dead_opacity`) onto live ones sampled by opacity,
+    """Move dead Gaussians (drawn opacity `avg`, opacity_level's, below `dead_opacity`) onto live ones sampled by
+    it,
     splitting the opacity (3DGS-MCMC); the Adam state of both rows restarts. Returns how many moved.
 
     A live Gaussian gives at most as many copies as keep every share at twice `dead_opacity` or more
@@ -137,16 +138,31 @@ def sort(model: GOPModel, opt: Optimizer, accum: torch.Tensor, seed: int) -> Non
     accum.copy_(accum[:, order])
 
 
+def track_opacities(accum: torch.Tensor, opacities: torch.Tensor, peak: bool = False) -> None:
+    """Fold one iteration's drawn (deformed) opacities into `accum` ((2, N)): row 0 their running sum, or their
+    running maximum when `peak`; row 1 how many iterations drew them."""
+    if peak:
+        torch.maximum(accum[0], opacities, out=accum[0])
+    else:
+        accum[0] += opacities
+    accum[1] += 1
+
+
+def opacity_level(accum: torch.Tensor, peak: bool = False) -> torch.Tensor:
+    """(N,) each Gaussian's drawn opacity since `accum` was cleared (track_opacities): its mean, or its peak."""
+    return accum[0].clone() if peak else accum[0] / accum[1].clamp_min(1)
+
+
 @torch.no_grad()
-def prune(model: GOPModel, accum: torch.Tensor, dead_opacity: float) -> int:
-    """Park the slots whose average opacity over the GOP stayed below `dead_opacity`; returns how many.
+def prune(model: GOPModel, accum: torch.Tensor, dead_opacity: float, peak: bool = False) -> int:
+    """Park the slots whose drawn opacity (opacity_level: mean, or peak) since `accum` was cleared stayed below
+    `dead_opacity`; returns how many.
 
     The stream cannot carry opacity 0 (its floor is sigmoid(-4)), so a parked slot gets the floor opacity
     and the smallest scale of the live Gaussians: a faint dot about a pixel wide that widens neither the
     opacity nor the scale range of the packed attributes.
     """
-    avg = accum[0] / accum[1].clamp_min(1)
-    dead = (avg < dead_opacity) & (accum[1] > 0)
+    dead = (opacity_level(accum, peak) < dead_opacity) & (accum[1] > 0)
     model.opacity_logit[dead] = OPACITY_LOGIT_RANGE[0]
     if not dead.all():
         model.log_scale[dead] = model.log_scale[~dead].amin(0)

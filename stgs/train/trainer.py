@@ -62,7 +62,7 @@ from stgs.train.config import TrainConfig, stage_seed
 from stgs.train.hull import HullConfig
 from stgs.train.layers import Migrated, fit_view_dependent, init_dynamic, migrate, motion_scores, moving_masks
 from stgs.train.objective import GOPLoss, canonical_regularisers, gop_loss
-from stgs.train.ops import Optimizer, prune, relocate, sort
+from stgs.train.ops import Optimizer, opacity_level, prune, relocate, sort, track_opacities
 from stgs.train.seeding import init_canonical, init_frames, initial_points
 from stgs.train.validation import mean_scores
 from stgs.train.views import Views, downscaled, scene_extent
@@ -279,16 +279,18 @@ class Trainer:
         loss_value = math.nan
         window = []  # losses since the last curve point: one view's loss is too noisy to show a trend
         warmup = cfg.dynamic_warmup * cfg.iterations if self.layered else 0
+        # A dynamic layer's Gaussian may be drawn in a few of the GOP's frames only (it fades in and out): dead is
+        # when it is faint at its peak, not on average over frames it is rightly absent from (docs/TRAINING.md).
+        peak = self.layered
         for it in bar:
             opt.set_progress(it / cfg.iterations)
             loss, img, target, opac = self.gop_loss(model, aux, views, static, deform=it >= warmup)
             self._step(opt, loss, f"GOP {k}", it, model)
             loss_value = loss.item()
             window.append(loss_value)
-            accum[0] += opac
-            accum[1] += 1
+            track_opacities(accum, opac, peak)
             if cfg.relocate and (it + 1) % cfg.relocate_every == 0 and it < cfg.relocate_until * cfg.iterations:
-                report.relocated += relocate(model, opt, accum[0] / accum[1].clamp_min(1), cfg.dead_opacity, self.gen)
+                report.relocated += relocate(model, opt, opacity_level(accum, peak), cfg.dead_opacity, self.gen)
                 accum.zero_()
             if cfg.smooth_weight and (it + 1) % cfg.sort_every == 0 and it + 1 < cfg.iterations:
                 sort(model, opt, accum, cfg.seed)
@@ -307,7 +309,7 @@ class Trainer:
                 self.checkpoints.save(gop_stem(k), model, opt, self.gen,
                                       {"iteration": it + 1, "report": dataclasses.asdict(report)}, {"aux": aux},
                                       accum)
-        report.pruned = prune(model, accum, cfg.dead_opacity)
+        report.pruned = prune(model, accum, cfg.dead_opacity, peak)
         report.seconds = time.perf_counter() - clock
         report.iterations = cfg.iterations
         report.final_loss = loss_value

@@ -6,7 +6,16 @@ import torch
 
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.train.config import budget
-from stgs.train.ops import GAUSSIAN_AXIS, Optimizer, copies_allowed, relocate, sort
+from stgs.train.ops import (
+    GAUSSIAN_AXIS,
+    Optimizer,
+    copies_allowed,
+    opacity_level,
+    prune,
+    relocate,
+    sort,
+    track_opacities,
+)
 
 SIDE = 8
 
@@ -133,3 +142,29 @@ def test_the_optimizer_benchmark_times_whole_iterations_on_a_model_dir(tmp_path)
     cells = [c.strip() for c in measure_iterations(tmp_path, steps=3).strip("|").split("|")]
     assert cells[:2] == [tmp_path.name, f"{SIDE * SIDE}"] and len(cells) == 5
     assert all(float(c.split(" (")[0]) > 0 for c in cells[2:])
+
+
+def test_a_gaussian_drawn_in_a_few_frames_is_dead_by_its_mean_but_alive_by_its_peak():
+    """A dynamic-layer Gaussian that fades in for 2 of 20 drawn frames (opacity 0.15) averages 0.015, under the
+    dead threshold; judged by its peak it stays, and one faint in every frame is dead either way."""
+    n, dead_opacity = 4, 0.02
+    drawn = torch.zeros(20, n)
+    drawn[:, 0] = 0.5                  # on in every frame
+    drawn[[3, 11], 1] = 0.15           # on in two frames only
+    drawn[:, 2] = 0.01                 # faint throughout
+    drawn[5, 3] = 0.019                # faint at its peak
+    levels = {}
+    for peak in (False, True):
+        accum = torch.zeros(2, n)
+        for opacities in drawn:
+            track_opacities(accum, opacities, peak)
+        assert accum[1].tolist() == [20.0] * n
+        levels[peak] = opacity_level(accum, peak)
+        model = GOPModel(GOPShape(n, gop_size=4, window=2))
+        with torch.no_grad():
+            model.opacity_logit.fill_(0.0)
+        pruned = prune(model, accum, dead_opacity, peak)
+        assert pruned == (2 if peak else 3)
+        assert (model.opacity_logit[1] < 0).item() is not peak
+    assert torch.allclose(levels[False], torch.tensor([0.5, 0.015, 0.01, 0.00095]))
+    assert torch.allclose(levels[True], torch.tensor([0.5, 0.15, 0.01, 0.019]))
