@@ -80,27 +80,27 @@ def log_lerp(a: float, b: float, t: float) -> float:
 
 
 @torch.no_grad()
-def relocate(model: GOPModel, opt: Optimizer, avg: torch.Tensor, dead_opacity: float, gen: torch.Generator) -> int:
-    """Move dead Gaussians (drawn opacity `avg`, opacity_level's, below `dead_opacity`) onto live ones sampled by
-    it,
-    splitting the opacity (3DGS-MCMC); the Adam state of both rows restarts. Returns how many moved.
+def relocate(model: GOPModel, opt: Optimizer, level: torch.Tensor, dead_opacity: float, gen: torch.Generator) -> int:
+    """Move dead Gaussians (drawn opacity `level`, opacity_level's mean or peak, below `dead_opacity`) onto live
+    ones sampled by it, splitting the opacity (3DGS-MCMC); the Adam state of both rows restarts. Returns how many
+    moved.
 
     A live Gaussian gives at most as many copies as keep every share at twice `dead_opacity` or more
     (`copies_allowed`); the dead slots beyond that wait for the next relocation. Without the cap a faint live
     set (a small dynamic layer early on) is split into copies born dead, which the next relocation splits
     again, until every Gaussian is dead."""
-    dead = torch.nonzero(avg < dead_opacity).squeeze(1)
-    alive = avg >= dead_opacity
+    dead = torch.nonzero(level < dead_opacity).squeeze(1)
+    alive = level >= dead_opacity
     if len(dead) == 0 or not alive.any():
         return 0
-    probs = torch.where(alive, avg, torch.zeros_like(avg))
+    probs = torch.where(alive, level, torch.zeros_like(level))
     src = torch.multinomial(probs, len(dead), replacement=True, generator=gen)
     base = torch.sigmoid(model.opacity_logit)
     keep = _copy_rank(src) < copies_allowed(base, dead_opacity)[src]
     dead, src = dead[keep], src[keep]
     if len(dead) == 0:
         return 0
-    counts = torch.bincount(src, minlength=len(avg)).float()
+    counts = torch.bincount(src, minlength=len(level)).float()
     split = 1 - (1 - base[src]).clamp_min(1e-6) ** (1 / (counts[src] + 1))
     for name, axis in GAUSSIAN_AXIS.items():
         param = getattr(model, name)
