@@ -10,22 +10,19 @@ gradients. Each implementation steps `steps` times from the same start; the medi
 alternate, so the machine's drift hits both alike), and the parameters after the last step are compared (the
 two differ by float32 rounding only). With --model: whole GOP-stage iterations on a trained model dir's GOP 0
 (the deformation at one frame, the splat from one of its cameras, L1 + SSIM against a fixed target, the temporal
-Huber term on 8,192 Gaussians, the backward pass and the step), the two optimizers on two copies of the model,
+Huber term, the backward pass and the step), the two optimizers on two copies of the model,
 alternating. Prints Markdown for docs/BENCHMARKS.md.
 """
 
 from __future__ import annotations
 
-import argparse
-import platform
 import statistics
-import subprocess
 import time
 from pathlib import Path
 
 import torch
 
-from bench import ms_cell
+from bench import capacity_parser, ms_cell, print_capacity_table, torch_table_header
 from stgs.client.view import read_scene_cameras
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.store import load_gop, read_meta
@@ -72,11 +69,10 @@ def measure_iterations(model_dir: Path, steps: int) -> str:
     shape = meta.shape
     for it in range(steps + 2):
         frame, cam = it % shape.gop_size, cams[it % len(cams)]
-        sample = torch.randint(shape.capacity, (8192,), generator=gen)
         for model, opt, whole, step in runs.values():
             begin = time.perf_counter()
             image = splat(model.deform(frame, cam.center.float()), cam)
-            loss = losses.photometric(image, target, 0.2) + losses.temporal_huber(model.features[:, sample])
+            loss = losses.photometric(image, target, 0.2) + losses.temporal_huber(model.features)
             opt.opt.zero_grad(set_to_none=True)
             loss.backward()
             stepping = time.perf_counter()
@@ -91,26 +87,18 @@ def measure_iterations(model_dir: Path, steps: int) -> str:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--capacities", default="9216,16384", help="comma-separated Gaussian counts N")
-    parser.add_argument("--steps", type=int, default=30)
+    parser = capacity_parser(__doc__, "9216,16384")
     parser.add_argument("--model", type=Path, action="append", help="a trained model dir: time whole iterations")
     args = parser.parse_args()
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    print(f"<!-- python -m bench.optimizer, {platform.processor() or platform.machine()}, "
-          f"torch threads {torch.get_num_threads()}, commit {commit} -->")
+    print(torch_table_header("optimizer"))
     if args.model:
         print("| scene | Gaussians N | iteration ms (of it the step), per-parameter loop | fused | fused / loop |")
         print("|---|---|---|---|---|")
         for model_dir in args.model:
             print(measure_iterations(model_dir, args.steps), flush=True)
         return 0
-    print("| Gaussians N | parameters | Adam step ms, per-parameter loop | fused | fused / loop | "
-          f"largest parameter difference after {args.steps} steps |")
-    print("|---|---|---|---|---|---|")
-    for n in args.capacities.split(","):
-        print(measure(int(n), args.steps), flush=True)
-    return 0
+    return print_capacity_table(args, "| Gaussians N | parameters | Adam step ms, per-parameter loop | fused | "
+                                f"fused / loop | largest parameter difference after {args.steps} steps |", measure)
 
 
 if __name__ == "__main__":

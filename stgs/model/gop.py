@@ -124,6 +124,11 @@ class DeformationField(nn.Module):
         return d_x, cov[:, :3], cov[:, 3:], d_o, self.d_color(hv)
 
 
+def flat_window(block: torch.Tensor) -> torch.Tensor:
+    """(N, W·16) per-Gaussian concatenation of a (W, N, 16) block of feature frames."""
+    return block.permute(1, 0, 2).reshape(block.shape[1], -1)
+
+
 class GOPModel(nn.Module):
     """Canonical Gaussians + temporal features + deformation field of one GOP."""
 
@@ -161,8 +166,7 @@ class GOPModel(nn.Module):
         if window is not None:
             return torch.cat(self.feature_window(frame, window), dim=1)
         self.check_frame(frame)
-        w = self.shape.window
-        return self.features[frame:frame + w].permute(1, 0, 2).reshape(self.shape.capacity, -1)
+        return flat_window(self.features[frame:frame + self.shape.window])
 
     def check_frame(self, frame: int) -> None:
         if not 0 <= frame < self.shape.gop_size:

@@ -97,8 +97,6 @@ class TrainConfig:
     temporal_weight: float = 1.0
     """Huber temporal consistency of features (0: off)."""
     huber_delta: float = 0.01
-    temporal_sample: int = 8192
-    """Gaussians per iteration in the temporal term (bounds its cost)."""
     opacity_weight: float = 0.01
     smooth_weight: float = 0.01
     """Spatial smoothness of the PLAS-sorted attribute grids (0: off)."""

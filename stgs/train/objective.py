@@ -16,7 +16,7 @@ from typing import NamedTuple
 import torch
 
 from stgs.metrics import ssim_map
-from stgs.model.gop import GOPModel, frame_time
+from stgs.model.gop import GOPModel, flat_window, frame_time
 from stgs.model.view import Backdrop, splat_over
 from stgs.train import losses
 from stgs.train.aux import AuxTransformer
@@ -56,7 +56,8 @@ def gop_loss(cfg: TrainConfig, gen: torch.Generator, model: GOPModel, aux: AuxTr
     c = int(torch.randint(len(views.cameras), (1,), generator=gen))
     cam, target = views.cameras[c], views.target(i, c)
     noise = (torch.rand(model.features.shape[1], cfg.window * 16, generator=gen) - 0.5) * cfg.feature_noise
-    window = model.window_features(i) + noise
+    block = model.features[i:i + shape.window]  # one slice for the window and the smoothness term: one gradient buffer
+    window = flat_window(block) + noise
     center = cam.center.float()
     if deform:
         h = model.field.hidden(window, frame_time(i, shape.gop_size))
@@ -77,9 +78,8 @@ def gop_loss(cfg: TrainConfig, gen: torch.Generator, model: GOPModel, aux: AuxTr
         loss = loss + cfg.aux_ssim_weight * (1 - losses.ssim(img_aux, target))
         loss = loss + cfg.distill_weight * losses.self_distillation(h, h_aux)
     if cfg.temporal_weight:
-        idx = torch.randint(shape.capacity, (min(cfg.temporal_sample, shape.capacity),), generator=gen)
-        loss = loss + cfg.temporal_weight * losses.temporal_huber(model.features[:, idx], cfg.huber_delta)
+        loss = loss + cfg.temporal_weight * losses.temporal_huber(model.features, cfg.huber_delta)
     loss = loss + canonical_regularisers(cfg, model, g.opacities)
     if cfg.smooth_weight:
-        loss = loss + cfg.smooth_weight * losses.grid_smoothness(model.features[i], shape.grid_side)
+        loss = loss + cfg.smooth_weight * losses.grid_smoothness(block[0], shape.grid_side)
     return GOPLoss(loss, img, target, g.opacities.detach())

@@ -21,6 +21,31 @@ def test_temporal_huber_by_hand():
     assert losses.temporal_huber(f[:1], 0.01).item() == 0.0
 
 
+def test_temporal_huber_gradient_matches_autograd_through_torch_huber_loss():
+    gen = torch.Generator().manual_seed(3)
+    # steps from 0 to 0.05 either side of δ = 0.01: both zones and their joint
+    f = (torch.rand(9, 40, 4, generator=gen, dtype=torch.float64) * 0.05).cumsum(0).requires_grad_()
+    reference = torch.nn.functional.huber_loss(f[1:], f[:-1], delta=0.01)
+    (expected,) = torch.autograd.grad(reference * 3.0, f)
+    value = losses.temporal_huber(f, 0.01)
+    (got,) = torch.autograd.grad(value * 3.0, f)
+    assert value.item() == pytest.approx(reference.item(), rel=1e-12)
+    assert torch.allclose(got, expected, rtol=1e-12, atol=1e-18)
+    assert torch.autograd.gradcheck(lambda x: losses.temporal_huber(x, 0.01), (f,))
+    two = f[:2].detach().clone().requires_grad_()
+    (edge,) = torch.autograd.grad(losses.temporal_huber(two, 0.01), two)  # E = 2: the first and last frame only
+    assert torch.allclose(edge[0], -edge[1]) and edge.abs().sum() > 0
+
+
+def test_the_temporal_benchmark_times_three_variants_and_compares_their_gradients():
+    from bench.temporal import measure
+
+    cells = [c.strip() for c in measure(64, steps=2).strip("|").split("|")]
+    assert cells[0] == "64" and len(cells) == 6
+    assert all(float(c) > 0 for c in cells[1:4])
+    assert float(cells[5]) < 1e-9  # the hand-written backward is autograd's gradient
+
+
 def test_ssim_of_flat_images_by_hand():
     a = torch.full((30, 30, 3), 0.2, dtype=torch.float64)  # float64: no rounding in the variances
     b = torch.full((30, 30, 3), 0.6, dtype=torch.float64)
