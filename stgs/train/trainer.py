@@ -267,7 +267,7 @@ class Trainer:
         aux = AuxTransformer(cfg.pe_freqs) if cfg.aux else None
         opt = Optimizer(model, cfg, self.extent, aux)
         report = GOPReport(k)
-        accum = torch.zeros(2, self.shape.capacity)  # running sum and count of deformed opacities
+        accum = torch.zeros(2, self.shape.capacity)  # drawn opacities: sum or peak, and count (track_opacities)
         resumed = self.checkpoints.load(gop_stem(k), model, opt, self.gen, {"aux": aux})
         start = 0
         if resumed:
