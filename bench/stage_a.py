@@ -21,39 +21,14 @@ from pathlib import Path
 
 import torch
 
-from stgs.data import Dataset, open_dataset
-from stgs.metrics import psnr
-from stgs.model.static import StaticLayer
-from stgs.model.view import splat, static_view
-from stgs.train.camera_colour import CameraColour, as_recorded
+from stgs.data import open_dataset
 from stgs.train.config import budget
-from stgs.train.layers import grown_mask
+from stgs.train.layers import MASK_DILATE_PX, static_background_psnr
 from stgs.train.run import base_stage
 from stgs.train.trainer import Trainer
 
 FRAME_STEP = 6
 """Every this many frames of the GOP are drawn, and every this many training cameras."""
-
-
-def background_psnr(static: StaticLayer, ds: Dataset, names: list[str], frames: list[int],
-                    colour: CameraColour | None = None, indices: list[int] | None = None) -> float:
-    """Mean PSNR of the static layer alone over the pixels outside the grown foreground masks; `colour` and
-    `indices` (the cameras' places among the training cameras): draw through their colour responses."""
-    values = []
-    for frame in frames:
-        cams = {c.name: c for c in ds.cameras(frame)}
-        for k, name in enumerate(names):
-            cam = cams[name]
-            with torch.no_grad():
-                image = splat(static_view(static, cam), cam, guarded=True)
-                if colour is not None and indices is not None:
-                    image = as_recorded(colour, image, indices[k])
-            mask = ds.mask(frame, name)
-            if mask is None:
-                raise SystemExit(f"{ds.name}: camera {name} has no foreground mask at frame {frame}")
-            keep = ~grown_mask(mask, cam.width, cam.height)
-            values.append(psnr(image.clamp(0, 1), ds.image(frame, name), mask=keep))
-    return sum(values) / len(values)
 
 
 def parse_settings(text: str) -> dict:
@@ -76,9 +51,9 @@ def row(dataset: Path, holdout: list[str], settings: dict, seed: int, work: Path
     ds = open_dataset(dataset)
     frames = list(range(0, cfg.gop_size, FRAME_STEP))
     trained = trainer.train_names[::FRAME_STEP]
-    held_out = background_psnr(base.static, ds, trainer.val_names, frames)
-    fitted = background_psnr(base.static, ds, trained, frames, base.colour,
-                             [trainer.train_names.index(n) for n in trained])
+    held_out = static_background_psnr(base.static, ds, trainer.val_names, frames, MASK_DILATE_PX)
+    fitted = static_background_psnr(base.static, ds, trained, frames, MASK_DILATE_PX, base.colour,
+                                   [trainer.train_names.index(n) for n in trained])
     label = ", ".join(f"{k} {v:g}" for k, v in settings.items()) or "the budget's"
     return f"| {label} | {seed} | {seconds:.0f} | {held_out:.2f} | {fitted:.2f} |"
 

@@ -28,9 +28,10 @@ from tqdm import tqdm
 from stgs.codec.attributes import OPACITY_LOGIT_RANGE
 from stgs.data import Dataset
 from stgs.errors import StgsError
+from stgs.metrics import psnr
 from stgs.model.gop import GOPModel
 from stgs.model.static import STATIC_TENSORS, StaticLayer
-from stgs.model.view import splat
+from stgs.model.view import splat, static_view
 from stgs.train import losses
 from stgs.train.camera_colour import CameraColour, as_recorded
 from stgs.train.dynamic import dynamic_mask
@@ -58,6 +59,27 @@ def grown_mask(mask: torch.Tensor, width: int, height: int, px: int = MASK_DILAT
     """(height, width) bool: a foreground `mask` at that size (nearest pixel), grown by `px` pixels."""
     small = cv2.resize(mask.numpy().astype(np.uint8), (width, height), interpolation=cv2.INTER_NEAREST)
     return torch.from_numpy(grown(small, px) > 0)
+
+
+def static_background_psnr(static: StaticLayer, ds: Dataset, names: list[str], frames: list[int], grow: int = 0,
+                           colour: CameraColour | None = None, indices: list[int] | None = None) -> float:
+    """Mean PSNR of the static layer drawn alone, from cameras `names` at `frames`, over the pixels outside each
+    view's foreground mask grown by `grow` pixels; with `colour`, drawn through the colour responses of the
+    training cameras at `indices` (each name's place among them)."""
+    values = []
+    for frame in frames:
+        cams = {c.name: c for c in ds.cameras(frame)}
+        for k, name in enumerate(names):
+            cam, mask = cams[name], ds.mask(frame, name)
+            if mask is None:
+                raise StgsError(f"{ds.name}: camera {name} has no foreground mask at frame {frame}")
+            with torch.no_grad():
+                image = splat(static_view(static, cam), cam, guarded=True)
+                if colour is not None and indices is not None:
+                    image = as_recorded(colour, image, indices[k])
+            keep = ~grown_mask(mask, cam.width, cam.height, grow)
+            values.append(psnr(image.clamp(0, 1), ds.image(frame, name), mask=keep))
+    return sum(values) / len(values)
 
 
 def moving_masks(ds: Dataset, views: Views, theta: float) -> MovingMasks:

@@ -9,8 +9,6 @@ import pytest
 import torch
 
 from stgs.data import open_dataset, split
-from stgs.metrics import psnr
-from stgs.model.view import splat, static_view
 from stgs.synth import SynthConfig, synthesize
 from stgs.synth.config import DEFAULT_EFFECTS
 from stgs.train.init import in_view
@@ -32,16 +30,6 @@ def layered_scene(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("layered") / "scene"
     synthesize(SCENE, out, progress=False)
     return out
-
-
-def background_psnr(static, ds, cameras, frames) -> float:
-    """Mean PSNR of the static layer alone outside the dataset's foreground masks."""
-    values = []
-    for cam in cameras:
-        for f in frames:
-            mask = ds.mask(f, cam.name)
-            values.append(psnr(splat(static_view(static, cam), cam).clamp(0, 1), ds.image(f, cam.name), mask=~mask))
-    return sum(values) / len(values)
 
 
 @pytest.fixture(scope="session")
