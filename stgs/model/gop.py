@@ -165,8 +165,13 @@ class GOPModel(nn.Module):
         """(N, W·16) concatenation of e_frame … e_{frame+W-1} (from `window` when given, see feature_window)."""
         if window is not None:
             return torch.cat(self.feature_window(frame, window), dim=1)
+        return flat_window(self.feature_block(frame))
+
+    def feature_block(self, frame: int) -> torch.Tensor:
+        """(W, N, 16) the slice e_frame … e_{frame+W-1} of self.features (one view: one gradient buffer for every
+        term that reads it)."""
         self.check_frame(frame)
-        return flat_window(self.features[frame:frame + self.shape.window])
+        return self.features[frame:frame + self.shape.window]
 
     def check_frame(self, frame: int) -> None:
         if not 0 <= frame < self.shape.gop_size:

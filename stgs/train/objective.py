@@ -56,7 +56,7 @@ def gop_loss(cfg: TrainConfig, gen: torch.Generator, model: GOPModel, aux: AuxTr
     c = int(torch.randint(len(views.cameras), (1,), generator=gen))
     cam, target = views.cameras[c], views.target(i, c)
     noise = (torch.rand(model.features.shape[1], cfg.window * 16, generator=gen) - 0.5) * cfg.feature_noise
-    block = model.features[i:i + shape.window]  # one slice for the window and the smoothness term: one gradient buffer
+    block = model.feature_block(i)  # one slice for the window and the smoothness term
     window = flat_window(block) + noise
     center = cam.center.float()
     if deform:
