@@ -51,7 +51,8 @@ from stgs.codec.static import StaticSegmentError, decode_static
 from stgs.errors import StgsError
 from stgs.harness.scenario import load_scenario
 from stgs.harness.trace import load_trace
-from stgs.mpd import MPDError, parse_mpd
+from stgs.mpd import parse_mpd
+from stgs.mpd_values import MPDError
 
 CASE_ALARM_S = 5.0
 """A case that runs longer than this hangs (every target takes milliseconds on honest input)."""

@@ -20,8 +20,9 @@ from stgs.limits import (
     SEGMENT_SLACK,
 )
 from stgs.model.gop import GOPShape
-from stgs.mpd import MPD, PROFILE_STGS, AdaptationSet, MPDError, expand_template, parse_mpd
+from stgs.mpd import MPD, PROFILE_STGS, AdaptationSet, parse_mpd
 from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_SCHEME, STATIC_SCHEME, KeyframeDescriptor, StaticLayerDescriptor
+from stgs.mpd_values import MPDError, expand_template
 from stgs.tree import qp_of
 
 DURATION_PRECISION_S = 1e-3

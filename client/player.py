@@ -60,7 +60,7 @@ from stgs.client.urlpolicy import UrlPolicy
 from stgs.client.view import parse_scene_cameras
 from stgs.fsio import atomic_write_bytes
 from stgs.limits import MAX_DOC_BYTES, MAX_MPD_BYTES
-from stgs.mpd import MPDError
+from stgs.mpd_values import MPDError
 from stgs.tree import CAMERAS, STATS
 
 

@@ -15,7 +15,7 @@ from stgs.client.manifest import Presentation
 from stgs.client.urlpolicy import UrlPolicy
 from stgs.errors import StgsError
 from stgs.limits import MAX_INIT_BYTES, MAX_MPD_BYTES
-from stgs.mpd import MPDError
+from stgs.mpd_values import MPDError
 from stgs.tree import MANIFEST, STATS
 
 

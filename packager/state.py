@@ -9,7 +9,8 @@ from pathlib import Path
 
 from stgs.errors import StgsError
 from stgs.fsio import atomic_write_bytes
-from stgs.mpd import PROFILE_STGS, MPDError, read_mpd
+from stgs.mpd import PROFILE_STGS, read_mpd
+from stgs.mpd_values import MPDError
 from stgs.tree import MANIFEST, MODEL_META, PACK_STATE
 
 

@@ -13,8 +13,9 @@ from pathlib import Path
 
 from aiohttp import web
 
-from stgs.mpd import MPDError, read_mpd
+from stgs.mpd import read_mpd
 from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_SCHEME, STATIC_SCHEME, StaticLayerDescriptor
+from stgs.mpd_values import MPDError
 from stgs.server.config import CORS_HEADERS, ROOT_KEY
 from stgs.tree import MANIFEST
 

@@ -31,8 +31,9 @@ from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.static import StaticLayer
 from stgs.model.store import load_gop, load_static, read_meta
 from stgs.model.view import FrameRenderer
-from stgs.mpd import MPDError, expand_template, read_mpd
+from stgs.mpd import read_mpd
 from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_SCHEME, STATIC_SCHEME, KeyframeDescriptor, StaticLayerDescriptor
+from stgs.mpd_values import MPDError, expand_template
 from stgs.train.views import scale_camera
 from stgs.tree import MANIFEST, TRAIN_REPORT
 

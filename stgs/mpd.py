@@ -3,23 +3,27 @@
 Dataclasses mirror the subset of ISO/IEC 23009-1 that StreamSTGS uses (a
 static MPD, Periods, AdaptationSets with a SegmentTemplate, Representations,
 descriptors); `to_xml` builds the document with lxml and `parse_mpd` reads one
-back with a hardened parser (no DTDs, no entities, no network). The StreamSTGS
+back with a hardened parser (no DTDs, no entities, no network). Its XML values (durations, bounded
+integers, segment URL templates) and MPDError are in stgs.mpd_values. The StreamSTGS
 profile's own descriptors, carried in it, are in stgs.mpd_profile.
 """
 
 from __future__ import annotations
 
-import math
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from lxml import etree
 
-from stgs.limits import (
-    MAX_DURATION_S,
-    MAX_MPD_BYTES,
-    MAX_TEMPLATE_NUMBER_WIDTH,
+from stgs.limits import MAX_MPD_BYTES
+from stgs.mpd_values import (
+    MPDError,
+    format_duration,
+    int_attr,
+    optional_int_attr,
+    parse_duration,
+    required_attr,
+    secure_parser,
 )
 
 NS = "urn:mpeg:dash:schema:mpd:2011"
@@ -29,43 +33,8 @@ PROFILE_STGS = "urn:streamstgs:profile:2026"
 """The StreamSTGS-over-DASH profile (manifests/PROFILE.md)."""
 
 
-class MPDError(ValueError):
-    """A manifest that is not well-formed or not what this profile expects."""
-
-
 def _q(tag: str) -> str:
     return f"{{{NS}}}{tag}"
-
-
-def format_duration(seconds: float) -> str:
-    """xs:duration for a non-negative number of seconds, e.g. PT2.5S, PT1H0M3S."""
-    if not math.isfinite(seconds) or seconds < 0:
-        raise ValueError(f"duration must be finite and non-negative, got {seconds}")
-    millis = round(seconds * 1000)
-    hours, rest = divmod(millis, 3_600_000)
-    minutes, rest = divmod(rest, 60_000)
-    secs = f"{rest / 1000:.3f}".rstrip("0").rstrip(".")
-    if hours:
-        return f"PT{hours}H{minutes}M{secs}S"
-    if minutes:
-        return f"PT{minutes}M{secs}S"
-    return f"PT{secs}S"
-
-
-_DURATION = re.compile(r"^P(?:(\d{1,9})D)?(?:T(?:(\d{1,9})H)?(?:(\d{1,9})M)?(?:(\d{1,12}(?:\.\d{1,9})?)S)?)?$")
-"""Days, hours, minutes, seconds: at most 9 digits each (12 for seconds), far beyond any presentation."""
-
-
-def parse_duration(text: str) -> float:
-    """Seconds of an xs:duration without years or months (what MPDs use)."""
-    match = _DURATION.match(text.strip()) if text else None
-    if not match or text.strip() in ("P", "PT"):
-        raise MPDError(f"unsupported duration {text!r}")
-    days, hours, minutes, secs = match.groups()
-    seconds = int(days or 0) * 86400 + int(hours or 0) * 3600 + int(minutes or 0) * 60 + float(secs or 0.0)
-    if seconds > MAX_DURATION_S:
-        raise MPDError(f"duration {text!r} is over the {MAX_DURATION_S:.0f}-second limit")
-    return seconds
 
 
 @dataclass
@@ -85,7 +54,7 @@ class Descriptor:
 
     @classmethod
     def from_element(cls, el: etree._Element) -> Descriptor:
-        return cls(_required(el, "schemeIdUri"), el.get("value"))
+        return cls(required_attr(el, "schemeIdUri"), el.get("value"))
 
     def fields(self) -> dict[str, str]:
         """@value read as `key=value;key=value` (this profile's descriptors), stripped."""
@@ -121,8 +90,8 @@ class SegmentTemplate:
 
     @classmethod
     def from_element(cls, el: etree._Element) -> SegmentTemplate:
-        return cls(_required(el, "media"), _int(el, "timescale", 1, lo=1), _int(el, "duration", lo=1),
-                   _int(el, "startNumber", 1), el.get("initialization"))
+        return cls(required_attr(el, "media"), int_attr(el, "timescale", 1, lo=1), int_attr(el, "duration", lo=1),
+                   int_attr(el, "startNumber", 1), el.get("initialization"))
 
     @property
     def seconds(self) -> float:
@@ -162,8 +131,8 @@ class Representation:
 
     @classmethod
     def from_element(cls, el: etree._Element) -> Representation:
-        return cls(_required(el, "id"), _int(el, "bandwidth"), el.get("codecs"),
-                   _opt_int(el, "width"), _opt_int(el, "height"), el.get("frameRate"),
+        return cls(required_attr(el, "id"), int_attr(el, "bandwidth"), el.get("codecs"),
+                   optional_int_attr(el, "width"), optional_int_attr(el, "height"), el.get("frameRate"),
                    (el.get("associationId") or "").split(), (el.get("associationType") or "").split())
 
 
@@ -203,7 +172,7 @@ class AdaptationSet:
         template = el.find(_q("SegmentTemplate"))
         if template is None:
             raise MPDError(f"AdaptationSet {el.get('id')!r} has no SegmentTemplate")
-        return cls(_int(el, "id"), el.get("contentType") or "", _required(el, "mimeType"),
+        return cls(int_attr(el, "id"), el.get("contentType") or "", required_attr(el, "mimeType"),
                    SegmentTemplate.from_element(template),
                    [Representation.from_element(r) for r in el.findall(_q("Representation"))],
                    [Descriptor.from_element(d) for d in el.findall(_q("SupplementalProperty"))],
@@ -278,43 +247,6 @@ class MPD:
         return None
 
 
-def _required(el: etree._Element, attr: str) -> str:
-    value = el.get(attr)
-    if value is None:
-        raise MPDError(f"{etree.QName(el).localname} lacks @{attr}")
-    return value
-
-
-UINT32_MAX = (1 << 32) - 1
-"""The largest xs:unsignedInt: @bandwidth, @timescale, @duration, @startNumber, @id, @width, @height."""
-
-
-def _int(el: etree._Element, attr: str, default: int | None = None, lo: int = 0, hi: int = UINT32_MAX) -> int:
-    """An integer attribute within lo..hi (the schema's xs:unsignedInt by default)."""
-    value = el.get(attr)
-    if value is None:
-        if default is None:
-            raise MPDError(f"{etree.QName(el).localname} lacks @{attr}")
-        return default
-    where = f"{etree.QName(el).localname}@{attr}"
-    if not re.fullmatch(r"\s*[+-]?\d{1,20}\s*", value):
-        raise MPDError(f"{where} is not an integer of at most 20 digits: {value[:40]!r}")
-    number = int(value)
-    if not lo <= number <= hi:
-        raise MPDError(f"{where} is {number}, outside {lo}..{hi}")
-    return number
-
-
-def _opt_int(el: etree._Element, attr: str) -> int | None:
-    return _int(el, attr) if el.get(attr) is not None else None
-
-
-def secure_parser() -> etree.XMLParser:
-    """An XML parser that resolves no entities, loads no DTD and touches no network."""
-    return etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False,
-                           remove_comments=True)
-
-
 def parse_mpd(data: bytes) -> MPD:
     """Parse a static MPD (bounded size, hardened parser)."""
     if len(data) > MAX_MPD_BYTES:
@@ -328,8 +260,8 @@ def parse_mpd(data: bytes) -> MPD:
     if root.get("type", "static") != "static":
         raise MPDError("only static MPDs are supported")
     base = root.find(_q("BaseURL"))
-    return MPD(parse_duration(_required(root, "mediaPresentationDuration")),
-               parse_duration(_required(root, "minBufferTime")),
+    return MPD(parse_duration(required_attr(root, "mediaPresentationDuration")),
+               parse_duration(required_attr(root, "minBufferTime")),
                [Period.from_element(p) for p in root.findall(_q("Period"))],
                (root.get("profiles") or "").split(","),
                base.text.strip() if base is not None and base.text else None)
@@ -341,26 +273,3 @@ def read_mpd(path: Path) -> MPD:
         return parse_mpd(f.read(MAX_MPD_BYTES + 1))
 
 
-def expand_template(template: str, representation_id: str, number: int | None = None) -> str:
-    """Substitute $RepresentationID$, $Number$ / $Number%0Nd$ and $$ in a segment URL template."""
-    def sub(match: re.Match) -> str:
-        name, fmt = match.group(1), match.group(2)
-        if name == "":
-            return "$"
-        if name == "RepresentationID":
-            return representation_id
-        if name == "Number":
-            if number is None:
-                raise MPDError(f"template {template!r} needs $Number$")
-            if fmt:
-                width = re.fullmatch(r"%0(\d+)d", fmt)
-                if not width:
-                    raise MPDError(f"unsupported format tag {fmt!r} in {template!r}")
-                if len(width.group(1)) > 3 or int(width.group(1)) > MAX_TEMPLATE_NUMBER_WIDTH:
-                    raise MPDError(f"$Number$ width {width.group(1)} in {template!r} is over the limit of "
-                                   f"{MAX_TEMPLATE_NUMBER_WIDTH}")
-                return f"{number:0{int(width.group(1))}d}"
-            return str(number)
-        raise MPDError(f"unsupported identifier ${name}$ in {template!r}")
-
-    return re.sub(r"\$([A-Za-z]*)(%[^$]*)?\$", sub, template)

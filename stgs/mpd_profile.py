@@ -7,7 +7,8 @@ import math
 from dataclasses import dataclass
 
 from stgs.limits import MAX_CAPACITY, MAX_FPS, MAX_GOP_SIZE, MAX_PE_FREQS, MAX_WINDOW, MIN_FPS
-from stgs.mpd import AdaptationSet, MPDError
+from stgs.mpd import AdaptationSet
+from stgs.mpd_values import MPDError
 
 KEYFRAME_SCHEME = "urn:streamstgs:keyframe:2026"
 """SupplementalProperty scheme marking the keyframe AdaptationSet."""

@@ -9,7 +9,7 @@ SegmentTemplates and the packager's file names both come from the templates
 here, expanded by the one DASH template expander.
 """
 
-from stgs.mpd import expand_template
+from stgs.mpd_values import expand_template
 
 # --- model dir ---
 MODEL_META = "model.json"

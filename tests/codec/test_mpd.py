@@ -12,12 +12,10 @@ from stgs.mpd import (
     Period,
     Representation,
     SegmentTemplate,
-    expand_template,
-    format_duration,
-    parse_duration,
     parse_mpd,
 )
 from stgs.mpd_profile import KEYFRAME_SCHEME
+from stgs.mpd_values import expand_template, format_duration, parse_duration
 
 
 @pytest.mark.parametrize("seconds,text", [(0, "PT0S"), (2, "PT2S"), (2.5, "PT2.5S"), (61.25, "PT1M1.25S"),

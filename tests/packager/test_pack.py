@@ -11,8 +11,9 @@ from pathlib import Path
 import pytest
 from safetensors.torch import load_file, save_file
 
-from stgs.mpd import expand_template, parse_mpd
+from stgs.mpd import parse_mpd
 from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_SCHEME
+from stgs.mpd_values import expand_template
 from stgs.packager import MANIFEST, STATS, PackConfig, pack
 from stgs.synth import SynthConfig, synthesize
 from tests.conftest import LOOP_FILTERS_OFF, SHARED, loop_filter_flags

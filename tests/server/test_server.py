@@ -17,8 +17,9 @@ from aiohttp import web
 from aiohttp.test_utils import TestServer
 
 from bench.serve import worker_pids
-from stgs.mpd import expand_template, parse_mpd
+from stgs.mpd import parse_mpd
 from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_SCHEME
+from stgs.mpd_values import expand_template
 from stgs.packager import PackConfig, pack
 from stgs.server.app import SceneRunner, build_app
 from stgs.server.config import ServeConfig

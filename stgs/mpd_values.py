@@ -1,0 +1,109 @@
+"""The MPD's XML values: xs:duration, bounded integer attributes, segment URL templates, the hardened parser,
+and MPDError, the one error every manifest problem raises. stgs.mpd builds and reads whole documents with them.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+
+from lxml import etree
+
+from stgs.limits import MAX_DURATION_S, MAX_TEMPLATE_NUMBER_WIDTH
+
+
+class MPDError(ValueError):
+    """A manifest that is not well-formed or not what this profile expects."""
+
+
+def format_duration(seconds: float) -> str:
+    """xs:duration for a non-negative number of seconds, e.g. PT2.5S, PT1H0M3S."""
+    if not math.isfinite(seconds) or seconds < 0:
+        raise ValueError(f"duration must be finite and non-negative, got {seconds}")
+    millis = round(seconds * 1000)
+    hours, rest = divmod(millis, 3_600_000)
+    minutes, rest = divmod(rest, 60_000)
+    secs = f"{rest / 1000:.3f}".rstrip("0").rstrip(".")
+    if hours:
+        return f"PT{hours}H{minutes}M{secs}S"
+    if minutes:
+        return f"PT{minutes}M{secs}S"
+    return f"PT{secs}S"
+
+
+_DURATION = re.compile(r"^P(?:(\d{1,9})D)?(?:T(?:(\d{1,9})H)?(?:(\d{1,9})M)?(?:(\d{1,12}(?:\.\d{1,9})?)S)?)?$")
+"""Days, hours, minutes, seconds: at most 9 digits each (12 for seconds), far beyond any presentation."""
+
+
+def parse_duration(text: str) -> float:
+    """Seconds of an xs:duration without years or months (what MPDs use)."""
+    match = _DURATION.match(text.strip()) if text else None
+    if not match or text.strip() in ("P", "PT"):
+        raise MPDError(f"unsupported duration {text!r}")
+    days, hours, minutes, secs = match.groups()
+    seconds = int(days or 0) * 86400 + int(hours or 0) * 3600 + int(minutes or 0) * 60 + float(secs or 0.0)
+    if seconds > MAX_DURATION_S:
+        raise MPDError(f"duration {text!r} is over the {MAX_DURATION_S:.0f}-second limit")
+    return seconds
+
+
+def required_attr(el: etree._Element, attr: str) -> str:
+    value = el.get(attr)
+    if value is None:
+        raise MPDError(f"{etree.QName(el).localname} lacks @{attr}")
+    return value
+
+
+UINT32_MAX = (1 << 32) - 1
+"""The largest xs:unsignedInt: @bandwidth, @timescale, @duration, @startNumber, @id, @width, @height."""
+
+
+def int_attr(el: etree._Element, attr: str, default: int | None = None, lo: int = 0, hi: int = UINT32_MAX) -> int:
+    """An integer attribute within lo..hi (the schema's xs:unsignedInt by default)."""
+    value = el.get(attr)
+    if value is None:
+        if default is None:
+            raise MPDError(f"{etree.QName(el).localname} lacks @{attr}")
+        return default
+    where = f"{etree.QName(el).localname}@{attr}"
+    if not re.fullmatch(r"\s*[+-]?\d{1,20}\s*", value):
+        raise MPDError(f"{where} is not an integer of at most 20 digits: {value[:40]!r}")
+    number = int(value)
+    if not lo <= number <= hi:
+        raise MPDError(f"{where} is {number}, outside {lo}..{hi}")
+    return number
+
+
+def optional_int_attr(el: etree._Element, attr: str) -> int | None:
+    return int_attr(el, attr) if el.get(attr) is not None else None
+
+
+def secure_parser() -> etree.XMLParser:
+    """An XML parser that resolves no entities, loads no DTD and touches no network."""
+    return etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False,
+                           remove_comments=True)
+
+
+def expand_template(template: str, representation_id: str, number: int | None = None) -> str:
+    """Substitute $RepresentationID$, $Number$ / $Number%0Nd$ and $$ in a segment URL template."""
+    def sub(match: re.Match) -> str:
+        name, fmt = match.group(1), match.group(2)
+        if name == "":
+            return "$"
+        if name == "RepresentationID":
+            return representation_id
+        if name == "Number":
+            if number is None:
+                raise MPDError(f"template {template!r} needs $Number$")
+            if fmt:
+                width = re.fullmatch(r"%0(\d+)d", fmt)
+                if not width:
+                    raise MPDError(f"unsupported format tag {fmt!r} in {template!r}")
+                if len(width.group(1)) > 3 or int(width.group(1)) > MAX_TEMPLATE_NUMBER_WIDTH:
+                    raise MPDError(f"$Number$ width {width.group(1)} in {template!r} is over the limit of "
+                                   f"{MAX_TEMPLATE_NUMBER_WIDTH}")
+                return f"{number:0{int(width.group(1))}d}"
+            return str(number)
+        raise MPDError(f"unsupported identifier ${name}$ in {template!r}")
+
+    return re.sub(r"\$([A-Za-z]*)(%[^$]*)?\$", sub, template)
