@@ -48,6 +48,7 @@ def parse_duration(text: str) -> float:
 
 
 def required_attr(el: etree._Element, attr: str) -> str:
+    """The attribute's text; MPDError naming the element and attribute when it is missing."""
     value = el.get(attr)
     if value is None:
         raise MPDError(f"{etree.QName(el).localname} lacks @{attr}")
@@ -75,6 +76,7 @@ def int_attr(el: etree._Element, attr: str, default: int | None = None, lo: int 
 
 
 def optional_int_attr(el: etree._Element, attr: str) -> int | None:
+    """int_attr's xs:unsignedInt, or None when the attribute is absent."""
     return int_attr(el, attr) if el.get(attr) is not None else None
 
 
