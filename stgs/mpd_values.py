@@ -61,11 +61,9 @@ UINT32_MAX = (1 << 32) - 1
 
 def int_attr(el: etree._Element, attr: str, default: int | None = None, lo: int = 0, hi: int = UINT32_MAX) -> int:
     """An integer attribute within lo..hi (the schema's xs:unsignedInt by default)."""
-    value = el.get(attr)
-    if value is None:
-        if default is None:
-            raise MPDError(f"{etree.QName(el).localname} lacks @{attr}")
+    if el.get(attr) is None and default is not None:
         return default
+    value = required_attr(el, attr)
     where = f"{etree.QName(el).localname}@{attr}"
     if not re.fullmatch(r"\s*[+-]?\d{1,20}\s*", value):
         raise MPDError(f"{where} is not an integer of at most 20 digits: {value[:40]!r}")
