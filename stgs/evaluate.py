@@ -19,6 +19,7 @@ from pathlib import Path
 import cv2
 import torch
 
+from stgs.camera import Camera
 from stgs.codec.features import features_from_frames
 from stgs.codec.keyframe import decode_keyframe
 from stgs.codec.static import decode_static
@@ -122,13 +123,8 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
             rows = []
             for i in range(0, g, stride):
                 f = start + k * g + i
-                by_name = {c.name: c for c in ds.cameras(f)}
                 for cam_name in cams_val:
-                    cam = scale_camera(by_name[cam_name], scale)
-                    truth = ds.image(f, cam_name)
-                    if truth.shape[:2] != (cam.height, cam.width):
-                        truth = torch.from_numpy(cv2.resize(truth.numpy(), (cam.width, cam.height),
-                                                            interpolation=cv2.INTER_AREA))
+                    cam, truth = scaled_view(ds, f, cam_name, scale)
                     image = renderer.render(i, cam).clamp(0, 1)
                     row = {"frame": f, "camera": cam_name, "psnr": _finite(psnr(image, truth)),
                            "ssim": float(ssim(image, truth))} | region_psnr(image, truth, ds.mask(f, cam_name))
@@ -147,6 +143,15 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
     if grid_rows:
         save_png(out / "eval_grid.png", image_grid(grid_rows, 3))
     return result
+
+
+def scaled_view(ds, frame: int, name: str, scale: float) -> tuple[Camera, torch.Tensor]:
+    """Camera `name` at `frame` scaled as the model was trained (`scale`), and its image at that size."""
+    cam = scale_camera(next(c for c in ds.cameras(frame) if c.name == name), scale)
+    truth = ds.image(frame, name)
+    if truth.shape[:2] != (cam.height, cam.width):
+        truth = torch.from_numpy(cv2.resize(truth.numpy(), (cam.width, cam.height), interpolation=cv2.INTER_AREA))
+    return cam, truth
 
 
 REGIONS = ("psnr_foreground", "psnr_background")
