@@ -8,6 +8,10 @@ camera, one gain and offset per channel are fitted by least squares (render -> i
 other sampled view, `stgs eval`'s views at `--stride`) and the other half is scored as drawn and through that
 response (not clamped), over the whole frame and outside the dataset's foreground masks. An oracle on the held-out
 images, so a diagnostic only: `stgs eval` never applies it.
+
+The fit also takes up whatever part of the model's own error is linear in the drawn value. `--cameras` names
+training cameras instead, whose responses training learnt (train_report.json's `camera_colour`, printed beside the
+fit): how far the fit lands from the learnt response there is what it takes up from the model.
 """
 
 from __future__ import annotations
@@ -88,8 +92,10 @@ class CameraViews:
         return out
 
 
-def held_out_views(model_dir: Path, dataset: Path, stride: int) -> dict[str, CameraViews]:
-    """Per held-out camera of `model_dir`: its views' sums, every `stride`-th frame of every GOP."""
+def held_out_views(model_dir: Path, dataset: Path, stride: int,
+                   names: list[str] | None = None) -> dict[str, CameraViews]:
+    """Per camera of `names` (default: the held-out cameras of `model_dir`): its views' sums, every `stride`-th
+    frame of every GOP."""
     from stgs.data import open_dataset
     from stgs.evaluate import scaled_view
     from stgs.model.store import load_gop, load_static, read_meta
@@ -98,7 +104,10 @@ def held_out_views(model_dir: Path, dataset: Path, stride: int) -> dict[str, Cam
     meta = read_meta(model_dir)
     extra = meta.extra or {}
     ds = open_dataset(dataset)
-    names = extra.get("validation_cameras") or list(ds.default_holdout)
+    names = names or extra.get("validation_cameras") or list(ds.default_holdout)
+    unknown = sorted(set(names) - set(ds.camera_names))
+    if unknown:
+        raise SystemExit(f"{ds.name}: no camera(s) {unknown}")
     start = int(extra.get("start_frame", 0))
     scale = float((extra.get("config") or {}).get("scale", 1.0))
     static = load_static(model_dir, meta)
@@ -121,20 +130,36 @@ def held_out_views(model_dir: Path, dataset: Path, stride: int) -> dict[str, Cam
     return cameras
 
 
-def rows(model_dir: Path, dataset: Path, stride: int) -> list[str]:
-    cameras = held_out_views(model_dir, dataset, stride)
+def learnt_responses(model_dir: Path) -> dict[str, list[float]]:
+    """Training camera -> its learnt (3 gains, 3 offsets) from the scene's train_report.json ({} without one)."""
+    import json
+
+    from stgs.tree import TRAIN_REPORT
+
+    report = model_dir / TRAIN_REPORT
+    return json.loads(report.read_text()).get("camera_colour") or {} if report.is_file() else {}
+
+
+def response(values: list[float]) -> str:
+    """'gains / offsets' of three gains then three offsets."""
+    return "/".join(f"{g:.3f}" for g in values[:3]) + " | " + "/".join(f"{o:+.3f}" for o in values[3:])
+
+
+def rows(model_dir: Path, dataset: Path, stride: int, names: list[str] | None = None) -> list[str]:
+    cameras = held_out_views(model_dir, dataset, stride, names)
+    learnt = learnt_responses(model_dir)
     out = []
     for name, views in cameras.items():
         s = views.scores()
-        gains = "/".join(f"{g:.3f}" for g in s["gain"])
-        offsets = "/".join(f"{o:+.3f}" for o in s["offset"])
-        out.append(f"| {model_dir.name} | {name} | {gains} | {offsets} | {s['whole_drawn']:.2f} | "
+        known = response(learnt[name]) if name in learnt else "- | -"
+        out.append(f"| {model_dir.name} | {name} | {known} | {response([*s['gain'], *s['offset']])} | "
+                   f"{s['whole_drawn']:.2f} | "
                    f"{s['whole_fitted']:.2f} | {s['background_drawn']:.2f} | {s['background_fitted']:.2f} | "
                    f"{100 * s['whole_share']:.0f} % |")
     per_camera = [v.scores() for v in cameras.values()]
     mean = {key: sum(s[key] for s in per_camera) / len(per_camera)
             for key in ("whole_drawn", "whole_fitted", "background_drawn", "background_fitted")}
-    out.append(f"| {model_dir.name} | all | | | {mean['whole_drawn']:.2f} | {mean['whole_fitted']:.2f} | "
+    out.append(f"| {model_dir.name} | all | | | | | {mean['whole_drawn']:.2f} | {mean['whole_fitted']:.2f} | "
                f"{mean['background_drawn']:.2f} | {mean['background_fitted']:.2f} | |")
     return out
 
@@ -144,13 +169,15 @@ def main() -> None:
     parser.add_argument("--models", required=True, help="comma-separated trained scenes")
     parser.add_argument("--dataset", type=Path, required=True)
     parser.add_argument("--stride", type=int, default=3, help="every n-th frame of each GOP, as `stgs eval --stride`")
+    parser.add_argument("--cameras", help="comma-separated cameras to fit (default: each scene's held-out ones)")
     args = parser.parse_args()
+    names = args.cameras.split(",") if args.cameras else None
     print(f"machine: {platform.processor() or platform.machine()}, torch threads {torch.get_num_threads()}")
-    print("| scene | held-out camera | fitted gain R/G/B | fitted offset R/G/B | PSNR drawn | PSNR through the "
-          "fitted response | background drawn | background fitted | share of the MSE |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| scene | camera | learnt gain R/G/B | learnt offset R/G/B | fitted gain R/G/B | fitted offset R/G/B | "
+          "PSNR drawn | PSNR through the fitted response | background drawn | background fitted | share of the MSE |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for model in args.models.split(","):
-        print("\n".join(rows(Path(model), args.dataset, args.stride)), flush=True)
+        print("\n".join(rows(Path(model), args.dataset, args.stride, names)), flush=True)
 
 
 if __name__ == "__main__":
