@@ -73,13 +73,15 @@ def psnr_of(mse: float) -> float:
 
 @dataclass
 class CameraViews:
-    """One held-out camera's views: the sums the response is fitted on, and the scored views' sums."""
+    """One camera's views: the sums its response is fitted on, and the scored views' sums."""
 
     fit_on: ColourSums = field(default_factory=ColourSums)
     scored: list[tuple[ColourSums, ColourSums | None]] = field(default_factory=list)
     """Per scored view: (whole frame, outside the foreground mask or None without masks)."""
 
     def scores(self) -> dict[str, float | list[float]]:
+        """The fitted gain and offset; per region (whole, background) the scored views' mean PSNR drawn and
+        through that response, and the share of their squared error it removes."""
         gain, offset = self.fit_on.fit()
         out: dict[str, float | list[float]] = {"gain": gain.tolist(), "offset": offset.tolist()}
         for key, index in (("whole", 0), ("background", 1)):
@@ -137,7 +139,9 @@ def learnt_responses(model_dir: Path) -> dict[str, list[float]]:
     from stgs.tree import TRAIN_REPORT
 
     report = model_dir / TRAIN_REPORT
-    return json.loads(report.read_text()).get("camera_colour") or {} if report.is_file() else {}
+    if not report.is_file():
+        return {}
+    return json.loads(report.read_text()).get("camera_colour") or {}
 
 
 def response(values: list[float]) -> str:
