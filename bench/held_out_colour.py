@@ -119,8 +119,9 @@ def held_out_views(model_dir: Path, dataset: Path, stride: int,
         renderer = FrameRenderer(load_gop(model_dir, meta, k), static=static)
         for i in range(0, meta.shape.gop_size, stride):
             f = start + k * meta.shape.gop_size + i
+            by_name = {c.name: c for c in ds.cameras(f)}
             for name in names:
-                cam, truth = scaled_view(ds, f, name, scale)
+                cam, truth = scaled_view(ds, by_name[name], f, scale)
                 image = renderer.render(i, cam).clamp(0, 1)
                 whole = ColourSums.of(image, truth)
                 if sampled % 2 == 0:  # alternate frames: fit on one half, score the other
@@ -152,16 +153,15 @@ def response(values: list[float]) -> str:
 def rows(model_dir: Path, dataset: Path, stride: int, names: list[str] | None = None) -> list[str]:
     cameras = held_out_views(model_dir, dataset, stride, names)
     learnt = learnt_responses(model_dir)
+    scores = {name: views.scores() for name, views in cameras.items()}
     out = []
-    for name, views in cameras.items():
-        s = views.scores()
+    for name, s in scores.items():
         known = response(learnt[name]) if name in learnt else "- | -"
         out.append(f"| {model_dir.name} | {name} | {known} | {response([*s['gain'], *s['offset']])} | "
                    f"{s['whole_drawn']:.2f} | "
                    f"{s['whole_fitted']:.2f} | {s['background_drawn']:.2f} | {s['background_fitted']:.2f} | "
                    f"{100 * s['whole_share']:.0f} % |")
-    per_camera = [v.scores() for v in cameras.values()]
-    mean = {key: sum(s[key] for s in per_camera) / len(per_camera)
+    mean = {key: sum(s[key] for s in scores.values()) / len(scores)
             for key in ("whole_drawn", "whole_fitted", "background_drawn", "background_fitted")}
     out.append(f"| {model_dir.name} | all | | | | | {mean['whole_drawn']:.2f} | {mean['whole_fitted']:.2f} | "
                f"{mean['background_drawn']:.2f} | {mean['background_fitted']:.2f} | |")

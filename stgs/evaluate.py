@@ -123,8 +123,9 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
             rows = []
             for i in range(0, g, stride):
                 f = start + k * g + i
+                by_name = {c.name: c for c in ds.cameras(f)}
                 for cam_name in cams_val:
-                    cam, truth = scaled_view(ds, f, cam_name, scale)
+                    cam, truth = scaled_view(ds, by_name[cam_name], f, scale)
                     image = renderer.render(i, cam).clamp(0, 1)
                     row = {"frame": f, "camera": cam_name, "psnr": _finite(psnr(image, truth)),
                            "ssim": float(ssim(image, truth))} | region_psnr(image, truth, ds.mask(f, cam_name))
@@ -145,10 +146,10 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
     return result
 
 
-def scaled_view(ds, frame: int, name: str, scale: float) -> tuple[Camera, torch.Tensor]:
-    """Camera `name` at `frame` scaled as the model was trained (`scale`), and its image at that size."""
-    cam = scale_camera(next(c for c in ds.cameras(frame) if c.name == name), scale)
-    truth = ds.image(frame, name)
+def scaled_view(ds, camera: Camera, frame: int, scale: float) -> tuple[Camera, torch.Tensor]:
+    """`camera` (the dataset's, at `frame`) scaled as the model was trained (`scale`), and its image at that size."""
+    cam = scale_camera(camera, scale)
+    truth = ds.image(frame, camera.name)
     if truth.shape[:2] != (cam.height, cam.width):
         truth = torch.from_numpy(cv2.resize(truth.numpy(), (cam.width, cam.height), interpolation=cv2.INTER_AREA))
     return cam, truth

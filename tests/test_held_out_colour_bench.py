@@ -4,7 +4,7 @@ import math
 
 import torch
 
-from bench.held_out_colour import ColourSums, psnr_of
+from bench.held_out_colour import IDENTITY, ColourSums, psnr_of
 from stgs.metrics import psnr
 
 
@@ -33,15 +33,13 @@ def test_mse_matches_the_transformed_image_inside_a_mask():
     sums = ColourSums.of(image, truth, mask)
     direct = ((image.double() * gain + offset - truth.double()) ** 2)[mask].mean().item()
     assert math.isclose(sums.mse(gain, offset), direct, rel_tol=1e-9)
-    identity = (torch.ones(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64))
-    assert math.isclose(psnr_of(sums.mse(*identity)), psnr(image, truth, mask=mask), rel_tol=1e-9)
+    assert math.isclose(psnr_of(sums.mse(*IDENTITY)), psnr(image, truth, mask=mask), rel_tol=1e-9)
 
 
 def test_fitted_response_is_never_worse_than_none():
     image, truth = _images(4)
     sums = ColourSums.of(image, truth)
-    identity = (torch.ones(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64))
-    assert sums.mse(*sums.fit()) <= sums.mse(*identity)
+    assert sums.mse(*sums.fit()) <= sums.mse(*IDENTITY)
 
 
 def test_flat_render_and_empty_region_stay_finite_or_nan():
