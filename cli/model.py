@@ -101,6 +101,9 @@ def add_train(sub: argparse._SubParsersAction) -> None:
                    help="S_s: Gaussians S_s² of the static layer (layered; default: the budget's)")
     p.add_argument("--no-migrate", dest="migrate", action="store_false", default=None,
                    help="layered: static Gaussians the data shows moving stay static (no migration)")
+    p.add_argument("--static-drop-rate", type=float,
+                   help="layered: share of the static Gaussians left out of each stage-A draw at random "
+                   "(DropGaussian; default 0.1, 0: off)")
     p.add_argument("--static-sh", type=int, choices=[0, 1], dest="static_sh_degree",
                    help="layered: view-dependent colour of the static layer, 0 (default) none, 1 a degree-1 term "
                    "fitted after stage A")
@@ -155,7 +158,7 @@ def add_train(sub: argparse._SubParsersAction) -> None:
 
 TRAIN_OVERRIDES = ("max_gops", "gop_size", "start_frame", "grid_side", "iterations", "coarse_iterations", "scale",
                    "window", "aux", "dynamic", "temporal_weight", "relocate", "seed", "threads", "holdout",
-                   "background_share", "init_frames", "layers", "static_grid_side", "migrate",
+                   "background_share", "init_frames", "layers", "static_grid_side", "migrate", "static_drop_rate",
                    "static_sh_degree", "static_sh_iterations", "dynamic_warmup", "hull_seeds", "camera_colour",
                    "coarse_low_res", "static_triangulation")
 

@@ -48,6 +48,9 @@ class TrainConfig:
     """Share of its views in which a static Gaussian lands on moving pixels above which it migrates."""
     migrate_share: float = 0.5
     """Most migrated Gaussians, as a share of the dynamic capacity (the rest start from triangulated points)."""
+    static_drop_rate: float = 0.1
+    """Layered: share of the static Gaussians left out of each stage-A draw at random, the rest's opacity divided
+    by 1 − rate (DropGaussian; 0: off). Keeps the layer from fitting the training cameras only."""
     static_sh_degree: int = 0
     """Layered: view-dependent colour of the static layer (0: none; 1: degree-1 term fitted after stage A)."""
     static_sh_iterations: int = 500
@@ -161,6 +164,7 @@ class TrainConfig:
                   (self.static_grid_side >= 2, "static_grid_side must be >= 2"),
                   (0 <= self.migrate_score <= 1 and 0 <= self.migrate_share <= 1,
                    "migrate_score and migrate_share must be in [0, 1]"),
+                  (0 <= self.static_drop_rate < 1, "static_drop_rate must be in [0, 1)"),
                   (self.static_sh_degree in (0, 1), "static_sh_degree must be 0 or 1"),
                   (self.static_sh_iterations >= 0, "static_sh_iterations must be >= 0"),
                   (0 <= self.dynamic_warmup < 1, "dynamic_warmup must be in [0, 1)"),

@@ -11,12 +11,13 @@ canonical regularisers and the smoothness of the frame's feature grid are added 
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import torch
 
 from stgs.metrics import ssim_map
-from stgs.model.gop import GOPModel, flat_window, frame_time
+from stgs.model.gop import Gaussians, GOPModel, flat_window, frame_time
 from stgs.model.view import Backdrop, splat_over
 from stgs.train import losses
 from stgs.train.aux import AuxTransformer
@@ -42,6 +43,17 @@ def canonical_regularisers(cfg: TrainConfig, model: GOPModel, opacities: torch.T
         loss = loss + cfg.smooth_weight * (losses.grid_smoothness(model.color, side)
                                            + losses.grid_smoothness(model.log_scale, side))
     return loss
+
+
+def drop_gaussians(g: Gaussians, rate: float, gen: torch.Generator) -> Gaussians:
+    """`g` with a random `rate` share of its Gaussians left out of the draw (opacity 0) and the others' opacity
+    divided by 1 − rate (at most 1), so that a Gaussian's expected opacity stays what it was below that cap
+    (DropGaussian, CVPR 2025). Each Gaussian then has to draw the views without its neighbours' help: stage A's
+    guard against fitting the training cameras only. Rate 0: `g` itself, no draw from `gen`."""
+    if rate <= 0:
+        return g
+    keep = torch.rand(g.opacities.shape[0], generator=gen) >= rate
+    return dataclasses.replace(g, opacities=torch.where(keep, g.opacities / (1 - rate), 0).clamp(max=1.0))
 
 
 def gop_loss(cfg: TrainConfig, gen: torch.Generator, model: GOPModel, aux: AuxTransformer | None, views: Views,

@@ -61,7 +61,7 @@ from stgs.train.checkpoint import Checkpoints
 from stgs.train.config import TrainConfig, stage_seed
 from stgs.train.hull import HullConfig
 from stgs.train.layers import Migrated, fit_view_dependent, init_dynamic, migrate, motion_scores, moving_masks
-from stgs.train.objective import GOPLoss, canonical_regularisers, gop_loss
+from stgs.train.objective import GOPLoss, canonical_regularisers, drop_gaussians, gop_loss
 from stgs.train.ops import Optimizer, opacity_level, prune, relocate, sort, track_opacities
 from stgs.train.seeding import init_canonical, init_frames, initial_points
 from stgs.train.validation import mean_scores
@@ -191,7 +191,8 @@ class Trainer:
             c = int(torch.randint(len(views.cameras), (1,), generator=self.gen))
             at, at_moving = low if it < low_until else (views, moving)
             g = model.canonical()
-            img = as_recorded(colour, splat(g, at.cameras[c]), c)
+            drawn = drop_gaussians(g, cfg.static_drop_rate, self.gen) if regularised else g
+            img = as_recorded(colour, splat(drawn, at.cameras[c]), c)
             mask = ~at_moving[f, c] if at_moving is not None else None
             loss = losses.photometric(img, at.target(f, c), cfg.lambda_ssim, mask)
             if regularised:

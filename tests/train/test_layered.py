@@ -16,7 +16,7 @@ from stgs.camera import Camera, intrinsics
 from stgs.data import open_dataset
 from stgs.errors import StgsError
 from stgs.metrics import psnr
-from stgs.model.gop import GOPModel, GOPShape
+from stgs.model.gop import Gaussians, GOPModel, GOPShape
 from stgs.model.static import StaticLayer
 from stgs.model.store import load_static, read_meta
 from stgs.model.view import splat, static_backdrops, static_view
@@ -24,8 +24,9 @@ from stgs.synth import ground_truth_cameras, truth_static_layer
 from stgs.synth.scene import ProceduralScene
 from stgs.train import budget, train
 from stgs.train import losses as loss_module
+from stgs.train import trainer as trainer_module
 from stgs.train.layers import fit_view_dependent, migrate, motion_scores, moving_masks, static_background_psnr
-from stgs.train.objective import gop_loss
+from stgs.train.objective import drop_gaussians, gop_loss
 from stgs.train.run import gop_views
 from stgs.train.trainer import Trainer
 from stgs.train.views import Views, downscaled, load_views
@@ -274,6 +275,47 @@ def test_stage_a_at_low_resolution_first_resumes_to_the_same_bytes(scene, tmp_pa
         assert torch.equal(value, again.state_dict()[name]), name
 
 
+def test_dropped_gaussians_keep_their_expected_opacity_below_one():
+    n, rate = 200_000, 0.25
+    opacities = torch.cat([torch.full((n // 2,), 0.6), torch.full((n // 2,), 0.9)]).requires_grad_()
+    g = Gaussians(torch.zeros(n, 3), torch.ones(n, 4), torch.ones(n, 3), opacities, torch.zeros(n, 3))
+    assert drop_gaussians(g, 0.0, torch.Generator().manual_seed(0)) is g
+    dropped = drop_gaussians(g, rate, torch.Generator().manual_seed(0))
+    again = drop_gaussians(g, rate, torch.Generator().manual_seed(0))
+    assert torch.equal(dropped.opacities, again.opacities)  # the generator decides
+    assert dropped.means is g.means and dropped.colors is g.colors
+    low, high = dropped.opacities[: n // 2], dropped.opacities[n // 2:]
+    assert abs(float((dropped.opacities == 0).float().mean()) - rate) < 0.005
+    assert low.unique().tolist() == [0.0, pytest.approx(0.6 / 0.75)]
+    assert float(low.mean()) == pytest.approx(0.6, abs=0.005)  # unbiased below the cap
+    assert high.unique().tolist() == [0.0, 1.0]  # 0.9 / 0.75 > 1: capped
+    dropped.opacities.sum().backward()
+    grad = opacities.grad
+    assert torch.isfinite(grad).all()
+    kept_low = low.detach() > 0
+    assert torch.allclose(grad[: n // 2][kept_low], torch.tensor(1 / 0.75))
+    assert (grad[: n // 2][~kept_low] == 0).all() and (grad[n // 2:] == 0).all()
+
+
+def test_stage_a_draws_with_dropped_gaussians_and_the_coarse_stage_without(scene, tmp_path, monkeypatch):
+    rates = []
+    real = trainer_module.drop_gaussians
+
+    def record(g, rate, gen):
+        rates.append(rate)
+        return real(g, rate, gen)
+
+    monkeypatch.setattr(trainer_module, "drop_gaussians", record)
+    cfg = budget("quick", **LAYERED, coarse_iterations=4, static_drop_rate=0.3)
+    trainer = Trainer(scene, tmp_path / "a", cfg, progress=False)
+    views = load_views(trainer.ds, trainer.train_names, [0, 2], 1.0, False)
+    trainer.stage_a(views)
+    assert rates == [0.3] * 4
+    single = Trainer(scene, tmp_path / "s", dataclasses.replace(cfg, layers="single"), progress=False)
+    single.coarse(views, single.shape)
+    assert rates == [0.3] * 4  # format 1's coarse stage is refined by every GOP: nothing dropped
+
+
 def test_the_stage_a_benchmark_scores_the_static_layer_it_trains(scene, tmp_path):
     from bench.stage_a import parse_settings, row
 
@@ -294,7 +336,9 @@ def test_bad_layer_settings_are_clear_errors(scene, tmp_path):
                                ({"migrate_score": 1.5}, "migrate_score"),
                                ({"layers": "layered", "dynamic_warmup": 1.0}, "dynamic_warmup"),
                                ({"coarse_low_res": -0.1}, "coarse_low_res"),
-                               ({"coarse_low_res": 1.0}, "coarse_low_res")]:
+                               ({"coarse_low_res": 1.0}, "coarse_low_res"),
+                               ({"static_drop_rate": 1.0}, "static_drop_rate"),
+                               ({"static_drop_rate": -0.1}, "static_drop_rate")]:
         with pytest.raises(StgsError, match=message):
             budget("quick", **overrides)
     assert dataclasses.replace(budget("quick", layers="layered")).grid_side == 16  # the budget's layered sizes
