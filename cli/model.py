@@ -95,8 +95,8 @@ def add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--layers", choices=["single", "layered"],
                    help="single (default): every GOP holds every Gaussian, model format 1; layered: a static layer "
                    "fitted once (stage A) + smaller per-GOP dynamic layers (stage B), model format 2 (`stgs pack` "
-                   "sends its static layer once; measured on a real capture with --budget cpu: 0.9-1.7 dB better "
-                   "held out in 1.01-1.06x the training time, docs/TRAINING.md)")
+                   "sends its static layer once; measured on a real capture with --budget cpu: 0.7-2.3 dB better "
+                   "held out in 1.04-1.08x the training time, docs/TRAINING.md)")
     p.add_argument("--static-grid-side", type=positive_int,
                    help="S_s: Gaussians S_s² of the static layer (layered; default: the budget's)")
     p.add_argument("--no-migrate", dest="migrate", action="store_false", default=None,
