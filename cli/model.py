@@ -104,6 +104,9 @@ def add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--static-drop-rate", type=float,
                    help="layered: share of the static Gaussians left out of each stage-A draw at random "
                    "(DropGaussian; default 0.1, 0: off)")
+    p.add_argument("--static-drop-until", type=float,
+                   help="layered: share of stage A's iterations that drop (default 1: all; the rest draw every "
+                   "static Gaussian)")
     p.add_argument("--static-sh", type=int, choices=[0, 1], dest="static_sh_degree",
                    help="layered: view-dependent colour of the static layer, 0 (default) none, 1 a degree-1 term "
                    "fitted after stage A")
@@ -159,8 +162,8 @@ def add_train(sub: argparse._SubParsersAction) -> None:
 TRAIN_OVERRIDES = ("max_gops", "gop_size", "start_frame", "grid_side", "iterations", "coarse_iterations", "scale",
                    "window", "aux", "dynamic", "temporal_weight", "relocate", "seed", "threads", "holdout",
                    "background_share", "init_frames", "layers", "static_grid_side", "migrate", "static_drop_rate",
-                   "static_sh_degree", "static_sh_iterations", "dynamic_warmup", "hull_seeds", "camera_colour",
-                   "coarse_low_res", "static_triangulation")
+                   "static_drop_until", "static_sh_degree", "static_sh_iterations", "dynamic_warmup", "hull_seeds",
+                   "camera_colour", "coarse_low_res", "static_triangulation")
 
 
 def train_overrides(args: argparse.Namespace) -> dict:

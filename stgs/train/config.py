@@ -51,6 +51,8 @@ class TrainConfig:
     static_drop_rate: float = 0.1
     """Layered: share of the static Gaussians left out of each stage-A draw at random, the rest's opacity divided
     by 1 − rate (DropGaussian; 0: off). Keeps the layer from fitting the training cameras only."""
+    static_drop_until: float = 1.0
+    """Layered: share of stage A's iterations that drop (the rest fit the layer as it is drawn, every Gaussian)."""
     static_sh_degree: int = 0
     """Layered: view-dependent colour of the static layer (0: none; 1: degree-1 term fitted after stage A)."""
     static_sh_iterations: int = 500
@@ -165,6 +167,7 @@ class TrainConfig:
                   (0 <= self.migrate_score <= 1 and 0 <= self.migrate_share <= 1,
                    "migrate_score and migrate_share must be in [0, 1]"),
                   (0 <= self.static_drop_rate < 1, "static_drop_rate must be in [0, 1)"),
+                  (0 <= self.static_drop_until <= 1, "static_drop_until must be in [0, 1]"),
                   (self.static_sh_degree in (0, 1), "static_sh_degree must be 0 or 1"),
                   (self.static_sh_iterations >= 0, "static_sh_iterations must be >= 0"),
                   (0 <= self.dynamic_warmup < 1, "dynamic_warmup must be in [0, 1)"),

@@ -183,6 +183,7 @@ class Trainer:
             sort(model, opt, torch.zeros(2, shape.capacity), cfg.seed)
         desc = "stage A: static layer" if moving is not None else "coarse canonical"
         low_until = round(cfg.coarse_low_res * cfg.coarse_iterations)
+        drop_until = round(cfg.static_drop_until * cfg.coarse_iterations) if regularised else 0
         low = downscaled(views, LOW_RES, moving) if start < low_until else None
         bar = tqdm(range(start, cfg.coarse_iterations), desc=desc, unit="it", disable=not self.progress)
         for it in bar:
@@ -191,7 +192,7 @@ class Trainer:
             c = int(torch.randint(len(views.cameras), (1,), generator=self.gen))
             at, at_moving = low if it < low_until else (views, moving)
             g = model.canonical()
-            drawn = drop_gaussians(g, cfg.static_drop_rate, self.gen) if regularised else g
+            drawn = drop_gaussians(g, cfg.static_drop_rate, self.gen) if it < drop_until else g
             img = as_recorded(colour, splat(drawn, at.cameras[c]), c)
             mask = ~at_moving[f, c] if at_moving is not None else None
             loss = losses.photometric(img, at.target(f, c), cfg.lambda_ssim, mask)

@@ -314,6 +314,10 @@ def test_stage_a_draws_with_dropped_gaussians_and_the_coarse_stage_without(scene
     single = Trainer(scene, tmp_path / "s", dataclasses.replace(cfg, layers="single"), progress=False)
     single.coarse(views, single.shape)
     assert rates == [0.3] * 4  # format 1's coarse stage is refined by every GOP: nothing dropped
+    rates.clear()
+    tapered = Trainer(scene, tmp_path / "t", dataclasses.replace(cfg, static_drop_until=0.5), progress=False)
+    tapered.stage_a(views)
+    assert rates == [0.3] * 2  # the last half draws every static Gaussian
 
 
 def test_the_stage_a_benchmark_scores_the_static_layer_it_trains(scene, tmp_path):
@@ -338,7 +342,8 @@ def test_bad_layer_settings_are_clear_errors(scene, tmp_path):
                                ({"coarse_low_res": -0.1}, "coarse_low_res"),
                                ({"coarse_low_res": 1.0}, "coarse_low_res"),
                                ({"static_drop_rate": 1.0}, "static_drop_rate"),
-                               ({"static_drop_rate": -0.1}, "static_drop_rate")]:
+                               ({"static_drop_rate": -0.1}, "static_drop_rate"),
+                               ({"static_drop_until": 1.5}, "static_drop_until")]:
         with pytest.raises(StgsError, match=message):
             budget("quick", **overrides)
     assert dataclasses.replace(budget("quick", layers="layered")).grid_side == 16  # the budget's layered sizes
