@@ -94,6 +94,13 @@ class CameraViews:
         return out
 
 
+def check_cameras(ds, names: list[str]) -> None:
+    """Exits with one line naming the cameras of `names` that dataset `ds` lacks."""
+    unknown = sorted(set(names) - set(ds.camera_names))
+    if unknown:
+        raise SystemExit(f"{ds.name}: no camera(s) {unknown}")
+
+
 def held_out_views(model_dir: Path, dataset: Path, stride: int,
                    names: list[str] | None = None) -> dict[str, CameraViews]:
     """Per camera of `names` (default: the held-out cameras of `model_dir`): its views' sums, every `stride`-th
@@ -107,9 +114,7 @@ def held_out_views(model_dir: Path, dataset: Path, stride: int,
     extra = meta.extra or {}
     ds = open_dataset(dataset)
     names = names or extra.get("validation_cameras") or list(ds.default_holdout)
-    unknown = sorted(set(names) - set(ds.camera_names))
-    if unknown:
-        raise SystemExit(f"{ds.name}: no camera(s) {unknown}")
+    check_cameras(ds, names)
     start = int(extra.get("start_frame", 0))
     scale = float((extra.get("config") or {}).get("scale", 1.0))
     static = load_static(model_dir, meta)
@@ -176,6 +181,10 @@ def main() -> None:
     parser.add_argument("--cameras", help="comma-separated cameras to fit (default: each scene's held-out ones)")
     args = parser.parse_args()
     names = args.cameras.split(",") if args.cameras else None
+    if names:  # before the table's header, so that a wrong name prints nothing else
+        from stgs.data import open_dataset
+
+        check_cameras(open_dataset(args.dataset), names)
     print(f"machine: {platform.processor() or platform.machine()}, torch threads {torch.get_num_threads()}")
     print("| scene | camera | learnt gain R/G/B | learnt offset R/G/B | fitted gain R/G/B | fitted offset R/G/B | "
           "PSNR drawn | PSNR through the fitted response | background drawn | background fitted | share of the MSE |")

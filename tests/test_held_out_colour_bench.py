@@ -1,11 +1,15 @@
 """bench.held_out_colour's least-squares colour response, against direct computation on images."""
 
 import math
+import subprocess
+import sys
 
+import pytest
 import torch
 
 from bench.held_out_colour import IDENTITY, ColourSums, psnr_of
 from stgs.metrics import psnr
+from tests.conftest import SHARED
 
 
 def _images(seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -52,3 +56,15 @@ def test_flat_render_and_empty_region_stay_finite_or_nan():
     empty = ColourSums.of(truth, truth, torch.zeros(12, 16, dtype=torch.bool))
     assert math.isnan(empty.mse(g, o)) and math.isnan(psnr_of(empty.mse(g, o)))
     assert all(math.isfinite(v) for v in (*empty.fit()[0].tolist(), *empty.fit()[1].tolist()))
+
+
+def test_an_unknown_camera_is_one_line_before_any_table():
+    dataset = SHARED / "data" / "panoptic-basketball"
+    if not dataset.is_dir():
+        pytest.skip("../shared/data/panoptic-basketball is absent")
+    result = subprocess.run([sys.executable, "-m", "bench.held_out_colour", "--models", "no-such-scene",
+                             "--dataset", str(dataset), "--cameras", "1,no-such-camera"],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode != 0 and result.stdout == ""
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].endswith("no camera(s) ['no-such-camera']")
