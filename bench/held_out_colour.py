@@ -21,8 +21,12 @@ import math
 import platform
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
+
+if TYPE_CHECKING:
+    from stgs.data import Dataset
 
 IDENTITY = (torch.ones(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64))
 
@@ -94,7 +98,7 @@ class CameraViews:
         return out
 
 
-def check_cameras(ds, names: list[str]) -> None:
+def check_cameras(ds: Dataset, names: list[str]) -> None:
     """Exits with one line naming the cameras of `names` that dataset `ds` lacks."""
     unknown = sorted(set(names) - set(ds.camera_names))
     if unknown:
