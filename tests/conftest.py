@@ -12,6 +12,8 @@ import torch
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 """../shared beside the checkout (real data, DASH schema); tests that need it skip without it."""
+PANOPTIC = SHARED / "data" / "panoptic-basketball"
+"""The real multi-view capture the tests read in place (never copied into the repo)."""
 
 
 def random_scene(n: int, seed: int, dtype=torch.float64, spread: float = 0.6, depth: float = 3.0,

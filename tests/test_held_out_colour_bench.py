@@ -9,7 +9,7 @@ import torch
 
 from bench.held_out_colour import IDENTITY, ColourSums, psnr_of
 from stgs.metrics import psnr
-from tests.conftest import SHARED
+from tests.conftest import PANOPTIC
 
 
 def _images(seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -59,11 +59,10 @@ def test_flat_render_and_empty_region_stay_finite_or_nan():
 
 
 def test_an_unknown_camera_is_one_line_before_any_table():
-    dataset = SHARED / "data" / "panoptic-basketball"
-    if not dataset.is_dir():
+    if not PANOPTIC.is_dir():
         pytest.skip("../shared/data/panoptic-basketball is absent")
     result = subprocess.run([sys.executable, "-m", "bench.held_out_colour", "--models", "no-such-scene",
-                             "--dataset", str(dataset), "--cameras", "1,no-such-camera"],
+                             "--dataset", str(PANOPTIC), "--cameras", "1,no-such-camera"],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode != 0 and result.stdout == ""
     lines = result.stderr.strip().splitlines()

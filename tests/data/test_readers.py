@@ -12,9 +12,8 @@ import torch
 
 from stgs.data import open_dataset, split
 from stgs.errors import StgsError
-from tests.conftest import SHARED
+from tests.conftest import PANOPTIC
 
-PANOPTIC = SHARED / "data" / "panoptic-basketball"
 needs_panoptic = pytest.mark.skipif(not PANOPTIC.is_dir(), reason="../shared/data/panoptic-basketball is absent")
 
 

@@ -12,9 +12,8 @@ from stgs.data import open_dataset, split
 from stgs.synth import SynthConfig, synthesize
 from stgs.synth.config import DEFAULT_EFFECTS
 from stgs.train.init import in_view
-from tests.conftest import SHARED
+from tests.conftest import PANOPTIC
 
-PANOPTIC = SHARED / "data" / "panoptic-basketball"
 HELD_OUT = ["1", "14", "27"]
 
 SCENE = SynthConfig(grid_side=16, num_gops=1, gop_size=6, width=96, height=72, num_cameras=8, fit_steps=30,
