@@ -121,6 +121,9 @@ def add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--coarse-low-res", type=float,
                    help="share of the coarse stage's (stage A's) iterations drawn first at half the training "
                    "resolution, about twice as fast each (default 0: none)")
+    p.add_argument("--gop-low-res", type=float,
+                   help="share of each GOP's iterations drawn first at half the training resolution, about twice "
+                   "as fast each (default 0: none)")
     p.add_argument("--position-lr", type=float,
                    help="initial position learning rate × the scene extent (decays 100× over a stage; "
                    "default: the budget's)")
@@ -163,7 +166,7 @@ TRAIN_OVERRIDES = ("max_gops", "gop_size", "start_frame", "grid_side", "iteratio
                    "window", "aux", "dynamic", "temporal_weight", "relocate", "seed", "threads", "holdout",
                    "background_share", "init_frames", "layers", "static_grid_side", "migrate", "static_drop_rate",
                    "static_drop_until", "static_sh_degree", "static_sh_iterations", "dynamic_warmup", "hull_seeds",
-                   "camera_colour", "coarse_low_res", "static_triangulation")
+                   "camera_colour", "coarse_low_res", "gop_low_res", "static_triangulation")
 
 
 def train_overrides(args: argparse.Namespace) -> dict:

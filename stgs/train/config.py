@@ -82,6 +82,10 @@ class TrainConfig:
     of the pixels; about twice the iterations per second), before the rest at full resolution."""
     iterations: int = 600
     """Iterations per GOP."""
+    gop_low_res: float = 0.0
+    """Share of each GOP stage's iterations drawn first at half the training resolution (images, masks and, in a
+    layered scene, the static backdrops halved; about half the cost of a step), before the rest at full
+    resolution: more iterations in the same time for a stage that is short of them (docs/TRAINING.md)."""
     feature_noise: float = 1e-3
     """λ of the feature noise λ·U(−0.5, 0.5) (simulates the video codec)."""
     lambda_ssim: float = 0.2
@@ -171,7 +175,8 @@ class TrainConfig:
                   (self.static_sh_degree in (0, 1), "static_sh_degree must be 0 or 1"),
                   (self.static_sh_iterations >= 0, "static_sh_iterations must be >= 0"),
                   (0 <= self.dynamic_warmup < 1, "dynamic_warmup must be in [0, 1)"),
-                  (0 <= self.coarse_low_res < 1, "coarse_low_res must be in [0, 1)")]
+                  (0 <= self.coarse_low_res < 1, "coarse_low_res must be in [0, 1)"),
+                  (0 <= self.gop_low_res < 1, "gop_low_res must be in [0, 1)")]
         checks += [(math.isfinite(rate) and rate > 0, f"lr.{name} must be a positive number, got {rate}")
                    for name, rate in dataclasses.asdict(self.lr).items()]
         for ok, message in checks:

@@ -70,7 +70,7 @@ from stgs.tree import CAMERAS, MODEL_META, TRAIN_REPORT, gop_stem
 
 STATE_DIR = ".train"
 LOW_RES = 0.5
-"""Image scale of the coarse stage's first iterations (TrainConfig.coarse_low_res)."""
+"""Image scale of a stage's first iterations (TrainConfig.coarse_low_res, TrainConfig.gop_low_res)."""
 
 
 class DivergedError(StgsError):
@@ -276,6 +276,8 @@ class Trainer:
             extra, saved_accum = resumed
             start, report = extra["iteration"], GOPReport(**extra["report"])
             accum = saved_accum if saved_accum is not None else accum
+        low_until = round(cfg.gop_low_res * cfg.iterations)
+        low = self.low_res_views(views) if start < low_until else None
         clock = setup - report.seconds  # the dynamic layer's seeding counts as the GOP's training time
         bar = tqdm(range(start, cfg.iterations), desc=f"GOP {k}", unit="it", disable=not self.progress)
         loss_value = math.nan
@@ -286,7 +288,10 @@ class Trainer:
         peak = self.layered
         for it in bar:
             opt.set_progress(it / cfg.iterations)
-            loss, img, target, opac = self.gop_loss(model, aux, views, static, deform=it >= warmup)
+            if it == low_until:
+                low = None  # the half-size images, masks and backdrops are not drawn again
+            at_views, at_static = low if low is not None else (views, static)
+            loss, img, target, opac = self.gop_loss(model, aux, at_views, at_static, deform=it >= warmup)
             self._step(opt, loss, f"GOP {k}", it, model)
             loss_value = loss.item()
             window.append(loss_value)
@@ -319,6 +324,13 @@ class Trainer:
         if val is not None:
             report.val_psnr, report.val_ssim = mean_scores(model, self.static, val)
         return model, report
+
+    def low_res_views(self, views: Views) -> tuple[Views, list[Backdrop] | None]:
+        """A GOP's training views at LOW_RES with their dynamic masks, and the static layer kept for those cameras
+        (TrainConfig.gop_low_res)."""
+        small, masks = downscaled(views, LOW_RES, views.dynamic)
+        small.dynamic = masks
+        return small, static_backdrops(self.static, small.cameras) if self.static is not None else None
 
     def gop_loss(self, model: GOPModel, aux: AuxTransformer | None, views: Views,
                  static: list[Backdrop] | None = None, deform: bool = True) -> GOPLoss:

@@ -57,20 +57,25 @@ def load_views(ds: Dataset, names: list[str], frames: list[int], scale: float, p
 
 def downscaled(views: Views, factor: float, moving: torch.Tensor | None = None
                ) -> tuple[Views, torch.Tensor | None]:
-    """`views` at `factor` x their image size (area-averaged images, cameras resized), and `moving` ((F, C, H, W)
-    bool) with them: a smaller pixel is moving when any of the pixels it averages is."""
+    """`views` at `factor` x their image size (area-averaged images, cameras resized), and `moving` (bool masks
+    of their pixels, per view (F, C, H, W) or per camera (C, H, W)) with them: a smaller pixel is moving when any
+    of the pixels it averages is. The small views carry no masks of their own."""
     cams = [scale_camera(c, factor) for c in views.cameras]
     w, h = cams[0].width, cams[0].height
     f, c = views.images.shape[:2]
     images = torch.empty(f, c, h, w, 3, dtype=torch.uint8)
-    small = None if moving is None else torch.empty(f, c, h, w, dtype=torch.bool)
     for i in range(f):
         for j in range(c):
             images[i, j] = torch.from_numpy(cv2.resize(views.images[i, j].numpy(), (w, h),
                                                        interpolation=cv2.INTER_AREA))
-            if small is not None:
-                area = cv2.resize(moving[i, j].numpy().astype("float32"), (w, h), interpolation=cv2.INTER_AREA)
-                small[i, j] = torch.from_numpy(area > 0)
+    small = None
+    if moving is not None:
+        flat = moving.reshape(-1, *moving.shape[-2:])
+        small = torch.empty(flat.shape[0], h, w, dtype=torch.bool)
+        for k, mask in enumerate(flat):
+            area = cv2.resize(mask.numpy().astype("float32"), (w, h), interpolation=cv2.INTER_AREA)
+            small[k] = torch.from_numpy(area > 0)
+        small = small.reshape(*moving.shape[:-2], h, w)
     return Views(cams, views.frames, images), small
 
 

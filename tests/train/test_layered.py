@@ -243,6 +243,40 @@ def test_low_resolution_views_average_the_pixels_and_keep_any_moving_one():
     assert small_moving[0, 0].nonzero().tolist() == [[1, 2]]
     assert (small.cameras[0].width, small.cameras[0].height) == (4, 3)
     assert torch.allclose(small.cameras[0].K[:2], cam.K[:2] / 2)
+    _, per_camera = downscaled(Views([cam], [7], images), 0.5, moving[0])  # format 1's masks: one per camera
+    assert per_camera.shape == (1, 3, 4) and per_camera[0].nonzero().tolist() == [[1, 2]]
+
+
+def test_gop_stage_at_low_resolution_first_draws_half_size_views_and_resumes_to_the_same_bytes(
+        scene, tmp_path, monkeypatch):
+    cfg = budget("quick", **LAYERED, coarse_iterations=10, iterations=20, gop_low_res=0.5, checkpoint_every=5,
+                 threads=2)
+    real, widths, stop = trainer_module.gop_loss, [], {"at": None}
+
+    def record(*args, **kwargs):
+        if len(widths) == stop["at"]:
+            raise KeyboardInterrupt
+        widths.append(args[4].cameras[0].width)  # gop_loss(cfg, gen, model, aux, views, ...)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(trainer_module, "gop_loss", record)
+    train(scene, tmp_path / "a", cfg, progress=False)
+    full = widths[-1]
+    assert widths == [round(full * 0.5)] * 10 + [full] * 10
+    widths.clear()
+    train(scene, tmp_path / "p", dataclasses.replace(cfg, gop_low_res=0.0), progress=False)
+    assert widths == [full] * 20
+    gop = "gop_0000.safetensors"
+    assert (tmp_path / "a" / gop).read_bytes() != (tmp_path / "p" / gop).read_bytes()
+    widths.clear()
+    stop["at"] = 8  # inside the half-size share, after the checkpoint at iteration 5
+    with pytest.raises(KeyboardInterrupt):
+        train(scene, tmp_path / "r", cfg, progress=False)
+    stop["at"] = None
+    widths.clear()
+    train(scene, tmp_path / "r", cfg, progress=False, resume=True)
+    assert widths == [round(full * 0.5)] * 5 + [full] * 10  # from the checkpoint on, still half size first
+    assert (tmp_path / "r" / gop).read_bytes() == (tmp_path / "a" / gop).read_bytes()
 
 
 def test_stage_a_at_low_resolution_first_resumes_to_the_same_bytes(scene, tmp_path, monkeypatch):
@@ -341,6 +375,8 @@ def test_bad_layer_settings_are_clear_errors(scene, tmp_path):
                                ({"layers": "layered", "dynamic_warmup": 1.0}, "dynamic_warmup"),
                                ({"coarse_low_res": -0.1}, "coarse_low_res"),
                                ({"coarse_low_res": 1.0}, "coarse_low_res"),
+                               ({"gop_low_res": 1.0}, "gop_low_res"),
+                               ({"gop_low_res": -0.1}, "gop_low_res"),
                                ({"static_drop_rate": 1.0}, "static_drop_rate"),
                                ({"static_drop_rate": -0.1}, "static_drop_rate"),
                                ({"static_drop_until": 1.5}, "static_drop_until")]:
