@@ -190,7 +190,9 @@ class Trainer:
             opt.set_progress(it / max(1, cfg.coarse_iterations))
             f = int(torch.randint(len(views.frames), (1,), generator=self.gen))
             c = int(torch.randint(len(views.cameras), (1,), generator=self.gen))
-            at, at_moving = low if it < low_until else (views, moving)
+            if it == low_until:
+                low = None  # the half-size images and masks are not drawn again
+            at, at_moving = low if low is not None else (views, moving)
             g = model.canonical()
             drawn = drop_gaussians(g, cfg.static_drop_rate, self.gen) if it < drop_until else g
             img = as_recorded(colour, splat(drawn, at.cameras[c]), c)
