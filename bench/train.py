@@ -45,7 +45,7 @@ def switched_off(config: dict) -> list[str]:
 
 def run_label(model_dir: Path) -> str:
     """'all components' or the ablation switches the run was trained with, and its capacity, initial-point frames,
-    position learning rate and seed when they are not the budget's."""
+    learning rates and seed when they are not the budget's."""
     config = _read_json(model_dir / MODEL_META).get("extra", {}).get("config", {})
     off = switched_off(config)
     label = f"{config.get('budget', '?')}: " + (" ".join(off) if off else "all components")
@@ -55,9 +55,11 @@ def run_label(model_dir: Path) -> str:
     frames = config.get("init_frames", 1)  # runs from before the setting triangulated their first frame only
     if default is not None and isinstance(frames, int) and frames != default.init_frames:
         label += f", init frames {frames}"
-    position_lr = config.get("lr", {}).get("position") if isinstance(config.get("lr"), dict) else None
-    if default is not None and isinstance(position_lr, float) and position_lr != default.lr.position:
-        label += f", position lr {position_lr:g}"
+    rates = config.get("lr") if isinstance(config.get("lr"), dict) else {}
+    for name, rate in rates.items():  # a final rate follows its initial one unless set apart
+        budget_rate = getattr(default.lr, name, None) if default is not None else None
+        if not name.endswith("_final") and isinstance(rate, float) and budget_rate is not None and rate != budget_rate:
+            label += f", {name} lr {rate:g}"
     seed = config.get("seed", 0)
     if default is not None and isinstance(seed, int) and seed != default.seed:
         label += f", seed {seed}"

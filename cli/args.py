@@ -36,6 +36,19 @@ def name_list(text: str) -> list[str]:
     return [n.strip() for n in text.split(",") if n.strip()]
 
 
+def name_number(text: str, flag: str) -> tuple[str, float]:
+    """`flag`'s NAME=NUMBER (the name is checked by whoever takes it); parsed after argparse, so that a mistake
+    is one line."""
+    name, sep, value = text.partition("=")
+    try:
+        number = float(value)
+    except ValueError:
+        number = None
+    if not (sep and name.strip()) or number is None:
+        raise UsageError(f"{flag} expects NAME=NUMBER, got {text!r}")
+    return name.strip(), number
+
+
 def effect_list(text: str) -> tuple[str, ...]:
     return tuple(name_list(text))
 

@@ -7,7 +7,7 @@ import dataclasses
 import sys
 from pathlib import Path
 
-from stgs.cli.args import add_ray, effect_list, name_list, positive_int
+from stgs.cli.args import UsageError, add_ray, effect_list, name_list, name_number, positive_int
 
 
 def add_synth(sub: argparse._SubParsersAction) -> None:
@@ -74,7 +74,7 @@ def run_synth(args: argparse.Namespace) -> int:
 
 
 def add_train(sub: argparse._SubParsersAction) -> None:
-    from stgs.train.config import BUDGETS
+    from stgs.train.config import BUDGETS, LearningRates
 
     p = sub.add_parser("train", help="train a StreamSTGS model dir from multi-view video (CPU)",
                        description="Per-GOP StreamSTGS training: triangulated initial points, a coarse canonical "
@@ -126,7 +126,11 @@ def add_train(sub: argparse._SubParsersAction) -> None:
                    "as fast each (default 0: none)")
     p.add_argument("--position-lr", type=float,
                    help="initial position learning rate × the scene extent (decays 100× over a stage; "
-                   "default: the budget's)")
+                   "default: the budget's); the same as --lr position=RATE")
+    rates = ", ".join(f.name for f in dataclasses.fields(LearningRates))
+    p.add_argument("--lr", action="append", metavar="NAME=RATE",
+                   help=f"an Adam learning rate, repeatable: {rates} (position × the scene extent; a decaying rate "
+                   "set without its _final keeps its decay; default: the budget's)")
     p.add_argument("--scale", type=float, help="training image scale (0.5 = half size)")
     p.add_argument("--window", type=positive_int, help="sliding window W (default 3)")
     p.add_argument("--background-share", type=float,
@@ -174,9 +178,13 @@ def train_overrides(args: argparse.Namespace) -> dict:
     from stgs.train.config import BUDGETS
 
     overrides = {k: getattr(args, k) for k in TRAIN_OVERRIDES if getattr(args, k) is not None}
-    if args.position_lr is not None:  # TrainConfig.validate checks the rates
-        overrides["lr"] = dataclasses.replace(BUDGETS[args.budget].lr, position=args.position_lr,
-                                              position_final=args.position_lr / 100)
+    rates = dict(name_number(text, "--lr") for text in args.lr or ())
+    if args.position_lr is not None:
+        if "position" in rates:
+            raise UsageError("--position-lr and --lr position=... both set the position learning rate")
+        rates["position"] = args.position_lr
+    if rates:  # names: LearningRates.with_rates; values: TrainConfig.validate
+        overrides["lr"] = BUDGETS[args.budget].lr.with_rates(rates)
     return overrides
 
 

@@ -45,6 +45,12 @@ def test_the_parsers_load_neither_torch_nor_opencv():
     (["bench", "synth", "--smoothness", "nan"], "--smoothness must list numbers in [0, 1e6)"),
     (["train", "DATA", "OUT", "--position-lr", "0"], "lr.position must be a positive number"),
     (["train", "DATA", "OUT", "--position-lr", "inf"], "lr.position must be a positive number"),
+    (["train", "DATA", "OUT", "--lr", "features"], "--lr expects NAME=NUMBER, got 'features'"),
+    (["train", "DATA", "OUT", "--lr", "features=fast"], "--lr expects NAME=NUMBER, got 'features=fast'"),
+    (["train", "DATA", "OUT", "--lr", "speed=1e-3"], "unknown learning rate(s) speed; known: position,"),
+    (["train", "DATA", "OUT", "--lr", "field=-1e-3"], "lr.field must be a positive number"),
+    (["train", "DATA", "OUT", "--lr", "position=1e-4", "--position-lr", "1e-4"],
+     "--position-lr and --lr position=... both set"),
 ])
 def test_user_errors_are_one_line(tmp_path, args, message):
     result = stgs(*args, cwd=tmp_path)
@@ -66,6 +72,23 @@ def test_train_overrides_from_the_command_line():
     assert overrides["lr"].position == 8e-4 and overrides["lr"].position_final == pytest.approx(8e-6)
     assert overrides["lr"].features == BUDGETS["cpu"].lr.features  # the rest stays the budget's
     assert "lr" not in train_overrides(build_parser().parse_args(["train", "DATA", "OUT"]))
+
+
+def test_any_learning_rate_from_the_command_line():
+    from stgs.cli import train_overrides
+    from stgs.train.config import BUDGETS
+
+    cpu = BUDGETS["cpu"].lr
+    args = build_parser().parse_args(["train", "DATA", "OUT", "--budget", "cpu", "--lr", "features=5e-3",
+                                      "--lr", "field=3.2e-3", "--position-lr", "8e-4"])
+    rates = train_overrides(args)["lr"]
+    assert rates.features == 5e-3 and rates.field == 3.2e-3 and rates.position == 8e-4
+    # a decaying rate keeps its decay: the final rate moves by the same factor as the initial one
+    assert rates.field_final == pytest.approx(cpu.field_final * 2) and rates.position_final == pytest.approx(8e-6)
+    assert rates.opacity == cpu.opacity and rates.camera_colour == cpu.camera_colour
+    args = build_parser().parse_args(["train", "DATA", "OUT", "--lr", "field=3.2e-3", "--lr", "field_final=1e-5"])
+    rates = train_overrides(args)["lr"]
+    assert rates.field == 3.2e-3 and rates.field_final == 1e-5  # set apart: kept as given
 
 
 @pytest.mark.parametrize("where", ["file-as-parent", "read-only-fs"])

@@ -28,6 +28,20 @@ class LearningRates:
     camera_colour: float = 1e-3
     """The training cameras' colour gains and offsets (stgs.train.camera_colour)."""
 
+    def with_rates(self, rates: dict[str, float]) -> LearningRates:
+        """These rates with `rates` set. A decaying rate (one with a `*_final`) set without its final rate keeps
+        its decay: the final rate is scaled by the same factor."""
+        names = [f.name for f in dataclasses.fields(self)]
+        unknown = sorted(set(rates) - set(names))
+        if unknown:
+            raise StgsError(f"unknown learning rate(s) {', '.join(unknown)}; known: {', '.join(names)}")
+        values = dict(rates)
+        for name, rate in rates.items():
+            final = f"{name}_final"
+            if final in names and final not in rates:
+                values[final] = getattr(self, final) * rate / getattr(self, name)
+        return dataclasses.replace(self, **values)
+
 
 @dataclass
 class TrainConfig:

@@ -201,6 +201,9 @@ def test_bench_train_labels_name_what_differs_from_the_budget(tmp_path):
               "camera_colour": True}
     (tmp_path / "model.json").write_text(json.dumps({"extra": {"config": config}}))
     assert run_label(tmp_path) == "cpu: --no-aux, 36,864 Gaussians, init frames 12, position lr 0.0008"
+    config["lr"] = {"position": 1.6e-4, "features": 5e-3, "field": 3.2e-3, "field_final": 3.2e-4}
+    (tmp_path / "model.json").write_text(json.dumps({"extra": {"config": config}}))
+    assert run_label(tmp_path).endswith("init frames 12, features lr 0.005, field lr 0.0032")
     config.update(grid_side=128, aux=True, lr={"position": 1.6e-4}, init_frames=6)
     (tmp_path / "model.json").write_text(json.dumps({"extra": {"config": config}}))
     assert run_label(tmp_path) == "cpu: all components"
