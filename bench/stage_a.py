@@ -14,6 +14,7 @@ run's time.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import platform
 import tempfile
 import time
@@ -28,11 +29,13 @@ from stgs.train.run import base_stage
 from stgs.train.trainer import Trainer
 
 FRAME_STEP = 6
+LR_PREFIX = "lr."
 """Every this many frames of the GOP are drawn, and every this many training cameras."""
 
 
 def parse_settings(text: str) -> dict:
-    """'coarse_low_res=0.6,coarse_iterations=5500' -> TrainConfig overrides (numbers as int or float)."""
+    """'coarse_low_res=0.6,lr.camera_colour=3e-4' -> TrainConfig overrides, `lr.NAME` for a learning rate (numbers
+    as int or float)."""
     out = {}
     for part in filter(None, text.split(",")):
         key, _, value = part.partition("=")
@@ -41,8 +44,12 @@ def parse_settings(text: str) -> dict:
 
 
 def row(dataset: Path, holdout: list[str], settings: dict, seed: int, work: Path, budget_name: str = "cpu") -> str:
-    """One table row: stage A trained in `work` with `settings` over the budget's layered config."""
-    cfg = budget(budget_name, layers="layered", holdout=holdout, max_gops=1, aux=False, seed=seed, **settings)
+    """One table row: stage A trained in `work` with `settings` over the budget's layered config (`lr.NAME` keys
+    set Adam's rates, as `stgs train --lr NAME=RATE` does)."""
+    rates = {k.removeprefix(LR_PREFIX): v for k, v in settings.items() if k.startswith(LR_PREFIX)}
+    fields = {k: v for k, v in settings.items() if not k.startswith(LR_PREFIX)}
+    cfg = budget(budget_name, layers="layered", holdout=holdout, max_gops=1, aux=False, seed=seed, **fields)
+    cfg = dataclasses.replace(cfg, lr=cfg.lr.with_rates(rates))
     trainer = Trainer(dataset, work, cfg, progress=False)
     trainer.prepare_output()
     start = time.perf_counter()
@@ -63,7 +70,8 @@ def main() -> None:
     p.add_argument("--dataset", type=Path, required=True)
     p.add_argument("--holdout", default="1,14,27")
     p.add_argument("--set", action="append", default=[], metavar="K=V,...",
-                   help="one row's TrainConfig overrides (repeat for more rows; none: the budget's stage A)")
+                   help="one row's TrainConfig overrides, lr.NAME=RATE for a learning rate (repeat for more "
+                        "rows; none: the budget's stage A)")
     p.add_argument("--seeds", default="0")
     p.add_argument("--budget", default="cpu")
     args = p.parse_args()

@@ -3,6 +3,7 @@ Decision it returns (dash.js's SwitchRequest)."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -104,6 +105,26 @@ class UpcomingGOP:
     """Feature bits per rung."""
     psnr: Sequence[float] | None = None
     """Rendered PSNR per rung (None: unknown)."""
+
+    @classmethod
+    def from_stats(cls, stats: object, k: int, rep_ids: list[str]) -> UpcomingGOP | None:
+        """GOP k's keyframe and per-rung media bits and rendered PSNR, from stats.json, or None where it does not
+        say (PSNR None unless every rung has a finite one)."""
+        try:
+            gop = stats["gops"][k]
+            if gop["index"] != k:
+                return None
+            keyframe = float(gop["keyframe_bytes"]) * 8
+            sizes = [float(gop["representations"][r]["bytes"]) * 8 for r in rep_ids]
+        except (KeyError, IndexError, TypeError, ValueError):
+            return None
+        if not all(math.isfinite(s) and s > 0 for s in [keyframe, *sizes]):
+            return None
+        try:
+            psnr = [float(gop["representations"][r]["render_psnr"]) for r in rep_ids]
+        except (KeyError, TypeError, ValueError):
+            psnr = None
+        return cls(keyframe, sizes, psnr if psnr and all(math.isfinite(p) for p in psnr) else None)
 
 
 @dataclass

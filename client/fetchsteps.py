@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable, Generator
 from dataclasses import dataclass
 
-from stgs.client.abr import Decision
+from stgs.client.abr import Decision, ThroughputSample
 
 
 class ScheduleError(Exception):
@@ -79,6 +79,15 @@ class Abandoned:
 
 
 Outcome = Done | Failed | Abandoned
+
+
+def throughput_sample(*parts: Done, joint: bool = False) -> ThroughputSample:
+    """One throughput sample of transfers made one after the other (or at once, `joint`)."""
+    nbytes = sum(p.nbytes for p in parts)
+    if joint:
+        return ThroughputSample(nbytes, max(p.seconds for p in parts), min(p.ttfb for p in parts))
+    return ThroughputSample(nbytes, sum(p.seconds for p in parts), sum(p.ttfb for p in parts))
+
 Step = Generator[Request | Wait | Parallel, Outcome | tuple[Outcome, ...] | None, "Fetched"]
 
 

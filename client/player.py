@@ -29,14 +29,13 @@ from __future__ import annotations
 
 import asyncio
 import json
-import math
 import time
-import traceback
 
 from stgs.client.abr import Decision, UpcomingGOP, make_rule
 from stgs.client.clock import PlaybackClock
 from stgs.client.config import PlaybackError, PlayConfig
 from stgs.client.download import AbandonError, Downloader, FetchError, TransientError
+from stgs.client.failure import playback_failure
 from stgs.client.fetchsteps import (
     Abandoned,
     Done,
@@ -64,26 +63,6 @@ from stgs.mpd_values import MPDError
 from stgs.tree import CAMERAS, STATS
 
 
-def stats_gop(stats: object, k: int, rep_ids: list[str]) -> UpcomingGOP | None:
-    """GOP k's keyframe and per-rung media bits and rendered PSNR, from stats.json, or None where it does not
-    say (PSNR None unless every rung has a finite one)."""
-    try:
-        gop = stats["gops"][k]
-        if gop["index"] != k:
-            return None
-        keyframe = float(gop["keyframe_bytes"]) * 8
-        sizes = [float(gop["representations"][r]["bytes"]) * 8 for r in rep_ids]
-    except (KeyError, IndexError, TypeError, ValueError):
-        return None
-    if not all(math.isfinite(s) and s > 0 for s in [keyframe, *sizes]):
-        return None
-    try:
-        psnr = [float(gop["representations"][r]["render_psnr"]) for r in rep_ids]
-    except (KeyError, TypeError, ValueError):
-        psnr = None
-    return UpcomingGOP(keyframe, sizes, psnr if psnr and all(math.isfinite(p) for p in psnr) else None)
-
-
 class Session:
     """One playback of a Presentation (see the module docstring)."""
 
@@ -106,7 +85,7 @@ class Session:
         rep_ids = [r.rep_id for r in pres.ladder]
         self.schedule = FetchSchedule(
             pres, make_rule(cfg.abr, [r.qp for r in pres.ladder], cfg.qp, cfg.abr_settings), self.buffer_level,
-            self.capacity_s, lambda k: stats_gop(stats, k, rep_ids) if stats is not None else None,
+            self.capacity_s, lambda k: UpcomingGOP.from_stats(stats, k, rep_ids) if stats is not None else None,
             cfg.abr_settings, dl.settings, clock=lambda: self.now(), playing=lambda: self.clock.t0 is not None)
         self.budget = ThreadBudget.for_cores(usable_cores(), cfg.render_threads, cfg.decode_threads)
         self.decoder = GOPDecoder(cfg, pres, self.schedule, self.records, self.budget, self.drive,
@@ -270,33 +249,6 @@ class Session:
                                    "process_peak_rss_mb": process_peak_rss_mb(),
                                    "time_to_first_frame_s": self.time_to_first_frame(),
                                    "error_detail": getattr(error, "detail", None)})
-
-
-class InternalError(PlaybackError):
-    """A failure no part of the player expected (a defect, or a resource the machine ran out of); `detail` holds
-    the traceback for the playback log."""
-
-    def __init__(self, exc: BaseException):
-        super().__init__(f"playback failed unexpectedly: {type(exc).__name__}: {str(exc)[:300] or '(no message)'} "
-                         "(details in the playback log)")
-        self.detail = "".join(traceback.format_exception(exc))
-
-
-def playback_failure(failed: BaseExceptionGroup) -> BaseException:
-    """The one error a failed task group ends the playback with: a PlaybackError a task raised, else an
-    interruption (KeyboardInterrupt, SystemExit) as is, else any other error as an InternalError."""
-    leaves = []
-
-    def flatten(group: BaseExceptionGroup) -> None:
-        for exc in group.exceptions:
-            flatten(exc) if isinstance(exc, BaseExceptionGroup) else leaves.append(exc)
-
-    flatten(failed)
-    for kind in (PlaybackError, KeyboardInterrupt, SystemExit):
-        for exc in leaves:
-            if isinstance(exc, kind):
-                return exc
-    return InternalError(leaves[0])
 
 
 async def _optional_json(dl: Downloader, url: str) -> object | None:

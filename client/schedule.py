@@ -18,7 +18,7 @@ the rest, so the two cannot drift apart:
   trips kept apart as latency); an abandoned transfer is a sample of its own.
 - A transient failure (connection error, timeout, truncated body, HTTP
   408/429/5xx) is retried with exponential backoff (`Wait`), up to
-  `DownloadSettings.retries` times.
+  `DownloadSettings.retries` times (stgs.client.retry).
 - A feature download that is abandoned, or fails for good above the lowest
   rung, falls back to the lowest rung; a failure at the lowest rung, or of a
   keyframe, ends the playback (`ScheduleError`).
@@ -36,7 +36,6 @@ Times are media seconds on the driver's clock.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 
@@ -65,9 +64,11 @@ from stgs.client.fetchsteps import (
     ScheduleError,
     Step,
     Wait,
+    throughput_sample,
 )
 from stgs.client.manifest import Presentation
 from stgs.client.playlog import GOPRecord
+from stgs.client.retry import first_attempt, record, with_retries
 from stgs.limits import MAX_INIT_BYTES
 from stgs.tree import KEYFRAME_REP, STATIC_REP
 
@@ -112,7 +113,7 @@ class FetchSchedule:
         outcome = yield from self._get(request, rec)
         if not isinstance(outcome, Done):
             raise ScheduleError(f"static layer: {outcome.reason}")
-        self.samples.append(self._sample(outcome))
+        self.samples.append(throughput_sample(outcome))
         rec.static_bytes = outcome.nbytes
         return outcome.data
 
@@ -130,7 +131,7 @@ class FetchSchedule:
             keyframe, fetched = yield from self._together(k, decision.index, state, rec)
         else:
             keyframe = yield from self._keyframe(k, rec)
-            alone = self._sample(keyframe)
+            alone = throughput_sample(keyframe)
             state = self._state(k, keyframe.nbytes * 8, waited, round_trips=2, keyframe_fetched=True, extra=[alone])
             decision = self._decide(rec, state)
             fetched = yield from self._features(k, decision.index, state, rec, keyframe)
@@ -177,13 +178,13 @@ class FetchSchedule:
         if isinstance(init, Failed):
             keyframe = yield from self._keyframe(k, rec)
             return keyframe, (yield from self._recover(k, rung, init, rec))
-        kf_req = self._attempt(self._request("keyframe", k, KEYFRAME_REP))
-        media_req = self._attempt(self._request("media", k, rep, self._judge(rung, state)))
+        kf_req = first_attempt(self._request("keyframe", k, KEYFRAME_REP), self.download)
+        media_req = first_attempt(self._request("media", k, rep, self._judge(rung, state)), self.download)
         keyframe, media = yield Parallel((kf_req, media_req))
         for req, outcome in ((kf_req, keyframe), (media_req, media)):
-            _record(rec, req, outcome)
+            record(rec, req, outcome)
         if isinstance(keyframe, Done) and isinstance(media, Done):
-            self.samples.append(self._sample(keyframe, media, joint=True))
+            self.samples.append(throughput_sample(keyframe, media, joint=True))
         if isinstance(keyframe, Failed):
             if keyframe.retryable:
                 keyframe = yield from self._get(kf_req, rec, first=keyframe)
@@ -192,7 +193,7 @@ class FetchSchedule:
         if isinstance(media, Failed) and media.retryable:
             media = yield from self._get(media_req, rec, first=media)
             if isinstance(media, Done):
-                self.samples.append(self._sample(media))
+                self.samples.append(throughput_sample(media))
         if isinstance(media, Done):
             return keyframe, self._chosen(k, rung, rec, media)
         return keyframe, (yield from self._recover(k, rung, media, rec))
@@ -204,9 +205,9 @@ class FetchSchedule:
             return (yield from self._recover(k, rung, init, rec))
         media = yield from self._get(self._request("media", k, rep, self._judge(rung, state)), rec)
         if isinstance(media, Done):
-            self.samples.append(self._sample(keyframe, media))
+            self.samples.append(throughput_sample(keyframe, media))
             return self._chosen(k, rung, rec, media)
-        self.samples.append(self._sample(keyframe))
+        self.samples.append(throughput_sample(keyframe))
         return (yield from self._recover(k, rung, media, rec))
 
     def _recover(self, k: int, rung: int, failure: Failed | Abandoned, rec: GOPRecord) -> Step:
@@ -250,7 +251,7 @@ class FetchSchedule:
         media = yield from self._get(self._request("media", k, rep), rec)
         if not isinstance(media, Done):
             return media
-        self.samples.append(self._sample(media))
+        self.samples.append(throughput_sample(media))
         return self._chosen(k, rung, rec, media)
 
     def _init(self, rep: str, rec: GOPRecord) -> Generator[Request | Wait, Outcome | None, Outcome | None]:
@@ -264,45 +265,12 @@ class FetchSchedule:
             rec.init_bytes += outcome.nbytes
         return outcome
 
-    def _attempt(self, request: Request) -> Request:
-        return dataclasses.replace(request, time_left=self.download.total_timeout_s)
-
     def _get(self, request: Request, rec: GOPRecord, first: Failed | None = None
              ) -> Generator[Request | Wait, Outcome | None, Outcome]:
-        """One request with its retries, all within the request's deadline (DownloadSettings.total_timeout_s);
-        `first`: the failed first attempt made in a joint request."""
-        settings = self.download
-        outcome: Outcome | None = first
-        spent = 0.0 if first is None else first.seconds
-        for attempt in range(0 if first is None else 1, settings.retries + 1):
-            if isinstance(outcome, Failed):
-                wait = settings.backoff(attempt)
-                if spent + wait >= settings.total_timeout_s:
-                    outcome = Failed(f"{outcome.reason}; no answer within {settings.total_timeout_s:g} s",
-                                     retryable=True, seconds=spent)
-                    break
-                self.retries += 1
-                rec.events.append(f"retry {attempt} of the {request.kind} of {request.rep}: {outcome.reason}")
-                yield Wait(wait)
-                spent += wait
-            outcome = yield dataclasses.replace(request, time_left=settings.total_timeout_s - spent)
-            spent += outcome.seconds
-            _record(rec, request, outcome)
-            if not (isinstance(outcome, Failed) and outcome.retryable):
-                break
-        else:
-            if settings.retries:
-                outcome = Failed(f"{outcome.reason} (after {settings.retries + 1} attempts)", retryable=True,
-                                 seconds=spent)
-        return outcome
+        return (yield from with_retries(request, rec, self.download, self._count_retry, first))
 
-    @staticmethod
-    def _sample(*parts: Done, joint: bool = False) -> ThroughputSample:
-        """One throughput sample of transfers made one after the other (or at once, `joint`)."""
-        nbytes = sum(p.nbytes for p in parts)
-        if joint:
-            return ThroughputSample(nbytes, max(p.seconds for p in parts), min(p.ttfb for p in parts))
-        return ThroughputSample(nbytes, sum(p.seconds for p in parts), sum(p.ttfb for p in parts))
+    def _count_retry(self) -> None:
+        self.retries += 1
 
     def _request(self, kind: str, k: int, rep: str, judge: Judge | None = None) -> Request:
         """The request for a part of GOP k: its URL and its size cap from the manifest."""
@@ -348,17 +316,3 @@ class FetchSchedule:
     @staticmethod
     def _decided(rec: GOPRecord, decision: Decision) -> None:
         rec.decisions.append(decision.to_json())
-
-
-def _record(rec: GOPRecord, request: Request, outcome: Outcome) -> None:
-    rec.requests.append({"kind": request.kind, "rep": request.rep, "outcome": _describe(outcome)})
-
-
-def _describe(outcome: Outcome | None) -> str:
-    if isinstance(outcome, Done):
-        return f"{outcome.nbytes} bytes"
-    if isinstance(outcome, Abandoned):
-        return f"abandoned after {outcome.nbytes} bytes"
-    if isinstance(outcome, Failed):
-        return f"failed: {outcome.reason}"
-    return "none"

@@ -30,7 +30,8 @@ This module holds the stages; the parts: `views` (training images), `seeding`
 (initial points and attributes; geometry in `init`), `losses`, `ops`
 (relocation, sorting, pruning and the Adam-state surgery they need),
 `checkpoint`, `aux` (the auxiliary transformer), `camera_colour`, `dynamic` (dynamic masks),
-`objective` (what a GOP-stage iteration minimises), `validation` (the report's running scores).
+`objective` (what a GOP-stage iteration minimises), `validation` (the report's running scores), `canonical`
+(the coarse stage and stage A).
 """
 
 from __future__ import annotations
@@ -52,25 +53,23 @@ from stgs.memory import reuse_large_allocations
 from stgs.metrics import psnr
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.static import StaticLayer
-from stgs.model.view import Backdrop, splat, static_backdrops
-from stgs.train import losses
+from stgs.model.view import Backdrop, static_backdrops
 from stgs.train.aux import AuxTransformer
 from stgs.train.base import BaseStage
-from stgs.train.camera_colour import CameraColour, as_recorded
+from stgs.train.camera_colour import CameraColour
+from stgs.train.canonical import fit_canonical
 from stgs.train.checkpoint import Checkpoints
 from stgs.train.config import TrainConfig, stage_seed
 from stgs.train.hull import HullConfig
 from stgs.train.layers import Migrated, fit_view_dependent, init_dynamic, migrate, motion_scores, moving_masks
-from stgs.train.objective import GOPLoss, canonical_regularisers, drop_gaussians, gop_loss
+from stgs.train.objective import GOPLoss, gop_loss
 from stgs.train.ops import Optimizer, opacity_level, prune, relocate, sort, track_opacities
-from stgs.train.seeding import init_canonical, init_frames, initial_points
+from stgs.train.seeding import init_frames, initial_points
 from stgs.train.validation import mean_scores
-from stgs.train.views import Views, downscaled, scene_extent
+from stgs.train.views import LOW_RES, Views, downscaled, scene_extent
 from stgs.tree import CAMERAS, MODEL_META, TRAIN_REPORT, gop_stem
 
 STATE_DIR = ".train"
-LOW_RES = 0.5
-"""Image scale of a stage's first iterations (TrainConfig.coarse_low_res, TrainConfig.gop_low_res)."""
 
 
 class DivergedError(StgsError):
@@ -151,67 +150,13 @@ class Trainer:
         start = self.cfg.start_frame + k * self.cfg.gop_size
         return list(range(start, start + self.cfg.gop_size))
 
-    def _coarse_state(self, iteration: int) -> dict:
-        return {"iteration": iteration, "triangulated": self.triangulated, "background": self.background_points}
-
     # --- stages ---
 
     def coarse(self, views: Views, shape: GOPShape, moving: torch.Tensor | None = None,
                stage: str = "coarse") -> GOPModel:
         """Canonical 3DGS (no deformation) on frames from all times; with `moving` ((F, C, H, W) bool), on the
-        pixels that do not move only (stage A of layered training)."""
-        cfg = self.cfg
-        self.seed_stage(stage)
-        model = GOPModel(shape)
-        colour = CameraColour(len(views.cameras)) if cfg.camera_colour else None
-        opt = Optimizer(model, cfg, self.extent, None, canonical_only=True, colour=colour)
-        resumed = self.checkpoints.load(stage, model, opt, self.gen, {"colour": colour})
-        start = resumed[0]["iteration"] if resumed else 0
-        if resumed:  # the counts the interrupted run found, for the report
-            self.triangulated, self.background_points = resumed[0].get("triangulated"), resumed[0].get("background")
-        else:
-            region = "background" if moving is not None and cfg.static_triangulation else "foreground"
-            init = initial_points(self.ds, self.train_names, init_frames(views.frames, cfg.init_frames),
-                                  shape.capacity, self.gen, cfg.init_points, cfg.background_share, region=region)
-            self.triangulated, self.background_points = init.triangulated, init.background
-            init_canonical(model, init)
-        # Stage A's layer is final (no GOP stage refines it): it gets the GOP stage's regularisers, which
-        # measurably generalise better to cameras not trained on (docs/BENCHMARKS.md, "Layered scenes").
-        regularised = moving is not None
-        sorting = regularised and cfg.smooth_weight > 0
-        if sorting and start == 0:
-            sort(model, opt, torch.zeros(2, shape.capacity), cfg.seed)
-        desc = "stage A: static layer" if moving is not None else "coarse canonical"
-        low_until = round(cfg.coarse_low_res * cfg.coarse_iterations)
-        drop_until = round(cfg.static_drop_until * cfg.coarse_iterations) if regularised else 0
-        low = downscaled(views, LOW_RES, moving) if start < low_until else None
-        bar = tqdm(range(start, cfg.coarse_iterations), desc=desc, unit="it", disable=not self.progress)
-        for it in bar:
-            opt.set_progress(it / max(1, cfg.coarse_iterations))
-            f = int(torch.randint(len(views.frames), (1,), generator=self.gen))
-            c = int(torch.randint(len(views.cameras), (1,), generator=self.gen))
-            if it == low_until:
-                low = None  # the half-size images and masks are not drawn again
-            at, at_moving = low if low is not None else (views, moving)
-            g = model.canonical()
-            drawn = drop_gaussians(g, cfg.static_drop_rate, self.gen) if it < drop_until else g
-            img = as_recorded(colour, splat(drawn, at.cameras[c]), c)
-            mask = ~at_moving[f, c] if at_moving is not None else None
-            loss = losses.photometric(img, at.target(f, c), cfg.lambda_ssim, mask)
-            if regularised:
-                loss = loss + canonical_regularisers(cfg, model, g.opacities)
-            self._step(opt, loss, stage, it, model)
-            if sorting and (it + 1) % cfg.sort_every == 0 and it + 1 < cfg.coarse_iterations:
-                sort(model, opt, torch.zeros(2, shape.capacity), cfg.seed)
-            if cfg.relocate and (it + 1) % cfg.relocate_every == 0 and it < cfg.relocate_until * cfg.coarse_iterations:
-                relocate(model, opt, torch.sigmoid(model.opacity_logit.detach()), cfg.dead_opacity, self.gen)
-            if (it + 1) % cfg.checkpoint_every == 0:
-                self.checkpoints.save(stage, model, opt, self.gen, self._coarse_state(it + 1), {"colour": colour})
-        if cfg.coarse_iterations:
-            self.checkpoints.save(stage, model, opt, self.gen, self._coarse_state(cfg.coarse_iterations),
-                                  {"colour": colour})
-        self.colour = colour.requires_grad_(False) if colour is not None else None
-        return model
+        pixels that do not move only (stage A of layered training). Sets the cameras' colour responses."""
+        return fit_canonical(self, views, shape, moving, stage)
 
     def stage_a(self, views: Views) -> GOPModel:
         """The static layer (layered training): fitted on the pixels that do not move, then the Gaussians the
@@ -245,7 +190,9 @@ class Trainer:
             init_dynamic(model, init, self.migrated)
         return model
 
-    def _step(self, opt: Optimizer, loss: torch.Tensor, stage: str, it: int, model: GOPModel) -> None:
+    def step(self, opt: Optimizer, loss: torch.Tensor, stage: str, it: int, model: GOPModel) -> None:
+        """One optimiser step on `loss` (a non-finite loss stops the run: DivergedError), then the model's
+        rotations normalised and its opacities clipped to the stream's range."""
         if not torch.isfinite(loss):
             raise DivergedError(f"the {stage} loss became {loss.item()} at iteration {it}; the last good "
                                 f"checkpoint is in {self.state} (a resumed run continues from it; lower the "
@@ -294,7 +241,7 @@ class Trainer:
                 low = None  # the half-size images, masks and backdrops are not drawn again
             at_views, at_static = low if low is not None else (views, static)
             loss, img, target, opac = self.gop_loss(model, aux, at_views, at_static, deform=it >= warmup)
-            self._step(opt, loss, f"GOP {k}", it, model)
+            self.step(opt, loss, f"GOP {k}", it, model)
             loss_value = loss.item()
             window.append(loss_value)
             track_opacities(accum, opac, peak)

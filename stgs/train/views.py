@@ -55,6 +55,10 @@ def load_views(ds: Dataset, names: list[str], frames: list[int], scale: float, p
     return Views(cams, frames, images)
 
 
+LOW_RES = 0.5
+"""Image scale of a stage's first iterations (TrainConfig.coarse_low_res, TrainConfig.gop_low_res)."""
+
+
 def downscaled(views: Views, factor: float, moving: torch.Tensor | None = None
                ) -> tuple[Views, torch.Tensor | None]:
     """`views` at `factor` x their image size (area-averaged images, cameras resized), and `moving` (bool masks

@@ -299,3 +299,20 @@ def test_mpc_bounds_the_throughput_by_its_past_errors():
     harmonic, robust = rule.predict_kbps(AbrState(LADDER, 1.0, 1.0, 6.0, dropped))
     assert harmonic == pytest.approx(4 / (3 / 1000 + 1 / 500)) and robust == pytest.approx(harmonic / 2)
     assert MpcRule().choose(AbrState(LADDER, 1.0, 0.0, 6.0, [])).index == 0
+
+
+def test_upcoming_gop_from_stats_reads_bits_and_psnr_and_refuses_what_stats_does_not_say():
+    reps = {"f30": {"bytes": 1000, "render_psnr": 30.5}, "f24": {"bytes": 4000, "render_psnr": 33.0}}
+    stats = {"gops": [{"index": 0, "keyframe_bytes": 500, "representations": reps}]}
+    gop = UpcomingGOP.from_stats(stats, 0, ["f30", "f24"])
+    assert gop.keyframe_bits == 4000 and list(gop.segment_bits) == [8000, 32000] and list(gop.psnr) == [30.5, 33.0]
+    assert UpcomingGOP.from_stats(stats, 1, ["f30"]) is None  # no such GOP
+    assert UpcomingGOP.from_stats(stats, 0, ["f18"]) is None  # no such rung
+    assert UpcomingGOP.from_stats({"gops": [{**stats["gops"][0], "index": 3}]}, 0, ["f30"]) is None
+    zero = {"gops": [{"index": 0, "keyframe_bytes": 0, "representations": reps}]}
+    assert UpcomingGOP.from_stats(zero, 0, ["f30"]) is None
+    no_psnr = {"f30": {"bytes": 1000, "render_psnr": float("nan")}}
+    partial = UpcomingGOP.from_stats({"gops": [{"index": 0, "keyframe_bytes": 500, "representations": no_psnr}]},
+                                     0, ["f30"])
+    assert partial is not None and partial.psnr is None
+    assert UpcomingGOP.from_stats("not a document", 0, ["f30"]) is None

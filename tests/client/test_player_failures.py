@@ -11,7 +11,7 @@ import struct
 
 import pytest
 
-from stgs.client import PlaybackError, PlayConfig, play, player, resources
+from stgs.client import PlaybackError, PlayConfig, failure, play, player, resources
 from stgs.client.view import ViewSpec
 from stgs.codec import stream
 from tests.client.conftest import QUICK, copy_tree, segment, serving
@@ -25,7 +25,7 @@ async def test_a_defect_in_the_decoder_ends_the_playback_with_its_traceback_logg
 
     monkeypatch.setattr(stream, "dequantize_frame", broken)
     async with serving(scene / "dash") as url:
-        with pytest.raises(player.InternalError, match="unexpectedly: TypeError: unsupported operand"):
+        with pytest.raises(failure.InternalError, match="unexpectedly: TypeError: unsupported operand"):
             await asyncio.wait_for(play(PlayConfig(url, qp=32, download=QUICK, view=SMALL,
                                                    log=tmp_path / "log.json")), timeout=30)
     log = json.loads((tmp_path / "log.json").read_text())
@@ -43,7 +43,7 @@ async def test_a_defect_in_the_fetcher_ends_the_playback(scene, tmp_path, monkey
 
     monkeypatch.setattr(player.Session, "drive", broken)
     async with serving(scene / "dash") as url:
-        with pytest.raises(player.InternalError, match="KeyError"):
+        with pytest.raises(failure.InternalError, match="KeyError"):
             await asyncio.wait_for(play(PlayConfig(url, qp=32, download=QUICK, view=SMALL, out=tmp_path / "o.mp4",
                                                    log=tmp_path / "log.json")), timeout=30)
     assert not list(tmp_path.glob("*.mp4")) and not list(tmp_path.glob(".o.mp4*"))  # no half-written output

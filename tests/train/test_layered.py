@@ -23,6 +23,7 @@ from stgs.model.view import splat, static_backdrops, static_view
 from stgs.synth import ground_truth_cameras, truth_static_layer
 from stgs.synth.scene import ProceduralScene
 from stgs.train import budget, train
+from stgs.train import canonical as canonical_module
 from stgs.train import losses as loss_module
 from stgs.train import trainer as trainer_module
 from stgs.train.layers import fit_view_dependent, migrate, motion_scores, moving_masks, static_background_psnr
@@ -333,13 +334,13 @@ def test_dropped_gaussians_keep_their_expected_opacity_below_one():
 
 def test_stage_a_draws_with_dropped_gaussians_and_the_coarse_stage_without(scene, tmp_path, monkeypatch):
     rates = []
-    real = trainer_module.drop_gaussians
+    real = canonical_module.drop_gaussians
 
     def record(g, rate, gen):
         rates.append(rate)
         return real(g, rate, gen)
 
-    monkeypatch.setattr(trainer_module, "drop_gaussians", record)
+    monkeypatch.setattr(canonical_module, "drop_gaussians", record)
     cfg = budget("quick", **LAYERED, coarse_iterations=4, static_drop_rate=0.3)
     trainer = Trainer(scene, tmp_path / "a", cfg, progress=False)
     views = load_views(trainer.ds, trainer.train_names, [0, 2], 1.0, False)
@@ -357,13 +358,16 @@ def test_stage_a_draws_with_dropped_gaussians_and_the_coarse_stage_without(scene
 def test_the_stage_a_benchmark_scores_the_static_layer_it_trains(scene, tmp_path):
     from bench.stage_a import parse_settings, row
 
-    settings = parse_settings("gop_size=6,grid_side=12,static_grid_side=16,coarse_iterations=40,coarse_low_res=0.5")
+    settings = parse_settings("gop_size=6,grid_side=12,static_grid_side=16,coarse_iterations=40,coarse_low_res=0.5,"
+                              "lr.camera_colour=5e-4")
     assert settings == {"gop_size": 6, "grid_side": 12, "static_grid_side": 16, "coarse_iterations": 40,
-                        "coarse_low_res": 0.5}
+                        "coarse_low_res": 0.5, "lr.camera_colour": 5e-4}
     held_out = open_dataset(scene).camera_names[-1]
     cells = row(scene, [held_out], settings, 0, tmp_path / "w", "quick").strip("| ").split(" | ")
-    assert cells[:2] == ["gop_size 6, grid_side 12, static_grid_side 16, coarse_iterations 40, coarse_low_res 0.5",
-                         "0"]
+    assert cells[:2] == ["gop_size 6, grid_side 12, static_grid_side 16, coarse_iterations 40, coarse_low_res 0.5, "
+                         "lr.camera_colour 0.0005", "0"]
+    with pytest.raises(StgsError, match="unknown learning rate"):
+        row(scene, [held_out], {"lr.colour_camera": 1e-4}, 0, tmp_path / "bad", "quick")
     seconds, held_out_psnr, fitted_psnr = (float(c) for c in cells[2:])
     assert seconds >= 0 and 10 < held_out_psnr < 60 and 10 < fitted_psnr < 60
 

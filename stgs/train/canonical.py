@@ -1,0 +1,86 @@
+"""The canonical stages: format 1's coarse stage and layered training's stage A, which fits the static layer on
+the pixels that do not move (stgs.train.trainer's step 3)."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import torch
+from tqdm import tqdm
+
+from stgs.model.gop import GOPModel, GOPShape
+from stgs.model.view import splat
+from stgs.train import losses
+from stgs.train.camera_colour import CameraColour, as_recorded
+from stgs.train.objective import canonical_regularisers, drop_gaussians
+from stgs.train.ops import Optimizer, relocate, sort
+from stgs.train.seeding import init_canonical, init_frames, initial_points
+from stgs.train.views import LOW_RES, Views, downscaled
+
+if TYPE_CHECKING:
+    from stgs.train.trainer import Trainer
+
+
+def fit_canonical(trainer: Trainer, views: Views, shape: GOPShape, moving: torch.Tensor | None = None,
+                  stage: str = "coarse") -> GOPModel:
+    """Canonical 3DGS (no deformation) on frames from all times, with each training camera's colour response
+    (TrainConfig.camera_colour, set as `trainer.colour`); with `moving` ((F, C, H, W) bool), on the pixels that do
+    not move only, with the GOP stage's regularisers (stage A). Resumes from and saves the trainer's
+    checkpoints."""
+    cfg = trainer.cfg
+    trainer.seed_stage(stage)
+    model = GOPModel(shape)
+    colour = CameraColour(len(views.cameras)) if cfg.camera_colour else None
+    opt = Optimizer(model, cfg, trainer.extent, None, canonical_only=True, colour=colour)
+    resumed = trainer.checkpoints.load(stage, model, opt, trainer.gen, {"colour": colour})
+    start = resumed[0]["iteration"] if resumed else 0
+    if resumed:  # the counts the interrupted run found, for the report
+        trainer.triangulated, trainer.background_points = resumed[0].get("triangulated"), resumed[0].get("background")
+    else:
+        region = "background" if moving is not None and cfg.static_triangulation else "foreground"
+        init = initial_points(trainer.ds, trainer.train_names, init_frames(views.frames, cfg.init_frames),
+                              shape.capacity, trainer.gen, cfg.init_points, cfg.background_share, region=region)
+        trainer.triangulated, trainer.background_points = init.triangulated, init.background
+        init_canonical(model, init)
+    # Stage A's layer is final (no GOP stage refines it): it gets the GOP stage's regularisers, which
+    # measurably generalise better to cameras not trained on (docs/BENCHMARKS.md, "Layered scenes").
+    regularised = moving is not None
+    sorting = regularised and cfg.smooth_weight > 0
+    if sorting and start == 0:
+        sort(model, opt, torch.zeros(2, shape.capacity), cfg.seed)
+    desc = "stage A: static layer" if moving is not None else "coarse canonical"
+    low_until = round(cfg.coarse_low_res * cfg.coarse_iterations)
+    drop_until = round(cfg.static_drop_until * cfg.coarse_iterations) if regularised else 0
+    low = downscaled(views, LOW_RES, moving) if start < low_until else None
+    bar = tqdm(range(start, cfg.coarse_iterations), desc=desc, unit="it", disable=not trainer.progress)
+    for it in bar:
+        opt.set_progress(it / max(1, cfg.coarse_iterations))
+        f = int(torch.randint(len(views.frames), (1,), generator=trainer.gen))
+        c = int(torch.randint(len(views.cameras), (1,), generator=trainer.gen))
+        if it == low_until:
+            low = None  # the half-size images and masks are not drawn again
+        at, at_moving = low if low is not None else (views, moving)
+        g = model.canonical()
+        drawn = drop_gaussians(g, cfg.static_drop_rate, trainer.gen) if it < drop_until else g
+        img = as_recorded(colour, splat(drawn, at.cameras[c]), c)
+        mask = ~at_moving[f, c] if at_moving is not None else None
+        loss = losses.photometric(img, at.target(f, c), cfg.lambda_ssim, mask)
+        if regularised:
+            loss = loss + canonical_regularisers(cfg, model, g.opacities)
+        trainer.step(opt, loss, stage, it, model)
+        if sorting and (it + 1) % cfg.sort_every == 0 and it + 1 < cfg.coarse_iterations:
+            sort(model, opt, torch.zeros(2, shape.capacity), cfg.seed)
+        if cfg.relocate and (it + 1) % cfg.relocate_every == 0 and it < cfg.relocate_until * cfg.coarse_iterations:
+            relocate(model, opt, torch.sigmoid(model.opacity_logit.detach()), cfg.dead_opacity, trainer.gen)
+        if (it + 1) % cfg.checkpoint_every == 0:
+            trainer.checkpoints.save(stage, model, opt, trainer.gen, _state(trainer, it + 1), {"colour": colour})
+    if cfg.coarse_iterations:
+        trainer.checkpoints.save(stage, model, opt, trainer.gen, _state(trainer, cfg.coarse_iterations),
+                                 {"colour": colour})
+    trainer.colour = colour.requires_grad_(False) if colour is not None else None
+    return model
+
+
+def _state(trainer: Trainer, iteration: int) -> dict:
+    """A checkpoint's JSON: the iteration and the initial points' counts, for the report."""
+    return {"iteration": iteration, "triangulated": trainer.triangulated, "background": trainer.background_points}
