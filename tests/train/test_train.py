@@ -462,7 +462,7 @@ def test_training_keeps_opacity_in_the_streams_range_and_parks_dead_slots(scene,
         model.opacity_logit.fill_(lo + 0.5)
         model.opacity_logit[:3] = hi - 0.5
     for it in range(20):  # a loss that drives every opacity towards 0 and a few towards 1
-        trainer._step(opt, model.opacity_logit.sum() * 100 - model.opacity_logit[:3].sum() * 200, "test", it, model)
+        trainer.step(opt, model.opacity_logit.sum() * 100 - model.opacity_logit[:3].sum() * 200, "test", it, model)
     assert model.opacity_logit.min().item() == lo and model.opacity_logit.max().item() == hi
 
     accum = torch.stack([torch.full((256,), 0.5), torch.ones(256)])
