@@ -29,8 +29,9 @@ from stgs.train.run import base_stage
 from stgs.train.trainer import Trainer
 
 FRAME_STEP = 6
-LR_PREFIX = "lr."
 """Every this many frames of the GOP are drawn, and every this many training cameras."""
+LR_PREFIX = "lr."
+"""A `--set` key with this prefix names a learning rate (LearningRates), not a TrainConfig field."""
 
 
 def parse_settings(text: str) -> dict:

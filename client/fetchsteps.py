@@ -79,15 +79,6 @@ class Abandoned:
 
 
 Outcome = Done | Failed | Abandoned
-
-
-def throughput_sample(*parts: Done, joint: bool = False) -> ThroughputSample:
-    """One throughput sample of transfers made one after the other (or at once, `joint`)."""
-    nbytes = sum(p.nbytes for p in parts)
-    if joint:
-        return ThroughputSample(nbytes, max(p.seconds for p in parts), min(p.ttfb for p in parts))
-    return ThroughputSample(nbytes, sum(p.seconds for p in parts), sum(p.ttfb for p in parts))
-
 Step = Generator[Request | Wait | Parallel, Outcome | tuple[Outcome, ...] | None, "Fetched"]
 
 
@@ -100,3 +91,11 @@ class Fetched:
     keyframe: bytes | None = None
     init: bytes | None = None
     media: bytes | None = None
+
+
+def throughput_sample(*parts: Done, joint: bool = False) -> ThroughputSample:
+    """One throughput sample of transfers made one after the other (or at once, `joint`)."""
+    nbytes = sum(p.nbytes for p in parts)
+    if joint:
+        return ThroughputSample(nbytes, max(p.seconds for p in parts), min(p.ttfb for p in parts))
+    return ThroughputSample(nbytes, sum(p.seconds for p in parts), sum(p.ttfb for p in parts))
