@@ -106,11 +106,9 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
                                          native.f32(colors), native.f32(background),
                                          proj.depths, proj.extents, width, height)
         return image
-    proj = project(means.to(torch.float64), quats.to(torch.float64), scales.to(torch.float64),
-                   opacities, viewmat, K)
-    return native.NativeComposite.apply(proj.means2d.float(), proj.conics.float(), opacities,
-                                        colors, background, proj.depths.float(),
-                                        proj.extents.float(), width, height)
+    proj = native.project_trainable(means, quats, scales, opacities, viewmat, K)
+    return native.NativeComposite.apply(proj.means2d, proj.conics, opacities, colors, background, proj.depths,
+                                        proj.extents, width, height)
 
 
 __all__ = ["MAX_IMAGE_SIDE", "NativeUnavailableError", "Projected", "choose_backend", "rasterize"]

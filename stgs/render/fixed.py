@@ -26,8 +26,7 @@ import torch
 from stgs.native.abi import ptr
 from stgs.native.build import load
 from stgs.render import _check_inputs, needs_grad
-from stgs.render.native import RasterHandle, f32, project_native
-from stgs.render.project import project
+from stgs.render.native import RasterHandle, f32, project_native, project_trainable
 
 
 class FixedLayerView:
@@ -69,9 +68,8 @@ class FixedLayerView:
         if means.dtype != torch.float32:
             raise ValueError("FixedLayerView.draw takes float32 Gaussians")
         if needs_grad(means, quats, scales, opacities, colors):
-            p = project(means.double(), quats.double(), scales.double(), opacities, self.viewmat, self.K)
-            return OverKeptLayer.apply(self, p.means2d.float(), p.conics.float(), opacities, colors,
-                                       p.depths.float(), p.extents.float())
+            p = project_trainable(means, quats, scales, opacities, self.viewmat, self.K)
+            return OverKeptLayer.apply(self, p.means2d, p.conics, opacities, colors, p.depths, p.extents)
         p = project_native(means, quats, scales, opacities, self.viewmat, self.K)
         out = torch.empty(self.height, self.width, 3)
         opacities, colors = f32(opacities), f32(colors)

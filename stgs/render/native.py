@@ -31,6 +31,38 @@ def project_native(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tenso
     return out
 
 
+class NativeProjection(torch.autograd.Function):
+    """project_native with its gradient (csrc/project.cpp's stgs_project_backward): means2d and conics
+    differentiable in means, quats and scales; depths and extents are constants, as in the torch projection.
+    A training step's projection in a fraction of the torch twin's time (which autograd runs as some 200
+    small float64 ops, bench.loss_terms)."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, viewmat, K):
+        proj = project_native(means, quats, scales, opacities, viewmat, K)
+        ctx.save_for_backward(f32(means), f32(quats), f32(scales))
+        ctx.camera = viewmat.detach().to(torch.float64).contiguous(), K.detach().to(torch.float64).contiguous()
+        ctx.mark_non_differentiable(proj.depths, proj.extents)
+        return proj.means2d, proj.conics, proj.depths, proj.extents
+
+    @staticmethod
+    def backward(ctx, grad_means2d, grad_conics, _depths, _extents):
+        means, quats, scales = ctx.saved_tensors
+        view, intr = ctx.camera
+        n = means.shape[0]
+        grads = torch.empty(n, 3), torch.empty(n, 4), torch.empty(n, 3)
+        load().stgs_project_backward(n, ptr(means), ptr(quats), ptr(scales), ptr(view), ptr(intr),
+                                     ptr(f32(grad_means2d)), ptr(f32(grad_conics)), *(ptr(g) for g in grads),
+                                     torch.get_num_threads())
+        return *grads, None, None, None
+
+
+def project_trainable(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+                      viewmat: torch.Tensor, K: torch.Tensor) -> Projected:
+    """The native projection of float32 Gaussians, differentiable in means, quats and scales (NativeProjection)."""
+    return Projected(*NativeProjection.apply(means, quats, scales, opacities, viewmat, K))
+
+
 class RasterHandle:
     """Owns the native context a binning or forward pass left (its tile lists; after a forward for the
     backward pass, the per-pixel bookkeeping too)."""

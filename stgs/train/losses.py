@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from stgs.metrics import ssim
+from stgs.metrics import masked_mean, ssim
 
 
 def photometric(image: torch.Tensor, target: torch.Tensor, lambda_ssim: float = 0.2,
@@ -15,7 +15,7 @@ def photometric(image: torch.Tensor, target: torch.Tensor, lambda_ssim: float = 
     if mask is not None:
         if not mask.any():
             return image.sum() * 0.0
-        l1 = diff[mask].mean()
+        l1 = masked_mean(diff.sum(-1), mask) / diff.shape[-1]
     else:
         l1 = diff.mean()
     return (1 - lambda_ssim) * l1 + lambda_ssim * (1 - ssim(image, target, mask, ssim_values))

@@ -57,6 +57,66 @@ def test_projection_stage_matches_its_twin():
     assert torch.allclose(nat.extents.double(), ref.extents, rtol=1e-5, atol=1e-4)
 
 
+def test_projection_gradient_matches_autograd_through_its_twin():
+    """stgs_project_backward (NativeProjection) against autograd through the float64 torch projection, on the
+    same float32 inputs, with the hard cases the forward test uses, a rotated camera and a skewed K."""
+    from stgs.render.native import project_trainable
+
+    args = [a.float() for a in random_scene(500, 6)]
+    args[1][:9] = 0.0  # zero quaternions: identity rotation, no gradient
+    args[1][9:20] *= 1e30  # huge ones
+    args[1][20:25] *= 1e-30  # tiny ones
+    args[0][30:41, 2] = -1.0  # behind the camera: culled, no gradient
+    args[2][41:50, 0] *= 1e4  # needles
+    args[2][50:60, 1] *= 1e-5  # flat discs
+    view, K = pinhole(64, 48, 50.0)
+    angle = torch.tensor(0.3, dtype=torch.float64)
+    view[:3, :3] = torch.tensor([[angle.cos(), 0, angle.sin()], [0, 1, 0], [-angle.sin(), 0, angle.cos()]])
+    view[:3, 3] = torch.tensor([0.2, -0.1, 0.4])
+    K[0, 1] = 0.7
+    gen = torch.Generator().manual_seed(1)
+    grad_xy, grad_conic = torch.randn(500, 2, generator=gen), torch.randn(500, 3, generator=gen)
+    ref_in = [a.double().requires_grad_() for a in args[:3]]
+    ref = project(*ref_in, args[3].double(), view, K)
+    nat_in = [a.clone().requires_grad_() for a in args[:3]]
+    nat = project_trainable(*nat_in, args[3], view, K)
+    live = nat.depths > 0
+    assert torch.equal(live, ref.depths > 0) and (~live).sum() >= 11
+    for out, dtype in ((ref, torch.float64), (nat, torch.float32)):
+        xy, conic = grad_xy.to(dtype)[live], grad_conic.to(dtype)[live]
+        ((out.means2d[live] * xy).sum() + (out.conics[live] * conic).sum()).backward()
+    for name, r, n in zip(("means", "quats", "scales"), ref_in, nat_in, strict=True):
+        assert torch.isfinite(n.grad).all(), name
+        scale = r.grad.abs().amax(dim=1, keepdim=True) + 1e-12
+        assert ((n.grad.double() - r.grad).abs() / scale).max() < 1e-5, name
+        assert not n.grad[~live].any(), name  # nothing drawn, nothing learnt
+    assert not nat_in[1].grad[:9].any()  # the zero quaternion stays the identity
+    assert nat_in[0].grad[live].abs().sum() > 0
+
+
+def test_native_ssim_matches_its_torch_twin_and_autograd():
+    """csrc/ssim.cpp against _SSIMMap in torch and against autograd through the formula in float64: the map and
+    its gradient in the image, on sizes below, at and above the 11-pixel window."""
+    from stgs.metrics import _ssim_parts, ssim_map
+
+    gen = torch.Generator().manual_seed(2)
+    for height, width in ((1, 1), (3, 2), (11, 11), (20, 37), (64, 48)):
+        image = torch.rand(height, width, 3, generator=gen, dtype=torch.float64)
+        reference = (image + 0.2 * torch.randn(height, width, 3, generator=gen, dtype=torch.float64)).clamp(0, 1)
+        weight = torch.rand(height, width, generator=gen, dtype=torch.float64)
+        exact_in = image.clone().requires_grad_()
+        exact = _ssim_parts(exact_in.permute(2, 0, 1), reference.permute(2, 0, 1))[0].mean(0)
+        (exact * weight).sum().backward()
+        for backend in ("auto", "torch"):
+            x = image.float().requires_grad_()
+            values = ssim_map(x, reference.float(), backend=backend)
+            (values * weight.float()).sum().backward()
+            assert (values.double() - exact).abs().max() < 1e-5, (backend, height, width)
+            assert (x.grad.double() - exact_in.grad).abs().max() < 1e-5 * (1 + exact_in.grad.abs().max()), backend
+    with torch.no_grad():
+        assert ssim_map(image.float(), image.float()).min() > 1 - 1e-5
+
+
 @pytest.mark.parametrize("scene", SCENES)
 def test_binning_stage_gives_the_same_tile_lists_id_for_id(scene):
     from stgs.render.native import bin_native

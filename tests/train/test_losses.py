@@ -120,3 +120,28 @@ def test_gop_dynamic_masks_are_each_cameras_mask_of_the_first_frames():
     whole = torch.stack([dynamic_mask(images[:30, c].float() / 255, 0.05) for c in range(2)])
     assert torch.equal(masks, whole)
     assert gop_dynamic_masks(images, 100, 0.05)[0, 1, 1]  # count beyond the GOP: every frame
+
+
+def test_ssim_gradient_in_the_image_is_autograds():
+    """ssim_map's written-out backward (_SSIMMap: the blur is its own adjoint) against gradcheck in float64, and
+    a reference that needs a gradient goes through autograd's graph instead."""
+    gen = torch.Generator().manual_seed(0)
+    image = torch.rand(13, 9, 3, generator=gen, dtype=torch.float64, requires_grad=True)
+    reference = torch.rand(13, 9, 3, generator=gen, dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda x: ssim_map(x, reference), (image,))
+    both = reference.clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda x, y: ssim_map(x, y), (image, both))
+
+
+def test_masked_terms_are_the_means_over_the_mask():
+    gen = torch.Generator().manual_seed(1)
+    image = torch.rand(12, 10, 3, generator=gen, dtype=torch.float64)
+    target = torch.rand(12, 10, 3, generator=gen, dtype=torch.float64)
+    mask = torch.rand(12, 10, generator=gen) > 0.3
+    values = ssim_map(image, target)
+    expected = 0.8 * (image - target).abs()[mask].mean() + 0.2 * (1 - values[mask].mean())
+    assert losses.photometric(image, target, 0.2, mask).item() == pytest.approx(expected.item(), rel=1e-12)
+    assert ssim(image, target, mask).item() == pytest.approx(values[mask].mean().item(), rel=1e-12)
+    nothing = torch.zeros(12, 10, dtype=torch.bool)
+    assert losses.photometric(image, target, 0.2, nothing).item() == 0.0
+    assert ssim(image, target, nothing).item() == 1.0

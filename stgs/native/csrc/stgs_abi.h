@@ -27,6 +27,14 @@ void stgs_project(int64_t n, const float* means, const float* quats, const float
                   const float* opac, const double* viewmat, const double* K, float* means2d,
                   float* conics, float* depths, float* extents, int nthreads);
 
+// Gradients of stgs_project's means2d and conics (grad_means2d (n,2), grad_conics (n,3)) in
+// means (n,3), quats (n,4) and scales (n,3), written to grad_means, grad_quats, grad_scales;
+// the forward is recomputed in double. Culled Gaussians get zero.
+void stgs_project_backward(int64_t n, const float* means, const float* quats, const float* scales,
+                           const double* viewmat, const double* K, const float* grad_means2d,
+                           const float* grad_conics, float* grad_means, float* grad_quats, float* grad_scales,
+                           int nthreads);
+
 // Binning alone: returns a context (free it with stgs_raster_free) whose tile lists
 // stgs_raster_tiles copies out.
 void* stgs_raster_bin(int64_t n, const float* xy, const float* conic, const float* opac,
@@ -82,6 +90,20 @@ void* stgs_raster_over_train(void* kept, int64_t n, const float* xy, const float
 void stgs_raster_kept_free(void* kept);
 
 void stgs_raster_free(void* handle);
+
+// --- SSIM (ssim.cpp) ---
+
+// SSIM of (height, width, 3) image against reference with the 11 window taps (stgs/metrics.py):
+// writes the channel-mean map ssim (height, width) and, unless NULL, partials (9, height, width),
+// what stgs_ssim_backward reads.
+void stgs_ssim_forward(int height, int width, const float* image, const float* reference,
+                       const float* taps, float* ssim, float* partials, int nthreads);
+
+// The gradient grad_image (height, width, 3) of the map's inner product with grad_ssim
+// (height, width), from the forward's partials.
+void stgs_ssim_backward(int height, int width, const float* image, const float* reference,
+                        const float* taps, const float* partials, const float* grad_ssim,
+                        float* grad_image, int nthreads);
 
 // --- deformation (deform.cpp, deform_bf16.cpp, deform_int16.cpp) ---
 
