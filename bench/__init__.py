@@ -2,9 +2,13 @@
 the A/B scripts run as `python -m bench.NAME` from the repository root. Results: docs/BENCHMARKS.md."""
 
 import argparse
+import json
+import os
 import platform
 import subprocess
+import sys
 from collections.abc import Callable
+from pathlib import Path
 
 
 def ms_cell(value: float) -> str:
@@ -37,3 +41,15 @@ def print_capacity_table(args: argparse.Namespace, header: str, measure: Callabl
     for n in args.capacities.split(","):
         print(measure(int(n), args.steps), flush=True)
     return 0
+
+
+def run_tree(tree: Path, child: str, args: list[str]) -> dict:
+    """Run the Python source `child` with `args` against the source tree `tree` (first on PYTHONPATH, so its own
+    sources and native build) in a subprocess of this virtualenv's interpreter; the JSON object it printed last.
+    How the A/B scripts between two trees (bench.ab_frame, bench.ab_train_step) measure each side."""
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    proc = subprocess.run([sys.executable, "-c", child, *args], cwd=tree, env=env, capture_output=True, text=True,
+                          check=False)
+    if proc.returncode != 0:
+        raise SystemExit(f"{tree}: {proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else 'failed'}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])

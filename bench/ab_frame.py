@@ -20,12 +20,11 @@ this virtualenv's packages and build their kernels into the shared cache.
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import statistics
-import subprocess
 import sys
 from pathlib import Path
+
+from bench import run_tree
 
 CHILD = r"""
 import json, statistics, sys, time
@@ -78,13 +77,8 @@ print(json.dumps(result))
 """
 
 
-def run_tree(tree: Path, n: int, frames: int, model: Path | None) -> dict[str, float]:
-    env = dict(os.environ, PYTHONPATH=str(tree))
-    proc = subprocess.run([sys.executable, "-c", CHILD, str(n), str(frames), str(model or "")], cwd=tree, env=env,
-                          capture_output=True, text=True, check=False)
-    if proc.returncode != 0:
-        raise SystemExit(f"{tree}: {proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else 'failed'}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+def frame_times(tree: Path, n: int, frames: int, model: Path | None) -> dict[str, float]:
+    return run_tree(tree, CHILD, [str(n), str(frames), str(model or "")])
 
 
 def main() -> int:
@@ -103,7 +97,7 @@ def main() -> int:
     runs: dict[str, list[dict[str, float]]] = {"old": [], "new": []}
     for r in range(args.rounds):
         for name in ("old", "new") if r % 2 == 0 else ("new", "old"):
-            runs[name].append(run_tree(trees[name], args.n, args.frames,
+            runs[name].append(frame_times(trees[name], args.n, args.frames,
                                       args.model.resolve() if args.model else None))
             print(f"round {r + 1} {name}: " + ", ".join(f"{p} {ms:.1f} ms" for p, ms in runs[name][-1].items()))
     print("\n| what | old ms | new ms | new / old |")

@@ -58,11 +58,16 @@ def ssim_map(image: torch.Tensor, reference: torch.Tensor, backend: str = "auto"
     a gradient goes through autograd's graph of the same formula."""
     if image.shape != reference.shape or image.ndim != 3 or image.shape[2] != 3:
         raise ValueError(f"ssim: need two (H, W, 3) images, got {tuple(image.shape)} and {tuple(reference.shape)}")
+    if backend not in ("auto", "torch"):
+        raise ValueError(f"ssim: unknown backend {backend!r}; use 'auto' or 'torch'")
     reference = reference.to(image.dtype)
-    if torch.is_grad_enabled() and reference.requires_grad:
+    grad = torch.is_grad_enabled()
+    if grad and reference.requires_grad:
         return _ssim_parts(image.permute(2, 0, 1), reference.permute(2, 0, 1))[0].mean(0)
     if backend == "auto" and image.dtype == torch.float32 and image.device.type == "cpu" and available():
-        return _NativeSSIMMap.apply(image, reference)
+        if grad and image.requires_grad:
+            return _NativeSSIMMap.apply(image, reference)
+        return _native_ssim(image, reference, partials=False)[0]
     return _SSIMMap.apply(image.permute(2, 0, 1), reference.permute(2, 0, 1))
 
 
@@ -101,6 +106,19 @@ class _SSIMMap(torch.autograd.Function):
         return blurred[0] + 2 * x * blurred[1] + y * blurred[2], None
 
 
+def _native_ssim(image: torch.Tensor, reference: torch.Tensor, partials: bool
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """csrc/ssim.cpp's forward on (H, W, 3) float32 images: the map, the window's taps and, when `partials`, the
+    (9, H, W) partial derivatives its backward reads."""
+    h, w = image.shape[:2]
+    image, reference = image.detach().contiguous(), reference.detach().contiguous()  # held through the call
+    taps = _gaussian_taps(torch.float32)
+    out = torch.empty(h, w)
+    kept = torch.empty(9, h, w) if partials else None
+    load().stgs_ssim_forward(h, w, ptr(image), ptr(reference), ptr(taps), ptr(out), ptr(kept), torch.get_num_threads())
+    return out, taps, kept
+
+
 class _NativeSSIMMap(torch.autograd.Function):
     """_SSIMMap's formula and gradient on (H, W, 3) float32 images in one native pass each way (csrc/ssim.cpp),
     without a full-size intermediate (bench.loss_terms times the three versions)."""
@@ -108,12 +126,7 @@ class _NativeSSIMMap(torch.autograd.Function):
     @staticmethod
     def forward(ctx, image: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
         image, reference = image.detach().contiguous(), reference.detach().contiguous()
-        h, w = image.shape[:2]
-        taps = _gaussian_taps(torch.float32)
-        out = torch.empty(h, w)
-        partials = torch.empty(9, h, w) if ctx.needs_input_grad[0] else None
-        load().stgs_ssim_forward(h, w, ptr(image), ptr(reference), ptr(taps), ptr(out), ptr(partials),
-                                 torch.get_num_threads())
+        out, taps, partials = _native_ssim(image, reference, partials=True)
         ctx.save_for_backward(image, reference, taps, partials)
         return out
 
@@ -122,8 +135,9 @@ class _NativeSSIMMap(torch.autograd.Function):
         image, reference, taps, partials = ctx.saved_tensors
         h, w = image.shape[:2]
         out = torch.empty(h, w, 3)
-        load().stgs_ssim_backward(h, w, ptr(image), ptr(reference), ptr(taps), ptr(partials),
-                                  ptr(grad.float().contiguous()), ptr(out), torch.get_num_threads())
+        grad = grad.float().contiguous()  # held through the call
+        load().stgs_ssim_backward(h, w, ptr(image), ptr(reference), ptr(taps), ptr(partials), ptr(grad), ptr(out),
+                                  torch.get_num_threads())
         return out, None
 
 

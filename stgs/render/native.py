@@ -51,9 +51,9 @@ class NativeProjection(torch.autograd.Function):
         view, intr = ctx.camera
         n = means.shape[0]
         grads = torch.empty(n, 3), torch.empty(n, 4), torch.empty(n, 3)
-        load().stgs_project_backward(n, ptr(means), ptr(quats), ptr(scales), ptr(view), ptr(intr),
-                                     ptr(f32(grad_means2d)), ptr(f32(grad_conics)), *(ptr(g) for g in grads),
-                                     torch.get_num_threads())
+        grad_means2d, grad_conics = f32(grad_means2d), f32(grad_conics)  # held through the call
+        load().stgs_project_backward(n, ptr(means), ptr(quats), ptr(scales), ptr(view), ptr(intr), ptr(grad_means2d),
+                                     ptr(grad_conics), *(ptr(g) for g in grads), torch.get_num_threads())
         return *grads, None, None, None
 
 

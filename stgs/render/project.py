@@ -1,8 +1,8 @@
 """EWA projection of 3D Gaussians to screen space (pure torch, differentiable).
 
-Shared by the reference splatter and by the native splatter when gradients are
-needed (the native kernel then composites in C++ and autograd differentiates
-this projection). The constants here are the splatter contract of DESIGN.md.
+The reference splatter's projection, and the torch twin of the native one (csrc/project.cpp) and of its
+gradient (stgs_project_backward), which the parity tests hold to autograd through this code. The constants
+here are the splatter contract of DESIGN.md.
 """
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
 """The native splatter's stages written in torch (its twins, as gsplat's `_torch_impl`), for per-stage parity
 tests: each takes what the native stage takes and gives what it gives.
 
-- projection: `stgs.render.project.project` (stage 1, csrc/project.cpp);
+- projection: `stgs.render.project.project` (stage 1, csrc/project.cpp; autograd through it is the twin of
+  stgs_project_backward);
 - binning: `bin_tiles` (stage 2, csrc/binning.cpp): the same tile lists, id for id, from the same float64
   arithmetic in the same order;
 - forward: `composite_tiles` (stage 3, csrc/forward.cpp): compositing of those lists, 16x16 tiles, with the

@@ -145,3 +145,13 @@ def test_masked_terms_are_the_means_over_the_mask():
     nothing = torch.zeros(12, 10, dtype=torch.bool)
     assert losses.photometric(image, target, 0.2, nothing).item() == 0.0
     assert ssim(image, target, nothing).item() == 1.0
+
+
+def test_the_loss_terms_benchmark_times_every_variant_and_finds_them_equal():
+    from bench.loss_terms import image_rows, projection_row
+
+    for row in [*image_rows(1), projection_row(512, 1)]:
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        assert len(cells) == 5
+        assert all(float(ms) > 0 for ms in cells[2].split(" / "))
+        assert float(cells[4].split()[0]) < 1e-5  # the variants compute the same values and gradients

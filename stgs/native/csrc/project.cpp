@@ -50,6 +50,37 @@ inline double unit_rotation(const float* quat, double q[4], double R[9]) {
   return norm;
 }
 
+// The EWA projection's factors for one Gaussian at camera-space depth z and normalised position (xn, yn):
+// jac = K[:2,:2] @ d(xn,yn)/d(p_cam), jw = jac @ Rcw, P = jw @ R, M = P @ diag(s) (2x3 each, row-major), the
+// unblurred 2D covariance M Mᵀ = [[a0, b0], [b0, c0]] and det(M Mᵀ + kBlur I) from M's squared 2x2 minors
+// (Cauchy-Binet: positive and accurate for needles).
+struct Ewa {
+  double jac[6], jw[6], P[6], M[6];
+  double a0, b0, c0, det;
+};
+
+inline void ewa(const double* K, const double* viewmat, double z, double xn, double yn, const double R[9],
+                const float* scales, Ewa& e) {
+  const double dn[6] = {1 / z, 0, -xn / z, 0, 1 / z, -yn / z};
+  for (int r = 0; r < 2; ++r)
+    for (int c = 0; c < 3; ++c) e.jac[3 * r + c] = K[3 * r] * dn[c] + K[3 * r + 1] * dn[3 + c];
+  for (int r = 0; r < 2; ++r)
+    for (int c = 0; c < 3; ++c)
+      e.jw[3 * r + c] = e.jac[3 * r] * viewmat[c] + e.jac[3 * r + 1] * viewmat[4 + c] +
+                        e.jac[3 * r + 2] * viewmat[8 + c];
+  for (int r = 0; r < 2; ++r)
+    for (int c = 0; c < 3; ++c) {
+      e.P[3 * r + c] = e.jw[3 * r] * R[c] + e.jw[3 * r + 1] * R[3 + c] + e.jw[3 * r + 2] * R[6 + c];
+      e.M[3 * r + c] = e.P[3 * r + c] * double(scales[c]);
+    }
+  const double* M = e.M;
+  e.a0 = M[0] * M[0] + M[1] * M[1] + M[2] * M[2];
+  e.b0 = M[0] * M[3] + M[1] * M[4] + M[2] * M[5];
+  e.c0 = M[3] * M[3] + M[4] * M[4] + M[5] * M[5];
+  const double m01 = M[0] * M[4] - M[1] * M[3], m02 = M[0] * M[5] - M[2] * M[3], m12 = M[1] * M[5] - M[2] * M[4];
+  e.det = m01 * m01 + m02 * m02 + m12 * m12 + kBlur * (e.a0 + e.c0) + kBlur * kBlur;
+}
+
 // Projection of Gaussian i (stgs_project's outputs for one Gaussian).
 inline void project_one(int64_t i, const ProjectIO& io) {
   const float *means = io.means, *quats = io.quats, *scales = io.scales, *opac = io.opac;
@@ -67,28 +98,9 @@ inline void project_one(int64_t i, const ProjectIO& io) {
   depths[i] = valid ? float(z) : -1.0f;
   double q[4], R[9];
   unit_rotation(quats + 4 * i, q, R);
-  // jac = K[:2,:2] @ d(xn,yn)/d(p_cam); M = jac @ Rcw @ R @ diag(s).
-  const double dn[6] = {1 / zs, 0, -xn / zs, 0, 1 / zs, -yn / zs};
-  double jac[6];
-  for (int r = 0; r < 2; ++r)
-    for (int c = 0; c < 3; ++c)
-      jac[3 * r + c] = K[3 * r] * dn[c] + K[3 * r + 1] * dn[3 + c];
-  double jw[6];
-  for (int r = 0; r < 2; ++r)
-    for (int c = 0; c < 3; ++c)
-      jw[3 * r + c] = jac[3 * r] * viewmat[c] + jac[3 * r + 1] * viewmat[4 + c] +
-                      jac[3 * r + 2] * viewmat[8 + c];
-  double M[6];
-  for (int r = 0; r < 2; ++r)
-    for (int c = 0; c < 3; ++c)
-      M[3 * r + c] = (jw[3 * r] * R[c] + jw[3 * r + 1] * R[3 + c] + jw[3 * r + 2] * R[6 + c]) *
-                     double(scales[3 * i + c]);
-  const double a0 = M[0] * M[0] + M[1] * M[1] + M[2] * M[2];
-  const double b0 = M[0] * M[3] + M[1] * M[4] + M[2] * M[5];
-  const double c0 = M[3] * M[3] + M[4] * M[4] + M[5] * M[5];
-  const double m01 = M[0] * M[4] - M[1] * M[3], m02 = M[0] * M[5] - M[2] * M[3],
-               m12 = M[1] * M[5] - M[2] * M[4];
-  const double det = m01 * m01 + m02 * m02 + m12 * m12 + kBlur * (a0 + c0) + kBlur * kBlur;
+  Ewa e;
+  ewa(K, viewmat, zs, xn, yn, R, scales + 3 * i, e);
+  const double a0 = e.a0, b0 = e.b0, c0 = e.c0, det = e.det;
   conics[3 * i] = float((c0 + kBlur) / det);
   conics[3 * i + 1] = float(-b0 / det);
   conics[3 * i + 2] = float((a0 + kBlur) / det);
@@ -217,25 +229,10 @@ inline void project_backward_one(int64_t i, const ProjectIO& io, const float* gr
   double q[4], R[9];
   const double qnorm = unit_rotation(quats + 4 * i, q, R);  // 0: the zero quaternion (identity, no gradient)
   const double w = q[0], qx = q[1], qy = q[2], qz = q[3];
-  const double xn = x / z, yn = y / z;
-  const double dn[6] = {1 / z, 0, -xn / z, 0, 1 / z, -yn / z};
-  double jac[6], jw[6], P[6], M[6];
-  for (int r = 0; r < 2; ++r)
-    for (int c = 0; c < 3; ++c) jac[3 * r + c] = K[3 * r] * dn[c] + K[3 * r + 1] * dn[3 + c];
-  for (int r = 0; r < 2; ++r)
-    for (int c = 0; c < 3; ++c)
-      jw[3 * r + c] = jac[3 * r] * vm[c] + jac[3 * r + 1] * vm[4 + c] + jac[3 * r + 2] * vm[8 + c];
-  for (int r = 0; r < 2; ++r)
-    for (int c = 0; c < 3; ++c) {
-      P[3 * r + c] = jw[3 * r] * R[c] + jw[3 * r + 1] * R[3 + c] + jw[3 * r + 2] * R[6 + c];
-      M[3 * r + c] = P[3 * r + c] * double(scales[3 * i + c]);
-    }
-  const double a0 = M[0] * M[0] + M[1] * M[1] + M[2] * M[2];
-  const double b0 = M[0] * M[3] + M[1] * M[4] + M[2] * M[5];
-  const double c0 = M[3] * M[3] + M[4] * M[4] + M[5] * M[5];
-  const double m01 = M[0] * M[4] - M[1] * M[3], m02 = M[0] * M[5] - M[2] * M[3],
-               m12 = M[1] * M[5] - M[2] * M[4];
-  const double det = m01 * m01 + m02 * m02 + m12 * m12 + kBlur * (a0 + c0) + kBlur * kBlur;
+  Ewa e;
+  ewa(K, vm, z, x / z, y / z, R, scales + 3 * i, e);
+  const double *M = e.M, *P = e.P, *jw = e.jw;
+  const double a0 = e.a0, b0 = e.b0, c0 = e.c0, det = e.det;
   const double A = a0 + kBlur, C = c0 + kBlur;  // det = A C - b0² (Lagrange's identity)
   // The conic (C, -b0, A) / det.
   const double ga = grad_conics[3 * i], gb = grad_conics[3 * i + 1], gc = grad_conics[3 * i + 2];
