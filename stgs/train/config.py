@@ -221,7 +221,8 @@ LAYERED = {
 that together with it holds about twice the single layer's Gaussians, and iterations moved from the per-GOP
 stage to stage A (which nothing refines later) so that one GOP takes the single layer's wall time (cpu: the
 best of three splits measured on Panoptic at that time, docs/BENCHMARKS.md; with the fused Adam step, which came
-later, a pair measured it at 0.94x format 1's wall time; paper: not measured)."""
+later, a pair measured it at 0.94x format 1's wall time, and with the native loss terms three pairs at 0.86-0.99x,
+2,800 GOP iterations at 0.98-1.13x; paper: not measured)."""
 
 SWITCHES = {"aux": "--no-aux", "dynamic": "--no-dynamic-density", "temporal_weight": "--no-temporal-reg",
             "relocate": "--no-relocate", "migrate": "--no-migrate", "hull_seeds": "--no-hull-seeds",

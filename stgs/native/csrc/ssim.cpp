@@ -1,17 +1,17 @@
 // SSIM of two (height, width, 3) float32 images and its gradient in the first, fused (stgs/metrics.py's
 // formula: 11-tap separable Gaussian window, zero padding, the map averaged over the channels).
 //
-// The forward blurs the fifteen windowed moments (x, y, x², y², xy per channel) in two passes over
-// the rows and writes, beside the map, the nine partial derivatives of the map in the image's
-// windowed mean, mean square and product with the reference. The backward multiplies them by the
-// upstream gradient, blurs them with the same window (a symmetric, zero-padded window is its own
-// adjoint) and applies the chain rule through x², xy. Autograd's depthwise convolutions did the
-// same work in about ten passes over memory each way, with the reference's six channels included.
+// The forward blurs the fifteen windowed moments (x, y, x², y², xy per channel) row by row and
+// writes, beside the map, the nine partial derivatives of the map in the image's windowed mean,
+// mean square and product with the reference. The backward multiplies them by the upstream
+// gradient, blurs them with the same window (a symmetric, zero-padded window is its own adjoint)
+// and applies the chain rule through x² and xy. Autograd's graph of the same formula also blurs
+// the reference's six channels backwards and writes every intermediate (bench.loss_terms).
 
 #include <omp.h>
 
-#include <cstdint>
 #include <algorithm>
+#include <cstdint>
 #include <memory>
 
 #include "stgs_abi.h"
@@ -44,9 +44,10 @@ inline void row_pass(int width, const float* taps, const float* __restrict src, 
 }
 
 // The separable window over the rows of C planes that `fill(y, row)` makes row by row (row[c * width + x]),
-// each blurred row handed to `use(y, row)` in the same layout, whose loops over x vectorise. Each thread takes a band of rows and keeps the row pass of the
-// kTaps rows around the one it finishes in a ring (a few hundred KB, in cache), so no full-size
-// intermediate is written: the rows at a band's edges are made twice, by both bands.
+// each blurred row handed to `use(y, row)` in the same layout, whose loops over x vectorise. Each thread
+// takes a band of rows and keeps the row pass of the kTaps rows around the one it finishes in a ring (a
+// few hundred KB, in cache), so no full-size intermediate is written: the rows at a band's edges are made
+// twice, by both bands.
 template <int C, typename Fill, typename Use>
 void blur_rows(int height, int width, const float* taps, Fill fill, Use use, int nthreads) {
   const int64_t stride = (int64_t)width * C;
