@@ -67,7 +67,7 @@ def ssim_map(image: torch.Tensor, reference: torch.Tensor, backend: str = "auto"
     if backend == "auto" and image.dtype == torch.float32 and image.device.type == "cpu" and available():
         if grad and image.requires_grad:
             return _NativeSSIMMap.apply(image, reference)
-        return _native_ssim(image, reference, partials=False)[0]
+        return _native_ssim(image.detach().contiguous(), reference.detach().contiguous(), partials=False)[0]
     return _SSIMMap.apply(image.permute(2, 0, 1), reference.permute(2, 0, 1))
 
 
@@ -108,10 +108,9 @@ class _SSIMMap(torch.autograd.Function):
 
 def _native_ssim(image: torch.Tensor, reference: torch.Tensor, partials: bool
                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-    """csrc/ssim.cpp's forward on (H, W, 3) float32 images: the map, the window's taps and, when `partials`, the
-    (9, H, W) partial derivatives its backward reads."""
+    """csrc/ssim.cpp's forward on contiguous (H, W, 3) float32 images: the map, the window's taps and, when
+    `partials`, the (9, H, W) partial derivatives its backward reads."""
     h, w = image.shape[:2]
-    image, reference = image.detach().contiguous(), reference.detach().contiguous()  # held through the call
     taps = _gaussian_taps(torch.float32)
     out = torch.empty(h, w)
     kept = torch.empty(9, h, w) if partials else None
