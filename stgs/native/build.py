@@ -20,10 +20,10 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-SOURCES = ("project.cpp", "binning.cpp", "forward.cpp", "kept.cpp", "backward.cpp", "ssim.cpp", "deform.cpp",
-           "deform_bf16.cpp", "deform_int16.cpp")
+SOURCES = ("project.cpp", "binning.cpp", "forward.cpp", "kept.cpp", "backward.cpp", "ssim.cpp", "temporal.cpp",
+           "deform.cpp", "deform_bf16.cpp", "deform_int16.cpp")
 """The splatter by stage (projection, binning, forward, a kept layer's forward, backward), the training loss's
-SSIM, then the deformation field."""
+SSIM and temporal term, then the deformation field."""
 HEADERS = ("stgs_abi.h", "splat.h", "splat_avx2.h", "splat_avx512.h", "fastmath.h", "deform.h")
 """stgs_abi.h is the C ABI (every export, read by stgs.native.abi); the others are internal."""
 CSRC = Path(__file__).with_name("csrc")

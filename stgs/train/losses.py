@@ -5,6 +5,8 @@ from __future__ import annotations
 import torch
 
 from stgs.metrics import masked_mean, ssim
+from stgs.native.abi import ptr
+from stgs.native.build import available, load
 
 
 def photometric(image: torch.Tensor, target: torch.Tensor, lambda_ssim: float = 0.2,
@@ -49,6 +51,51 @@ def temporal_huber(features: torch.Tensor, delta: float = 0.01) -> torch.Tensor:
     if features.shape[0] < 2:
         return features.sum() * 0.0
     return _TemporalHuber.apply(features, delta)
+
+
+class _NativeWindowAndHuber(torch.autograd.Function):
+    """The frame's window features[first:first + window] (a copy) and temporal_huber(features) in native
+    kernels (csrc/temporal.cpp), the two gradients written as one buffer in one pass: autograd's slice of the
+    whole tensor zero-fills a second full-size gradient and adds it to the Huber term's (bench.temporal)."""
+
+    @staticmethod
+    def forward(ctx, features: torch.Tensor, first: int, window: int, delta: float):
+        features = features.detach().contiguous()
+        rows, cols = features.shape[0], features[0].numel()
+        total = load().stgs_temporal_huber_forward(rows, cols, ptr(features), delta, torch.get_num_threads())
+        ctx.save_for_backward(features)
+        ctx.first, ctx.window, ctx.delta = first, window, delta
+        block = features[first:first + window].clone()
+        return block, torch.tensor(total / ((rows - 1) * cols), dtype=features.dtype)
+
+    @staticmethod
+    def backward(ctx, grad_block: torch.Tensor | None, grad_value: torch.Tensor | None):
+        (features,) = ctx.saved_tensors
+        rows, cols = features.shape[0], features[0].numel()
+        scale = 0.0 if grad_value is None else float(grad_value) / ((rows - 1) * cols)
+        block = None if grad_block is None else grad_block.to(torch.float32).contiguous()
+        grad = torch.empty_like(features)
+        load().stgs_temporal_huber_backward(rows, cols, ptr(features), ctx.delta, scale, ptr(block), ctx.first,
+                                            ctx.window, ptr(grad), torch.get_num_threads())
+        return grad, None, None, None
+
+
+def window_and_temporal_huber(features: torch.Tensor, first: int, window: int, delta: float = 0.01,
+                              backend: str = "auto") -> tuple[torch.Tensor, torch.Tensor]:
+    """The (window, N, C) block features[first:first + window] of (E, N, C) features and
+    temporal_huber(features, delta), with gradients to `features` through both. `backend` "auto" takes float32
+    CPU features with at least two frames through the native kernels (one gradient buffer written once), others,
+    and "torch" always, through the slice and temporal_huber."""
+    if backend not in ("auto", "torch"):
+        raise ValueError(f"window_and_temporal_huber: unknown backend {backend!r}; use 'auto' or 'torch'")
+    if not 0 <= first <= features.shape[0] - window or window < 1:
+        raise ValueError(f"window_and_temporal_huber: window {first}..{first + window - 1} is outside the "
+                         f"{features.shape[0]} frames of features")
+    if backend == "auto" and features.shape[0] >= 2 and features.dtype == torch.float32 and \
+            features.device.type == "cpu" and available():
+        block, value = _NativeWindowAndHuber.apply(features, first, window, delta)
+        return block, value
+    return features[first:first + window], temporal_huber(features, delta)
 
 
 def self_distillation(student: torch.Tensor, teacher: torch.Tensor) -> torch.Tensor:

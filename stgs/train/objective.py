@@ -5,8 +5,9 @@ One random (frame, camera) pair per iteration: the temporal features of the fram
 λ·U(−0.5, 0.5) go through the deformation field; the deformed Gaussians are drawn (over the frozen static layer's
 backdrop for that camera in a layered scene), through the camera's colour response
 (stgs.train.camera_colour) and compared with the target (L1 + SSIM, again on the dynamic
-mask's pixels); the auxiliary transformer's pass, the temporal Huber term on a sample of Gaussians, the
-canonical regularisers and the smoothness of the frame's feature grid are added (stgs.train.losses).
+mask's pixels); the auxiliary transformer's pass, the temporal Huber term over all features (its gradient
+and the window's written in one pass), the canonical regularisers and the smoothness of the frame's feature grid
+are added (stgs.train.losses).
 """
 
 from __future__ import annotations
@@ -68,7 +69,10 @@ def gop_loss(cfg: TrainConfig, gen: torch.Generator, model: GOPModel, aux: AuxTr
     c = int(torch.randint(len(views.cameras), (1,), generator=gen))
     cam, target = views.cameras[c], views.target(i, c)
     noise = (torch.rand(model.features.shape[1], cfg.window * 16, generator=gen) - 0.5) * cfg.feature_noise
-    block = model.feature_block(i)  # one slice for the window and the smoothness term
+    if cfg.temporal_weight:  # one gradient buffer for the window, the smoothness term and the temporal term
+        block, temporal = losses.window_and_temporal_huber(model.features, i, shape.window, cfg.huber_delta)
+    else:
+        block, temporal = model.feature_block(i), None
     window = flat_window(block) + noise
     center = cam.center.float()
     if deform:
@@ -89,8 +93,8 @@ def gop_loss(cfg: TrainConfig, gen: torch.Generator, model: GOPModel, aux: AuxTr
         img_aux = as_recorded(colour, splat_over(backdrop, g_aux, cam), c)
         loss = loss + cfg.aux_ssim_weight * (1 - losses.ssim(img_aux, target))
         loss = loss + cfg.distill_weight * losses.self_distillation(h, h_aux)
-    if cfg.temporal_weight:
-        loss = loss + cfg.temporal_weight * losses.temporal_huber(model.features, cfg.huber_delta)
+    if temporal is not None:
+        loss = loss + cfg.temporal_weight * temporal
     loss = loss + canonical_regularisers(cfg, model, g.opacities)
     if cfg.smooth_weight:
         loss = loss + cfg.smooth_weight * losses.grid_smoothness(block[0], shape.grid_side)

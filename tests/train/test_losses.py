@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from stgs.metrics import SSIM_C1, SSIM_C2, psnr, ssim, ssim_map
+from stgs.native.build import available
 from stgs.train import losses
 from stgs.train.dynamic import dynamic_mask, gop_dynamic_masks
 
@@ -37,13 +38,62 @@ def test_temporal_huber_gradient_matches_autograd_through_torch_huber_loss():
     assert torch.allclose(edge[0], -edge[1]) and edge.abs().sum() > 0
 
 
-def test_the_temporal_benchmark_times_three_variants_and_compares_their_gradients():
+@pytest.mark.skipif(not available(), reason="the native library could not be built here")
+def test_native_window_and_temporal_huber_matches_the_slice_and_the_torch_term():
+    gen = torch.Generator().manual_seed(5)
+    # 2,500 columns: the kernel's 1,024-column blocks and a ragged last one; steps either side of δ = 0.01
+    base = (torch.rand(7, 625, 4, generator=gen) * 0.05 - 0.02).cumsum(0)
+    for first in (0, 2, 4):  # the window at the start, inside and at the end of the frames
+        upstream = torch.randn(3, 625, 4, generator=gen)
+        grads, values = [], []
+        for backend in ("torch", "auto"):
+            f = base.clone().requires_grad_()
+            block, value = losses.window_and_temporal_huber(f, first, 3, 0.01, backend=backend)
+            assert torch.equal(block.detach(), base[first:first + 3])
+            ((block * upstream).sum() + 2.5 * value).backward()
+            grads.append(f.grad)
+            values.append(value.item())
+        assert values[1] == pytest.approx(values[0], rel=1e-5)
+        assert torch.allclose(grads[1], grads[0], rtol=1e-5, atol=1e-9)
+    f = base.clone().requires_grad_()
+    block, _ = losses.window_and_temporal_huber(f, 1, 3, 0.01)
+    block.sum().backward()  # the window's gradient alone: ones on its rows, zeros elsewhere
+    assert torch.equal(f.grad, torch.zeros_like(base).index_fill_(0, torch.arange(1, 4), 1.0))
+    two = base[:2].clone().requires_grad_()
+    (edge,) = torch.autograd.grad(losses.window_and_temporal_huber(two, 0, 1, 0.01)[1], two)
+    assert torch.allclose(edge[0], -edge[1]) and edge.abs().sum() > 0
+
+
+@pytest.mark.skipif(not available(), reason="the native library could not be built here")
+def test_native_temporal_huber_value_does_not_depend_on_the_thread_count():
+    f = (torch.rand(12, 3000, 16, generator=torch.Generator().manual_seed(1)) * 0.03).cumsum(0)
+    threads = torch.get_num_threads()
+    try:
+        values = []
+        for n in (1, 2, 3):
+            torch.set_num_threads(n)
+            values.append(losses.window_and_temporal_huber(f, 0, 3, 0.01)[1].item())
+    finally:
+        torch.set_num_threads(threads)
+    assert values[0] == values[1] == values[2]
+
+
+def test_window_and_temporal_huber_refuses_a_window_outside_the_frames():
+    f = torch.zeros(5, 4, 16)
+    for first, window in ((-1, 3), (3, 3), (0, 0)):
+        with pytest.raises(ValueError, match="outside the 5 frames"):
+            losses.window_and_temporal_huber(f, first, window)
+    with pytest.raises(ValueError, match="unknown backend"):
+        losses.window_and_temporal_huber(f, 0, 3, backend="cuda")
+
+
+def test_the_temporal_benchmark_times_four_variants_and_compares_their_gradients():
     from bench.temporal import measure
 
     cells = [c.strip() for c in measure(64, steps=2).strip("|").split("|")]
-    assert cells[0] == "64" and len(cells) == 6
-    assert all(float(c) > 0 for c in cells[1:4])
-    assert float(cells[5]) < 1e-9  # the hand-written backward is autograd's gradient
+    assert cells[0] == "64" and len(cells) == 7
+    assert all(float(c) > 0 for c in cells[1:6])
+    assert float(cells[6]) < 1e-9  # the hand-written and the native backward are autograd's gradient
 
 
 def test_ssim_of_flat_images_by_hand():

@@ -105,6 +105,19 @@ void stgs_ssim_backward(int height, int width, const float* image, const float* 
                         const float* taps, const float* partials, const float* grad_ssim,
                         float* grad_image, int nthreads);
 
+// --- temporal consistency (temporal.cpp) ---
+
+// The sum over e < rows - 1 and j < cols of Huber_delta(features[e+1][j] - features[e][j]) for
+// (rows, cols) float32 features (torch's huber_loss terms); 0 when rows < 2. Does not depend on nthreads.
+double stgs_temporal_huber_forward(int64_t rows, int64_t cols, const float* features, float delta,
+                                   int nthreads);
+
+// grad (rows, cols) = scale * the gradient of that sum in features, plus window_grad (window_rows, cols)
+// added at rows first ... first + window_rows - 1 (unless window_grad is NULL).
+void stgs_temporal_huber_backward(int64_t rows, int64_t cols, const float* features, float delta,
+                                  float scale, const float* window_grad, int64_t first,
+                                  int64_t window_rows, float* grad, int nthreads);
+
 // --- deformation (deform.cpp, deform_bf16.cpp, deform_int16.cpp) ---
 
 // The deformation field of one frame in float32 for n Gaussians (DESIGN.md; weights packed
