@@ -1,6 +1,6 @@
 """The kernels other CPUs get, built here into private caches and held to the same oracle as the default
-build, in separate processes: -march=x86-64-v3 (AVX2 and FMA, no AVX-512: the AVX2 inference compositor
-beside the portable tracked one, and the int16 deformation, which must equal this machine's AVX-512 int16
+build, in separate processes: -march=x86-64-v3 (AVX2 and FMA, no AVX-512: the AVX2 compositors, inference and
+tracked, the AVX2 backward, and the int16 deformation, which must equal this machine's AVX-512 int16
 kernel bit for bit where it has one) and -march=x86-64-v2 (no AVX: every stage the
 portable `#pragma omp simd` kernel, and no int16 deformation). Each is checked against the reference and,
 stage by stage, against the torch twins.

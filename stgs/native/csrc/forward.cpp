@@ -1,8 +1,7 @@
 // Stage 3, forward: front-to-back compositing of each tile's list (DESIGN.md's per-pixel
 // loop), with the per-pixel bookkeeping (final transmittance, last contributor) the backward
 // pass reads. Its torch twin is stgs.render.stages.composite_tiles. The AVX-512 kernels sit
-// beside the portable one; on AVX2 CPUs without AVX-512 inference takes splat_avx2.h's kernel
-// and the tracked forward the portable one.
+// beside the portable one; AVX2 CPUs without AVX-512 take splat_avx2.h's kernels.
 
 #include <omp.h>
 
@@ -222,7 +221,7 @@ constexpr auto kRenderTile = render_tile_fast;
 void render_tile_fast(const RasterCtx& ctx, int tile, const float* bg, float* out, float* trans_final,
                       int32_t* n_contrib) {
   if (trans_final != nullptr)
-    render_tile(ctx, tile, bg, out, trans_final, n_contrib);
+    render_tile_tracked_avx2(ctx, tile, bg, out, trans_final, n_contrib);
   else
     render_tile_infer_avx2(ctx, tile, bg, out);
 }
