@@ -222,7 +222,8 @@ that together with it holds about twice the single layer's Gaussians, and iterat
 stage to stage A (which nothing refines later) so that one GOP takes the single layer's wall time (cpu: the
 best of three splits measured on Panoptic at that time, docs/BENCHMARKS.md; with the fused Adam step, which came
 later, a pair measured it at 0.94x format 1's wall time, and with the native loss terms three pairs at 0.86-0.99x,
-2,800 GOP iterations at 0.98-1.13x; paper: not measured)."""
+2,800 GOP iterations at 0.98-1.13x, on an Intel machine; on an AVX2-only AMD one 1.07-1.17x; paper: not
+measured)."""
 
 SWITCHES = {"aux": "--no-aux", "dynamic": "--no-dynamic-density", "temporal_weight": "--no-temporal-reg",
             "relocate": "--no-relocate", "migrate": "--no-migrate", "hull_seeds": "--no-hull-seeds",

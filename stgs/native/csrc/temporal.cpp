@@ -6,9 +6,9 @@
 // full-size buffer for the window's slice and adds the two: six full-size passes where these kernels read
 // the features and write the gradient once (bench.temporal).
 //
-// Work is cut into fixed blocks of columns, each walked down the rows (row e + 1 is still in cache when
-// row e + 1's difference is taken); the forward sums each block in double and adds the blocks in order,
-// so the value does not depend on the thread count.
+// Work is cut into fixed blocks of columns, each walked down the rows (the block of row e + 1, read for
+// one difference, is still in cache for the next); the forward sums each block in double and adds the
+// blocks in order, so the value does not depend on the thread count.
 
 #include <omp.h>
 
