@@ -107,6 +107,33 @@ void backward_tile(const RasterCtx& ctx, int tile, const float* bg, const float*
   }
 }
 
+// One tile row's forward bookkeeping and upstream gradient, as the vector kernels load them: final
+// transmittance t (1 outside the image), last contributor l, the gradient r, g, b (0 outside); adds the
+// background's gradient of the row to grad_bg and returns the row's largest l.
+inline int32_t load_tile_row(const RasterCtx& ctx, const TileBox& box, int v, const float* grad_out, float* t,
+                             int32_t* l, float* r, float* g, float* b, double* grad_bg) {
+  int32_t max_last = 0;
+  for (int u = 0; u < kTile; ++u) {
+    t[u] = 1.0f;
+    l[u] = 0;
+    r[u] = g[u] = b[u] = 0.0f;
+  }
+  if (v >= box.h) return 0;
+  for (int u = 0; u < box.w; ++u) {
+    const int64_t pix = int64_t(box.y0 + v) * ctx.width + (box.x0 + u);
+    t[u] = ctx.trans_final[pix];
+    l[u] = ctx.n_contrib[pix];
+    r[u] = grad_out[3 * pix];
+    g[u] = grad_out[3 * pix + 1];
+    b[u] = grad_out[3 * pix + 2];
+    grad_bg[0] += double(t[u]) * r[u];
+    grad_bg[1] += double(t[u]) * g[u];
+    grad_bg[2] += double(t[u]) * b[u];
+    max_last = std::max(max_last, l[u]);
+  }
+  return max_last;
+}
+
 #if defined(__AVX512F__)
 inline float hsum(__m512 v) { return _mm512_reduce_add_ps(v); }
 
@@ -117,23 +144,9 @@ void backward_tile_avx512(const RasterCtx& ctx, int tile, const float* bg, const
   __m512i last[kTile];
   int32_t max_last = 0;
   for (int v = 0; v < kTile; ++v) {
-    alignas(64) float t[kTile] = {0}, r[kTile] = {0}, g[kTile] = {0}, b[kTile] = {0};
-    alignas(64) int32_t l[kTile] = {0};
-    for (int u = 0; u < kTile; ++u) t[u] = 1.0f;
-    if (v < box.h) {
-      for (int u = 0; u < box.w; ++u) {
-        const int64_t pix = int64_t(box.y0 + v) * ctx.width + (box.x0 + u);
-        t[u] = ctx.trans_final[pix];
-        l[u] = ctx.n_contrib[pix];
-        r[u] = grad_out[3 * pix];
-        g[u] = grad_out[3 * pix + 1];
-        b[u] = grad_out[3 * pix + 2];
-        grad_bg[0] += double(t[u]) * r[u];
-        grad_bg[1] += double(t[u]) * g[u];
-        grad_bg[2] += double(t[u]) * b[u];
-        max_last = std::max(max_last, l[u]);
-      }
-    }
+    alignas(64) float t[kTile], r[kTile], g[kTile], b[kTile];
+    alignas(64) int32_t l[kTile];
+    max_last = std::max(max_last, load_tile_row(ctx, box, v, grad_out, t, l, r, g, b, grad_bg));
     trans[v] = _mm512_load_ps(t);
     last[v] = _mm512_load_si512(l);
     dr[v] = _mm512_load_ps(r);
@@ -216,23 +229,9 @@ void backward_tile_avx2(const RasterCtx& ctx, int tile, const float* bg, const f
   __m256i last[kTile][2];
   int32_t max_last = 0;
   for (int v = 0; v < kTile; ++v) {
-    alignas(32) float t[kTile], r[kTile] = {0}, g[kTile] = {0}, b[kTile] = {0};
-    alignas(32) int32_t l[kTile] = {0};
-    for (int u = 0; u < kTile; ++u) t[u] = 1.0f;
-    if (v < box.h) {
-      for (int u = 0; u < box.w; ++u) {
-        const int64_t pix = int64_t(box.y0 + v) * ctx.width + (box.x0 + u);
-        t[u] = ctx.trans_final[pix];
-        l[u] = ctx.n_contrib[pix];
-        r[u] = grad_out[3 * pix];
-        g[u] = grad_out[3 * pix + 1];
-        b[u] = grad_out[3 * pix + 2];
-        grad_bg[0] += double(t[u]) * r[u];
-        grad_bg[1] += double(t[u]) * g[u];
-        grad_bg[2] += double(t[u]) * b[u];
-        max_last = std::max(max_last, l[u]);
-      }
-    }
+    alignas(32) float t[kTile], r[kTile], g[kTile], b[kTile];
+    alignas(32) int32_t l[kTile];
+    max_last = std::max(max_last, load_tile_row(ctx, box, v, grad_out, t, l, r, g, b, grad_bg));
     for (int h = 0; h < 2; ++h) {
       trans[v][h] = _mm256_load_ps(t + 8 * h);
       last[v][h] = _mm256_load_si256(reinterpret_cast<const __m256i*>(l + 8 * h));

@@ -52,6 +52,34 @@ struct InferRows8 {
 
 inline bool any_lane(__m256 mask) { return !_mm256_testz_ps(mask, mask); }
 
+// Writes a composited tile: colour sums over the background into out and, with `last` (then trans_final and
+// n_contrib too), each pixel's final transmittance and last contributor.
+inline void store_tile_avx2(const RasterCtx& ctx, const TileBox& box, const float* bg, const __m256 (*trans)[2],
+                            const __m256 (*ar)[2], const __m256 (*ag)[2], const __m256 (*ab)[2],
+                            const __m256i (*last)[2], float* out, float* trans_final, int32_t* n_contrib) {
+  alignas(32) float tr[kTile], rr[kTile], gg[kTile], bb[kTile];
+  alignas(32) int32_t ll[kTile];
+  for (int v = 0; v < box.h; ++v) {
+    for (int h = 0; h < 2; ++h) {
+      _mm256_store_ps(tr + 8 * h, trans[v][h]);
+      _mm256_store_ps(rr + 8 * h, ar[v][h]);
+      _mm256_store_ps(gg + 8 * h, ag[v][h]);
+      _mm256_store_ps(bb + 8 * h, ab[v][h]);
+      if (last != nullptr) _mm256_store_si256(reinterpret_cast<__m256i*>(ll + 8 * h), last[v][h]);
+    }
+    for (int u = 0; u < box.w; ++u) {
+      const int64_t pix = int64_t(box.y0 + v) * ctx.width + (box.x0 + u);
+      out[3 * pix] = rr[u] + tr[u] * bg[0];
+      out[3 * pix + 1] = gg[u] + tr[u] * bg[1];
+      out[3 * pix + 2] = bb[u] + tr[u] * bg[2];
+      if (last != nullptr) {
+        trans_final[pix] = tr[u];
+        n_contrib[pix] = ll[u];
+      }
+    }
+  }
+}
+
 // The per-Gaussian constants of the training kernels (splat_avx512.h's SplatVec on 8 lanes): row powers
 // in log2 units through the pre-scaled conic pa, pb2, pc; the gradients keep the natural-unit a, c.
 struct SplatVec8 {
@@ -147,25 +175,7 @@ inline void render_tile_tracked_avx2(const RasterCtx& ctx, int tile, const float
       for (int v = 0; v < kTile; ++v) live_rows += any_lane(_mm256_or_ps(live[v][0], live[v][1]));
     }
   }
-  alignas(32) float tr[kTile], rr[kTile], gg[kTile], bb[kTile];
-  alignas(32) int32_t ll[kTile];
-  for (int v = 0; v < box.h; ++v) {
-    for (int h = 0; h < 2; ++h) {
-      _mm256_store_ps(tr + 8 * h, trans[v][h]);
-      _mm256_store_ps(rr + 8 * h, ar[v][h]);
-      _mm256_store_ps(gg + 8 * h, ag[v][h]);
-      _mm256_store_ps(bb + 8 * h, ab[v][h]);
-      _mm256_store_si256(reinterpret_cast<__m256i*>(ll + 8 * h), last[v][h]);
-    }
-    for (int u = 0; u < box.w; ++u) {
-      const int64_t pix = int64_t(box.y0 + v) * ctx.width + (box.x0 + u);
-      out[3 * pix] = rr[u] + tr[u] * bg[0];
-      out[3 * pix + 1] = gg[u] + tr[u] * bg[1];
-      out[3 * pix + 2] = bb[u] + tr[u] * bg[2];
-      trans_final[pix] = tr[u];
-      n_contrib[pix] = ll[u];
-    }
-  }
+  store_tile_avx2(ctx, box, bg, trans, ar, ag, ab, last, out, trans_final, n_contrib);
 }
 
 inline void render_tile_infer_avx2(const RasterCtx& ctx, int tile, const float* bg, float* out) {
@@ -219,21 +229,7 @@ inline void render_tile_infer_avx2(const RasterCtx& ctx, int tile, const float* 
       for (int v = 0; v < kTile; ++v) live_rows += any_lane(_mm256_or_ps(live[v][0], live[v][1]));
     }
   }
-  alignas(32) float tr[kTile], rr[kTile], gg[kTile], bb[kTile];
-  for (int v = 0; v < box.h; ++v) {
-    for (int h = 0; h < 2; ++h) {
-      _mm256_store_ps(tr + 8 * h, trans[v][h]);
-      _mm256_store_ps(rr + 8 * h, ar[v][h]);
-      _mm256_store_ps(gg + 8 * h, ag[v][h]);
-      _mm256_store_ps(bb + 8 * h, ab[v][h]);
-    }
-    for (int u = 0; u < box.w; ++u) {
-      const int64_t pix = int64_t(box.y0 + v) * ctx.width + (box.x0 + u);
-      out[3 * pix] = rr[u] + tr[u] * bg[0];
-      out[3 * pix + 1] = gg[u] + tr[u] * bg[1];
-      out[3 * pix + 2] = bb[u] + tr[u] * bg[2];
-    }
-  }
+  store_tile_avx2(ctx, box, bg, trans, ar, ag, ab, nullptr, out, nullptr, nullptr);
 }
 
 }  // namespace stgs::splat
