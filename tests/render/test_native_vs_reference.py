@@ -77,6 +77,32 @@ def test_gradients_match_reference(scene):
         assert (a - b).abs().max().item() <= 1e-3 * peak, f"{name}: absolute gradient error"
 
 
+def masked_upstream(shape, gen):
+    """A masked loss's upstream gradient: zero over a block (whole tiles and part rows), on scattered pixels,
+    and in two of three channels (either pair) on others, random elsewhere."""
+    g = torch.randn(*shape, generator=gen, dtype=torch.float64)
+    h, w = shape[0], shape[1]
+    g[h // 4: h // 4 + 21, w // 5: w // 5 + 37] = 0.0
+    g[torch.rand(h, w, generator=gen) < 0.2] = 0.0
+    g[..., :2][torch.rand(h, w, generator=gen) < 0.2] = 0.0
+    g[..., 1:][torch.rand(h, w, generator=gen) < 0.2] = 0.0
+    return g
+
+
+@pytest.mark.parametrize("scene", SCENES[2:])
+def test_gradients_under_a_masked_loss_match_reference(scene):
+    """The backward pass skips the pixels without upstream gradient: the gradients stay the reference's."""
+    gen = torch.Generator().manual_seed(7)
+    _, _, ref_in, nat_in = render_both(*scene, grad_out=lambda s: masked_upstream(s, gen))
+    for name, r, q in zip(NAMES, ref_in, nat_in, strict=True):
+        a, b = r.grad, q.grad.double()
+        peak = a.abs().max().item()
+        assert peak > 0, f"{name}: reference gradient is all zero"
+        big = a.abs() > 1e-2 * peak
+        assert ((a - b).abs() / a.abs())[big].max().item() <= 1e-3, name
+        assert (a - b).abs().max().item() <= 1e-3 * peak, name
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_tiling_never_changes_the_image(seed):
     """Opacity-aware extents are conservative: culling by tile equals compositing everything everywhere."""

@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <type_traits>
 #include <vector>
 
 #if defined(__AVX512F__)
@@ -24,6 +25,13 @@
 namespace stgs::splat {
 namespace {
 
+// A pixel without upstream gradient adds zero to every sum, so its walk is skipped (its last
+// contributor taken as none): a masked loss leaves many such pixels.
+inline int32_t walked_last(const RasterCtx& ctx, const float* grad_out, int64_t pix) {
+  const bool any = grad_out[3 * pix] != 0.0f || grad_out[3 * pix + 1] != 0.0f || grad_out[3 * pix + 2] != 0.0f;
+  return any ? ctx.n_contrib[pix] : 0;
+}
+
 void backward_tile(const RasterCtx& ctx, int tile, const float* bg, const float* grad_out,
                    float* grads, double* grad_bg) {
   const TileBox box = tile_box(ctx, tile);
@@ -37,7 +45,7 @@ void backward_tile(const RasterCtx& ctx, int tile, const float* bg, const float*
     const bool in = u < box.w && v < box.h;
     const int64_t pix = int64_t(box.y0 + v) * ctx.width + (box.x0 + u);
     st.trans[p] = in ? ctx.trans_final[pix] : 1.0f;
-    st.last[p] = in ? ctx.n_contrib[pix] : 0;
+    st.last[p] = in ? walked_last(ctx, grad_out, pix) : 0;
     d_r[p] = in ? grad_out[3 * pix] : 0.0f;
     d_g[p] = in ? grad_out[3 * pix + 1] : 0.0f;
     d_b[p] = in ? grad_out[3 * pix + 2] : 0.0f;
@@ -69,6 +77,19 @@ void backward_tile(const RasterCtx& ctx, int tile, const float* bg, const float*
       const float* dr = d_r + row * kTile;
       const float* dg = d_g + row * kTile;
       const float* db = d_b + row * kTile;
+      if (g < ctx.frozen) {  // a kept Gaussian: only its compositing is undone
+#pragma omp simd
+        for (int i = 0; i < kTile; ++i) {
+          const bool took = k < last[i] && alpha[i] >= kAlphaMin;
+          const float t_before = took ? trans[i] / (1.0f - alpha[i]) : trans[i];
+          const float w = took ? alpha[i] * t_before : 0.0f;
+          ar[i] += s.r * w;
+          ag[i] += s.g * w;
+          ab[i] += s.bl * w;
+          trans[i] = t_before;
+        }
+        continue;
+      }
 #pragma omp simd reduction(+ : gmx, gmy, ga, gb, gc, go, gr, gg, gbl)
       for (int i = 0; i < kTile; ++i) {
         const float a = alpha[i];
@@ -99,7 +120,8 @@ void backward_tile(const RasterCtx& ctx, int tile, const float* bg, const float*
         gc += g_power * (-0.5f * dy * dy);
       }
     }
-    float* out = &grads[int64_t(g) * kGradStride];
+    if (g < ctx.frozen) continue;
+    float* out = &grads[int64_t(g - ctx.frozen) * kGradStride];
     out[0] += gmx; out[1] += gmy;
     out[2] += ga; out[3] += gb; out[4] += gc;
     out[5] += go;
@@ -108,7 +130,7 @@ void backward_tile(const RasterCtx& ctx, int tile, const float* bg, const float*
 }
 
 // One tile row's forward bookkeeping and upstream gradient, as the vector kernels load them: final
-// transmittance t (1 outside the image), last contributor l, the gradient r, g, b (0 outside); adds the
+// transmittance t (1 outside the image), last contributor to walk l, the gradient r, g, b (0 outside); adds the
 // background's gradient of the row to grad_bg and returns the row's largest l.
 inline int32_t load_tile_row(const RasterCtx& ctx, const TileBox& box, int v, const float* grad_out, float* t,
                              int32_t* l, float* r, float* g, float* b, double* grad_bg) {
@@ -122,7 +144,7 @@ inline int32_t load_tile_row(const RasterCtx& ctx, const TileBox& box, int v, co
   for (int u = 0; u < box.w; ++u) {
     const int64_t pix = int64_t(box.y0 + v) * ctx.width + (box.x0 + u);
     t[u] = ctx.trans_final[pix];
-    l[u] = ctx.n_contrib[pix];
+    l[u] = walked_last(ctx, grad_out, pix);
     r[u] = grad_out[3 * pix];
     g[u] = grad_out[3 * pix + 1];
     b[u] = grad_out[3 * pix + 2];
@@ -134,8 +156,44 @@ inline int32_t load_tile_row(const RasterCtx& ctx, const TileBox& box, int v, co
   return max_last;
 }
 
+// Walks a tile's list back to front from its last walked entry (max_last), prefetching ahead: a trainable
+// Gaussian's entry as entry(k, id, std::true_type), a kept one's (ctx.frozen), which is only undone, as
+// entry(k, id, std::false_type).
+template <class Entry>
+inline void walk_list(const RasterCtx& ctx, int tile, int32_t max_last, const Entry& entry) {
+  const int64_t begin = ctx.tile_start[tile];
+  for (int32_t k = max_last - 1; k >= 0; --k) {
+    if (k >= kPrefetch) prefetch_splat(ctx, begin + k - kPrefetch);
+    const int32_t id = ctx.ids[begin + k];
+    if (id >= ctx.frozen)
+      entry(k, id, std::true_type{});
+    else
+      entry(k, id, std::false_type{});
+  }
+}
+
 #if defined(__AVX512F__)
 inline float hsum(__m512 v) { return _mm512_reduce_add_ps(v); }
+#elif defined(__AVX2__) && defined(__FMA__)
+inline float hsum(__m256 v) {
+  const __m128 four = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps(v, 1));
+  const __m128 two = _mm_add_ps(four, _mm_movehl_ps(four, four));
+  return _mm_cvtss_f32(_mm_add_ss(two, _mm_movehdup_ps(two)));
+}
+#endif
+
+// Adds one trainable entry's nine sums (per lane, reduced by hsum) to its row of grads.
+template <class V>
+inline void add_sums(const RasterCtx& ctx, float* grads, int32_t id, V gmx, V gmy, V ga, V gb, V gc, V go, V gr,
+                     V gg, V gbl) {
+  float* o = &grads[int64_t(id - ctx.frozen) * kGradStride];
+  o[0] += hsum(gmx); o[1] += hsum(gmy);
+  o[2] += hsum(ga); o[3] += hsum(gb); o[4] += hsum(gc);
+  o[5] += hsum(go);
+  o[6] += hsum(gr); o[7] += hsum(gg); o[8] += hsum(gbl);
+}
+
+#if defined(__AVX512F__)
 
 void backward_tile_avx512(const RasterCtx& ctx, int tile, const float* bg, const float* grad_out,
                           float* grads, double* grad_bg) {
@@ -157,10 +215,9 @@ void backward_tile_avx512(const RasterCtx& ctx, int tile, const float* bg, const
     ab[v] = _mm512_mul_ps(trans[v], _mm512_set1_ps(bg[2]));
   }
   const __m512 px = pixel_centres(box.x0);
-  const int64_t begin = ctx.tile_start[tile];
-  for (int32_t k = max_last - 1; k >= 0; --k) {
-    if (k >= kPrefetch) prefetch_splat(ctx, begin + k - kPrefetch);
-    const int32_t g = ctx.ids[begin + k];
+  // One list entry; a kept Gaussian's (not trainable) compositing is only undone.
+  const auto entry = [&](int32_t k, int32_t g, auto trainable_tag) {
+    constexpr bool trainable = decltype(trainable_tag)::value;
     const Splat& s = ctx.splats[g];
     const Rect& r = s.rect;
     const SplatVec sv(s);
@@ -181,46 +238,39 @@ void backward_tile_avx512(const RasterCtx& ctx, int tile, const float* bg, const
       const __m512 inv = _mm512_div_ps(sv.one, _mm512_sub_ps(sv.one, e.alpha));
       const __m512 t_before = _mm512_mask_mul_ps(trans[row], took, trans[row], inv);
       const __m512 w = _mm512_maskz_mul_ps(took, e.alpha, t_before);
-      gr = _mm512_fmadd_ps(w, dr[row], gr);
-      gg = _mm512_fmadd_ps(w, dg[row], gg);
-      gbl = _mm512_fmadd_ps(w, db[row], gbl);
-      __m512 g_alpha = _mm512_mul_ps(dr[row], _mm512_fmsub_ps(sv.r, t_before, _mm512_mul_ps(ar[row], inv)));
-      g_alpha = _mm512_fmadd_ps(dg[row], _mm512_fmsub_ps(sv.g, t_before, _mm512_mul_ps(ag[row], inv)), g_alpha);
-      g_alpha = _mm512_fmadd_ps(db[row], _mm512_fmsub_ps(sv.bl, t_before, _mm512_mul_ps(ab[row], inv)), g_alpha);
-      g_alpha = _mm512_maskz_mov_ps(took, g_alpha);
+      if constexpr (trainable) {
+        gr = _mm512_fmadd_ps(w, dr[row], gr);
+        gg = _mm512_fmadd_ps(w, dg[row], gg);
+        gbl = _mm512_fmadd_ps(w, db[row], gbl);
+        __m512 g_alpha = _mm512_mul_ps(dr[row], _mm512_fmsub_ps(sv.r, t_before, _mm512_mul_ps(ar[row], inv)));
+        g_alpha = _mm512_fmadd_ps(dg[row], _mm512_fmsub_ps(sv.g, t_before, _mm512_mul_ps(ag[row], inv)), g_alpha);
+        g_alpha = _mm512_fmadd_ps(db[row], _mm512_fmsub_ps(sv.bl, t_before, _mm512_mul_ps(ab[row], inv)), g_alpha);
+        g_alpha = _mm512_maskz_mov_ps(took, g_alpha);
+        // No gradient through the 0.99 clamp, nor through the power clip at 0.
+        const __m512 raw_alpha = _mm512_mul_ps(sv.o, e.falloff);
+        const __mmask16 open = _mm512_mask_cmp_ps_mask(took, raw_alpha, sv.amax, _CMP_LE_OQ);
+        go = _mm512_mask3_fmadd_ps(g_alpha, e.falloff, go, open);
+        const __mmask16 flows = _mm512_mask_cmp_ps_mask(open, e.power, _mm512_setzero_ps(), _CMP_LE_OQ);
+        const __m512 g_power = _mm512_maskz_mul_ps(flows, g_alpha, raw_alpha);
+        const __m512 dyv = _mm512_set1_ps(dy);
+        gmx = _mm512_fmadd_ps(g_power, _mm512_fmadd_ps(sv.a, e.dx, _mm512_mul_ps(_mm512_set1_ps(s.b), dyv)), gmx);
+        gmy = _mm512_fmadd_ps(g_power, _mm512_fmadd_ps(_mm512_set1_ps(s.b), e.dx, _mm512_mul_ps(sv.c, dyv)), gmy);
+        ga = _mm512_fmadd_ps(g_power, _mm512_mul_ps(sv.half, _mm512_mul_ps(e.dx, e.dx)), ga);
+        gb = _mm512_fnmadd_ps(g_power, _mm512_mul_ps(e.dx, dyv), gb);
+        gc = _mm512_fmadd_ps(g_power, _mm512_set1_ps(-0.5f * dy * dy), gc);
+      }
       ar[row] = _mm512_fmadd_ps(sv.r, w, ar[row]);
       ag[row] = _mm512_fmadd_ps(sv.g, w, ag[row]);
       ab[row] = _mm512_fmadd_ps(sv.bl, w, ab[row]);
       trans[row] = t_before;
-      // No gradient through the 0.99 clamp, nor through the power clip at 0.
-      const __m512 raw_alpha = _mm512_mul_ps(sv.o, e.falloff);
-      const __mmask16 open = _mm512_mask_cmp_ps_mask(took, raw_alpha, sv.amax, _CMP_LE_OQ);
-      go = _mm512_mask3_fmadd_ps(g_alpha, e.falloff, go, open);
-      const __mmask16 flows = _mm512_mask_cmp_ps_mask(open, e.power, _mm512_setzero_ps(), _CMP_LE_OQ);
-      const __m512 g_power = _mm512_maskz_mul_ps(flows, g_alpha, raw_alpha);
-      const __m512 dyv = _mm512_set1_ps(dy);
-      gmx = _mm512_fmadd_ps(g_power, _mm512_fmadd_ps(sv.a, e.dx, _mm512_mul_ps(_mm512_set1_ps(s.b), dyv)), gmx);
-      gmy = _mm512_fmadd_ps(g_power, _mm512_fmadd_ps(_mm512_set1_ps(s.b), e.dx, _mm512_mul_ps(sv.c, dyv)), gmy);
-      ga = _mm512_fmadd_ps(g_power, _mm512_mul_ps(sv.half, _mm512_mul_ps(e.dx, e.dx)), ga);
-      gb = _mm512_fnmadd_ps(g_power, _mm512_mul_ps(e.dx, dyv), gb);
-      gc = _mm512_fmadd_ps(g_power, _mm512_set1_ps(-0.5f * dy * dy), gc);
     }
-    float* o = &grads[int64_t(g) * kGradStride];
-    o[0] += hsum(gmx); o[1] += hsum(gmy);
-    o[2] += hsum(ga); o[3] += hsum(gb); o[4] += hsum(gc);
-    o[5] += hsum(go);
-    o[6] += hsum(gr); o[7] += hsum(gg); o[8] += hsum(gbl);
-  }
+    if constexpr (trainable) add_sums(ctx, grads, g, gmx, gmy, ga, gb, gc, go, gr, gg, gbl);
+  };
+  walk_list(ctx, tile, max_last, entry);
 }
 
 constexpr auto kBackwardTile = backward_tile_avx512;
 #elif defined(__AVX2__) && defined(__FMA__)
-inline float hsum8(__m256 v) {
-  const __m128 four = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps(v, 1));
-  const __m128 two = _mm_add_ps(four, _mm_movehl_ps(four, four));
-  return _mm_cvtss_f32(_mm_add_ss(two, _mm_movehdup_ps(two)));
-}
-
 // backward_tile_avx512 on two 8-lane halves per tile row, mirroring render_tile_tracked_avx2.
 void backward_tile_avx2(const RasterCtx& ctx, int tile, const float* bg, const float* grad_out,
                         float* grads, double* grad_bg) {
@@ -244,10 +294,9 @@ void backward_tile_avx2(const RasterCtx& ctx, int tile, const float* bg, const f
     }
   }
   const __m256 px[2] = {pixel_centres8(box.x0, 0), pixel_centres8(box.x0, 1)};
-  const int64_t begin = ctx.tile_start[tile];
-  for (int32_t k = max_last - 1; k >= 0; --k) {
-    if (k >= kPrefetch) prefetch_splat(ctx, begin + k - kPrefetch);
-    const int32_t id = ctx.ids[begin + k];
+  // One list entry; a kept Gaussian's (not trainable) compositing is only undone.
+  const auto entry = [&](int32_t k, int32_t id, auto trainable_tag) {
+    constexpr bool trainable = decltype(trainable_tag)::value;
     const Splat& s = ctx.splats[id];
     const Rect& r = s.rect;
     const SplatVec8 sv(s);
@@ -271,36 +320,37 @@ void backward_tile_avx2(const RasterCtx& ctx, int tile, const float* bg, const f
         const __m256 inv = _mm256_div_ps(sv.one, _mm256_sub_ps(sv.one, e.alpha));
         const __m256 t_before = _mm256_blendv_ps(trans[row][h], _mm256_mul_ps(trans[row][h], inv), took);
         const __m256 w = _mm256_and_ps(took, _mm256_mul_ps(e.alpha, t_before));
-        gr = _mm256_fmadd_ps(w, dr[row][h], gr);
-        gg = _mm256_fmadd_ps(w, dg[row][h], gg);
-        gbl = _mm256_fmadd_ps(w, db[row][h], gbl);
-        __m256 g_alpha = _mm256_mul_ps(dr[row][h], _mm256_fmsub_ps(sv.r, t_before, _mm256_mul_ps(ar[row][h], inv)));
-        g_alpha = _mm256_fmadd_ps(dg[row][h], _mm256_fmsub_ps(sv.g, t_before, _mm256_mul_ps(ag[row][h], inv)), g_alpha);
-        g_alpha = _mm256_fmadd_ps(db[row][h], _mm256_fmsub_ps(sv.bl, t_before, _mm256_mul_ps(ab[row][h], inv)), g_alpha);
-        g_alpha = _mm256_and_ps(took, g_alpha);
+        if constexpr (trainable) {
+          gr = _mm256_fmadd_ps(w, dr[row][h], gr);
+          gg = _mm256_fmadd_ps(w, dg[row][h], gg);
+          gbl = _mm256_fmadd_ps(w, db[row][h], gbl);
+          __m256 g_alpha = _mm256_mul_ps(dr[row][h], _mm256_fmsub_ps(sv.r, t_before, _mm256_mul_ps(ar[row][h], inv)));
+          g_alpha = _mm256_fmadd_ps(dg[row][h], _mm256_fmsub_ps(sv.g, t_before, _mm256_mul_ps(ag[row][h], inv)),
+                                    g_alpha);
+          g_alpha = _mm256_fmadd_ps(db[row][h], _mm256_fmsub_ps(sv.bl, t_before, _mm256_mul_ps(ab[row][h], inv)),
+                                    g_alpha);
+          g_alpha = _mm256_and_ps(took, g_alpha);
+          // No gradient through the 0.99 clamp, nor through the power clip at 0.
+          const __m256 raw_alpha = _mm256_mul_ps(sv.o, e.falloff);
+          const __m256 open = _mm256_and_ps(took, _mm256_cmp_ps(raw_alpha, sv.amax, _CMP_LE_OQ));
+          go = _mm256_blendv_ps(go, _mm256_fmadd_ps(g_alpha, e.falloff, go), open);
+          const __m256 flows = _mm256_and_ps(open, _mm256_cmp_ps(e.power, _mm256_setzero_ps(), _CMP_LE_OQ));
+          const __m256 g_power = _mm256_and_ps(flows, _mm256_mul_ps(g_alpha, raw_alpha));
+          gmx = _mm256_fmadd_ps(g_power, _mm256_fmadd_ps(sv.a, e.dx, _mm256_mul_ps(vb, dyv)), gmx);
+          gmy = _mm256_fmadd_ps(g_power, _mm256_fmadd_ps(vb, e.dx, _mm256_mul_ps(sv.c, dyv)), gmy);
+          ga = _mm256_fmadd_ps(g_power, _mm256_mul_ps(sv.half, _mm256_mul_ps(e.dx, e.dx)), ga);
+          gb = _mm256_fnmadd_ps(g_power, _mm256_mul_ps(e.dx, dyv), gb);
+          gc = _mm256_fmadd_ps(g_power, _mm256_set1_ps(-0.5f * dy * dy), gc);
+        }
         ar[row][h] = _mm256_fmadd_ps(sv.r, w, ar[row][h]);
         ag[row][h] = _mm256_fmadd_ps(sv.g, w, ag[row][h]);
         ab[row][h] = _mm256_fmadd_ps(sv.bl, w, ab[row][h]);
         trans[row][h] = t_before;
-        // No gradient through the 0.99 clamp, nor through the power clip at 0.
-        const __m256 raw_alpha = _mm256_mul_ps(sv.o, e.falloff);
-        const __m256 open = _mm256_and_ps(took, _mm256_cmp_ps(raw_alpha, sv.amax, _CMP_LE_OQ));
-        go = _mm256_blendv_ps(go, _mm256_fmadd_ps(g_alpha, e.falloff, go), open);
-        const __m256 flows = _mm256_and_ps(open, _mm256_cmp_ps(e.power, _mm256_setzero_ps(), _CMP_LE_OQ));
-        const __m256 g_power = _mm256_and_ps(flows, _mm256_mul_ps(g_alpha, raw_alpha));
-        gmx = _mm256_fmadd_ps(g_power, _mm256_fmadd_ps(sv.a, e.dx, _mm256_mul_ps(vb, dyv)), gmx);
-        gmy = _mm256_fmadd_ps(g_power, _mm256_fmadd_ps(vb, e.dx, _mm256_mul_ps(sv.c, dyv)), gmy);
-        ga = _mm256_fmadd_ps(g_power, _mm256_mul_ps(sv.half, _mm256_mul_ps(e.dx, e.dx)), ga);
-        gb = _mm256_fnmadd_ps(g_power, _mm256_mul_ps(e.dx, dyv), gb);
-        gc = _mm256_fmadd_ps(g_power, _mm256_set1_ps(-0.5f * dy * dy), gc);
       }
     }
-    float* o = &grads[int64_t(id) * kGradStride];
-    o[0] += hsum8(gmx); o[1] += hsum8(gmy);
-    o[2] += hsum8(ga); o[3] += hsum8(gb); o[4] += hsum8(gc);
-    o[5] += hsum8(go);
-    o[6] += hsum8(gr); o[7] += hsum8(gg); o[8] += hsum8(gbl);
-  }
+    if constexpr (trainable) add_sums(ctx, grads, id, gmx, gmy, ga, gb, gc, go, gr, gg, gbl);
+  };
+  walk_list(ctx, tile, max_last, entry);
 }
 
 constexpr auto kBackwardTile = backward_tile_avx2;
@@ -323,22 +373,23 @@ void stgs_raster_backward(void* handle, int64_t n, const float* bg, const float*
   const auto* ctx = static_cast<const RasterCtx*>(handle);
   if (!ctx->for_backward) return;  // the forward kept nothing to differentiate (bindings never ask)
   const int tiles = ctx->tiles_x * ctx->tiles_y;
-  std::vector<float> partial(size_t(nthreads) * n * kGradStride, 0.0f);
+  const int64_t first = std::min<int64_t>(ctx->frozen, n), m = n - first;  // the kernels' rows: first + row
+  std::vector<float> partial(size_t(nthreads) * m * kGradStride, 0.0f);
   std::vector<double> partial_bg(size_t(nthreads) * 3, 0.0);
 #pragma omp parallel num_threads(nthreads)
   {
     const int tid = omp_get_thread_num();
-    float* mine = partial.data() + size_t(tid) * n * kGradStride;
+    float* mine = partial.data() + size_t(tid) * m * kGradStride;
     // static: which thread sums which tile must not vary between runs, or seeded training is not reproducible
 #pragma omp for schedule(static, 1)
     for (int t = 0; t < tiles; ++t)
       kBackwardTile(*ctx, t, bg, grad_out, mine, &partial_bg[3 * tid]);
   }
 #pragma omp parallel for num_threads(nthreads) schedule(static)
-  for (int64_t i = 0; i < n; ++i) {
+  for (int64_t i = first; i < n; ++i) {
     float sum[kGradStride] = {0};
     for (int t = 0; t < nthreads; ++t)
-      for (int j = 0; j < kGradStride; ++j) sum[j] += partial[(size_t(t) * n + i) * kGradStride + j];
+      for (int j = 0; j < kGradStride; ++j) sum[j] += partial[(size_t(t) * m + i - first) * kGradStride + j];
     grad_xy[2 * i] = sum[0]; grad_xy[2 * i + 1] = sum[1];
     grad_conic[3 * i] = sum[2]; grad_conic[3 * i + 1] = sum[3]; grad_conic[3 * i + 2] = sum[4];
     grad_opac[i] = sum[5];

@@ -37,7 +37,9 @@ RasterCtx* acquire_ctx() {
   std::lock_guard<std::mutex> lock(spare_mutex);
   RasterCtx* ctx = spare_ctx;
   spare_ctx = nullptr;
-  return ctx != nullptr ? ctx : new RasterCtx();
+  if (ctx == nullptr) return new RasterCtx();
+  ctx->frozen = 0;
+  return ctx;
 }
 
 void release_ctx(RasterCtx* ctx) {

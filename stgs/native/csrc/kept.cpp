@@ -7,7 +7,8 @@
 // moving Gaussian reaches holds the kept layer's list alone and is copied from its image.
 // For training, the same tiles are composited with the backward pass's bookkeeping and the
 // others get an empty list, so the backward pass visits only the tiles the moving Gaussians
-// reach (no other tile has a gradient for them).
+// reach (no other tile has a gradient for them), and there it only undoes the kept
+// Gaussians' compositing: their gradients are never wanted (ctx.frozen).
 
 #include <omp.h>
 
@@ -155,6 +156,7 @@ void* stgs_raster_over_train(void* kept, int64_t n, const float* xy, const float
   ctx->splats.insert(ctx->splats.end(), moving->splats.begin(), moving->splats.end());
   plan_lists(*kl, *moving, *ctx);
   ctx->for_backward = true;
+  ctx->frozen = kl->count;  // the backward pass only undoes their compositing
   const int64_t pixels = int64_t(shape.width) * shape.height;
   ctx->trans_final.resize(pixels);
   ctx->n_contrib.resize(pixels);

@@ -62,6 +62,7 @@ struct RasterCtx {
   std::vector<float> trans_final;   // per pixel
   std::vector<int32_t> n_contrib;   // per pixel: list entries up to the last one added
   bool for_backward = false;        // trans_final and n_contrib were kept
+  int32_t frozen = 0;               // ids below it get no gradients (a kept layer's Gaussians)
   Scratch scratch;
 
   size_t bytes() const {

@@ -80,8 +80,9 @@ int64_t stgs_raster_over(void* kept, int64_t n, const float* xy, const float* co
 // stgs_raster_over for training: the image (reached tiles composited by the tracked kernel, the
 // others copied from the kept image), and a context for stgs_raster_backward (free it with
 // stgs_raster_free) over the kept layer's Gaussians followed by these n. Unreached tiles get empty
-// lists, so the backward pass gives the moving Gaussians their whole gradients; the kept ones' and
-// the background's cover the reached tiles only. Reads the kept layer only: several such calls may
+// lists, so the backward pass gives the moving Gaussians their whole gradients and the background's
+// covers the reached tiles only; it leaves the kept ones' rows of its outputs as they were (it only
+// undoes their compositing). Reads the kept layer only: several such calls may
 // share it (not with stgs_raster_over, which writes it).
 void* stgs_raster_over_train(void* kept, int64_t n, const float* xy, const float* conic, const float* opac,
                              const float* color, const float* depth, const float* extent, float* out,
