@@ -1,39 +1,73 @@
 // Stage 4, backward: gradients of the composited image with respect to the projected
 // Gaussians (means2d, conics, opacities, colours) and the background, walking each tile's
 // list back to front from the forward's bookkeeping. Its torch twin is autograd through
-// stgs.render.stages.composite_tiles. AVX-512 and AVX2 beside the portable kernel.
+// stgs.render.stages.composite_tiles. The portable kernel; the AVX-512 and AVX2 ones are in backward_simd.h.
 
 #include <omp.h>
 
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
-#include <type_traits>
 #include <vector>
 
-#if defined(__AVX512F__)
-// GCC 12's AVX-512 headers trip -Wmaybe-uninitialized on their own internals.
-#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
-#include <immintrin.h>
-#endif
-
+#include "backward_simd.h"
 #include "splat.h"
-#include "splat_avx2.h"
-#include "splat_avx512.h"
 #include "stgs_abi.h"
 
 namespace stgs::splat {
 namespace {
 
-// A pixel without upstream gradient adds zero to every sum, so its walk is skipped (its last
-// contributor taken as none): a masked loss leaves many such pixels.
-inline int32_t walked_last(const RasterCtx& ctx, const float* grad_out, int64_t pix) {
-  const bool any = grad_out[3 * pix] != 0.0f || grad_out[3 * pix + 1] != 0.0f || grad_out[3 * pix + 2] != 0.0f;
-  return any ? ctx.n_contrib[pix] : 0;
+// One row of one list entry, portable: undoes the entry's compositing there and, for a trainable Gaussian, adds
+// the row's share of its nine running gradient sums (means, conic, opacity, colour) in sum.
+template <bool Trainable>
+inline void backward_row(const Splat& s, int32_t k, int x0, float dy, const float* alpha, const float* falloff,
+                         const float* power, const TileState::Row& px, const float* dr, const float* dg,
+                         const float* db, float* sum) {
+  float *trans = px.trans, *ar = px.r, *ag = px.g, *ab = px.b;
+  const int32_t* last = px.last;
+  float gmx = sum[0], gmy = sum[1], ga = sum[2], gb = sum[3], gc = sum[4], go = sum[5], gr = sum[6], gg = sum[7],
+        gbl = sum[8];
+#pragma omp simd reduction(+ : gmx, gmy, ga, gb, gc, go, gr, gg, gbl)
+  for (int i = 0; i < kTile; ++i) {
+    const float a = alpha[i];
+    const bool took = k < last[i] && a >= kAlphaMin;
+    const float one_minus = 1.0f - a;
+    const float t_before = took ? trans[i] / one_minus : trans[i];
+    const float w = took ? a * t_before : 0.0f;
+    if constexpr (Trainable) {
+      gr += w * dr[i];
+      gg += w * dg[i];
+      gbl += w * db[i];
+      const float g_alpha = took ? dr[i] * (s.r * t_before - ar[i] / one_minus) +
+                                       dg[i] * (s.g * t_before - ag[i] / one_minus) +
+                                       db[i] * (s.bl * t_before - ab[i] / one_minus)
+                                 : 0.0f;
+      // No gradient through the 0.99 clamp, nor through the power clip at 0.
+      const bool open_alpha = s.o * falloff[i] <= kAlphaMax;
+      go += open_alpha ? g_alpha * falloff[i] : 0.0f;
+      const float g_power = (open_alpha && power[i] <= 0.0f) ? g_alpha * s.o * falloff[i] : 0.0f;
+      const float dx = float(x0 + i) + 0.5f - s.mx;
+      gmx += g_power * (s.a * dx + s.b * dy);
+      gmy += g_power * (s.b * dx + s.c * dy);
+      ga += g_power * (-0.5f * dx * dx);
+      gb += g_power * (-dx * dy);
+      gc += g_power * (-0.5f * dy * dy);
+    }
+    ar[i] += s.r * w;
+    ag[i] += s.g * w;
+    ab[i] += s.bl * w;
+    trans[i] = t_before;
+  }
+  if constexpr (Trainable) {
+    sum[0] = gmx; sum[1] = gmy;
+    sum[2] = ga; sum[3] = gb; sum[4] = gc;
+    sum[5] = go;
+    sum[6] = gr; sum[7] = gg; sum[8] = gbl;
+  }
 }
 
-void backward_tile(const RasterCtx& ctx, int tile, const float* bg, const float* grad_out,
-                   float* grads, double* grad_bg) {
+[[maybe_unused]] void backward_tile(const RasterCtx& ctx, int tile, const float* bg, const float* grad_out,
+                                    float* grads, double* grad_bg) {
   const TileBox box = tile_box(ctx, tile);
   // trans: transmittance after the contributions still to be undone; acc_*:
   // colour composited behind the current Gaussian (background included).
@@ -66,297 +100,31 @@ void backward_tile(const RasterCtx& ctx, int tile, const float* bg, const float*
     const Splat& s = ctx.splats[g];
     const Rect& r = s.rect;
     const int v0 = std::max(r.v0, box.y0), v1 = std::min(r.v1, box.y0 + box.h - 1);
-    float gmx = 0, gmy = 0, ga = 0, gb = 0, gc = 0, go = 0, gr = 0, gg = 0, gbl = 0;
+    const bool trainable = g >= ctx.frozen;  // a kept Gaussian's compositing is only undone
+    float sum[kGradStride] = {0};
     for (int v = v0; v <= v1; ++v) {
       const int row = v - box.y0;
       const float dy = float(v) + 0.5f - s.my;
       row_alpha(s, box.x0, dy, r.u0, r.u1, alpha, falloff, power);
-      const TileState::Row px = st.row(row);
-      float *trans = px.trans, *ar = px.r, *ag = px.g, *ab = px.b;
-      const int32_t* last = px.last;
-      const float* dr = d_r + row * kTile;
-      const float* dg = d_g + row * kTile;
-      const float* db = d_b + row * kTile;
-      if (g < ctx.frozen) {  // a kept Gaussian: only its compositing is undone
-#pragma omp simd
-        for (int i = 0; i < kTile; ++i) {
-          const bool took = k < last[i] && alpha[i] >= kAlphaMin;
-          const float t_before = took ? trans[i] / (1.0f - alpha[i]) : trans[i];
-          const float w = took ? alpha[i] * t_before : 0.0f;
-          ar[i] += s.r * w;
-          ag[i] += s.g * w;
-          ab[i] += s.bl * w;
-          trans[i] = t_before;
-        }
-        continue;
-      }
-#pragma omp simd reduction(+ : gmx, gmy, ga, gb, gc, go, gr, gg, gbl)
-      for (int i = 0; i < kTile; ++i) {
-        const float a = alpha[i];
-        const bool took = k < last[i] && a >= kAlphaMin;
-        const float one_minus = 1.0f - a;
-        const float t_before = took ? trans[i] / one_minus : trans[i];
-        const float w = took ? a * t_before : 0.0f;
-        gr += w * dr[i];
-        gg += w * dg[i];
-        gbl += w * db[i];
-        const float g_alpha = took ? dr[i] * (s.r * t_before - ar[i] / one_minus) +
-                                         dg[i] * (s.g * t_before - ag[i] / one_minus) +
-                                         db[i] * (s.bl * t_before - ab[i] / one_minus)
-                                   : 0.0f;
-        ar[i] += s.r * w;
-        ag[i] += s.g * w;
-        ab[i] += s.bl * w;
-        trans[i] = t_before;
-        // No gradient through the 0.99 clamp, nor through the power clip at 0.
-        const bool open_alpha = s.o * falloff[i] <= kAlphaMax;
-        go += open_alpha ? g_alpha * falloff[i] : 0.0f;
-        const float g_power = (open_alpha && power[i] <= 0.0f) ? g_alpha * s.o * falloff[i] : 0.0f;
-        const float dx = float(box.x0 + i) + 0.5f - s.mx;
-        gmx += g_power * (s.a * dx + s.b * dy);
-        gmy += g_power * (s.b * dx + s.c * dy);
-        ga += g_power * (-0.5f * dx * dx);
-        gb += g_power * (-dx * dy);
-        gc += g_power * (-0.5f * dy * dy);
-      }
+      const float *dr = d_r + row * kTile, *dg = d_g + row * kTile, *db = d_b + row * kTile;
+      if (trainable)
+        backward_row<true>(s, k, box.x0, dy, alpha, falloff, power, st.row(row), dr, dg, db, sum);
+      else
+        backward_row<false>(s, k, box.x0, dy, alpha, falloff, power, st.row(row), dr, dg, db, sum);
     }
-    if (g < ctx.frozen) continue;
+    if (!trainable) continue;
     float* out = &grads[int64_t(g - ctx.frozen) * kGradStride];
-    out[0] += gmx; out[1] += gmy;
-    out[2] += ga; out[3] += gb; out[4] += gc;
-    out[5] += go;
-    out[6] += gr; out[7] += gg; out[8] += gbl;
-  }
-}
-
-// One tile row's forward bookkeeping and upstream gradient, as the vector kernels load them: final
-// transmittance t (1 outside the image), last contributor to walk l, the gradient r, g, b (0 outside); adds the
-// background's gradient of the row to grad_bg and returns the row's largest l.
-inline int32_t load_tile_row(const RasterCtx& ctx, const TileBox& box, int v, const float* grad_out, float* t,
-                             int32_t* l, float* r, float* g, float* b, double* grad_bg) {
-  int32_t max_last = 0;
-  for (int u = 0; u < kTile; ++u) {
-    t[u] = 1.0f;
-    l[u] = 0;
-    r[u] = g[u] = b[u] = 0.0f;
-  }
-  if (v >= box.h) return 0;
-  for (int u = 0; u < box.w; ++u) {
-    const int64_t pix = int64_t(box.y0 + v) * ctx.width + (box.x0 + u);
-    t[u] = ctx.trans_final[pix];
-    l[u] = walked_last(ctx, grad_out, pix);
-    r[u] = grad_out[3 * pix];
-    g[u] = grad_out[3 * pix + 1];
-    b[u] = grad_out[3 * pix + 2];
-    grad_bg[0] += double(t[u]) * r[u];
-    grad_bg[1] += double(t[u]) * g[u];
-    grad_bg[2] += double(t[u]) * b[u];
-    max_last = std::max(max_last, l[u]);
-  }
-  return max_last;
-}
-
-// Walks a tile's list back to front from its last walked entry (max_last), prefetching ahead: a trainable
-// Gaussian's entry as entry(k, id, std::true_type), a kept one's (ctx.frozen), which is only undone, as
-// entry(k, id, std::false_type).
-template <class Entry>
-inline void walk_list(const RasterCtx& ctx, int tile, int32_t max_last, const Entry& entry) {
-  const int64_t begin = ctx.tile_start[tile];
-  for (int32_t k = max_last - 1; k >= 0; --k) {
-    if (k >= kPrefetch) prefetch_splat(ctx, begin + k - kPrefetch);
-    const int32_t id = ctx.ids[begin + k];
-    if (id >= ctx.frozen)
-      entry(k, id, std::true_type{});
-    else
-      entry(k, id, std::false_type{});
+    for (int j = 0; j < kGradStride; ++j) out[j] += sum[j];
   }
 }
 
 #if defined(__AVX512F__)
-inline float hsum(__m512 v) { return _mm512_reduce_add_ps(v); }
-#elif defined(__AVX2__) && defined(__FMA__)
-inline float hsum(__m256 v) {
-  const __m128 four = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps(v, 1));
-  const __m128 two = _mm_add_ps(four, _mm_movehl_ps(four, four));
-  return _mm_cvtss_f32(_mm_add_ss(two, _mm_movehdup_ps(two)));
-}
-#endif
-
-// Adds one trainable entry's nine sums (per lane, reduced by hsum) to its row of grads.
-template <class V>
-inline void add_sums(const RasterCtx& ctx, float* grads, int32_t id, V gmx, V gmy, V ga, V gb, V gc, V go, V gr,
-                     V gg, V gbl) {
-  float* o = &grads[int64_t(id - ctx.frozen) * kGradStride];
-  o[0] += hsum(gmx); o[1] += hsum(gmy);
-  o[2] += hsum(ga); o[3] += hsum(gb); o[4] += hsum(gc);
-  o[5] += hsum(go);
-  o[6] += hsum(gr); o[7] += hsum(gg); o[8] += hsum(gbl);
-}
-
-#if defined(__AVX512F__)
-
-void backward_tile_avx512(const RasterCtx& ctx, int tile, const float* bg, const float* grad_out,
-                          float* grads, double* grad_bg) {
-  const TileBox box = tile_box(ctx, tile);
-  __m512 trans[kTile], ar[kTile], ag[kTile], ab[kTile], dr[kTile], dg[kTile], db[kTile];
-  __m512i last[kTile];
-  int32_t max_last = 0;
-  for (int v = 0; v < kTile; ++v) {
-    alignas(64) float t[kTile], r[kTile], g[kTile], b[kTile];
-    alignas(64) int32_t l[kTile];
-    max_last = std::max(max_last, load_tile_row(ctx, box, v, grad_out, t, l, r, g, b, grad_bg));
-    trans[v] = _mm512_load_ps(t);
-    last[v] = _mm512_load_si512(l);
-    dr[v] = _mm512_load_ps(r);
-    dg[v] = _mm512_load_ps(g);
-    db[v] = _mm512_load_ps(b);
-    ar[v] = _mm512_mul_ps(trans[v], _mm512_set1_ps(bg[0]));
-    ag[v] = _mm512_mul_ps(trans[v], _mm512_set1_ps(bg[1]));
-    ab[v] = _mm512_mul_ps(trans[v], _mm512_set1_ps(bg[2]));
-  }
-  const __m512 px = pixel_centres(box.x0);
-  // One list entry; a kept Gaussian's (not trainable) compositing is only undone.
-  const auto entry = [&](int32_t k, int32_t g, auto trainable_tag) {
-    constexpr bool trainable = decltype(trainable_tag)::value;
-    const Splat& s = ctx.splats[g];
-    const Rect& r = s.rect;
-    const SplatVec sv(s);
-    const __mmask16 inside = span_mask(box.x0, r.u0, r.u1);
-    const __m512i rank = _mm512_set1_epi32(k);
-    const int v0 = std::max(r.v0, box.y0), v1 = std::min(r.v1, box.y0 + box.h - 1);
-    __m512 gmx = _mm512_setzero_ps(), gmy = gmx, ga = gmx, gb = gmx, gc = gmx, go = gmx;
-    __m512 gr = gmx, gg = gmx, gbl = gmx;
-    for (int v = v0; v <= v1; ++v) {
-      const int row = v - box.y0;
-      // Pixels whose compositing reached this Gaussian (rank < last) inside its span.
-      const __mmask16 reached = _mm512_mask_cmp_epi32_mask(inside, rank, last[row], _MM_CMPINT_LT);
-      if (!reached) continue;
-      const float dy = float(v) + 0.5f - s.my;
-      const RowEval e = eval_row(sv, px, row_power(sv, px, dy), inside);
-      const __mmask16 took = _mm512_mask_cmp_ps_mask(reached, e.alpha, sv.amin, _CMP_GE_OQ);
-      if (!took) continue;
-      const __m512 inv = _mm512_div_ps(sv.one, _mm512_sub_ps(sv.one, e.alpha));
-      const __m512 t_before = _mm512_mask_mul_ps(trans[row], took, trans[row], inv);
-      const __m512 w = _mm512_maskz_mul_ps(took, e.alpha, t_before);
-      if constexpr (trainable) {
-        gr = _mm512_fmadd_ps(w, dr[row], gr);
-        gg = _mm512_fmadd_ps(w, dg[row], gg);
-        gbl = _mm512_fmadd_ps(w, db[row], gbl);
-        __m512 g_alpha = _mm512_mul_ps(dr[row], _mm512_fmsub_ps(sv.r, t_before, _mm512_mul_ps(ar[row], inv)));
-        g_alpha = _mm512_fmadd_ps(dg[row], _mm512_fmsub_ps(sv.g, t_before, _mm512_mul_ps(ag[row], inv)), g_alpha);
-        g_alpha = _mm512_fmadd_ps(db[row], _mm512_fmsub_ps(sv.bl, t_before, _mm512_mul_ps(ab[row], inv)), g_alpha);
-        g_alpha = _mm512_maskz_mov_ps(took, g_alpha);
-        // No gradient through the 0.99 clamp, nor through the power clip at 0.
-        const __m512 raw_alpha = _mm512_mul_ps(sv.o, e.falloff);
-        const __mmask16 open = _mm512_mask_cmp_ps_mask(took, raw_alpha, sv.amax, _CMP_LE_OQ);
-        go = _mm512_mask3_fmadd_ps(g_alpha, e.falloff, go, open);
-        const __mmask16 flows = _mm512_mask_cmp_ps_mask(open, e.power, _mm512_setzero_ps(), _CMP_LE_OQ);
-        const __m512 g_power = _mm512_maskz_mul_ps(flows, g_alpha, raw_alpha);
-        const __m512 dyv = _mm512_set1_ps(dy);
-        gmx = _mm512_fmadd_ps(g_power, _mm512_fmadd_ps(sv.a, e.dx, _mm512_mul_ps(_mm512_set1_ps(s.b), dyv)), gmx);
-        gmy = _mm512_fmadd_ps(g_power, _mm512_fmadd_ps(_mm512_set1_ps(s.b), e.dx, _mm512_mul_ps(sv.c, dyv)), gmy);
-        ga = _mm512_fmadd_ps(g_power, _mm512_mul_ps(sv.half, _mm512_mul_ps(e.dx, e.dx)), ga);
-        gb = _mm512_fnmadd_ps(g_power, _mm512_mul_ps(e.dx, dyv), gb);
-        gc = _mm512_fmadd_ps(g_power, _mm512_set1_ps(-0.5f * dy * dy), gc);
-      }
-      ar[row] = _mm512_fmadd_ps(sv.r, w, ar[row]);
-      ag[row] = _mm512_fmadd_ps(sv.g, w, ag[row]);
-      ab[row] = _mm512_fmadd_ps(sv.bl, w, ab[row]);
-      trans[row] = t_before;
-    }
-    if constexpr (trainable) add_sums(ctx, grads, g, gmx, gmy, ga, gb, gc, go, gr, gg, gbl);
-  };
-  walk_list(ctx, tile, max_last, entry);
-}
-
 constexpr auto kBackwardTile = backward_tile_avx512;
 #elif defined(__AVX2__) && defined(__FMA__)
-// backward_tile_avx512 on two 8-lane halves per tile row, mirroring render_tile_tracked_avx2.
-void backward_tile_avx2(const RasterCtx& ctx, int tile, const float* bg, const float* grad_out,
-                        float* grads, double* grad_bg) {
-  const TileBox box = tile_box(ctx, tile);
-  __m256 trans[kTile][2], ar[kTile][2], ag[kTile][2], ab[kTile][2], dr[kTile][2], dg[kTile][2], db[kTile][2];
-  __m256i last[kTile][2];
-  int32_t max_last = 0;
-  for (int v = 0; v < kTile; ++v) {
-    alignas(32) float t[kTile], r[kTile], g[kTile], b[kTile];
-    alignas(32) int32_t l[kTile];
-    max_last = std::max(max_last, load_tile_row(ctx, box, v, grad_out, t, l, r, g, b, grad_bg));
-    for (int h = 0; h < 2; ++h) {
-      trans[v][h] = _mm256_load_ps(t + 8 * h);
-      last[v][h] = _mm256_load_si256(reinterpret_cast<const __m256i*>(l + 8 * h));
-      dr[v][h] = _mm256_load_ps(r + 8 * h);
-      dg[v][h] = _mm256_load_ps(g + 8 * h);
-      db[v][h] = _mm256_load_ps(b + 8 * h);
-      ar[v][h] = _mm256_mul_ps(trans[v][h], _mm256_set1_ps(bg[0]));
-      ag[v][h] = _mm256_mul_ps(trans[v][h], _mm256_set1_ps(bg[1]));
-      ab[v][h] = _mm256_mul_ps(trans[v][h], _mm256_set1_ps(bg[2]));
-    }
-  }
-  const __m256 px[2] = {pixel_centres8(box.x0, 0), pixel_centres8(box.x0, 1)};
-  // One list entry; a kept Gaussian's (not trainable) compositing is only undone.
-  const auto entry = [&](int32_t k, int32_t id, auto trainable_tag) {
-    constexpr bool trainable = decltype(trainable_tag)::value;
-    const Splat& s = ctx.splats[id];
-    const Rect& r = s.rect;
-    const SplatVec8 sv(s);
-    const __m256 inside[2] = {span_mask8(box.x0, r.u0, r.u1, 0), span_mask8(box.x0, r.u0, r.u1, 1)};
-    const __m256i rank = _mm256_set1_epi32(k);
-    const __m256 vb = _mm256_set1_ps(s.b);
-    const int v0 = std::max(r.v0, box.y0), v1 = std::min(r.v1, box.y0 + box.h - 1);
-    __m256 gmx = _mm256_setzero_ps(), gmy = gmx, ga = gmx, gb = gmx, gc = gmx, go = gmx;
-    __m256 gr = gmx, gg = gmx, gbl = gmx;
-    for (int v = v0; v <= v1; ++v) {
-      const int row = v - box.y0;
-      const float dy = float(v) + 0.5f - s.my;
-      const __m256 dyv = _mm256_set1_ps(dy);
-      for (int h = 0; h < 2; ++h) {
-        // Pixels whose compositing reached this Gaussian (rank < last) inside its span.
-        const __m256 reached = _mm256_and_ps(inside[h], _mm256_castsi256_ps(_mm256_cmpgt_epi32(last[row][h], rank)));
-        if (!any_lane(reached)) continue;
-        const RowEval8 e = eval_row8(sv, px[h], dy, inside[h]);
-        const __m256 took = _mm256_and_ps(reached, _mm256_cmp_ps(e.alpha, sv.amin, _CMP_GE_OQ));
-        if (!any_lane(took)) continue;
-        const __m256 inv = _mm256_div_ps(sv.one, _mm256_sub_ps(sv.one, e.alpha));
-        const __m256 t_before = _mm256_blendv_ps(trans[row][h], _mm256_mul_ps(trans[row][h], inv), took);
-        const __m256 w = _mm256_and_ps(took, _mm256_mul_ps(e.alpha, t_before));
-        if constexpr (trainable) {
-          gr = _mm256_fmadd_ps(w, dr[row][h], gr);
-          gg = _mm256_fmadd_ps(w, dg[row][h], gg);
-          gbl = _mm256_fmadd_ps(w, db[row][h], gbl);
-          __m256 g_alpha = _mm256_mul_ps(dr[row][h], _mm256_fmsub_ps(sv.r, t_before, _mm256_mul_ps(ar[row][h], inv)));
-          g_alpha = _mm256_fmadd_ps(dg[row][h], _mm256_fmsub_ps(sv.g, t_before, _mm256_mul_ps(ag[row][h], inv)),
-                                    g_alpha);
-          g_alpha = _mm256_fmadd_ps(db[row][h], _mm256_fmsub_ps(sv.bl, t_before, _mm256_mul_ps(ab[row][h], inv)),
-                                    g_alpha);
-          g_alpha = _mm256_and_ps(took, g_alpha);
-          // No gradient through the 0.99 clamp, nor through the power clip at 0.
-          const __m256 raw_alpha = _mm256_mul_ps(sv.o, e.falloff);
-          const __m256 open = _mm256_and_ps(took, _mm256_cmp_ps(raw_alpha, sv.amax, _CMP_LE_OQ));
-          go = _mm256_blendv_ps(go, _mm256_fmadd_ps(g_alpha, e.falloff, go), open);
-          const __m256 flows = _mm256_and_ps(open, _mm256_cmp_ps(e.power, _mm256_setzero_ps(), _CMP_LE_OQ));
-          const __m256 g_power = _mm256_and_ps(flows, _mm256_mul_ps(g_alpha, raw_alpha));
-          gmx = _mm256_fmadd_ps(g_power, _mm256_fmadd_ps(sv.a, e.dx, _mm256_mul_ps(vb, dyv)), gmx);
-          gmy = _mm256_fmadd_ps(g_power, _mm256_fmadd_ps(vb, e.dx, _mm256_mul_ps(sv.c, dyv)), gmy);
-          ga = _mm256_fmadd_ps(g_power, _mm256_mul_ps(sv.half, _mm256_mul_ps(e.dx, e.dx)), ga);
-          gb = _mm256_fnmadd_ps(g_power, _mm256_mul_ps(e.dx, dyv), gb);
-          gc = _mm256_fmadd_ps(g_power, _mm256_set1_ps(-0.5f * dy * dy), gc);
-        }
-        ar[row][h] = _mm256_fmadd_ps(sv.r, w, ar[row][h]);
-        ag[row][h] = _mm256_fmadd_ps(sv.g, w, ag[row][h]);
-        ab[row][h] = _mm256_fmadd_ps(sv.bl, w, ab[row][h]);
-        trans[row][h] = t_before;
-      }
-    }
-    if constexpr (trainable) add_sums(ctx, grads, id, gmx, gmy, ga, gb, gc, go, gr, gg, gbl);
-  };
-  walk_list(ctx, tile, max_last, entry);
-}
-
 constexpr auto kBackwardTile = backward_tile_avx2;
 #else
 constexpr auto kBackwardTile = backward_tile;
-#endif  // __AVX512F__
+#endif
 
 }  // namespace
 }  // namespace stgs::splat

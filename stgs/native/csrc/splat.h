@@ -169,4 +169,11 @@ inline bool refresh_live_rows(const TileState& st, bool* row_live) {
 // Per-thread gradient sums for one Gaussian: xy(2) conic(3) opacity(1) colour(3).
 constexpr int kGradStride = 9;
 
+// The backward's last contributor to walk at pix: a pixel without upstream gradient adds zero to every
+// sum, so its walk is skipped (taken as none); a masked loss leaves many such pixels.
+inline int32_t walked_last(const RasterCtx& ctx, const float* grad_out, int64_t pix) {
+  const bool any = grad_out[3 * pix] != 0.0f || grad_out[3 * pix + 1] != 0.0f || grad_out[3 * pix + 2] != 0.0f;
+  return any ? ctx.n_contrib[pix] : 0;
+}
+
 }  // namespace stgs::splat
