@@ -120,10 +120,11 @@ def add_train(sub: argparse._SubParsersAction) -> None:
                    help="iterations of the coarse canonical stage (layered: of stage A, the static layer)")
     p.add_argument("--coarse-low-res", type=float,
                    help="share of the coarse stage's (stage A's) iterations drawn first at half the training "
-                   "resolution, about twice as fast each (default 0: none)")
+                   "resolution, each cheaper than a full one (default: the budget's; 0.4 for the cpu budget's "
+                   "layered scenes, else 0)")
     p.add_argument("--gop-low-res", type=float,
-                   help="share of each GOP's iterations drawn first at half the training resolution, about twice "
-                   "as fast each (default 0: none)")
+                   help="share of each GOP's iterations drawn first at half the training resolution, each "
+                   "cheaper than a full one (default: the budget's; 0.8 for the cpu budget's layered scenes, else 0)")
     p.add_argument("--position-lr", type=float,
                    help="initial position learning rate × the scene extent (decays 100× over a stage; "
                    "default: the budget's); the same as --lr position=RATE")

@@ -214,16 +214,18 @@ paper: 12k iterations, ~150k Gaussians, for a bigger machine."""
 
 LAYERED = {
     "quick": {"grid_side": 16, "static_grid_side": 24},
-    "cpu": {"grid_side": 96, "static_grid_side": 160, "coarse_iterations": 3500, "iterations": 2000},
+    "cpu": {"grid_side": 96, "static_grid_side": 160, "coarse_iterations": 3500, "coarse_low_res": 0.4,
+            "iterations": 3700, "gop_low_res": 0.8},
     "paper": {"grid_side": 256, "static_grid_side": 448, "coarse_iterations": 5000, "iterations": 10000},
 }
 """What --layers layered changes in each budget (unless set explicitly): a smaller dynamic layer, a static layer
 that together with it holds about twice the single layer's Gaussians, and iterations moved from the per-GOP
-stage to stage A (which nothing refines later) so that one GOP takes the single layer's wall time (cpu: the
-best of three splits measured on Panoptic at that time, docs/BENCHMARKS.md; with the fused Adam step, which came
-later, a pair measured it at 0.94x format 1's wall time, and with the native loss terms three pairs at 0.86-0.99x,
-2,800 GOP iterations at 0.98-1.13x, on an Intel machine; on an AVX2-only AMD one 1.07-1.17x; paper: not
-measured)."""
+stage to stage A (which nothing refines later), so that one GOP takes about the single layer's wall time. cpu:
+stage A's first 40 % and each GOP's first 80 % at half resolution, which pays for the GOP iterations that lift
+the players; on Panoptic, one 60-frame GOP, three seeds, each run beside format 1's on an AVX2-only AMD machine,
+it took 0.99x format 1's wall time (0.90-1.05x per seed) for a +2.07 dB held-out lead (docs/BENCHMARKS.md; the
+earlier split, 3,500 + 2,000 at full resolution, took 0.86-0.99x on an Intel machine and 1.07-1.17x on that AMD
+one). paper: not measured."""
 
 SWITCHES = {"aux": "--no-aux", "dynamic": "--no-dynamic-density", "temporal_weight": "--no-temporal-reg",
             "relocate": "--no-relocate", "migrate": "--no-migrate", "hull_seeds": "--no-hull-seeds",
