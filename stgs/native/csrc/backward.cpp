@@ -74,24 +74,15 @@ inline void backward_row(const Splat& s, int32_t k, int x0, float dy, const floa
   TileState st;
   alignas(64) float d_r[kTilePixels], d_g[kTilePixels], d_b[kTilePixels];
   int32_t max_last = 0;
+  for (int v = 0; v < kTile; ++v) {
+    const int o = v * kTile;
+    max_last = std::max(max_last, load_tile_row(ctx, box, v, grad_out, st.trans + o, st.last + o, d_r + o, d_g + o,
+                                                d_b + o, grad_bg));
+  }
   for (int p = 0; p < kTilePixels; ++p) {
-    const int u = p % kTile, v = p / kTile;
-    const bool in = u < box.w && v < box.h;
-    const int64_t pix = int64_t(box.y0 + v) * ctx.width + (box.x0 + u);
-    st.trans[p] = in ? ctx.trans_final[pix] : 1.0f;
-    st.last[p] = in ? walked_last(ctx, grad_out, pix) : 0;
-    d_r[p] = in ? grad_out[3 * pix] : 0.0f;
-    d_g[p] = in ? grad_out[3 * pix + 1] : 0.0f;
-    d_b[p] = in ? grad_out[3 * pix + 2] : 0.0f;
     st.acc_r[p] = st.trans[p] * bg[0];
     st.acc_g[p] = st.trans[p] * bg[1];
     st.acc_b[p] = st.trans[p] * bg[2];
-    if (in) {
-      grad_bg[0] += double(st.trans[p]) * d_r[p];
-      grad_bg[1] += double(st.trans[p]) * d_g[p];
-      grad_bg[2] += double(st.trans[p]) * d_b[p];
-    }
-    max_last = std::max(max_last, st.last[p]);
   }
   const int64_t begin = ctx.tile_start[tile];
   alignas(64) float alpha[kTile], falloff[kTile], power[kTile];

@@ -176,4 +176,31 @@ inline int32_t walked_last(const RasterCtx& ctx, const float* grad_out, int64_t 
   return any ? ctx.n_contrib[pix] : 0;
 }
 
+// One tile row's forward bookkeeping and upstream gradient, as the backward kernels load them: final
+// transmittance t (1 outside the image), last contributor to walk l, the gradient r, g, b (0 outside); adds the
+// background's gradient of the row to grad_bg and returns the row's largest l.
+inline int32_t load_tile_row(const RasterCtx& ctx, const TileBox& box, int v, const float* grad_out, float* t,
+                             int32_t* l, float* r, float* g, float* b, double* grad_bg) {
+  int32_t max_last = 0;
+  for (int u = 0; u < kTile; ++u) {
+    t[u] = 1.0f;
+    l[u] = 0;
+    r[u] = g[u] = b[u] = 0.0f;
+  }
+  if (v >= box.h) return 0;
+  for (int u = 0; u < box.w; ++u) {
+    const int64_t pix = int64_t(box.y0 + v) * ctx.width + (box.x0 + u);
+    t[u] = ctx.trans_final[pix];
+    l[u] = walked_last(ctx, grad_out, pix);
+    r[u] = grad_out[3 * pix];
+    g[u] = grad_out[3 * pix + 1];
+    b[u] = grad_out[3 * pix + 2];
+    grad_bg[0] += double(t[u]) * r[u];
+    grad_bg[1] += double(t[u]) * g[u];
+    grad_bg[2] += double(t[u]) * b[u];
+    max_last = std::max(max_last, l[u]);
+  }
+  return max_last;
+}
+
 }  // namespace stgs::splat
