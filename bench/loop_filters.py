@@ -20,7 +20,7 @@ from pathlib import Path
 
 import torch
 
-from stgs.codec.video import decode_segment
+from stgs.codec.video import HEVC, decode_segment
 from stgs.packager.packer import PackConfig, Packer
 from stgs.packager.segments import FeatureEncoder, measure
 
@@ -30,15 +30,16 @@ SETTINGS = (True, False)
 
 def rows_for(model_dir: Path, qps: list[int], gops: int, repeats: int) -> list[dict]:
     with tempfile.TemporaryDirectory() as tmp:
-        packer = Packer(model_dir, Path(tmp) / "dash", PackConfig(qps=tuple(qps), jobs=1), progress=False)
+        packer = Packer(model_dir, Path(tmp) / "dash", PackConfig(qps=tuple(qps), codecs=("hevc",), jobs=1),
+                        progress=False)
         shape, side = packer.meta.shape, packer.side
-        encoders = {on: FeatureEncoder(packer.timing, shape.num_features, packer.cfg.preset, on) for on in SETTINGS}
+        encoders = {on: FeatureEncoder(packer.timing, shape.num_features, packer.cfg.preset_of, on) for on in SETTINGS}
         static = packer.static  # the uncompressed static layer: only the features differ between settings
         acc: dict[tuple[int, bool], list[dict]] = {}
         for k in range(min(gops, packer.meta.num_gops)):
             gop = packer.prepare_gop(k)
             for qp in qps:
-                segments = {on: encoders[on].encode(k, qp, gop.frames) for on in SETTINGS}
+                segments = {on: encoders[on].encode(k, HEVC, qp, gop.frames[HEVC.bits]) for on in SETTINGS}
                 times: dict[bool, list[float]] = {on: [] for on in SETTINGS}
                 for _ in range(repeats):
                     for on in SETTINGS:
@@ -46,7 +47,7 @@ def rows_for(model_dir: Path, qps: list[int], gops: int, repeats: int) -> list[d
                         decode_segment(*segments[on], shape.num_features, 4 * side, 4 * side, threads=1)
                         times[on].append(time.perf_counter() - start)
                 for on in SETTINGS:
-                    m = measure(gop, *segments[on], packer.meta, static)
+                    m = measure(gop, HEVC, *segments[on], packer.meta, static)
                     acc.setdefault((qp, on), []).append(
                         {**m, "decode_s": statistics.median(times[on])})
             for enc in encoders.values():

@@ -20,7 +20,7 @@ import torch
 
 from stgs.codec.mp4 import split_fragmented
 from stgs.codec.plas import PLASConfig, neighbour_distance, plas_order
-from stgs.codec.video import decode_segment, encode_gop
+from stgs.codec.video import HEVC, decode_segment, encode_gop
 from stgs.fsio import save_figure
 from stgs.metrics import psnr
 from stgs.packager.packer import PackConfig, Packer
@@ -34,7 +34,7 @@ def codec_rows(model_dir: Path, out: Path, qps: list[int], presets: list[str], s
     """One row per (preset, QP): sizes, PSNRs and codec times, averaged over GOPs."""
     rows = []
     for preset in presets:
-        cfg = PackConfig(qps=tuple(qps), preset=preset, sort=sort, jobs=1)
+        cfg = PackConfig(qps=tuple(qps), preset=preset, sort=sort, codecs=("hevc",), jobs=1)
         packer = Packer(model_dir, out / f"{preset}-{sort}", cfg, progress=False)
         shape = packer.meta.shape
         per_qp: dict[int, list[dict]] = {qp: [] for qp in qps}
@@ -42,12 +42,12 @@ def codec_rows(model_dir: Path, out: Path, qps: list[int], presets: list[str], s
             gop = packer.prepare_gop(k)
             for qp in qps:
                 start = time.perf_counter()
-                init, media = packer.encoder.encode(k, qp, gop.frames)
+                init, media = packer.encoder.encode(k, HEVC, qp, gop.frames[HEVC.bits])
                 encode_s = time.perf_counter() - start
                 start = time.perf_counter()
                 decode_segment(init, media, shape.num_features, 4 * packer.side, 4 * packer.side)
                 decode_s = time.perf_counter() - start
-                m = measure(gop, init, media, packer.meta)
+                m = measure(gop, HEVC, init, media, packer.meta)
                 per_qp[qp].append({**m, "keyframe_bytes": len(gop.keyframe), "encode_s": encode_s,
                                    "decode_s": decode_s})
             packer.encoder.init_segments.clear()
@@ -68,8 +68,8 @@ def codec_rows(model_dir: Path, out: Path, qps: list[int], presets: list[str], s
 
 def qp_vs_crf_rows(model_dir: Path, out: Path, values: list[int]) -> list[dict]:
     """GOP 0 at preset medium: constant QP vs CRF of the same value, sizes and feature PSNR."""
-    packer = Packer(model_dir, out / "crf", PackConfig(qps=tuple(values), jobs=1), progress=False)
-    frames = packer.prepare_gop(0).frames
+    packer = Packer(model_dir, out / "crf", PackConfig(qps=tuple(values), codecs=("hevc",), jobs=1), progress=False)
+    frames = packer.prepare_gop(0).frames[HEVC.bits]
     shape = packer.meta.shape
     rows = []
     for value in values:

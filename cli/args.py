@@ -60,6 +60,17 @@ def qp_list(text: str) -> tuple[int, ...]:
         raise argparse.ArgumentTypeError(f"not a comma-separated list of integers: {text!r}") from None
 
 
+def codec_list(text: str) -> tuple[str, ...]:
+    """Comma-separated feature-video codec names (stgs.codec.video.CODECS)."""
+    from stgs.codec.video import CODECS
+
+    names = tuple(c.strip() for c in text.split(",") if c.strip())
+    unknown = [c for c in names if c not in CODECS]
+    if not names or unknown or len(set(names)) != len(names):
+        raise argparse.ArgumentTypeError(f"expected distinct codecs of {', '.join(CODECS)}, got {text!r}")
+    return names
+
+
 def vector3(text: str) -> tuple[float, float, float]:
     try:
         values = tuple(float(v) for v in text.split(","))

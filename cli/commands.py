@@ -19,7 +19,8 @@ from stgs.cli.stream import add_pack, add_play, add_serve
 from stgs.cli.study import add_bench, add_demo, add_sim
 from stgs.errors import FieldError, StgsError
 
-FLAGS = {"qps": "--qps", "preset": "--preset", "codec": "--codec", "jobs": "--jobs", "abr": "--abr",
+FLAGS = {"qps": "--qps", "preset": "--preset", "codec": "--codec", "codecs": "--codecs", "av1_qps": "--av1-qps",
+         "av1_preset": "--av1-preset", "jobs": "--jobs", "abr": "--abr",
          "buffer_s": "--buffer", "start_s": "--start", "duration_s": "--duration", "precision": "--precision",
          "camera": "--camera", "eye": "--eye/--target", "holdout": "--holdout", "qp": "--qp", "speed": "--speed"}
 """Config field -> the flag that sets it, for FieldError messages."""

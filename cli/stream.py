@@ -8,6 +8,7 @@ from pathlib import Path
 from stgs.cli.args import (
     UsageError,
     add_ray,
+    codec_list,
     image_size,
     non_negative_int,
     positive_int,
@@ -19,23 +20,31 @@ from stgs.cli.args import (
 
 
 def add_pack(sub: argparse._SubParsersAction) -> None:
-    from stgs.codec.video import DEFAULT_QPS, PRESETS
+    from stgs.codec.video import AV1, CODECS, DEFAULT_QPS, PRESETS
 
     p = sub.add_parser("pack", help="package a model dir as an MPEG-DASH tree",
                        description="PLAS-sort each GOP, write its keyframe segment (lossless JPEG XL "
-                       "attribute images + weights) and its feature video at every QP, then the MPD.")
+                       "attribute images + weights) and its feature video at every ladder point of each codec "
+                       "(12-bit HEVC, 10-bit AV1 for browsers), then the MPD.")
     p.add_argument("model_dir", type=Path, help="model dir (stgs synth / stgs train output)")
     p.add_argument("out_dir", type=Path, help="output folder (a DASH tree any static server can serve)")
     p.add_argument("--qps", type=qp_list, default=DEFAULT_QPS,
-                   help=f"comma-separated feature-video QPs (default: {','.join(map(str, DEFAULT_QPS))})")
+                   help=f"comma-separated HEVC feature-video QPs (default: {','.join(map(str, DEFAULT_QPS))})")
     p.add_argument("--preset", choices=PRESETS, default="medium", help="x265 preset (default: medium)")
+    p.add_argument("--codecs", type=codec_list, default=tuple(CODECS),
+                   help=f"comma-separated feature-video codecs, one AdaptationSet each (default: "
+                   f"{','.join(CODECS)}; either alone allowed)")
+    p.add_argument("--av1-qps", type=qp_list, default=AV1.ladder,
+                   help=f"comma-separated AV1 QPs, 1..63 (default: {','.join(map(str, AV1.ladder))}: about the "
+                   "bytes of the default HEVC QPs; docs/PACKAGING.md)")
+    p.add_argument("--av1-preset", choices=AV1.presets, default=AV1.default_preset,
+                   help=f"SVT-AV1 preset, 0 slowest .. 13 fastest (default: {AV1.default_preset})")
     p.add_argument("--no-loop-filters", action="store_true",
                    help="encode without HEVC's deblocking and SAO filters (the decoder then skips them; "
                    "docs/PACKAGING.md weighs bytes, PSNR and decode time)")
-    p.add_argument("--codec", default="hevc", help="feature-video codec (default and only: hevc)")
     p.add_argument("--jobs", type=positive_int, help="parallel encodes (default: core count)")
     p.add_argument("--no-sort", action="store_true", help="skip the PLAS sort (for comparisons)")
-    add_ray(p, "one task per GOP (sort, keyframe) and per GOP x QP (encode, measure)")
+    add_ray(p, "one task per GOP (sort, keyframe) and per GOP x ladder point (encode, measure)")
     p.add_argument("--resume", action="store_true",
                    help="reuse segments a previous interrupted run of the same inputs completed")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -45,8 +54,8 @@ def add_pack(sub: argparse._SubParsersAction) -> None:
 def run_pack(args: argparse.Namespace) -> int:
     from stgs.packager import MANIFEST, PackConfig, pack
 
-    cfg = PackConfig(qps=args.qps, preset=args.preset, loop_filters=not args.no_loop_filters, codec=args.codec,
-                     sort=not args.no_sort, resume=args.resume)
+    cfg = PackConfig(qps=args.qps, preset=args.preset, loop_filters=not args.no_loop_filters, codecs=args.codecs,
+                     av1_qps=args.av1_qps, av1_preset=args.av1_preset, sort=not args.no_sort, resume=args.resume)
     if args.jobs:
         cfg.jobs = args.jobs
     stats = pack(args.model_dir, args.out_dir, cfg, progress=not args.quiet, ray=args.ray,
@@ -106,6 +115,7 @@ def add_play(sub: argparse._SubParsersAction) -> None:
     from stgs.client.abr import RULES
     from stgs.client.clock import RENDER_AHEAD
     from stgs.model.precision import PRECISIONS
+    from stgs.mpd_profile import FEATURE_CODEC_CHOICES
 
     p = sub.add_parser("play", help="stream a packaged scene over HTTP and render it on the CPU",
                        description="Stream a StreamSTGS scene from its MPD URL: the ABR rule picks each GOP's "
@@ -116,7 +126,11 @@ def add_play(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--abr", choices=sorted(RULES), default="mpc",
                    help="ABR rule (default: mpc = look-ahead over the next GOPs' sizes and PSNR from stats.json; "
                    "dynamic = dash.js's throughput / BOLA-E collection)")
-    p.add_argument("--qp", type=int, help="pin the feature Representation of this QP (no adaptation)")
+    p.add_argument("--qp", type=int, help="pin the feature Representation of this ladder point: an HEVC QP, or "
+                   "with --codec av1 an AV1 QP (no adaptation)")
+    p.add_argument("--codec", choices=FEATURE_CODEC_CHOICES, default="auto",
+                   help="feature set to play: auto (HEVC where the tree has it, else AV1), hevc (12-bit) or av1 "
+                   "(10-bit, the browsers' set; default: auto)")
     p.add_argument("--buffer", type=seconds, help="seconds to buffer ahead (default: three GOPs)")
     p.add_argument("--start", type=seconds, default=0.0, help="start at the GOP holding this time (seconds)")
     p.add_argument("--duration", type=seconds, help="seconds to play (default: to the end)")
@@ -180,7 +194,8 @@ def run_play(args: argparse.Namespace) -> int:
     log = args.log
     if log is None and args.out is not None:
         log = (args.out.parent if args.out.suffix.lower() == ".mp4" else args.out) / "playback.json"
-    cfg = PlayConfig(url=args.url, abr=args.abr, qp=args.qp, buffer_s=args.buffer, start_s=args.start,
+    cfg = PlayConfig(url=args.url, abr=args.abr, qp=args.qp, codec=args.codec, buffer_s=args.buffer,
+                     start_s=args.start,
                      duration_s=args.duration, realtime=args.realtime, view=view, out=args.out, log=log,
                      precision=args.precision, ring_frames=args.ring_frames, render_ahead=args.render_ahead,
                      render_threads=args.render_threads,
@@ -197,8 +212,9 @@ def run_play(args: argparse.Namespace) -> int:
 
 
 def print_playback(s: dict) -> None:
-    qps = ",".join(str(g["qp"]) for g in s["gops"])
+    reps = ",".join(str(g["rep"]) for g in s["gops"])
+    codec = f"{s['codec']} " if "codec" in s else ""
     print(f"played {s['gops_played']} GOP(s), {s['frames']} frames, start-up {s['startup_delay_s']:.2f} s, "
-          f"QPs {qps}, {s['switches']} switch(es)")
+          f"{codec}rungs {reps}, {s['switches']} switch(es)")
     print(f"stalls {s['stalls']['count']} ({s['stalls']['total_s']:.2f} s), dropped frames {s['dropped_frames']}, "
           f"{s['kb_per_frame']:.1f} KB/frame, render {s['render_ms_median'] or 0:.1f} ms/frame median")

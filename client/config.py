@@ -13,6 +13,7 @@ from stgs.client.urlpolicy import UrlPolicySettings
 from stgs.client.view import ViewSpec
 from stgs.errors import FieldError, StgsError
 from stgs.model.native_deform import check_precision
+from stgs.mpd_profile import FEATURE_CODEC_CHOICES
 from stgs.native.build import NativeUnavailableError
 
 
@@ -29,7 +30,9 @@ class PlayConfig:
     abr: str = "mpc"
     """ABR rule: mpc, dynamic, throughput, bola or bola-e (client/abr.py)."""
     qp: int | None = None
-    """Pin the feature Representation of this QP (no adaptation)."""
+    """Pin the feature Representation of this ladder point (HEVC QP, AV1 QP; no adaptation)."""
+    codec: str = "auto"
+    """Feature set to play where the tree offers two: auto (HEVC where present, else AV1), hevc or av1."""
     buffer_s: float | None = None
     """Most media seconds downloaded ahead (None: three GOPs)."""
     start_s: float = 0.0
@@ -72,6 +75,8 @@ class PlayConfig:
     """Which hosts and addresses the player may fetch from besides the manifest's (stgs.client.urlpolicy)."""
 
     def validate(self) -> None:
+        if self.codec not in FEATURE_CODEC_CHOICES:
+            raise FieldError("codec", f"must be one of {', '.join(FEATURE_CODEC_CHOICES)}, got {self.codec!r}")
         if self.abr not in RULES:
             raise FieldError("abr", f"must be one of {', '.join(RULES)}, got {self.abr!r}")
         if self.buffer_s is not None and not self.buffer_s > 0:

@@ -114,7 +114,7 @@ class GOPDecoder:
         self.pres.check_feature_segment(item.init, item.media, item.index)
         stream = FeatureStream(item.init + item.media, self.pres.shape.num_features, self.pres.grid_side,
                                ranges, self.cfg.ring_frames, self.budget.decode, first,
-                               name=f"GOP {item.index} features")
+                               name=f"GOP {item.index} features", codec=self.pres.feature_codec)
         self.streams = [s for s in self.streams if not s.finished]  # close() needs only the running ones
         self.streams.append(stream)
         return stream.start(after)

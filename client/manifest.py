@@ -1,6 +1,7 @@
 """A StreamSTGS presentation as the client sees it: the MPD, resolved against its URL.
 
-Finds the keyframe and feature-video AdaptationSets by their scheme URIs,
+Finds the keyframe and feature-video AdaptationSets by their scheme URIs
+(choosing one feature set by codec where the tree offers two: stgs.mpd_profile.choose_feature_set),
 reads the scene's sizes from the keyframe descriptor, checks them against the
 client's caps before anything is downloaded, and turns the SegmentTemplates
 into absolute URLs (BaseURL and relative templates resolve against the MPD's
@@ -14,6 +15,7 @@ from dataclasses import dataclass
 from urllib.parse import urljoin
 
 from stgs.codec.mp4 import MP4Error, media_timeline, track_timescale
+from stgs.codec.video import CODECS, FeatureCodec
 from stgs.limits import (
     MAX_GOPS,
     MAX_SEGMENT_BYTES,
@@ -21,7 +23,13 @@ from stgs.limits import (
 )
 from stgs.model.gop import GOPShape
 from stgs.mpd import MPD, PROFILE_STGS, AdaptationSet, parse_mpd
-from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_SCHEME, STATIC_SCHEME, KeyframeDescriptor, StaticLayerDescriptor
+from stgs.mpd_profile import (
+    KEYFRAME_SCHEME,
+    STATIC_SCHEME,
+    KeyframeDescriptor,
+    StaticLayerDescriptor,
+    choose_feature_set,
+)
 from stgs.mpd_values import MPDError, expand_template
 from stgs.tree import qp_of
 
@@ -79,7 +87,8 @@ def _static_layer(a: AdaptationSet) -> StaticLayerInfo:
 class Presentation:
     """A parsed, checked StreamSTGS MPD with URL construction for every segment."""
 
-    def __init__(self, mpd: MPD, url: str):
+    def __init__(self, mpd: MPD, url: str, codec: str = "auto"):
+        """codec: which feature set to play where the tree offers two (FEATURE_CODEC_CHOICES)."""
         if PROFILE_STGS not in mpd.profiles:
             raise MPDError(f"not a StreamSTGS manifest: @profiles lacks {PROFILE_STGS} "
                            f"(it lists {', '.join(p for p in mpd.profiles if p) or 'nothing'})")
@@ -89,7 +98,10 @@ class Presentation:
         self.url = url
         self.base = urljoin(url, mpd.base_url) if mpd.base_url else url
         self.keyframes: AdaptationSet = mpd.adaptation_set(KEYFRAME_SCHEME)
-        self.features: AdaptationSet = mpd.adaptation_set(FEATURE_SCHEME)
+        self.features: AdaptationSet
+        self.feature_codec: FeatureCodec
+        self.features, name = choose_feature_set(mpd, codec)
+        self.feature_codec = CODECS[name]
         if len(self.keyframes.representations) != 1:
             raise MPDError("the keyframe AdaptationSet must have exactly one Representation")
         if not self.features.representations:
@@ -115,8 +127,8 @@ class Presentation:
         """The static layer of a format-2 presentation (fetched once, before the first GOP), or None."""
 
     @classmethod
-    def parse(cls, data: bytes, url: str) -> Presentation:
-        return cls(parse_mpd(data), url)
+    def parse(cls, data: bytes, url: str, codec: str = "auto") -> Presentation:
+        return cls(parse_mpd(data), url, codec)
 
     @property
     def grid_side(self) -> int:
@@ -187,8 +199,8 @@ class Presentation:
 
     def decoded_gop_bytes(self, ring_frames: int) -> int:
         """Memory one decoded GOP holds at its peak: its canonical attributes twice (keyframe and model), a ring
-        of `ring_frames` N x 16 float32 feature frames, and the HEVC decoder's pictures (at most 16 of 4S x 4S
-        16-bit: the largest picture buffer the standard allows)."""
+        of `ring_frames` N x 16 float32 feature frames, and the video decoder's pictures (at most 16 of 4S x 4S
+        16-bit: HEVC's largest picture buffer; AV1's 8 reference frames of 4:2:0 pictures take less)."""
         side = self.grid_side
         n = side * side
         return 2 * n * 14 * 4 + ring_frames * n * 16 * 4 + 16 * (4 * side) ** 2 * 2

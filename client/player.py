@@ -242,7 +242,8 @@ class Session:
                             abr=self.schedule.rule.name, wasted_bytes=self.schedule.wasted_bytes,
                             retries=self.schedule.retries + self.dl.retries,
                             error=error, gops_planned=len(self.gops),
-                            extra={"realtime": self.cfg.realtime, "decode": self.cfg.decode,
+                            extra={"codec": self.pres.feature_codec.name, "realtime": self.cfg.realtime,
+                                   "decode": self.cfg.decode,
                                    "threads": {"render": self.budget.render, "decode": self.budget.decode},
                                    "ring_frames": self.cfg.ring_frames,
                                    "render_ahead": self.cfg.render_ahead, "fps": self.pres.fps,
@@ -265,7 +266,7 @@ async def play(cfg: PlayConfig, on_frame: FrameHook | None = None) -> dict:
     policy = UrlPolicy(cfg.url, cfg.urls)
     async with Downloader(cfg.download, policy) as dl:
         try:
-            pres = Presentation.parse(await dl.fetch(cfg.url, "document", MAX_MPD_BYTES), cfg.url)
+            pres = Presentation.parse(await dl.fetch(cfg.url, "document", MAX_MPD_BYTES), cfg.url, cfg.codec)
             policy.allow_hosts_of(pres.base)
         except FetchError as exc:
             raise PlaybackError(f"cannot fetch the manifest: {exc}") from None

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 from stgs.client.clock import RENDER_AHEAD
 from stgs.errors import StgsError
+from stgs.tree import parse_rep_id
 
 DECODE_KEYS = ("keyframe_ms", "frame_ms", "ring_frames", "render_ahead", "static_ms")
 
@@ -38,8 +39,8 @@ class DecodeSpec:
     keyframe_ms: float = 0.0
     """Keyframe decode per GOP."""
     frame_ms: float | dict[str, float] = 0.0
-    """Feature frame decode + dequantise: one value, or one per Representation id (decode cost follows the
-    bitrate)."""
+    """Feature frame decode + dequantise: one value, or a table by Representation id and/or codec name (`hevc`,
+    `av1`: decode cost follows the codec and the bitrate; a Representation's own entry wins)."""
     ring_frames: int = 8
     """The player's ring of feature frames (PlayConfig.ring_frames)."""
     render_ahead: int = 0
@@ -53,10 +54,12 @@ class DecodeSpec:
     def frame_s(self, rep: str) -> float:
         """Seconds per feature frame of Representation `rep`."""
         if isinstance(self.frame_ms, dict):
-            if rep not in self.frame_ms:
-                raise StgsError(f"[decode] frame_ms gives no cost for Representation {rep!r} "
+            parsed = parse_rep_id(rep)
+            key = rep if rep in self.frame_ms or parsed is None else parsed[0]
+            if key not in self.frame_ms:
+                raise StgsError(f"[decode] frame_ms gives no cost for Representation {rep!r} nor its codec "
                                 f"(it lists {', '.join(sorted(self.frame_ms))})")
-            return self.frame_ms[rep] / 1e3
+            return self.frame_ms[key] / 1e3
         return self.frame_ms / 1e3
 
 

@@ -124,7 +124,8 @@ async def scene_url(scene: str) -> AsyncIterator[str]:
 
 
 def play_config(url: str, scenario: Scenario, rule: str, decode: bool, speed: float = 1.0) -> PlayConfig:
-    return PlayConfig(url, abr=rule, qp=scenario.qp, buffer_s=scenario.buffer_s, start_s=scenario.start_s,
+    return PlayConfig(url, abr=rule, qp=scenario.qp, codec=scenario.codec, buffer_s=scenario.buffer_s,
+                      start_s=scenario.start_s,
                       duration_s=scenario.duration_s, realtime=True, decode=decode, speed=speed,
                       ring_frames=scenario.decode.ring_frames, render_ahead=scenario.decode.render_ahead,
                       view=ViewSpec(width=64, height=48))

@@ -49,15 +49,16 @@ def _local_path(base: Path, url: str) -> Path:
     return base / urlparse(url).path.lstrip("/")
 
 
-def load_ladder(scene: str) -> Ladder:
-    """The ladder of a packaged scene folder (sizes from the files) or MPD URL (sizes from stats.json)."""
+def load_ladder(scene: str, codec: str = "auto") -> Ladder:
+    """The ladder of a packaged scene folder (sizes from the files) or MPD URL (sizes from stats.json), for the
+    feature set a player of `codec` plays (stgs.client.manifest.FEATURE_CODEC_CHOICES)."""
     if scene.startswith(("http://", "https://")):
-        return asyncio.run(_remote(scene))
+        return asyncio.run(_remote(scene, codec))
     folder = Path(scene)
     mpd = folder / MANIFEST if folder.is_dir() else folder
     folder = mpd.parent
     try:
-        pres = Presentation.parse(mpd.read_bytes(), "file:///" + MANIFEST)
+        pres = Presentation.parse(mpd.read_bytes(), "file:///" + MANIFEST, codec)
     except OSError as exc:
         raise StgsError(f"{scene}: not a packaged scene ({exc.strerror or exc})") from None
     except MPDError as exc:
@@ -87,11 +88,11 @@ def _psnr(stats: dict | None, pres: Presentation) -> dict[str, list[float | None
     return out
 
 
-async def _remote(url: str) -> Ladder:
+async def _remote(url: str, codec: str) -> Ladder:
     policy = UrlPolicy(url)
     async with Downloader(policy=policy) as dl:
         try:
-            pres = Presentation.parse(await dl.fetch(url, "document", MAX_MPD_BYTES), url)
+            pres = Presentation.parse(await dl.fetch(url, "document", MAX_MPD_BYTES), url, codec)
             policy.allow_hosts_of(pres.base)
             stats = json.loads(await dl.fetch(pres.sibling_url(STATS), "document", 16 << 20))
             init = {r.rep_id: len(await dl.fetch(pres.init_url(r.rep_id), "init", MAX_INIT_BYTES))

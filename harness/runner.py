@@ -49,7 +49,7 @@ def run_scenario(sc: Scenario, engines: list[str], out: Path, decode: bool = Fal
     logs, timelines, plots and one summary under out."""
     results = []
     for variant in sc.variants():
-        ladder = load_ladder(variant.scene)
+        ladder = load_ladder(variant.scene, variant.codec)
         for rule in rules(variant):
             for engine in engines:
                 start = time.perf_counter()
@@ -76,7 +76,7 @@ def run_batch(sc: Scenario, traces: Path, engines: list[str], out: Path, speed: 
         raise StgsError(f"{traces}: no trace files ({', '.join(TRACE_SUFFIXES)}; formats {', '.join(TRACE_FORMATS)})")
     rows = []
     for tree in sc.variants():
-        ladder = load_ladder(tree.scene)
+        ladder = load_ladder(tree.scene, tree.codec)
         for f in files:
             trace = load_trace(f)
             variant = dataclasses.replace(tree, name=f"{tree.name}-{f.stem}",
@@ -95,11 +95,11 @@ def run_batch(sc: Scenario, traces: Path, engines: list[str], out: Path, speed: 
 
 
 async def _load(sc: Scenario, counts: list[int]) -> list[dict]:
-    ladder = load_ladder(sc.scene)
+    ladder = load_ladder(sc.scene, sc.codec)
     rows = []
     async with scene_url(sc.scene) as base:
         for n in counts:
-            cfg = PlayConfig(base + MANIFEST, abr=rules(sc)[0], qp=sc.qp, buffer_s=sc.buffer_s,
+            cfg = PlayConfig(base + MANIFEST, abr=rules(sc)[0], qp=sc.qp, codec=sc.codec, buffer_s=sc.buffer_s,
                              start_s=sc.start_s, duration_s=sc.duration_s, realtime=True, decode=False)
             start = time.perf_counter()
             logs = await asyncio.gather(*(play(dataclasses.replace(cfg)) for _ in range(n)))

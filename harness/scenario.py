@@ -8,11 +8,13 @@ buffer_s = 6.0               # optional (default: three GOPs)
 start_s = 0.0                # optional
 duration_s = 10.0            # optional (default: to the end)
 seed = 0                     # optional
+codec = "auto"               # optional: the feature set played where the tree has two (auto | hevc | av1)
 
 [decode]                     # optional: what the player's decoding costs (default: nothing)
 keyframe_ms = 120            # keyframe decode per GOP (`stgs play --log` measures it: keyframe_decode_s)
 frame_ms = 4.5               # feature frame decode + dequantise (decode_ms + dequantise_ms in the log)
 # frame_ms = { qp16 = 6.1, qp24 = 4.5, qp32 = 3.2 }  # or per Representation: decode cost follows the bitrate
+# frame_ms = { hevc = 5.0, av1 = 3.0, av1q11 = 3.6 }  # or per codec (a Representation's own entry wins)
 ring_frames = 8              # the player's ring of decoded feature frames
 render_ahead = 2             # frame slots the player may render a frame early (`stgs play --render-ahead`)
 
@@ -41,6 +43,7 @@ from stgs.client.abr import RULES
 from stgs.errors import StgsError
 from stgs.harness.decode import DecodeSpec, parse_decode
 from stgs.harness.trace import TRACE_FORMATS, Trace, constant, load_trace, steps
+from stgs.mpd_profile import FEATURE_CODEC_CHOICES
 from stgs.tree import MANIFEST
 
 EFFECTS = ("bandwidth", "latency_ms", "jitter_ms", "loss", "outages", "competing", "faults")
@@ -110,7 +113,9 @@ class Scenario:
     """What the player's decoding costs (stgs.harness.decode)."""
     effects: Effects = field(default_factory=Effects)
     qp: int | None = None
-    """Pin one QP instead of adapting (abr ignored)."""
+    """Pin one ladder point (HEVC QP, AV1 QP) instead of adapting (abr ignored)."""
+    codec: str = "auto"
+    """Feature set the player plays where the tree offers two: auto (HEVC where present), hevc or av1."""
     compare: list[str] = field(default_factory=list)
     """Other packaged trees (folders or MPD URLs) played under the same settings, reported beside `scene`."""
     label: str = ""
@@ -139,7 +144,7 @@ def scene_labels(scenes: list[str]) -> list[str]:
 
 
 SCENARIO_KEYS = {"scene", "compare", "abr", "buffer_s", "start_s", "duration_s", "seed", "decode", "effects", "qp",
-                 "name"}
+                 "codec", "name"}
 
 
 def _number(doc: dict, key: str, where: str, lo: float = 0.0, integer: bool = False) -> float | None:
@@ -226,10 +231,13 @@ def scenario_from_dict(doc: dict, where: str, base: Path) -> Scenario:
     if not isinstance(abr, list) or not abr or any(not isinstance(a, str) or a not in RULES for a in abr):
         raise StgsError(f"{where}: 'abr' must list rules from {', '.join(RULES)}, got {abr!r}")
     qp = _number(doc, "qp", where, integer=True)
+    codec = doc.get("codec", "auto")
+    if codec not in FEATURE_CODEC_CHOICES:
+        raise StgsError(f"{where}: 'codec' must be one of {', '.join(FEATURE_CODEC_CHOICES)}, got {codec!r}")
     return Scenario(name=str(doc.get("name") or Path(where).stem), scene=scene, abr=list(abr),
                     buffer_s=_number(doc, "buffer_s", where, 1e-3), start_s=_number(doc, "start_s", where) or 0.0,
                     duration_s=_number(doc, "duration_s", where, 1e-3), seed=int(_number(doc, "seed", where,
                                                                                          integer=True) or 0),
                     decode=parse_decode(doc.get("decode", {}), where),
                     effects=parse_effects(doc.get("effects", {}), where, base), qp=None if qp is None else int(qp),
-                    compare=[resolve(c) for c in compare])
+                    codec=codec, compare=[resolve(c) for c in compare])

@@ -14,9 +14,17 @@ import math
 from dataclasses import dataclass, field
 from fractions import Fraction
 
+from stgs.codec.video import CODECS
 from stgs.model.gop import GOPShape
 from stgs.mpd import MPD, AdaptationSet, Descriptor, Period, Representation, SegmentTemplate
-from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_SCHEME, STATIC_SCHEME, KeyframeDescriptor, StaticLayerDescriptor
+from stgs.mpd_profile import (
+    FEATURE_SCHEME,
+    KEYFRAME_SCHEME,
+    STATIC_SCHEME,
+    FeatureDescriptor,
+    KeyframeDescriptor,
+    StaticLayerDescriptor,
+)
 from stgs.tree import (
     KEYFRAME_MIME_TYPE,
     KEYFRAME_REP,
@@ -25,9 +33,13 @@ from stgs.tree import (
     feature_init_template,
     feature_media_template,
     keyframe_template,
-    qp_of,
+    parse_rep_id,
     static_template,
 )
+
+FEATURE_SETS = {"hevc": 2, "av1": 3}
+"""Each codec's feature AdaptationSet @id, HEVC first. With both, they share @group FEATURE_GROUP."""
+FEATURE_GROUP = 2
 
 STATS_FORMAT = "streamstgs-stats"
 
@@ -103,9 +115,17 @@ class ManifestBuilder:
     def on_feature_segment(self, rep_id: str, record: SegmentRecord) -> None:
         self.features.setdefault(rep_id, RepresentationRecords(rep_id)).add(record)
 
-    def ladder(self) -> list[RepresentationRecords]:
-        """Feature Representations in ascending QP (the packager names each `qp<N>`)."""
-        return sorted(self.features.values(), key=lambda r: qp_of(r.rep_id))
+    def ladder(self, codec: str | None = None) -> list[RepresentationRecords]:
+        """Feature Representations of `codec` (None: every codec, HEVC first), each codec's in ascending ladder
+        point (the packager names them `qp<N>`, `av1q<N>`)."""
+        order = list(FEATURE_SETS)
+        reps = [r for r in self.features.values() if codec is None or parse_rep_id(r.rep_id)[0] == codec]
+        return sorted(reps, key=lambda r: (order.index(parse_rep_id(r.rep_id)[0]), parse_rep_id(r.rep_id)[1]))
+
+    def codec_names(self) -> list[str]:
+        """The codecs of the feature Representations reported, HEVC first."""
+        present = {parse_rep_id(r)[0] for r in self.features}
+        return [c for c in FEATURE_SETS if c in present]
 
     def mpd(self) -> MPD:
         shape, side = self.shape, self.grid_side
@@ -117,15 +137,20 @@ class ManifestBuilder:
             [Descriptor(KEYFRAME_SCHEME, descriptor.value)])
         rate = self.frame_rate
         frame_rate = str(rate.numerator) if rate.denominator == 1 else f"{rate.numerator}/{rate.denominator}"
-        reps = [Representation(r.rep_id, r.bandwidth(), self.codecs[r.rep_id], 4 * side, 4 * side, frame_rate,
-                               [KEYFRAME_REP], ["cdsc"]) for r in self.ladder()]
-        features = AdaptationSet(
-            2, "video", "video/mp4",
-            SegmentTemplate(feature_media_template(self.version), self.timescale, self.segment_ticks, 0,
-                            feature_init_template(self.version)),
-            reps, [Descriptor(FEATURE_SCHEME, "tiles=4x4;channels=16;bits=12")])
+        codecs = self.codec_names()
+        features = []
+        for codec in codecs:
+            set_id, bits = FEATURE_SETS[codec], CODECS[codec].bits
+            reps = [Representation(r.rep_id, r.bandwidth(), self.codecs[r.rep_id], 4 * side, 4 * side, frame_rate,
+                                   [KEYFRAME_REP], ["cdsc"]) for r in self.ladder(codec)]
+            features.append(AdaptationSet(
+                set_id, "video", "video/mp4",
+                SegmentTemplate(feature_media_template(self.version), self.timescale, self.segment_ticks, 0,
+                                feature_init_template(self.version)),
+                reps, [Descriptor(FEATURE_SCHEME, FeatureDescriptor(bits).value)],
+                group=FEATURE_GROUP if len(codecs) > 1 else None))
         gops = len(self.keyframes.segments)
-        sets = [keyframes, features] if self.static is None else [self.static_set(gops), keyframes, features]
+        sets = [keyframes, *features] if self.static is None else [self.static_set(gops), keyframes, *features]
         return MPD(gops * self.segment_seconds, self.segment_seconds, [Period("0", sets)])
 
     def static_set(self, gops: int) -> AdaptationSet:
@@ -141,8 +166,9 @@ class ManifestBuilder:
         reps = {}
         for r in self.ladder():
             rows = r.ordered()
+            codec, point = parse_rep_id(r.rep_id)
             reps[r.rep_id] = {
-                "qp": qp_of(r.rep_id), "bandwidth": r.bandwidth(),
+                "codec": codec, "bits": CODECS[codec].bits, "qp": point, "bandwidth": r.bandwidth(),
                 "mean_bytes": sum(s.bytes for s in rows) / len(rows),
                 "mean_feature_psnr": sum(s.quality["feature_psnr"] for s in rows) / len(rows),
                 "mean_render_psnr": sum(s.quality["render_psnr"] for s in rows) / len(rows)}

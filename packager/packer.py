@@ -1,11 +1,12 @@
 """`stgs pack MODEL_DIR OUT_DIR`: a model dir -> a DASH tree (manifests/PROFILE.md).
 
 Per GOP: PLAS-sort the Gaussians, write the keyframe segment (attribute
-images, weights, ranges), tile the 12-bit features into frames; per GOP and
-QP: encode the feature video, cut it into init + media segment and place the
-segment on the Representation's timeline; then measure every segment (bytes,
-decoded-feature PSNR, rendered-view PSNR against the uncompressed model) and
-write stats.json and, last, manifest.mpd.
+images, weights, ranges), tile the features into frames of 12-bit (HEVC) and
+10-bit (AV1) codes; per GOP and ladder point of each codec: encode the feature
+video, cut it into init + media segment and place the segment on the
+Representation's timeline; then measure every segment (bytes, decoded-feature
+PSNR, rendered-view PSNR against the uncompressed model) and write stats.json
+and, last, manifest.mpd.
 
 All segment files live under a folder named after a digest of the inputs and
 settings (`v-<id>/`), so a re-pack of the same inputs writes the same bytes
@@ -25,10 +26,9 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from stgs.codec.mp4 import hevc_codecs
 from stgs.codec.plas import PLASConfig
 from stgs.codec.static import decode_static, pack_static
-from stgs.codec.video import DEFAULT_QPS, PRESETS, VideoTiming
+from stgs.codec.video import AV1, AV1_LADDER, CODECS, DEFAULT_QPS, FeatureCodec, VideoTiming
 from stgs.errors import FieldError, StgsError
 from stgs.fsio import atomic_write_bytes
 from stgs.model.static import StaticLayer
@@ -46,7 +46,6 @@ from stgs.tree import (
     STATS,
     feature_path,
     keyframe_path,
-    rep_id,
     static_path,
     version_dir,
 )
@@ -57,13 +56,17 @@ class PackConfig:
     """Settings of one pack run."""
 
     qps: tuple[int, ...] = DEFAULT_QPS
-    """Feature-video QPs, one Representation each."""
+    """HEVC feature-video QPs, one Representation each."""
     preset: str = "medium"
     """x265 preset."""
     loop_filters: bool = True
     """Keep x265's in-loop deblocking and SAO filters (False: off, in the stream, so decoders skip them)."""
-    codec: str = "hevc"
-    """Feature-video codec (only HEVC so far)."""
+    codecs: tuple[str, ...] = ("hevc", "av1")
+    """Feature-video AdaptationSets to write: 12-bit HEVC, 10-bit AV1 (what browsers decode), or both."""
+    av1_qps: tuple[int, ...] = AV1_LADDER
+    """AV1 feature-video QPs (SVT-AV1's 1..63 scale), one Representation each."""
+    av1_preset: str = AV1.default_preset
+    """SVT-AV1 preset (0 slowest .. 13 fastest)."""
     jobs: int = field(default_factory=lambda: os.cpu_count() or 1)
     """Encodes run in parallel."""
     plas: PLASConfig = field(default_factory=PLASConfig)
@@ -78,20 +81,32 @@ class PackConfig:
     """Skip (GOP, QP) tasks whose outputs a previous interrupted run left complete."""
 
     def validate(self) -> None:
-        if not self.qps or any(not 0 <= q <= 51 for q in self.qps) or len(set(self.qps)) != len(self.qps):
-            raise FieldError("qps", f"must list distinct QPs in 0..51, got {self.qps}")
-        if self.preset not in PRESETS:
-            raise FieldError("preset", f"must be one of {', '.join(PRESETS)}, got {self.preset!r}")
-        if self.codec != "hevc":
-            raise FieldError("codec", f"{self.codec!r} is not supported (hevc only so far)")
+        if not self.codecs or len(set(self.codecs)) != len(self.codecs) or set(self.codecs) - set(CODECS):
+            raise FieldError("codecs", f"must list distinct codecs of {', '.join(CODECS)}, got {self.codecs}")
+        for name, points, preset in (("qps", self.qps, "preset"), ("av1_qps", self.av1_qps, "av1_preset")):
+            codec = CODECS["hevc" if name == "qps" else "av1"]
+            q = codec.quantizers
+            if not points or any(p not in q for p in points) or len(set(points)) != len(points):
+                raise FieldError(name, f"must list distinct values in {q.start}..{q.stop - 1}, got {points}")
+            if getattr(self, preset) not in codec.presets:
+                raise FieldError(preset, f"must be one of {', '.join(codec.presets)}, got {getattr(self, preset)!r}")
         if self.jobs < 1:
             raise FieldError("jobs", f"must be >= 1, got {self.jobs}")
 
     def digest_fields(self) -> dict:
         """What determines the output bytes (not jobs or resume)."""
-        return {"qps": list(self.qps), "preset": self.preset, "loop_filters": self.loop_filters, "codec": self.codec,
+        return {"qps": list(self.qps), "preset": self.preset, "loop_filters": self.loop_filters,
+                "codecs": list(self.codecs), "av1_qps": list(self.av1_qps), "av1_preset": self.av1_preset,
                 "plas": asdict(self.plas), "sort": self.sort, "stats_views": self.stats_views,
                 "stats_frames": self.stats_frames, "format": 1}
+
+    def ladder(self) -> list[tuple[FeatureCodec, int]]:
+        """Every (codec, ladder point) to encode per GOP, HEVC first."""
+        points = {"hevc": self.qps, "av1": self.av1_qps}
+        return [(CODECS[name], q) for name in CODECS if name in self.codecs for q in points[name]]
+
+    def preset_of(self, codec: FeatureCodec) -> str:
+        return self.preset if codec.name == "hevc" else self.av1_preset
 
 
 class Packer:
@@ -113,7 +128,7 @@ class Packer:
         shape = self.meta.shape
         self.timing = VideoTiming.for_gop(shape.num_features, shape.gop_size, self.meta.fps)
         self.state: PackState | None = None
-        self.encoder = FeatureEncoder(self.timing, shape.num_features, cfg.preset, cfg.loop_filters)
+        self.encoder = FeatureEncoder(self.timing, shape.num_features, cfg.preset_of, cfg.loop_filters)
         self.builder = ManifestBuilder(shape, self.side, self.meta.fps, self.version_dir, self.timing.timescale,
                                        self.timing.segment_ticks(shape.num_features), self.timing.rate)
 
@@ -130,8 +145,9 @@ class Packer:
     def prepare_gop(self, k: int) -> PreparedGOP:
         """Sort, tile, write nothing yet: GOP k's keyframe, feature frames and reference views (of the
         composite with the static layer, in a layered scene)."""
+        bits = sorted({CODECS[c].bits for c in self.cfg.codecs} | {12})  # 12: the reference of feature_psnr
         return prepare_gop(self.model_dir, self.meta, k, self.cfg.plas if self.cfg.sort else None,
-                           self.cfg.stats_views, self.cfg.stats_frames, self.static)
+                           self.cfg.stats_views, self.cfg.stats_frames, self.static, tuple(bits))
 
     def write_static(self) -> None:
         """A layered scene's static layer, sorted and encoded, into the tree (before any GOP: the QP tasks
@@ -154,25 +170,25 @@ class Packer:
     def write(self, rel: str, data: bytes) -> None:
         atomic_write_bytes(self.out / rel, data)
 
-    def feature_task(self, gop: PreparedGOP, qp: int) -> SegmentRecord:
-        """GOP k at one QP: encoded, written and measured (or, resuming, what an earlier run recorded)."""
-        task = qp_task_name(gop.index, qp)
+    def feature_task(self, gop: PreparedGOP, codec: FeatureCodec, q: int) -> SegmentRecord:
+        """GOP k at one ladder point: encoded, written and measured (or, resuming, what an earlier run recorded)."""
+        task = point_task_name(gop.index, codec, q)
         done = self.state.done(self.out, task)
         if done is None:
-            digests, done = self.encode_segment(gop, qp)
+            digests, done = self.encode_segment(gop, codec, q)
             self.state.record(task, digests, done)
         return self.segment_record(gop.index, done)
 
-    def encode_segment(self, gop: PreparedGOP, qp: int) -> tuple[dict[str, str], dict]:
-        """GOP k's feature video at one QP encoded, its init and media segments written, the media measured:
-        (the SHA-256 of each file by path, the measurements)."""
-        k, rep = gop.index, rep_id(qp)
-        init, media = self.encoder.encode(k, qp, gop.frames)
+    def encode_segment(self, gop: PreparedGOP, codec: FeatureCodec, q: int) -> tuple[dict[str, str], dict]:
+        """GOP k's feature video at one ladder point encoded, its init and media segments written, the media
+        measured: (the SHA-256 of each file by path, the measurements)."""
+        k, rep = gop.index, codec.rep_id(q)
+        init, media = self.encoder.encode(k, codec, q, gop.frames[codec.bits])
         files = {feature_path(self.version_dir, rep, k): media, feature_path(self.version_dir, rep, None): init}
         for rel, data in files.items():
             self.write(rel, data)
         digests = {rel: hashlib.sha256(data).hexdigest() for rel, data in files.items()}
-        return digests, measure(gop, init, media, self.meta, self.decoded_static)
+        return digests, measure(gop, codec, init, media, self.meta, self.decoded_static)
 
     def segment_record(self, k: int, done: dict) -> SegmentRecord:
         return SegmentRecord(k, self.seconds_per_gop, done["bytes"],
@@ -180,22 +196,23 @@ class Packer:
 
     def run(self) -> dict:
         cfg = self.cfg
-        bar = tqdm(total=self.meta.num_gops * len(cfg.qps), desc="pack GOPs x QPs", unit="seg",
+        ladder = cfg.ladder()
+        bar = tqdm(total=self.meta.num_gops * len(ladder), desc="pack GOPs x ladder points", unit="seg",
                    disable=not self.progress)
 
-        def qp_job(gop: PreparedGOP, qp: int) -> None:
-            self.builder.on_feature_segment(rep_id(qp), self.feature_task(gop, qp))
+        def point_job(gop: PreparedGOP, codec: FeatureCodec, q: int) -> None:
+            self.builder.on_feature_segment(codec.rep_id(q), self.feature_task(gop, codec, q))
             bar.update(1)
 
         self.write_static()
-        # GOP k+1 is sorted and tiled while GOP k's QPs encode; at most two GOPs are held in memory.
+        # GOP k+1 is sorted and tiled while GOP k's ladder encodes; at most two GOPs are held in memory.
         with ThreadPoolExecutor(max_workers=cfg.jobs) as pool:
             previous: list = []
             for k in range(self.meta.num_gops):
                 gop = self.prepare_gop(k)
                 self.write(keyframe_path(self.version_dir, k), gop.keyframe)
                 self.builder.on_keyframe(SegmentRecord(k, self.seconds_per_gop, len(gop.keyframe)))
-                current = [pool.submit(qp_job, gop, qp) for qp in cfg.qps]
+                current = [pool.submit(point_job, gop, codec, q) for codec, q in ladder]
                 for future in previous:
                     future.result()
                 previous = current
@@ -206,9 +223,9 @@ class Packer:
 
     def finish(self) -> dict:
         """stats.json, cameras.json and, last, the MPD, from the segments the builder was told of."""
-        for qp in self.cfg.qps:
-            init = (self.out / feature_path(self.version_dir, rep_id(qp), None)).read_bytes()
-            self.builder.codecs[rep_id(qp)] = hevc_codecs(init)
+        for codec, q in self.cfg.ladder():
+            init = (self.out / feature_path(self.version_dir, codec.rep_id(q), None)).read_bytes()
+            self.builder.codecs[codec.rep_id(q)] = codec.codecs(init)
         stats = self.builder.stats(self.id)
         atomic_write_bytes(self.out / STATS, (json.dumps(stats, indent=2) + "\n").encode())
         self.write_cameras()
@@ -229,9 +246,10 @@ class Packer:
         atomic_write_bytes(self.out / CAMERAS, data)
 
 
-def qp_task_name(k: int, qp: int) -> str:
-    """The name of GOP k's task at one QP (in the resume state and the task logs)."""
-    return f"gop{k}-qp{qp}"
+def point_task_name(k: int, codec: FeatureCodec, q: int) -> str:
+    """The name of GOP k's task at one ladder point (in the resume state and the task logs): `gop3-qp20`,
+    `gop3-av1q30`."""
+    return f"gop{k}-{codec.rep_id(q)}"
 
 
 def pack(model_dir: Path, out: Path, cfg: PackConfig | None = None, progress: bool = True, ray: str | None = None,

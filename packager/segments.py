@@ -1,10 +1,12 @@
-"""The packager's per-GOP work: prepare (sort, tile, keyframe, reference views), encode one QP, measure it."""
+"""The packager's per-GOP work: prepare (sort, tile, keyframe, reference views), encode one ladder point, measure
+it."""
 
 from __future__ import annotations
 
 import json
 import math
 import threading
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -14,11 +16,18 @@ from safetensors import safe_open
 from safetensors.numpy import save_file as save_numpy
 
 from stgs.camera import Camera
-from stgs.codec.features import VIDEO_MAX, feature_ranges, features_from_frames, quantize_features, tile_frames
+from stgs.codec.features import (
+    VIDEO_BITS,
+    VIDEO_MAX,
+    feature_ranges,
+    features_from_frames,
+    quantize_features,
+    tile_frames,
+)
 from stgs.codec.keyframe import Keyframe, decode_keyframe, encode_keyframe
 from stgs.codec.mp4 import set_timeline, split_fragmented
 from stgs.codec.plas import PLASConfig, permute_gop, plas_order, sort_key
-from stgs.codec.video import VideoTiming, decode_segment, encode_gop
+from stgs.codec.video import FeatureCodec, VideoTiming, decode_segment, encode_gop
 from stgs.metrics import psnr
 from stgs.model.gop import GOPModel
 from stgs.model.static import StaticLayer
@@ -33,8 +42,8 @@ class PreparedGOP:
     """Everything a GOP's QP tasks share, computed once per GOP."""
 
     index: int
-    frames: np.ndarray
-    """(E, 4S, 4S) 12-bit feature frames of the sorted GOP."""
+    frames: dict[int, np.ndarray]
+    """(E, 4S, 4S) feature frames of the sorted GOP by code depth (12 always: the reference; 10 for AV1)."""
     ranges: torch.Tensor
     """(2, 16) feature ranges."""
     keyframe: bytes
@@ -55,9 +64,10 @@ def stats_cameras(model_dir: Path, model: GOPModel, count: int) -> list[Camera]:
 
 
 def prepare_gop(model_dir: Path, meta: SceneMeta, k: int, plas: PLASConfig | None, views: int,
-                frames: int, static: StaticLayer | None = None) -> PreparedGOP:
-    """GOP k sorted (PLAS unless `plas` is None), tiled, its keyframe written and read back, and `views` x `frames`
-    reference views rendered from the uncompressed GOP (with the uncompressed static layer, if any)."""
+                frames: int, static: StaticLayer | None = None, bits: tuple[int, ...] = (VIDEO_BITS,)) -> PreparedGOP:
+    """GOP k sorted (PLAS unless `plas` is None), tiled at each code depth of `bits` (each quantised from the float
+    features), its keyframe written and read back, and `views` x `frames` reference views rendered from the
+    uncompressed GOP (with the uncompressed static layer, if any)."""
     side = meta.shape.grid_side
     original = load_gop(model_dir, meta, k)
     if plas is not None:
@@ -67,7 +77,7 @@ def prepare_gop(model_dir: Path, meta: SceneMeta, k: int, plas: PLASConfig | Non
         model = original
     feats = model.features.detach()
     ranges = feature_ranges(feats)
-    tiled = tile_frames(quantize_features(feats, ranges), side).numpy().astype(np.uint16)
+    tiled = {b: tile_frames(quantize_features(feats, ranges, b), side).numpy().astype(np.uint16) for b in bits}
     keyframe = encode_keyframe(k, model, ranges)
     cams = stats_cameras(model_dir, original, views)
     g = meta.shape.gop_size
@@ -81,7 +91,7 @@ def prepare_gop(model_dir: Path, meta: SceneMeta, k: int, plas: PLASConfig | Non
 def save_prepared(gop: PreparedGOP, path: Path) -> None:
     """A prepared GOP as a safetensors file (no pickle) for the QP tasks that run elsewhere (stgs.packager.tasks);
     its keyframe is not in it: it is in the tree already."""
-    tensors = {"frames": gop.frames, "ranges": gop.ranges.numpy()}
+    tensors = {f"frames.{b}": f for b, f in gop.frames.items()} | {"ranges": gop.ranges.numpy()}
     tensors |= {f"reference.{i}": r.numpy() for i, r in enumerate(gop.reference)}
     views = [{"frame": f, "camera": cam.to_json()} for f, cam in gop.views]
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -99,26 +109,29 @@ def load_prepared(path: Path, keyframe: bytes, meta: SceneMeta) -> PreparedGOP:
     views = [(v["frame"], Camera.from_json(v["camera"])) for v in json.loads(info["views"])]
     reference = [torch.from_numpy(tensors[f"reference.{i}"]) for i in range(len(views))]
     decoded = decode_keyframe(keyframe, meta.shape, k, max_bytes=len(keyframe))
-    return PreparedGOP(k, tensors["frames"], torch.from_numpy(tensors["ranges"]), keyframe, decoded, views,
-                       reference)
+    frames = {int(name.split(".")[1]): t for name, t in tensors.items() if name.startswith("frames.")}
+    return PreparedGOP(k, frames, torch.from_numpy(tensors["ranges"]), keyframe, decoded, views, reference)
 
 
 class FeatureEncoder:
-    """Encodes GOPs' feature frames at a QP into (init, media) placed on the Representation's timeline; every GOP
-    of one QP must give the same init segment (one per Representation)."""
+    """Encodes GOPs' feature frames at a ladder point into (init, media) placed on the Representation's timeline;
+    every GOP of one Representation must give the same init segment."""
 
-    def __init__(self, timing: VideoTiming, num_features: int, preset: str, loop_filters: bool = True):
+    def __init__(self, timing: VideoTiming, num_features: int, preset: Callable[[FeatureCodec], str],
+                 loop_filters: bool = True):
+        """preset: the encoder preset of each codec."""
         self.timing, self.num_features, self.preset, self.loop_filters = timing, num_features, preset, loop_filters
-        self.init_segments: dict[int, bytes] = {}
+        self.init_segments: dict[str, bytes] = {}
         self._lock = threading.Lock()
 
-    def encode(self, k: int, qp: int, frames: np.ndarray) -> tuple[bytes, bytes]:
-        init, media = split_fragmented(encode_gop(frames, qp, self.timing, self.preset, loop_filters=self.loop_filters))
+    def encode(self, k: int, codec: FeatureCodec, q: int, frames: np.ndarray) -> tuple[bytes, bytes]:
+        data = encode_gop(frames, q, self.timing, self.preset(codec), loop_filters=self.loop_filters, codec=codec)
+        init, media = split_fragmented(data)
         media = set_timeline(media, k + 1, k * self.timing.segment_ticks(self.num_features))
         with self._lock:
-            first = self.init_segments.setdefault(qp, init)
+            first = self.init_segments.setdefault(codec.rep_id(q), init)
         if first != init:
-            raise RuntimeError(f"GOP {k} at QP {qp} produced a different init segment; "
+            raise RuntimeError(f"GOP {k} of {codec.rep_id(q)} produced a different init segment; "
                                "Representations need one init segment for all GOPs")
         return init, media
 
@@ -129,16 +142,24 @@ def mse_psnr(mse: list[float]) -> float:
     return 99.0 if m == 0 else 10 * math.log10(1.0 / m)
 
 
-def measure(gop: PreparedGOP, init: bytes, media: bytes, meta: SceneMeta, static: StaticLayer | None = None) -> dict:
-    """Bytes, decoded-feature PSNR and rendered-view PSNR (against the uncompressed GOP) of one media segment;
-    `static`: a layered scene's static layer as decoded from its segment (the PSNR is then the composite's)."""
+def measure(gop: PreparedGOP, codec: FeatureCodec, init: bytes, media: bytes, meta: SceneMeta,
+            static: StaticLayer | None = None) -> dict:
+    """Bytes, decoded-feature PSNR and rendered-view PSNR (see quality) of one media segment of `codec`; `static`:
+    a layered scene's static layer as decoded from its segment (the PSNR is then the composite's)."""
     side = meta.shape.grid_side
-    decoded_frames = decode_segment(init, media, meta.shape.num_features, 4 * side, 4 * side)
-    feature_psnr = psnr(torch.from_numpy(decoded_frames.astype(np.float32)) / VIDEO_MAX,
-                        torch.from_numpy(gop.frames.astype(np.float32)) / VIDEO_MAX)
-    features = features_from_frames(decoded_frames, side, gop.ranges)
+    decoded = decode_segment(init, media, meta.shape.num_features, 4 * side, 4 * side, codec=codec)
+    return {"bytes": len(media), **quality(gop, decoded, codec.bits, static)}
+
+
+def quality(gop: PreparedGOP, frames: np.ndarray, bits: int, static: StaticLayer | None = None) -> dict:
+    """Decoded-feature PSNR (the `bits`-bit codes of `frames` against the GOP's 12-bit codes, so a 10-bit set's
+    figure includes its 10-bit step) and rendered-view PSNR (against the uncompressed GOP's reference views)."""
+    side = frames.shape[-1] // 4
+    top = float((1 << bits) - 1)
+    feature_psnr = psnr(torch.from_numpy(frames.astype(np.float32)) / top,
+                        torch.from_numpy(gop.frames[VIDEO_BITS].astype(np.float32)) / VIDEO_MAX)
+    features = features_from_frames(frames, side, gop.ranges, bits)
     renderer = FrameRenderer(gop.decoded_keyframe.to_model(features), static=static)
     mse = [(renderer.render(f, cam).clamp(0, 1).double() - ref.double()).square().mean().item()
            for (f, cam), ref in zip(gop.views, gop.reference, strict=True)]
-    return {"bytes": len(media), "feature_psnr": round(min(feature_psnr, 99.0), 4),
-            "render_psnr": round(mse_psnr(mse), 4)}
+    return {"feature_psnr": round(min(feature_psnr, 99.0), 4), "render_psnr": round(mse_psnr(mse), 4)}

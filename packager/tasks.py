@@ -1,11 +1,12 @@
 """`stgs pack --ray`: a pack as tasks on a Ray cluster, writing the same tree as a local pack.
 
 Per GOP a prepare task sorts and tiles the GOP, writes its keyframe segment into the tree and saves the prepared
-GOP (feature frames, ranges, reference views; safetensors) under `OUT/.pack-work/`; per GOP x QP an encode task
-loads it, encodes, writes the init and media segments and measures them, with the same Packer code as a local
-pack. The driver records each finished task in the resume state as it arrives (so `--resume` after the driver
-dies re-runs only what is missing), tells the manifest builder of every segment, removes the work folder and
-writes stats.json and, last, the MPD. Task logs stay under `OUT/.pack-logs/` (hidden: never served).
+GOP (feature frames, ranges, reference views; safetensors) under `OUT/.pack-work/`; per GOP x ladder point an
+encode task loads it, encodes one ladder point of one codec, writes the init and media segments and measures
+them, with the same Packer code as a local pack. The driver records each finished task in the resume state as
+it arrives (so `--resume` after the driver dies re-runs only what is missing), tells the manifest builder of
+every segment, removes the work folder and writes stats.json and, last, the MPD. Task logs stay under
+`OUT/.pack-logs/` (hidden: never served).
 """
 
 from __future__ import annotations
@@ -16,12 +17,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from stgs.codec.plas import PLASConfig
+from stgs.codec.video import CODECS
 from stgs.errors import StgsError
 from stgs.packager.manifest import SegmentRecord
-from stgs.packager.packer import PackConfig, Packer, qp_task_name
+from stgs.packager.packer import PackConfig, Packer, point_task_name
 from stgs.packager.segments import load_prepared, save_prepared
 from stgs.tasks import Runner, Task
-from stgs.tree import PACK_LOGS, PACK_WORK, feature_path, keyframe_path, rep_id
+from stgs.tree import PACK_LOGS, PACK_WORK, feature_path, keyframe_path
 
 
 @dataclass(frozen=True)
@@ -35,7 +37,8 @@ class PackJob:
 
 def _packer(job: PackJob) -> Packer:
     doc = job.cfg
-    cfg = PackConfig(**{**doc, "qps": tuple(doc["qps"]), "plas": PLASConfig(**doc["plas"]), "resume": False})
+    cfg = PackConfig(**{**doc, "qps": tuple(doc["qps"]), "codecs": tuple(doc["codecs"]),
+                        "av1_qps": tuple(doc["av1_qps"]), "plas": PLASConfig(**doc["plas"]), "resume": False})
     return Packer(Path(job.model_dir), Path(job.out), cfg, progress=False)
 
 
@@ -51,12 +54,12 @@ def prepare_task(job: PackJob, k: int) -> dict:
     return {"keyframe_bytes": len(gop.keyframe)}
 
 
-def encode_task(job: PackJob, k: int, qp: int) -> dict:
+def encode_task(job: PackJob, k: int, codec: str, q: int) -> dict:
     packer = _packer(job)
     keyframe = (packer.out / keyframe_path(packer.version_dir, k)).read_bytes()
     gop = load_prepared(prepared_path(packer.out, k), keyframe, packer.meta)
-    files, result = packer.encode_segment(gop, qp)
-    return {"qp": qp, "files": files, "result": result}
+    files, result = packer.encode_segment(gop, CODECS[codec], q)
+    return {"rep": CODECS[codec].rep_id(q), "files": files, "result": result}
 
 
 def run_tasks(packer: Packer, runner: Runner) -> dict:
@@ -65,32 +68,35 @@ def run_tasks(packer: Packer, runner: Runner) -> dict:
     job = PackJob(str(packer.model_dir.resolve()), str(out.resolve()), dataclasses.asdict(cfg))
     packer.write_static()
     tasks = []
+    ladder = cfg.ladder()
     for k in range(packer.meta.num_gops):
-        pending = [qp for qp in cfg.qps if state.done(out, qp_task_name(k, qp)) is None]
+        pending = [(c, q) for c, q in ladder if state.done(out, point_task_name(k, c, q)) is None]
         prepare = f"gop{k}-prepare"
         if pending or not (out / keyframe_path(packer.version_dir, k)).is_file():
             tasks.append(Task(prepare, prepare_task, (job, k)))
-        tasks += [Task(qp_task_name(k, qp), encode_task, (job, k, qp), after=(prepare,)) for qp in pending]
-    inits: dict[int, set[str]] = {}
+        tasks += [Task(point_task_name(k, c, q), encode_task, (job, k, c.name, q), after=(prepare,))
+                  for c, q in pending]
+    inits: dict[str, set[str]] = {}
 
     def on_result(name: str, result: dict) -> None:
         if "files" in result:
             state.record(name, result["files"], result["result"])
-            qp = result["qp"]
-            inits.setdefault(qp, set()).add(result["files"][feature_path(packer.version_dir, rep_id(qp), None)])
+            rep = result["rep"]
+            inits.setdefault(rep, set()).add(result["files"][feature_path(packer.version_dir, rep, None)])
 
-    runner.run(tasks, out / PACK_LOGS, "pack GOPs x QPs", on_result)
-    for qp, digests in inits.items():
+    runner.run(tasks, out / PACK_LOGS, "pack GOPs x ladder points", on_result)
+    for rep, digests in inits.items():
         if len(digests) > 1:
-            raise StgsError(f"QP {qp}: the GOPs' encodes produced {len(digests)} different init segments; a "
+            raise StgsError(f"{rep}: the GOPs' encodes produced {len(digests)} different init segments; a "
                             "Representation needs one (are the workers running different ffmpeg builds?)")
     for k in range(packer.meta.num_gops):
         size = (out / keyframe_path(packer.version_dir, k)).stat().st_size
         packer.builder.on_keyframe(SegmentRecord(k, packer.seconds_per_gop, size))
-        for qp in cfg.qps:
-            done = state.done(out, qp_task_name(k, qp))
+        for codec, q in ladder:
+            done = state.done(out, point_task_name(k, codec, q))
             if done is None:
-                raise StgsError(f"{out}: GOP {k} at QP {qp} is missing or changed after its task finished")
-            packer.builder.on_feature_segment(rep_id(qp), packer.segment_record(k, done))
+                raise StgsError(f"{out}: GOP {k} of {codec.rep_id(q)} is missing or changed after its task "
+                                "finished")
+            packer.builder.on_feature_segment(codec.rep_id(q), packer.segment_record(k, done))
     shutil.rmtree(out / PACK_WORK, ignore_errors=True)
     return packer.finish()

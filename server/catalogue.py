@@ -14,7 +14,7 @@ from pathlib import Path
 from aiohttp import web
 
 from stgs.mpd import read_mpd
-from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_SCHEME, STATIC_SCHEME, StaticLayerDescriptor
+from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_SCHEME, STATIC_SCHEME, StaticLayerDescriptor, feature_set_codec
 from stgs.mpd_values import MPDError
 from stgs.server.config import CORS_HEADERS, ROOT_KEY
 from stgs.tree import MANIFEST
@@ -28,6 +28,7 @@ def manifest_url(name: str) -> str:
 def scene_summary(name: str, manifest: Path) -> dict:
     mpd = read_mpd(manifest)
     video = mpd.adaptation_set(FEATURE_SCHEME)
+    videos = [(a, feature_set_codec(a)) for a in mpd.adaptation_sets(FEATURE_SCHEME)]
     keyframes = mpd.adaptation_set(KEYFRAME_SCHEME)
     static = mpd.find_adaptation_set(STATIC_SCHEME)
     seconds = video.segment_template.seconds
@@ -37,7 +38,9 @@ def scene_summary(name: str, manifest: Path) -> dict:
                 "capacity": StaticLayerDescriptor.parse(static).capacity,
                 "bandwidth": static.representations[0].bandwidth},
             "keyframe_bandwidth": keyframes.representations[0].bandwidth,
-            "ladder": [{"id": r.id, "bandwidth": r.bandwidth, "codecs": r.codecs} for r in video.representations]}
+            "codecs": [codec for _, codec in videos],
+            "ladder": [{"id": r.id, "codec": codec, "bandwidth": r.bandwidth, "codecs": r.codecs}
+                       for a, codec in videos for r in a.representations]}
 
 
 def catalogue(root: Path) -> list[dict]:

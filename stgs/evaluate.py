@@ -23,7 +23,7 @@ from stgs.camera import Camera
 from stgs.codec.features import features_from_frames
 from stgs.codec.keyframe import decode_keyframe
 from stgs.codec.static import decode_static
-from stgs.codec.video import decode_segment
+from stgs.codec.video import CODECS, FeatureCodec, decode_segment
 from stgs.data import open_dataset
 from stgs.errors import FieldError, StgsError
 from stgs.fsio import atomic_write_bytes, image_grid, save_png
@@ -32,8 +32,15 @@ from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.static import StaticLayer
 from stgs.model.store import load_gop, load_static, read_meta
 from stgs.model.view import FrameRenderer
-from stgs.mpd import read_mpd
-from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_SCHEME, STATIC_SCHEME, KeyframeDescriptor, StaticLayerDescriptor
+from stgs.mpd import AdaptationSet, read_mpd
+from stgs.mpd_profile import (
+    FEATURE_SCHEME,
+    KEYFRAME_SCHEME,
+    STATIC_SCHEME,
+    KeyframeDescriptor,
+    StaticLayerDescriptor,
+    feature_set_codec,
+)
 from stgs.mpd_values import MPDError, expand_template
 from stgs.train.views import scale_camera
 from stgs.tree import MANIFEST, TRAIN_REPORT
@@ -55,10 +62,12 @@ def packaged_static(dash: Path) -> StaticLayer | None:
 
 
 def packaged_gops(dash: Path) -> dict[str, Callable[[int], GOPModel]]:
-    """Representation id -> (GOP index -> the GOP as a player decodes it) for a local DASH tree."""
+    """Representation id -> (GOP index -> the GOP as a player decodes it) for a local DASH tree, over every feature
+    set (HEVC and AV1)."""
     try:
         mpd = read_mpd(dash / MANIFEST)
-        kf_set, video = mpd.adaptation_set(KEYFRAME_SCHEME), mpd.adaptation_set(FEATURE_SCHEME)
+        kf_set = mpd.adaptation_set(KEYFRAME_SCHEME)
+        videos = [(a, CODECS[feature_set_codec(a)]) for a in mpd.adaptation_sets(FEATURE_SCHEME)]
     except (OSError, MPDError) as exc:
         raise StgsError(f"{dash}: not a packaged scene ({exc})") from None
     try:
@@ -68,7 +77,7 @@ def packaged_gops(dash: Path) -> dict[str, Callable[[int], GOPModel]]:
     shape = GOPShape(d.capacity, d.gop_size, d.window, d.pe_freqs)
     side = shape.grid_side
 
-    def loader(rep: str) -> Callable[[int], GOPModel]:
+    def loader(video: AdaptationSet, codec: FeatureCodec, rep: str) -> Callable[[int], GOPModel]:
         init = (dash / expand_template(video.segment_template.initialization, rep)).read_bytes()
 
         def load(k: int) -> GOPModel:
@@ -76,12 +85,12 @@ def packaged_gops(dash: Path) -> dict[str, Callable[[int], GOPModel]]:
             data = (dash / expand_template(kf_set.segment_template.media, kf_set.representations[0].id, n)).read_bytes()
             kf = decode_keyframe(data, shape, k, max_bytes=len(data))
             media = (dash / expand_template(video.segment_template.media, rep, n)).read_bytes()
-            frames = decode_segment(init, media, shape.num_features, 4 * side, 4 * side)
-            return kf.to_model(features_from_frames(frames, side, kf.feature_ranges))
+            frames = decode_segment(init, media, shape.num_features, 4 * side, 4 * side, codec=codec)
+            return kf.to_model(features_from_frames(frames, side, kf.feature_ranges, codec.bits))
 
         return load
 
-    return {r.id: loader(r.id) for r in video.representations}
+    return {r.id: loader(video, codec, r.id) for video, codec in videos for r in video.representations}
 
 
 def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None, holdout: list[str] | None = None,

@@ -152,10 +152,14 @@ class AdaptationSet:
     codecs: str | None = None
     segment_alignment: bool = True
     """@segmentAlignment: segment k of every Representation covers the same time."""
+    group: int | None = None
+    """@group: AdaptationSets of one group are alternatives, a player presents one of them."""
 
     def to_element(self) -> etree._Element:
         el = etree.Element(_q("AdaptationSet"), id=str(self.id), contentType=self.content_type,
                            mimeType=self.mime_type)
+        if self.group is not None:
+            el.set("group", str(self.group))
         if self.codecs:
             el.set("codecs", self.codecs)
         el.set("segmentAlignment", "true" if self.segment_alignment else "false")
@@ -176,7 +180,8 @@ class AdaptationSet:
                    SegmentTemplate.from_element(template),
                    [Representation.from_element(r) for r in el.findall(_q("Representation"))],
                    [Descriptor.from_element(d) for d in el.findall(_q("SupplementalProperty"))],
-                   el.get("codecs"), el.get("segmentAlignment") == "true")
+                   el.get("codecs"), el.get("segmentAlignment") == "true",
+                   int_attr(el, "group") if el.get("group") is not None else None)
 
     def has_scheme(self, scheme: str) -> bool:
         return any(d.scheme_id_uri == scheme for d in self.supplemental)
@@ -241,10 +246,12 @@ class MPD:
 
     def find_adaptation_set(self, scheme: str) -> AdaptationSet | None:
         """The first AdaptationSet of the first Period marked with `scheme`, or None."""
-        for a in self.periods[0].adaptation_sets if self.periods else ():
-            if a.has_scheme(scheme):
-                return a
-        return None
+        found = self.adaptation_sets(scheme)
+        return found[0] if found else None
+
+    def adaptation_sets(self, scheme: str) -> list[AdaptationSet]:
+        """Every AdaptationSet of the first Period marked with `scheme`, in document order."""
+        return [a for a in (self.periods[0].adaptation_sets if self.periods else ()) if a.has_scheme(scheme)]
 
 
 def parse_mpd(data: bytes) -> MPD:

@@ -7,7 +7,7 @@ import math
 from dataclasses import dataclass
 
 from stgs.limits import MAX_CAPACITY, MAX_FPS, MAX_GOP_SIZE, MAX_PE_FREQS, MAX_WINDOW, MIN_FPS
-from stgs.mpd import AdaptationSet
+from stgs.mpd import MPD, AdaptationSet
 from stgs.mpd_values import MPDError
 
 KEYFRAME_SCHEME = "urn:streamstgs:keyframe:2026"
@@ -16,6 +16,11 @@ FEATURE_SCHEME = "urn:streamstgs:features:2026"
 """SupplementalProperty scheme marking the feature-video AdaptationSet."""
 STATIC_SCHEME = "urn:streamstgs:static:2026"
 """SupplementalProperty scheme marking the static-layer AdaptationSet (format-2 trees only)."""
+FEATURE_CODECS = {"hevc": (("hvc1", "hev1"), 12), "av1": (("av01",), 10)}
+"""The feature-video codecs a tree may carry, one AdaptationSet each, reference first: the @codecs sample entries
+that name each and the code depth of its frames."""
+FEATURE_CODEC_CHOICES = ("auto", *FEATURE_CODECS)
+"""What a player may ask for: a codec's feature set, or auto (HEVC where the tree has it, else AV1)."""
 
 
 @dataclass(frozen=True)
@@ -85,6 +90,71 @@ class StaticLayerDescriptor:
         what = "static-layer"
         fields, capacity = _grid_fields(adaptation_set, STATIC_SCHEME, what)
         return cls(capacity, bounded_field(fields, "sh_degree", 0, 1, what))
+
+
+@dataclass(frozen=True)
+class FeatureDescriptor:
+    """A feature-video AdaptationSet's SupplementalProperty (manifests/PROFILE.md): the tiling and the code depth
+    of its frames (12 for the HEVC set, 10 for the AV1 set). `value` writes it, `parse` reads and checks it."""
+
+    bits: int
+    """Code depth of the feature frames."""
+
+    @property
+    def value(self) -> str:
+        return f"tiles=4x4;channels=16;bits={self.bits}"
+
+    @classmethod
+    def parse(cls, adaptation_set: AdaptationSet) -> FeatureDescriptor:
+        """The descriptor of a feature-video AdaptationSet, refused (MPDError) unless it is the 4x4 tiling of 16
+        channels at a code depth this client dequantises."""
+        fields = adaptation_set.descriptor(FEATURE_SCHEME).fields()
+        if fields.get("tiles") != "4x4" or fields.get("channels") != "16":
+            raise MPDError(f"feature descriptor of AdaptationSet {adaptation_set.id}: tiles={fields.get('tiles')!r} "
+                           f"channels={fields.get('channels')!r} is not the 4x4 tiling of 16 channels")
+        bits = bounded_field(fields, "bits", 1, 16, "feature") if "bits" in fields else 12
+        if bits not in {b for _, b in FEATURE_CODECS.values()}:
+            raise MPDError(f"feature descriptor bits={bits}: this client dequantises "
+                           f"{' or '.join(str(b) for _, b in FEATURE_CODECS.values())}-bit codes")
+        return cls(bits)
+
+
+def feature_set_codec(a: AdaptationSet) -> str:
+    """The codec (a FEATURE_CODECS name) of a feature AdaptationSet, from its Representations' @codecs (one
+    codec per set), checked against the code depth its descriptor announces (MPDError otherwise)."""
+    names = set()
+    for r in a.representations:
+        entry = (r.codecs or a.codecs or "").split(".")[0]
+        names.add(next((n for n, (entries, _) in FEATURE_CODECS.items() if entry in entries), None))
+    if len(names) != 1 or None in names:
+        listed = sorted({r.codecs or a.codecs or "none" for r in a.representations})
+        raise MPDError(f"feature AdaptationSet {a.id}: @codecs {', '.join(listed)} is not one codec this client "
+                       "plays (hvc1/hev1: HEVC, av01: AV1)")
+    name = names.pop()
+    bits = FeatureDescriptor.parse(a).bits
+    if bits != FEATURE_CODECS[name][1]:
+        raise MPDError(f"feature AdaptationSet {a.id}: {name} carries {FEATURE_CODECS[name][1]}-bit codes, its "
+                       f"descriptor says bits={bits}")
+    return name
+
+
+def choose_feature_set(mpd: MPD, codec: str = "auto") -> tuple[AdaptationSet, str]:
+    """The feature AdaptationSet a player of `codec` (FEATURE_CODEC_CHOICES) plays, and its codec's name."""
+    if codec not in FEATURE_CODEC_CHOICES:
+        raise MPDError(f"codec must be one of {', '.join(FEATURE_CODEC_CHOICES)}, got {codec!r}")
+    sets = mpd.adaptation_sets(FEATURE_SCHEME)
+    if not sets:
+        raise MPDError(f"no AdaptationSet with SupplementalProperty {FEATURE_SCHEME}")
+    found: dict[str, AdaptationSet] = {}
+    for a in sets:
+        name = feature_set_codec(a)
+        if name in found:
+            raise MPDError(f"two feature AdaptationSets ({found[name].id}, {a.id}) of one codec, {name}")
+        found[name] = a
+    want = next(n for n in FEATURE_CODECS if n in found) if codec == "auto" else codec
+    if want not in found:
+        raise MPDError(f"the manifest has no {want} feature set (it offers {', '.join(found)})")
+    return found[want], want
 
 
 def _grid_fields(adaptation_set: AdaptationSet, scheme: str, what: str) -> tuple[dict[str, str], int]:

@@ -106,11 +106,25 @@ def feature_path(version: str, rep: str, k: int | None) -> str:
     return expand_template(feature_media_template(version), rep, k)
 
 
-def rep_id(qp: int) -> str:
-    """The feature Representation id of a QP."""
-    return f"qp{qp}"
+REP_PREFIXES = {"hevc": "qp", "av1": "av1q"}
+"""Feature Representation ids per codec: the prefix + the ladder point (HEVC QP, AV1 QP)."""
+
+
+def rep_id(qp: int, codec: str = "hevc") -> str:
+    """The feature Representation id of a ladder point of `codec`."""
+    return f"{REP_PREFIXES[codec]}{qp}"
+
+
+def parse_rep_id(rep: str) -> tuple[str, int] | None:
+    """(codec, ladder point) a packager-made Representation id names, or None."""
+    for codec, prefix in sorted(REP_PREFIXES.items(), key=lambda item: -len(item[1])):
+        rest = rep[len(prefix):]
+        if rep.startswith(prefix) and rest.isdigit():
+            return codec, int(rest)
+    return None
 
 
 def qp_of(rep: str) -> int | None:
-    """The QP a Representation id names (`qp<N>`), or None."""
-    return int(rep[2:]) if rep.startswith("qp") and rep[2:].isdigit() else None
+    """The ladder point (HEVC QP, AV1 QP) a Representation id names (`qp<N>`, `av1q<N>`), or None."""
+    parsed = parse_rep_id(rep)
+    return None if parsed is None else parsed[1]

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from stgs.codec.features import TILES, dequantize_frame
-from stgs.codec.video import iter_frames
+from stgs.codec.video import HEVC, FeatureCodec, iter_frames
 from stgs.model.gop import FEATURE_DIM
 
 
@@ -32,17 +32,17 @@ class FeatureStream:
     """One GOP's feature segment (init + media bytes) decoded in a thread into a ring of feature frames."""
 
     def __init__(self, data: bytes, frames: int, side: int, ranges: torch.Tensor, capacity: int = 8,
-                 threads: int = 1, first: int = 0, name: str = "features"):
+                 threads: int = 1, first: int = 0, name: str = "features", codec: FeatureCodec = HEVC):
         """frames: E, the count the segment must hold; side: the grid side S (frames are 4S x 4S);
         capacity: most frames held; first: frames before it are decoded but not kept (a fallback
-        resuming mid-GOP)."""
+        resuming mid-GOP); codec: the segment's codec (and so its code depth)."""
         if capacity < 1:
             raise ValueError("a feature ring holds at least one frame")
         if not 0 <= first <= frames:
             raise ValueError(f"first frame {first} is outside 0..{frames}")
         self.data, self.frames, self.side, self.capacity, self.threads = data, frames, side, capacity, threads
         self.ranges = ranges.detach().to(torch.float32).clone()
-        self.name = name
+        self.name, self.codec = name, codec
         self._cond = threading.Condition()
         self._held: dict[int, torch.Tensor] = {}
         self._spare: list[torch.Tensor] = []
@@ -55,7 +55,7 @@ class FeatureStream:
         self._next: FeatureStream | None = None
         self._thread: threading.Thread | None = None
         self.decode_ms: list[float] = []
-        """HEVC decode milliseconds of each decoded frame."""
+        """Video decode milliseconds of each decoded frame."""
         self.dequantise_ms: list[float] = []
         """Dequantise milliseconds of each decoded frame (0 for a frame released before it was decoded)."""
         self.decode_at: list[float] = []
@@ -166,7 +166,7 @@ class FeatureStream:
 
     def _decode(self) -> None:
         size = TILES * self.side
-        frames = iter_frames(self.data, self.frames, size, size, self.threads)
+        frames = iter_frames(self.data, self.frames, size, size, self.threads, self.codec)
         i = 0
         while True:
             start = time.perf_counter()
@@ -184,7 +184,8 @@ class FeatureStream:
             waited = time.perf_counter()
             if keep:
                 out = dequantize_frame(frame, self.side, self.ranges,
-                                       out if out is not None else torch.empty(self.side ** 2, FEATURE_DIM))
+                                       out if out is not None else torch.empty(self.side ** 2, FEATURE_DIM),
+                                       self.codec.bits)
             done = time.perf_counter()
             with self._cond:
                 if keep and i >= self._released and not self._closed:

@@ -1,12 +1,15 @@
-"""Feature video: 12-bit gray HEVC (libx265), encoded and decoded in-process with PyAV, one closed GOP per segment.
+"""Feature video, encoded and decoded in-process with PyAV, one closed GOP per segment, in one of two codecs
+(`FeatureCodec`): 12-bit gray HEVC (libx265), the reference ladder, and 10-bit AV1 (SVT-AV1, decoded by
+dav1d; stgs.codec.av1), the ladder browsers decode.
 
-Encoding settings (constant QP, closed GOP, IDR at the first frame, no scene
+HEVC encoding settings (constant QP, closed GOP, IDR at the first frame, no scene
 cuts, keyint = E, one x265 thread, bit-exact muxing) make each GOP's segment
 decodable alone after the init segment, and make a re-encode of the same
-frames produce the same bytes. Decoding yields one frame at a time and
-refuses, before decoding a single picture, a stream whose size or pixel
-format is not the one announced; libavcodec's own `max_pixels` bounds what an
-in-band parameter set can make it allocate.
+frames produce the same bytes (AV1's: stgs.codec.av1). Decoding yields one
+frame at a time and refuses, before decoding a single picture, a stream whose
+codec or size is not the one announced, and a picture of another pixel
+format; libavcodec's own `max_pixels` bounds what an in-band parameter set
+can make it allocate.
 
 Why PyAV and not the ffmpeg binary through a pipe: measured (bench/video_io.py,
 docs/BENCHMARKS.md "Video I/O"), the binary costs a process start before the
@@ -25,17 +28,75 @@ from fractions import Fraction
 import av
 import numpy as np
 
+from stgs.codec import av1
+from stgs.codec.mp4 import hevc_codecs
 from stgs.errors import StgsError
 from stgs.memory import filled_heap
+from stgs.mpd_profile import FEATURE_CODECS
+from stgs.tree import rep_id
 
 PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow")
 """x265 presets, fastest first."""
 DEFAULT_QPS = (16, 20, 24, 28, 32)
-"""The feature-video QP ladder `stgs pack` encodes unless told otherwise (one Representation per QP)."""
+"""The HEVC feature-video QP ladder `stgs pack` encodes unless told otherwise (one Representation per QP)."""
 PIXEL_FORMAT = "gray12le"
-"""The feature video's pixels: one 12-bit channel, stored little-endian in 16 bits."""
+"""The HEVC feature video's pixels: one 12-bit channel, stored little-endian in 16 bits."""
 CODEC_TAG = "hvc1"
 """Parameter sets in the init segment's sample description only (what MSE and the DASH profile expect)."""
+AV1_LADDER = (12, 19, 27, 35, 43)
+"""The AV1 set's QP ladder: one point beside each default HEVC QP, at about its bytes (docs/PACKAGING.md)."""
+
+
+@dataclass(frozen=True)
+class FeatureCodec:
+    """One feature-video codec of the tree: how its frames are coded, named and checked."""
+
+    name: str
+    """`hevc` or `av1` (the --codecs names)."""
+    bits: int
+    """Bit depth of the feature codes its frames carry (manifests/PROFILE.md, "Feature frames")."""
+    encoder: str
+    """The libav encoder."""
+    pixel_format: str
+    """The pictures it encodes and its decoder returns."""
+    codec_tag: str
+    """The MP4 sample entry."""
+    presets: tuple[str, ...]
+    default_preset: str
+    quantizers: range
+    """Valid ladder points (the QP of x265 or of SVT-AV1)."""
+    ladder: tuple[int, ...]
+    """The ladder points `stgs pack` encodes unless told otherwise."""
+
+    @property
+    def code_max(self) -> int:
+        return (1 << self.bits) - 1
+
+    def rep_id(self, q: int) -> str:
+        """The Representation id of ladder point `q` (stgs.tree.rep_id)."""
+        return rep_id(q, self.name)
+
+    def codecs(self, init: bytes) -> str:
+        """The RFC 6381 @codecs string of an init segment of this codec."""
+        return hevc_codecs(init) if self.name == "hevc" else av1.av1_codecs(init)
+
+    def picture(self, plane: np.ndarray) -> av.VideoFrame:
+        """An (H, W) uint16 feature frame as the picture the encoder takes."""
+        if self.name == "hevc":
+            return av.VideoFrame.from_ndarray(plane, format=PIXEL_FORMAT)
+        return av1.to_picture(plane)
+
+    def plane(self, frame: av.VideoFrame) -> np.ndarray:
+        """The (H, W) uint16 feature frame of a decoded picture."""
+        return frame.to_ndarray() if self.name == "hevc" else av1.luma(frame)
+
+
+HEVC = FeatureCodec("hevc", FEATURE_CODECS["hevc"][1], "libx265", PIXEL_FORMAT, CODEC_TAG, PRESETS, "medium",
+                    range(0, 52), DEFAULT_QPS)
+AV1 = FeatureCodec("av1", FEATURE_CODECS["av1"][1], "libsvtav1", av1.PIXEL_FORMAT, av1.CODEC_TAG, av1.PRESETS, "8",
+                   av1.QUANTIZERS, AV1_LADDER)
+CODECS = {c.name: c for c in (HEVC, AV1)}
+"""Every feature codec by name, the reference (HEVC) first (stgs.mpd_profile.FEATURE_CODECS names them)."""
 
 
 class VideoError(ValueError):
@@ -79,34 +140,43 @@ def x265_params(qp: int, keyint: int, crf: bool = False, loop_filters: bool = Tr
     return ":".join(params)
 
 
-def encode_gop(frames: np.ndarray, qp: int, timing: VideoTiming, preset: str = "medium",
-               crf: bool = False, loop_filters: bool = True) -> bytes:
-    """(E, H, W) uint16 12-bit frames -> a single-fragment fragmented MP4 (HEVC Rext, gray 12-bit); see
-    x265_params for crf and loop_filters."""
+def encode_gop(frames: np.ndarray, qp: int, timing: VideoTiming, preset: str | None = None,
+               crf: bool = False, loop_filters: bool = True, codec: FeatureCodec = HEVC) -> bytes:
+    """(E, H, W) uint16 frames of `codec.bits` -> a single-fragment fragmented MP4 of `codec` (preset None: the
+    codec's default); for HEVC see x265_params for crf and loop_filters (AV1 is always a constant QP with its
+    in-loop filters)."""
     if frames.ndim != 3 or frames.dtype != np.uint16:
         raise ValueError("encode_gop takes (E, H, W) uint16 frames")
-    if preset not in PRESETS:
-        raise StgsError(f"unknown x265 preset {preset!r}; choose from {', '.join(PRESETS)}")
+    preset = codec.default_preset if preset is None else preset
+    if preset not in codec.presets:
+        raise StgsError(f"unknown {codec.name} preset {preset!r}; choose from {', '.join(codec.presets)}")
+    if qp not in codec.quantizers:
+        raise StgsError(f"{codec.name} ladder point {qp} is outside {codec.quantizers.start}.."
+                        f"{codec.quantizers.stop - 1}")
+    if codec.name == "hevc":
+        options = {"preset": preset, "x265-params": x265_params(qp, frames.shape[0], crf, loop_filters)}
+    else:
+        av1.quiet_svt()
+        options = {"preset": preset, "svtav1-params": av1.svt_params(qp, frames.shape[0])}
     with filled_heap:  # libx265 reads memory it never wrote: see stgs.memory.FilledHeap
-        return _encode(frames, qp, timing, preset, x265_params(qp, frames.shape[0], crf, loop_filters))
+        return _encode(frames, timing, codec, options | {"flags": "+bitexact"})
 
 
-def _encode(frames: np.ndarray, qp: int, timing: VideoTiming, preset: str, params: str) -> bytes:
+def _encode(frames: np.ndarray, timing: VideoTiming, codec: FeatureCodec, options: dict[str, str]) -> bytes:
     e, h, w = frames.shape
     out = io.BytesIO()
     muxer = {"movflags": "+frag_keyframe+empty_moov+default_base_moof", "fflags": "+bitexact",
              "video_track_timescale": str(timing.timescale), "frag_duration": "2000000000"}
     try:
         with av.open(out, "w", format="mp4", options=muxer) as container:
-            stream = container.add_stream("libx265", rate=timing.rate, options={
-                "preset": preset, "x265-params": params, "flags": "+bitexact"})
-            stream.width, stream.height, stream.pix_fmt = w, h, PIXEL_FORMAT
-            stream.codec_tag = CODEC_TAG
+            stream = container.add_stream(codec.encoder, rate=timing.rate, options=options)
+            stream.width, stream.height, stream.pix_fmt = w, h, codec.pixel_format
+            stream.codec_tag = codec.codec_tag
             stream.codec_context.thread_count = 1
             stream.time_base = 1 / timing.rate
             packets = []
             for i, plane in enumerate(np.ascontiguousarray(frames)):
-                frame = av.VideoFrame.from_ndarray(plane, format=PIXEL_FORMAT)
+                frame = codec.picture(plane)
                 frame.pts, frame.time_base = i, 1 / timing.rate
                 packets += stream.encode(frame)
             packets += stream.encode(None)
@@ -136,11 +206,16 @@ def _coded_pixels(width: int, height: int) -> int:
     return -(-width // 64) * 64 * (-(-height // 64) * 64)
 
 
-def iter_frames(data: bytes, frames: int, height: int, width: int, threads: int = 0) -> Iterator[np.ndarray]:
+_DECODERS = {"hevc": ("hevc",), "av1": ("libdav1d", "av1")}
+"""The libav decoders that may read each codec's segments."""
+
+
+def iter_frames(data: bytes, frames: int, height: int, width: int, threads: int = 0,
+                codec: FeatureCodec = HEVC) -> Iterator[np.ndarray]:
     """The frames of the feature video `data` (init + media segment), (H, W) uint16 each, decoded one at a time
     with `threads` decoder threads (0: libavcodec's choice). Raises VideoError for a video that does not decode,
-    is not `width`x`height` 12-bit gray, or holds a number of frames other than `frames` (a frame past those is
-    never converted)."""
+    is not `codec` at `width`x`height` in its pixel format (hence bit depth), or holds a number of frames other
+    than `frames` (a frame past those is never converted)."""
     count = 0
     try:
         with av.open(io.BytesIO(data), "r", format="mp4") as container:
@@ -148,30 +223,34 @@ def iter_frames(data: bytes, frames: int, height: int, width: int, threads: int 
                 raise VideoError(f"feature segment holds {len(container.streams.video)} video streams, expected 1")
             stream = container.streams.video[0]
             ctx = stream.codec_context
+            if ctx.name not in _DECODERS[codec.name]:
+                raise VideoError(f"feature segment is {ctx.name}, expected {codec.name}")
             if (ctx.width, ctx.height) != (width, height):
                 raise VideoError(f"feature segment is {ctx.width}x{ctx.height}, expected {width}x{height}")
             ctx.options = {"max_pixels": str(_coded_pixels(width, height))}
             ctx.thread_count = threads
             ctx.thread_type = "AUTO"
             for frame in container.decode(stream):
-                if (frame.width, frame.height, frame.format.name) != (width, height, PIXEL_FORMAT):
+                if (frame.width, frame.height, frame.format.name) != (width, height, codec.pixel_format):
                     raise VideoError(f"feature frame {count} is {frame.width}x{frame.height} {frame.format.name}, "
-                                     f"expected {width}x{height} {PIXEL_FORMAT}")
+                                     f"expected {width}x{height} {codec.pixel_format} ({codec.bits}-bit "
+                                     f"{codec.name})")
                 if count == frames:
                     raise VideoError(f"feature segment holds more than the {frames} frames of {width}x{height} "
                                      "announced")
                 count += 1
-                yield frame.to_ndarray()
+                yield codec.plane(frame)
     except av.FFmpegError as exc:
         raise VideoError(f"feature segment does not decode: {exc.strerror or exc}") from None
     if count != frames:
         raise VideoError(f"feature segment decodes to {count} frames, expected {frames} of {width}x{height}")
 
 
-def decode_segment(init: bytes, media: bytes, frames: int, height: int, width: int, threads: int = 0) -> np.ndarray:
+def decode_segment(init: bytes, media: bytes, frames: int, height: int, width: int, threads: int = 0,
+                   codec: FeatureCodec = HEVC) -> np.ndarray:
     """init + one media segment -> (frames, H, W) uint16, decoded frame by frame into one array (see iter_frames
     for what is refused)."""
     out = np.empty((frames, height, width), np.uint16)
-    for i, frame in enumerate(iter_frames(init + media, frames, height, width, threads)):
+    for i, frame in enumerate(iter_frames(init + media, frames, height, width, threads, codec)):
         out[i] = frame  # iter_frames stops before a frame past `frames`
     return out

@@ -38,7 +38,7 @@ XSD = SHARED / "dash" / "DASH-MPD.xsd"
 def layered(tmp_path_factory):
     base = tmp_path_factory.mktemp("layered")
     synthesize(LAYERED, base / "model", progress=False)
-    stats = pack(base / "model", base / "dash", PackConfig(qps=(16, 32), jobs=2), progress=False)
+    stats = pack(base / "model", base / "dash", PackConfig(qps=(16, 32), av1_qps=(16, 41), jobs=2), progress=False)
     return base, stats
 
 
@@ -46,12 +46,12 @@ def static_segment(root):
     return next(root.rglob(f"*{STATIC_EXTENSION}"))
 
 
-def test_mpd_has_three_adaptation_sets_and_stays_valid(layered):
+def test_mpd_has_four_adaptation_sets_and_stays_valid(layered):
     base, stats = layered
     data = (base / "dash" / MANIFEST).read_bytes()
     mpd = parse_mpd(data)
     sets = mpd.periods[0].adaptation_sets
-    assert len(sets) == 3 and sets[0].has_scheme(STATIC_SCHEME)
+    assert len(sets) == 4 and sets[0].has_scheme(STATIC_SCHEME)  # static, keyframes, HEVC and AV1 features
     static = mpd.adaptation_set(STATIC_SCHEME)
     assert static.descriptor(STATIC_SCHEME).fields() == {"version": "1", "capacity": "400", "grid_side": "20",
                                                          "sh_degree": "0"}
@@ -60,7 +60,7 @@ def test_mpd_has_three_adaptation_sets_and_stays_valid(layered):
     assert stats["static"]["bytes"] == static_segment(base / "dash").stat().st_size
     # The per-GOP sets describe the dynamic layer only.
     assert mpd.adaptation_set(KEYFRAME_SCHEME).descriptor(KEYFRAME_SCHEME).fields()["capacity"] == "144"
-    assert all(r.width == 48 for r in mpd.adaptation_set(FEATURE_SCHEME).representations)
+    assert all(r.width == 48 for a in mpd.adaptation_sets(FEATURE_SCHEME) for r in a.representations)
     if XSD.is_file():
         from stgs.mpd_schema import schema_errors
 
@@ -250,7 +250,7 @@ def test_eval_of_a_layered_tree_draws_the_trees_static_layer(layered, tmp_path, 
     doc = evaluate(base / "model", base / "model", tmp_path / "ev", dash=base / "dash", holdout=["cam01"],
                    stride=2, progress=False, lpips_net=None)
     streams = doc["streams"]
-    assert set(streams) == {"uncompressed", "qp16", "qp32"} and doc["format"] == 2
+    assert set(streams) == {"uncompressed", "qp16", "qp32", "av1q16", "av1q41"} and doc["format"] == 2
     assert streams["uncompressed"]["psnr"] > streams["qp16"]["psnr"] > streams["qp32"]["psnr"] and \
         streams["qp16"]["psnr"] > 40
     # The packaged streams draw the tree's static layer: without it the backdrop is missing.

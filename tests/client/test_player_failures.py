@@ -20,7 +20,7 @@ SMALL = ViewSpec(width=32, height=24)
 
 
 async def test_a_defect_in_the_decoder_ends_the_playback_with_its_traceback_logged(scene, tmp_path, monkeypatch):
-    def broken(frame, side, ranges, out=None):
+    def broken(frame, side, ranges, out=None, bits=12):
         raise TypeError("unsupported operand")  # stands in for any defect in the decoder thread
 
     monkeypatch.setattr(stream, "dequantize_frame", broken)

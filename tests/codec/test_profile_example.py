@@ -29,7 +29,7 @@ def test_layered_example_parses_with_its_static_layer():
 
     pres = Presentation.parse(LAYERED.read_bytes(), "http://example.org/scene/manifest.mpd")
     assert pres.static.capacity == 1024 and pres.static.sh_degree == 0 and pres.shape.capacity == 4096
-    assert pres.static_url() == "http://example.org/scene/v-f897b8501405/static/layer.stgl"
+    assert pres.static_url() == "http://example.org/scene/v-9bf733199119/static/layer.stgl"
     assert Presentation.parse(EXAMPLE.read_bytes(), "http://example.org/manifest.mpd").static is None
 
 
@@ -39,5 +39,12 @@ def test_example_parses_as_the_profile():
     kf = mpd.adaptation_set(KEYFRAME_SCHEME)
     assert kf.representations[0].id == "keyframes"
     assert "grid_side=32" in kf.supplemental[0].value
-    video = mpd.adaptation_set(FEATURE_SCHEME)
-    assert [r.id for r in video.representations] == ["qp16", "qp20", "qp24", "qp28", "qp32"]
+    hevc, av1 = mpd.adaptation_sets(FEATURE_SCHEME)
+    assert [r.id for r in hevc.representations] == ["qp16", "qp20", "qp24", "qp28", "qp32"]
+    assert [r.id for r in av1.representations] == ["av1q12", "av1q19", "av1q27", "av1q35", "av1q43"]
+    assert hevc.group == av1.group == 2 and all(r.codecs == "av01.0.00M.10" for r in av1.representations)
+    from stgs.client.manifest import Presentation
+
+    for codec, first in (("auto", "qp"), ("hevc", "qp"), ("av1", "av1q")):
+        pres = Presentation.parse(EXAMPLE.read_bytes(), "http://example.org/manifest.mpd", codec)
+        assert all(r.rep_id.startswith(first) for r in pres.ladder) and len(pres.ladder) == 5

@@ -8,6 +8,7 @@ import json
 import subprocess
 from pathlib import Path
 
+import numpy as np
 import pytest
 from safetensors.torch import load_file, save_file
 
@@ -21,6 +22,7 @@ from tests.conftest import run_stgs as stgs
 
 SCENE = SynthConfig(grid_side=16, num_gops=2, gop_size=6, width=64, height=48, num_cameras=2, fit_steps=200)
 QPS = (16, 20, 24, 28, 32)
+AV1_QPS = (12, 19, 27, 35, 43)
 XSD = SHARED / "dash" / "DASH-MPD.xsd"
 
 
@@ -34,8 +36,15 @@ def scene(tmp_path_factory):
 @pytest.fixture(scope="module")
 def packed(scene, tmp_path_factory):
     out = tmp_path_factory.mktemp("pack") / "dash"
-    stats = pack(scene, out, PackConfig(qps=QPS, jobs=2), progress=False)
+    stats = pack(scene, out, PackConfig(qps=QPS, av1_qps=AV1_QPS, jobs=2), progress=False)
     return out, stats
+
+
+def feature_sets(mpd):
+    """{codec name: AdaptationSet} of a parsed MPD's feature sets."""
+    from stgs.mpd_profile import feature_set_codec
+
+    return {feature_set_codec(a): a for a in mpd.adaptation_sets(FEATURE_SCHEME)}
 
 
 def tree_digest(root: Path) -> dict[str, str]:
@@ -57,69 +66,103 @@ def test_mpd_follows_the_profile(packed):
     mpd = parse_mpd((out / MANIFEST).read_bytes())
     assert len(mpd.periods) == 1 and mpd.duration == pytest.approx(2 * 6 / 30.0)
     kf = mpd.adaptation_set(KEYFRAME_SCHEME)
-    video = mpd.adaptation_set(FEATURE_SCHEME)
-    assert kf.segment_template.start_number == video.segment_template.start_number == 0
-    assert kf.segment_template.seconds == pytest.approx(0.2) == video.segment_template.seconds
-    assert [r.id for r in video.representations] == [f"qp{q}" for q in QPS]
-    for rep in video.representations:
-        assert rep.codecs.startswith("hvc1.4.") and rep.association_id == ["keyframes"]
-        assert rep.bandwidth == stats["representations"][rep.id]["bandwidth"]
-        for k in range(2):
-            seg = out / expand_template(video.segment_template.media, rep.id, k)
-            assert seg.is_file()
-            assert rep.bandwidth >= seg.stat().st_size * 8 / 0.2  # the largest segment fits
+    sets = feature_sets(mpd)
+    assert list(sets) == ["hevc", "av1"] and sets["hevc"].group == sets["av1"].group is not None
+    assert [r.id for r in sets["hevc"].representations] == [f"qp{q}" for q in QPS]
+    assert [r.id for r in sets["av1"].representations] == [f"av1q{c}" for c in AV1_QPS]
+    assert sets["hevc"].descriptor(FEATURE_SCHEME).fields()["bits"] == "12"
+    assert sets["av1"].descriptor(FEATURE_SCHEME).fields()["bits"] == "10"
+    for codec, video in sets.items():
+        assert kf.segment_template.start_number == video.segment_template.start_number == 0
+        assert kf.segment_template.seconds == pytest.approx(0.2) == video.segment_template.seconds
+        for rep in video.representations:
+            prefix = "hvc1.4." if codec == "hevc" else "av01.0."
+            assert rep.codecs.startswith(prefix) and rep.association_id == ["keyframes"]
+            assert rep.bandwidth == stats["representations"][rep.id]["bandwidth"]
+            assert stats["representations"][rep.id]["codec"] == codec
+            for k in range(2):
+                seg = out / expand_template(video.segment_template.media, rep.id, k)
+                assert seg.is_file()
+                assert rep.bandwidth >= seg.stat().st_size * 8 / 0.2  # the largest segment fits
     for k in range(2):
         assert (out / expand_template(kf.segment_template.media, "keyframes", k)).is_file()
 
 
-def test_ffprobe_lists_one_video_stream_per_qp(packed):
+def test_ffprobe_lists_one_video_stream_per_rung_of_both_sets(packed):
     out, _ = packed
-    probe = subprocess.run(["ffprobe", "-v", "error", "-show_entries", "stream=codec_name,width",
+    probe = subprocess.run(["ffprobe", "-v", "error", "-show_entries", "stream=codec_name,width,pix_fmt",
                             "-of", "json", str(out / MANIFEST)], capture_output=True, text=True, check=True)
     streams = json.loads(probe.stdout)["streams"]
-    assert len(streams) == len(QPS)
-    assert all(s["codec_name"] == "hevc" and s["width"] == 64 for s in streams)
+    assert [(s["codec_name"], s["pix_fmt"]) for s in streams] == (
+        [("hevc", "gray12le")] * len(QPS) + [("av1", "yuv420p10le")] * len(AV1_QPS))
+    assert all(s["width"] == 64 for s in streams)
 
 
-@pytest.mark.parametrize("qp,gop", [(16, 0), (20, 1), (32, 1)])
-def test_any_single_segment_decodes_alone(packed, tmp_path, qp, gop):
+@pytest.mark.parametrize("rep,gop", [("qp16", 0), ("qp20", 1), ("qp32", 1), ("av1q12", 0), ("av1q27", 1),
+                                     ("av1q43", 1)])
+def test_any_single_segment_decodes_alone_bit_exactly_in_ffmpeg(packed, tmp_path, rep, gop):
+    """Debian's ffmpeg (libdav1d for AV1) decodes init + one segment to exactly our decoder's frames."""
+    from stgs.codec.video import AV1, HEVC, decode_segment
+
     out, _ = packed
     mpd = parse_mpd((out / MANIFEST).read_bytes())
-    st = mpd.adaptation_set(FEATURE_SCHEME).segment_template
+    codec = AV1 if rep.startswith("av1") else HEVC
+    st = feature_sets(mpd)[codec.name].segment_template
+    init = (out / expand_template(st.initialization, rep)).read_bytes()
+    media = (out / expand_template(st.media, rep, gop)).read_bytes()
     joined = tmp_path / "alone.mp4"
-    joined.write_bytes((out / expand_template(st.initialization, f"qp{qp}")).read_bytes()
-                       + (out / expand_template(st.media, f"qp{qp}", gop)).read_bytes())
-    raw = subprocess.run(["ffmpeg", "-v", "error", "-i", str(joined), "-f", "rawvideo", "-pix_fmt",
-                          "gray12le", "-"], capture_output=True, check=True).stdout
+    joined.write_bytes(init + media)
+    decoder = ["-c:v", "libdav1d"] if codec is AV1 else []
+    raw = subprocess.run(["ffmpeg", "-v", "error", *decoder, "-i", str(joined), "-f", "rawvideo", "-pix_fmt",
+                          codec.pixel_format, "-"], capture_output=True, check=True).stdout
     num_features = SCENE.gop_size + 3 - 1
-    assert len(raw) == num_features * 64 * 64 * 2  # exactly E frames
+    picture = 64 * 64 * 2 * (3 if codec is AV1 else 2) // 2  # 4:2:0 adds two quarter planes
+    assert len(raw) == num_features * picture  # exactly E frames
+    theirs = np.frombuffer(raw, np.uint16).reshape(num_features, -1)[:, :64 * 64].reshape(num_features, 64, 64)
+    ours = decode_segment(init, media, num_features, 64, 64, codec=codec)
+    assert np.array_equal(theirs, ours)
+    assert ours.max() <= codec.code_max
 
 
-def test_rate_and_distortion_fall_with_qp(packed):
+@pytest.mark.parametrize("ladder", [[f"qp{q}" for q in QPS], [f"av1q{c}" for c in AV1_QPS]])
+def test_rate_and_distortion_fall_with_qp(packed, ladder):
     _, stats = packed
     for gop in stats["gops"]:
-        reps = [gop["representations"][f"qp{q}"] for q in QPS]
+        reps = [gop["representations"][rep] for rep in ladder]
         sizes = [r["bytes"] for r in reps]
         psnrs = [r["feature_psnr"] for r in reps]
         assert sizes == sorted(sizes, reverse=True) and len(set(sizes)) == len(sizes)
         assert psnrs == sorted(psnrs, reverse=True) and len(set(psnrs)) == len(psnrs)
 
 
-def test_rendered_views_at_qp20_are_faithful(packed):
+def test_rendered_views_at_qp20_and_av1q19_are_faithful(packed):
     _, stats = packed
     for gop in stats["gops"]:
         assert gop["representations"]["qp20"]["render_psnr"] >= 40.0
+        assert gop["representations"]["av1q19"]["render_psnr"] >= 40.0
 
 
 def test_repack_is_byte_identical_and_resume_completes(scene, packed, tmp_path):
     out, _ = packed
     again = tmp_path / "again"
-    pack(scene, again, PackConfig(qps=QPS, jobs=1), progress=False)
+    pack(scene, again, PackConfig(qps=QPS, av1_qps=AV1_QPS, jobs=1), progress=False)
     assert tree_digest(again) == tree_digest(out)
-    seg = next(again.rglob("seg_00001.m4s"))
-    seg.unlink()
-    pack(scene, again, PackConfig(qps=QPS, resume=True), progress=False)
+    for seg in (next(again.rglob("qp*/seg_00001.m4s")), next(again.rglob("av1q*/seg_00001.m4s"))):
+        seg.unlink()
+    pack(scene, again, PackConfig(qps=QPS, av1_qps=AV1_QPS, resume=True), progress=False)
     assert tree_digest(again) == tree_digest(out)
+
+
+def test_an_av1_only_tree_has_one_feature_set_and_the_same_av1_bytes(scene, packed, tmp_path):
+    out, _ = packed
+    alone = tmp_path / "av1"
+    stats = pack(scene, alone, PackConfig(codecs=("av1",), av1_qps=AV1_QPS, jobs=2), progress=False)
+    mpd = parse_mpd((alone / MANIFEST).read_bytes())
+    sets = feature_sets(mpd)
+    assert list(sets) == ["av1"] and sets["av1"].group is None
+    assert sorted(stats["representations"]) == sorted(f"av1q{c}" for c in AV1_QPS)
+    both = {Path(*Path(p).parts[1:]): d for p, d in tree_digest(out).items() if "/av1q" in p}
+    assert both and {Path(*Path(p).parts[1:]): d for p, d in tree_digest(alone).items() if "/av1q" in p} == both
 
 
 def test_interrupted_pack_leaves_no_manifest(scene, tmp_path, monkeypatch):
@@ -256,13 +299,19 @@ def test_bad_input_is_one_line_and_writes_nothing(scene, tmp_path, case, message
 def test_pack_cli_rejects_bad_options(scene, tmp_path):
     result = stgs("pack", str(scene), str(tmp_path / "o"), "--qps", "20,99")
     assert result.returncode == 2 and "--qps" in result.stderr
-    result = stgs("pack", str(scene), str(tmp_path / "o"), "--codec", "av1")
-    assert result.returncode == 2 and "not supported" in result.stderr
+    result = stgs("pack", str(scene), str(tmp_path / "o"), "--codecs", "vp9")
+    assert result.returncode == 2 and "--codecs" in result.stderr and "hevc, av1" in result.stderr
+    result = stgs("pack", str(scene), str(tmp_path / "o"), "--av1-qps", "0")
+    assert result.returncode == 2 and "--av1-qps" in result.stderr and "1..63" in result.stderr
+    assert not (tmp_path / "o").exists()
 
 
 def test_defaults_and_what_names_the_output():
     cfg = PackConfig()
-    assert cfg.qps == QPS and cfg.preset == "medium" and cfg.sort and cfg.codec == "hevc" and cfg.loop_filters
+    assert cfg.qps == QPS and cfg.preset == "medium" and cfg.sort and cfg.codecs == ("hevc", "av1") and cfg.loop_filters
+    assert cfg.av1_qps == AV1_QPS and cfg.av1_preset == "8"
+    assert dataclasses.replace(cfg, codecs=("hevc",)).digest_fields() != cfg.digest_fields()
+    assert dataclasses.replace(cfg, av1_qps=(20,)).digest_fields() != cfg.digest_fields()
     assert dataclasses.replace(cfg, sort=False).digest_fields() != cfg.digest_fields()
     assert dataclasses.replace(cfg, loop_filters=False).digest_fields() != cfg.digest_fields()
     assert dataclasses.replace(cfg, jobs=7, resume=True).digest_fields() == cfg.digest_fields()

@@ -37,7 +37,7 @@ def root(tmp_path_factory):
     base = tmp_path_factory.mktemp("serve")
     synthesize(SCENE, base / "model", progress=False)
     root = base / "root"
-    pack(base / "model", root / "scene1", PackConfig(qps=(20, 32), jobs=2), progress=False)
+    pack(base / "model", root / "scene1", PackConfig(qps=(20, 32), av1_qps=(16, 41), jobs=2), progress=False)
     (base / "secret.mpd").write_text("secret")
     (root / "scene1" / "escape.mpd").symlink_to(base / "secret.mpd")
     (base / "outside").mkdir()
@@ -264,7 +264,8 @@ async def test_catalogue_health_and_metrics(client):
     [scene] = data["scenes"]
     assert scene["name"] == "scene1" and scene["gops"] == 2
     assert scene["gop_seconds"] == pytest.approx(1.0)
-    assert [r["id"] for r in scene["ladder"]] == ["qp20", "qp32"]
+    assert [r["id"] for r in scene["ladder"]] == ["qp20", "qp32", "av1q16", "av1q41"]
+    assert scene["codecs"] == ["hevc", "av1"] and [r["codec"] for r in scene["ladder"]] == ["hevc"] * 2 + ["av1"] * 2
     assert (await (await client.get("/")).json()) == data
     assert (await (await client.get("/healthz")).json()) == {"status": "ok"}
     await client.get("/scene1/manifest.mpd")
@@ -409,13 +410,16 @@ async def test_oversized_headers_are_refused(scene_server, root):
 async def test_ffmpeg_decodes_every_representation_over_http(scene_server, root):
     server = await scene_server(build_app(ServeConfig(root=root)))
     url = f"http://{server.host}:{server.port}/scene1/manifest.mpd"
-    for stream in range(2):  # qp20, qp32
+    # qp20, qp32 (gray 12-bit HEVC); av1q16, av1q41 (4:2:0 10-bit AV1)
+    for stream, pix_fmt, picture in [(0, "gray12le", 2), (1, "gray12le", 2), (2, "yuv420p10le", 3),
+                                     (3, "yuv420p10le", 3)]:
         proc = await asyncio.create_subprocess_exec(
-            "ffmpeg", "-v", "error", "-i", url, "-map", f"0:{stream}", "-f", "rawvideo", "-pix_fmt", "gray12le",
+            "ffmpeg", "-v", "error", "-i", url, "-map", f"0:{stream}", "-fps_mode", "passthrough", "-f", "rawvideo",
+            "-pix_fmt", pix_fmt,
             "-", stdout=subprocess.PIPE, stderr=subprocess.PIPE)
         out, _ = await proc.communicate()
         assert proc.returncode == 0
-        frames = len(out) // (64 * 64 * 2)
+        frames = len(out) // (64 * 64 * picture)
         assert frames == 2 * (SCENE.gop_size + 2)  # every frame of both GOPs
 
 
