@@ -36,7 +36,8 @@ def test_demo_streams_the_default_scene_end_to_end(tmp_path):
     # The default scene is layered: its static layer streamed once; the folded format-1 twin is compared.
     assert log["static_bytes"] == summary["static_bytes"] > 0 and summary["static_gaussians"] == 1024
     two, one = summary["formats"]["2"]["per_qp"], summary["formats"]["1"]["per_qp"]
-    assert set(two) == set(one) == {f"qp{q}" for q in (16, 20, 24, 28, 32)}
+    assert set(two) == set(one) == {f"qp{q}" for q in (16, 20, 24, 28, 32)} | {f"av1q{q}" for q in (12, 19, 27, 35,
+                                                                                                    43)}
     assert summary["formats"]["1"]["gaussians"] == 72 * 72  # 4,096 moving + 1,024 backdrop, padded to a square
     for rid in two:  # the backdrop sent once costs less than in every GOP
         assert two[rid]["kb_per_frame"] < one[rid]["kb_per_frame"]

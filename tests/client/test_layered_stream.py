@@ -68,7 +68,7 @@ def test_mpd_has_four_adaptation_sets_and_stays_valid(layered):
     probe = subprocess.run(["ffprobe", "-v", "error", "-show_entries", "stream=codec_name,width", "-of", "json",
                             str(base / "dash" / MANIFEST)], capture_output=True, text=True, check=True)
     streams = json.loads(probe.stdout)["streams"]
-    assert [(s["codec_name"], s["width"]) for s in streams] == [("hevc", 48)] * 2
+    assert [(s["codec_name"], s["width"]) for s in streams] == [("hevc", 48)] * 2 + [("av1", 48)] * 2
 
 
 def test_static_segment_round_trips_the_layer(layered):

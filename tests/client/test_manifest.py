@@ -17,8 +17,10 @@ def test_example_resolves_every_segment_url_against_the_mpd_url():
     p = Presentation.parse(EXAMPLE, "http://cdn.example/scenes/a/manifest.mpd?token=1")
     assert p.shape.capacity == 1024 and p.grid_side == 32 and p.shape.gop_size == 30 and p.fps == 30
     assert p.num_gops == 2 and p.segment_seconds == 1.0
-    assert [r.qp for r in p.ladder] == [32, 28, 24, 20, 16]  # ascending bandwidth
-    version = "v-e4a5254e8706"
+    assert [r.qp for r in p.ladder] == [32, 28, 24, 20, 16]  # ascending bandwidth, the HEVC set's
+    assert [r.rep_id for r in Presentation.parse(EXAMPLE, "http://h/m.mpd", "av1").ladder] == [
+        "av1q43", "av1q35", "av1q27", "av1q19", "av1q12"]
+    version = "v-e849cc0b184d"
     assert p.keyframe_url(1) == f"http://cdn.example/scenes/a/{version}/keyframes/gop_00001.stgk"
     assert p.init_url("qp20") == f"http://cdn.example/scenes/a/{version}/features/qp20/init.mp4"
     assert p.media_url("qp20", 0) == f"http://cdn.example/scenes/a/{version}/features/qp20/seg_00000.m4s"
@@ -55,8 +57,8 @@ def test_start_time_maps_to_its_gop():
 
 def test_segment_caps_follow_bandwidth():
     p = Presentation.parse(EXAMPLE, "http://h/m.mpd")
-    assert p.max_media_bytes("qp16") > 1758992 / 8  # one second at @bandwidth, with slack
-    assert p.max_media_bytes("qp16") < 1758992 / 8 * 1.5
+    assert p.max_media_bytes("qp16") > 751936 / 8  # one second at @bandwidth, with slack
+    assert p.max_media_bytes("qp16") < 751936 / 8 * 1.5
     with pytest.raises(MPDError, match="no feature Representation 'qp99'"):
         p.max_media_bytes("qp99")
 
@@ -81,10 +83,25 @@ def test_segment_caps_follow_bandwidth():
     ((b'mediaPresentationDuration="PT2S"', b'mediaPresentationDuration="P' + b"9" * 5000 + b'D"'),
      "unsupported duration"),
     ((b'mediaPresentationDuration="PT2S"', b'mediaPresentationDuration="P999999999D"'), "over the .*-second limit"),
-    ((b'bandwidth="1758992"', b'bandwidth="' + b"9" * 400 + b'"'), "not an integer of at most 20 digits"),
-    ((b'bandwidth="1758992"', b'bandwidth="99999999999"'), r"Representation@bandwidth is 99999999999, outside"),
-    ((b'bandwidth="1758992"', b'bandwidth="-5"'), r"Representation@bandwidth is -5, outside"),
+    ((b'bandwidth="751936"', b'bandwidth="' + b"9" * 400 + b'"'), "not an integer of at most 20 digits"),
+    ((b'bandwidth="751936"', b'bandwidth="99999999999"'), r"Representation@bandwidth is 99999999999, outside"),
+    ((b'bandwidth="751936"', b'bandwidth="-5"'), r"Representation@bandwidth is -5, outside"),
+    # the feature sets: a codec this client does not play, a depth that is not the codec's, two sets of one codec
+    ((b'codecs="av01.0.00M.10" width="128" height="128" frameRate="32" associationId="keyframes" '
+      b'associationType="cdsc"/>\n    </AdaptationSet>', b'codecs="vp09.02.10.12" width="128" height="128" '
+      b'frameRate="32"/>\n    </AdaptationSet>'), "is not one codec this client plays"),
+    ((b"bits=10", b"bits=11"), "this client dequantises 12 or 10-bit codes"),
+    ((b"bits=10", b"bits=12"), "av1 carries 10-bit codes, its descriptor says bits=12"),
+    ((b"tiles=4x4;channels=16;bits=10", b"tiles=2x8;channels=16;bits=10"), "is not the 4x4 tiling"),
+    ((b'codecs="av01.0.00M.10"', b'codecs="hvc1.4.10.L30.99.C8"'), "hevc carries 12-bit codes, its descriptor says "
+                                                                    "bits=10"),
 ])
 def test_refuses_what_is_not_this_profile(edit, message):
     with pytest.raises(MPDError, match=message):
         Presentation.parse(EXAMPLE.replace(*edit), "http://h/m.mpd")
+
+
+def test_two_feature_sets_of_one_codec_are_refused():
+    mpd = EXAMPLE.replace(b'codecs="av01.0.00M.10"', b'codecs="hvc1.4.10.L30.99.C8"').replace(b"bits=10", b"bits=12")
+    with pytest.raises(MPDError, match=r"two feature AdaptationSets \(2, 3\) of one codec, hevc"):
+        Presentation.parse(mpd, "http://h/m.mpd")

@@ -89,14 +89,16 @@ def test_train_and_pack_on_ray_give_the_bytes_of_a_local_run(cluster, scene, loc
     for task in ("base", "gop_0000", "gop_0001"):
         assert [e["event"] for e in read_log(tmp_path / "model" / ".train" / "logs", task)] == ["start", "done"]
 
-    local = stgs("pack", str(local_model), str(tmp_path / "dash-local"), "--qps", "20,32", "--quiet")
+    local = stgs("pack", str(local_model), str(tmp_path / "dash-local"), "--qps", "20,32", "--av1-qps", "27",
+                 "--quiet")
     assert local.returncode == 0, local.stderr
-    distributed = stgs("pack", str(local_model), str(tmp_path / "dash-ray"), "--qps", "20,32", "--quiet",
-                       "--ray", cluster)
+    distributed = stgs("pack", str(local_model), str(tmp_path / "dash-ray"), "--qps", "20,32", "--av1-qps", "27",
+                       "--quiet", "--ray", cluster)
     assert distributed.returncode == 0, distributed.stderr
     assert tree_files(tmp_path / "dash-local") == tree_files(tmp_path / "dash-ray")
     logs = sorted(p.stem for p in (tmp_path / "dash-ray" / ".pack-logs").glob("*.log"))
-    assert logs == ["gop0-prepare", "gop0-qp20", "gop0-qp32", "gop1-prepare", "gop1-qp20", "gop1-qp32"]
+    assert logs == ["gop0-av1q27", "gop0-prepare", "gop0-qp20", "gop0-qp32",
+                    "gop1-av1q27", "gop1-prepare", "gop1-qp20", "gop1-qp32"]
     assert not (tmp_path / "dash-ray" / ".pack-work").exists()
 
 

@@ -135,15 +135,16 @@ def test_eval_uncompressed_and_packaged(scene, trained, tmp_path, monkeypatch):
 
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "empty-cache"))  # no LPIPS weights here
     model, _ = trained
-    pack(model, tmp_path / "dash", PackConfig(qps=(16, 32), jobs=2), progress=False)
+    pack(model, tmp_path / "dash", PackConfig(qps=(16, 32), av1_qps=(19,), jobs=2), progress=False)
     result = stgs("eval", str(model), str(scene), "--dash", str(tmp_path / "dash"), "--out", str(tmp_path / "ev"),
                   "--quiet")
     assert result.returncode == 0, result.stderr
     doc = json.loads((tmp_path / "ev" / "eval.json").read_text())
     streams = doc["streams"]
-    assert set(streams) == {"uncompressed", "qp16", "qp32"}
+    assert set(streams) == {"uncompressed", "qp16", "qp32", "av1q19"}  # every Representation of both sets
     assert len(streams["uncompressed"]["gops"][0]["frames"]) == SCENE.gop_size  # every frame, one held-out camera
     assert streams["uncompressed"]["psnr"] >= streams["qp16"]["psnr"] - 0.5 >= streams["qp32"]["psnr"] - 1.0
+    assert streams["av1q19"]["psnr"] >= streams["qp32"]["psnr"] - 1.0
     assert 0 < streams["qp32"]["ssim"] <= 1
     assert doc["lpips"]["computed"] is False and "lpips" not in streams["qp32"]
     assert str(tmp_path / "empty-cache") in doc["lpips"]["reason"] and "LPIPS not computed" in result.stdout
