@@ -60,6 +60,36 @@ stgs_ensure_native() {
     || echo "stgs setup: warning: native kernels not built; using the (slow) pure-torch reference" >&2
 }
 
+stgs_ensure_chromium() {
+  # Debian's chromium: the browser tests drive it through playwright-core (never a downloaded browser build).
+  command -v chromium >/dev/null 2>&1 && return 0
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    echo "stgs setup: installing chromium (Debian package) for the browser tests ..." >&2
+    { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; } >/dev/null 2>&1 \
+      || echo "stgs setup: apt-get install chromium failed: the browser tests will skip" >&2
+    return 0
+  fi
+  echo "stgs setup: chromium not found: the browser tests will skip (Debian: sudo apt-get install chromium)" >&2
+}
+
+stgs_ensure_web() {
+  # web/'s npm packages (the browser decoders the tests check against the Python reference), from its lockfile;
+  # without Node the tests that need it skip, and one line says so.
+  if ! command -v node >/dev/null 2>&1 || ! command -v npm >/dev/null 2>&1; then
+    echo "stgs setup: Node.js and npm not found: the browser-decoder tests will skip (Debian: apt-get install nodejs npm)" >&2
+    return 0
+  fi
+  local want
+  want=$(cat "$STGS_ROOT/web/package.json" "$STGS_ROOT/web/package-lock.json" | sha256sum | cut -d' ' -f1)
+  if [ -f "$STGS_ROOT/web/node_modules/.stgs-stamp" ] && [ "$(cat "$STGS_ROOT/web/node_modules/.stgs-stamp")" = "$want" ]; then
+    return 0
+  fi
+  echo "stgs setup: installing web/'s npm packages from its lockfile ..." >&2
+  (cd "$STGS_ROOT/web" && npm ci --no-audit --no-fund --loglevel=error >/dev/null) \
+    || stgs_die "npm ci in web/ failed"
+  echo "$want" > "$STGS_ROOT/web/node_modules/.stgs-stamp"
+}
+
 stgs_bootstrap() {
   stgs_ensure_venv
   stgs_ensure_native
