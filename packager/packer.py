@@ -28,7 +28,7 @@ from tqdm import tqdm
 
 from stgs.codec.plas import PLASConfig
 from stgs.codec.static import decode_static, pack_static
-from stgs.codec.video import AV1, AV1_LADDER, CODECS, DEFAULT_QPS, FeatureCodec, VideoTiming
+from stgs.codec.video import AV1, AV1_LADDER, CODECS, DEFAULT_QPS, HEVC, FeatureCodec, VideoTiming
 from stgs.errors import FieldError, StgsError
 from stgs.fsio import atomic_write_bytes
 from stgs.model.static import StaticLayer
@@ -78,7 +78,7 @@ class PackConfig:
     stats_frames: int = 3
     """Frames per GOP for the rendered-view PSNR."""
     resume: bool = False
-    """Skip (GOP, QP) tasks whose outputs a previous interrupted run left complete."""
+    """Skip (GOP, ladder point) tasks whose outputs a previous interrupted run left complete."""
 
     def validate(self) -> None:
         if not self.codecs or len(set(self.codecs)) != len(self.codecs) or set(self.codecs) - set(CODECS):
@@ -110,8 +110,9 @@ class PackConfig:
 
 
 class Packer:
-    """One pack run (see the module docstring): prepares GOP after GOP, encodes and measures each QP on a pool,
-    reports every finished segment to the manifest builder, and writes stats.json and, last, the MPD."""
+    """One pack run (see the module docstring): prepares GOP after GOP, encodes and measures each ladder point of
+    each codec on a pool, reports every finished segment to the manifest builder, and writes stats.json and,
+    last, the MPD."""
 
     def __init__(self, model_dir: Path, out: Path, cfg: PackConfig, progress: bool = True):
         cfg.validate()
@@ -145,7 +146,7 @@ class Packer:
     def prepare_gop(self, k: int) -> PreparedGOP:
         """Sort, tile, write nothing yet: GOP k's keyframe, feature frames and reference views (of the
         composite with the static layer, in a layered scene)."""
-        bits = sorted({CODECS[c].bits for c in self.cfg.codecs} | {12})  # 12: the reference of feature_psnr
+        bits = sorted({CODECS[c].bits for c in self.cfg.codecs} | {HEVC.bits})  # HEVC's: feature_psnr's reference
         return prepare_gop(self.model_dir, self.meta, k, self.cfg.plas if self.cfg.sort else None,
                            self.cfg.stats_views, self.cfg.stats_frames, self.static, tuple(bits))
 
