@@ -19,6 +19,7 @@ from stgs.camera import Camera
 from stgs.codec.features import (
     VIDEO_BITS,
     VIDEO_MAX,
+    code_max,
     feature_ranges,
     features_from_frames,
     quantize_features,
@@ -155,8 +156,7 @@ def quality(gop: PreparedGOP, frames: np.ndarray, bits: int, static: StaticLayer
     """Decoded-feature PSNR (the `bits`-bit codes of `frames` against the GOP's 12-bit codes, so a 10-bit set's
     figure includes its 10-bit step) and rendered-view PSNR (against the uncompressed GOP's reference views)."""
     side = frames.shape[-1] // 4
-    top = float((1 << bits) - 1)
-    feature_psnr = psnr(torch.from_numpy(frames.astype(np.float32)) / top,
+    feature_psnr = psnr(torch.from_numpy(frames.astype(np.float32)) / code_max(bits),
                         torch.from_numpy(gop.frames[VIDEO_BITS].astype(np.float32)) / VIDEO_MAX)
     features = features_from_frames(frames, side, gop.ranges, bits)
     renderer = FrameRenderer(gop.decoded_keyframe.to_model(features), static=static)

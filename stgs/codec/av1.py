@@ -92,9 +92,3 @@ def av1_codecs(init: bytes) -> str:
     if mono or (sub_x, sub_y, position) != (1, 1, 0):
         codecs += f".{mono}.{sub_x}{sub_y}{position}.01.01.01.0"
     return codecs
-
-
-def av1c_bit_depth(init: bytes) -> int:
-    """The bit depth an init segment's av1C announces."""
-    codecs = av1_codecs(init)
-    return int(codecs.split(".")[3])

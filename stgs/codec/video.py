@@ -68,10 +68,6 @@ class FeatureCodec:
     ladder: tuple[int, ...]
     """The ladder points `stgs pack` encodes unless told otherwise."""
 
-    @property
-    def code_max(self) -> int:
-        return (1 << self.bits) - 1
-
     def rep_id(self, q: int) -> str:
         """The Representation id of ladder point `q` (stgs.tree.rep_id)."""
         return rep_id(q, self.name)
