@@ -152,7 +152,13 @@ def base_task(job: TrainJob) -> dict:
 
 
 def gop_task(job: TrainJob, k: int) -> dict:
-    return gop_stage(_trainer(job), k)
+    """GOP k's task: a retry of an attempt that finished (its worker died before the driver took the result)
+    returns what that attempt saved instead of training again over its output."""
+    trainer = _trainer(job)
+    if gop_done(trainer, k):
+        report = json.loads((trainer.state / report_file(k)).read_text())
+        return {"gop": k, "seconds": report["seconds"], "val_psnr": report["val_psnr"]}
+    return gop_stage(trainer, k)
 
 
 def train(dataset: Path, out: Path, cfg: TrainConfig, progress: bool = True, resume: bool = False,

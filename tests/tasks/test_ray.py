@@ -189,3 +189,24 @@ def test_a_killed_driver_resumes_without_retraining_finished_gops(cluster, scene
     assert result.returncode == 0, result.stderr
     assert len(starts(out, "base")) == 1 and len(starts(out, "gop_0000")) == 1  # finished: skipped
     assert_same_model(local_model, out)
+
+
+def test_a_retried_gop_task_whose_first_attempt_finished_returns_its_result(scene, local_model, tmp_path):
+    """A worker killed after its GOP task finished, before the driver took the result: the retry finds the saved
+    GOP (which shares its name with the GOP's checkpoint) and returns its report instead of loading it as a
+    checkpoint (a KeyError) or training over it."""
+    import dataclasses
+    import hashlib
+
+    from stgs.train.run import TrainJob, gop_task
+
+    out = tmp_path / "model"
+    subprocess.run(["cp", "-r", str(local_model), str(out)], check=True)
+    saved = out / ".train" / "gop_0001.safetensors"
+    before = hashlib.sha256(saved.read_bytes()).hexdigest()
+    job = TrainJob(str(scene.resolve()), str(out.resolve()), dataclasses.asdict(budget("quick", **CONFIG)), "auto",
+                   False)
+    result = gop_task(job, 1)
+    report = json.loads((out / ".train" / "gop_0001.report.json").read_text())
+    assert result == {"gop": 1, "seconds": report["seconds"], "val_psnr": report["val_psnr"]}
+    assert hashlib.sha256(saved.read_bytes()).hexdigest() == before
