@@ -22,7 +22,7 @@ import os
 import av
 import numpy as np
 
-from stgs.codec.mp4 import MP4Error, find_path, iter_boxes
+from stgs.codec.mp4 import MP4Error, sample_entry_config
 from stgs.mpd_profile import FEATURE_CODECS
 
 BITS = FEATURE_CODECS["av1"][1]
@@ -65,22 +65,13 @@ def luma(frame: av.VideoFrame) -> np.ndarray:
     return np.frombuffer(p, np.uint16).reshape(-1, p.line_size // 2)[:frame.height, :frame.width].copy()
 
 
-_SAMPLE_ENTRY_SKIP = 78
-"""Bytes of a visual sample entry before its child boxes."""
-
-
 def av1_codecs(init: bytes) -> str:
     """RFC 6381 codecs string (AV1-ISOBMFF §5, e.g. 'av01.0.04M.10') from an init segment's av1C box.
 
     The optional fields (monochrome, chroma subsampling, colour) are written only when the stream departs from
     their defaults (4:2:0, not monochrome); the colour fields then take the defaults, as this packager never
     signals colour."""
-    stsd = find_path(init, ["moov", "trak", "mdia", "minf", "stbl", "stsd"])
-    entry = next(iter_boxes(init, stsd.body + 8, stsd.end), None)
-    if entry is None or entry.type != CODEC_TAG:
-        raise MP4Error("init segment has no AV1 sample entry")
-    av1c = find_path(init, ["av1C"], entry.body + _SAMPLE_ENTRY_SKIP, entry.end)
-    b = init[av1c.body:av1c.end]
+    _, b = sample_entry_config(init, (CODEC_TAG,), "av1C", "AV1")
     if len(b) < 4 or b[0] != 0x81:
         raise MP4Error("av1C box is truncated or not version 1")
     profile, level = b[1] >> 5, b[1] & 0x1F

@@ -133,19 +133,26 @@ def track_timescale(init: bytes) -> int:
     return timescale
 
 
-_SAMPLE_ENTRY_SKIPS = {"stsd": 8, "hvc1": 78, "hev1": 78}
-"""Bytes before the child boxes: stsd (FullBox + entry count), visual sample entries."""
+_STSD_HEADER = 8
+"""Bytes of stsd before its sample entries (FullBox header + entry count)."""
+_VISUAL_SAMPLE_ENTRY = 78
+"""Bytes of a visual sample entry before its child boxes."""
+
+
+def sample_entry_config(init: bytes, kinds: tuple[str, ...], config: str, codec: str) -> tuple[str, bytes]:
+    """(type, `config` box payload) of an init segment's first sample entry, which must be one of `kinds`
+    (e.g. ('hvc1', 'hev1') with 'hvcC'); `codec` names it in the error."""
+    stsd = find_path(init, ["moov", "trak", "mdia", "minf", "stbl", "stsd"])
+    entry = next(iter_boxes(init, stsd.body + _STSD_HEADER, stsd.end), None)
+    if entry is None or entry.type not in kinds:
+        raise MP4Error(f"init segment has no {codec} sample entry")
+    box = find_path(init, [config], entry.body + _VISUAL_SAMPLE_ENTRY, entry.end)
+    return entry.type, init[box.body:box.end]
 
 
 def hevc_codecs(init: bytes) -> str:
     """RFC 6381 codecs string (e.g. 'hvc1.4.10.L90.9D.88') from an init segment's hvcC."""
-    path = ["moov", "trak", "mdia", "minf", "stbl", "stsd"]
-    stsd = find_path(init, path, skips=_SAMPLE_ENTRY_SKIPS)
-    entry = next(iter_boxes(init, stsd.body + 8, stsd.end), None)
-    if entry is None or entry.type not in ("hvc1", "hev1"):
-        raise MP4Error("init segment has no HEVC sample entry")
-    hvcc = find_path(init, ["hvcC"], entry.body + 78, entry.end)
-    b = init[hvcc.body:hvcc.end]
+    kind, b = sample_entry_config(init, ("hvc1", "hev1"), "hvcC", "HEVC")
     if len(b) < 13:
         raise MP4Error("hvcC box is truncated")
     space, tier, profile = b[1] >> 6, (b[1] >> 5) & 1, b[1] & 0x1F
@@ -155,7 +162,7 @@ def hevc_codecs(init: bytes) -> str:
     while constraints and constraints[-1] == 0:
         constraints.pop()
     level = b[12]
-    parts = [entry.type, f"{'' if space == 0 else 'ABC'[space - 1]}{profile}", f"{compat_rev:X}",
+    parts = [kind, f"{'' if space == 0 else 'ABC'[space - 1]}{profile}", f"{compat_rev:X}",
              f"{'LH'[tier]}{level}"]
     parts += [f"{c:X}" for c in constraints]
     return ".".join(parts)
