@@ -73,21 +73,28 @@ stgs_ensure_chromium() {
 }
 
 stgs_ensure_web() {
-  # web/'s npm packages (the browser decoders the tests check against the Python reference), from its lockfile;
-  # without Node the tests that need it skip, and one line says so.
+  # web/: its npm packages from the lockfile, then the web player's build (web/dist, which `stgs serve` offers at
+  # /player/), redone when a source changes. Without Node the player is not built and its tests skip; one line
+  # says so.
   if ! command -v node >/dev/null 2>&1 || ! command -v npm >/dev/null 2>&1; then
-    echo "stgs setup: Node.js and npm not found: the browser-decoder tests will skip (Debian: apt-get install nodejs npm)" >&2
+    echo "stgs setup: Node.js and npm not found: the web player is not built and its tests skip (Debian: apt-get install nodejs npm)" >&2
     return 0
   fi
   local want
   want=$(cat "$STGS_ROOT/web/package.json" "$STGS_ROOT/web/package-lock.json" | sha256sum | cut -d' ' -f1)
-  if [ -f "$STGS_ROOT/web/node_modules/.stgs-stamp" ] && [ "$(cat "$STGS_ROOT/web/node_modules/.stgs-stamp")" = "$want" ]; then
+  if [ ! -f "$STGS_ROOT/web/node_modules/.stgs-stamp" ] || [ "$(cat "$STGS_ROOT/web/node_modules/.stgs-stamp")" != "$want" ]; then
+    echo "stgs setup: installing web/'s npm packages from its lockfile ..." >&2
+    (cd "$STGS_ROOT/web" && npm ci --no-audit --no-fund --loglevel=error >/dev/null) \
+      || stgs_die "npm ci in web/ failed"
+    echo "$want" > "$STGS_ROOT/web/node_modules/.stgs-stamp"
+  fi
+  want=$(cd "$STGS_ROOT/web" && cat package-lock.json build.mjs tsconfig.json $(find src -type f | sort) | sha256sum | cut -d' ' -f1)
+  if [ -f "$STGS_ROOT/web/dist/.stgs-stamp" ] && [ "$(cat "$STGS_ROOT/web/dist/.stgs-stamp")" = "$want" ]; then
     return 0
   fi
-  echo "stgs setup: installing web/'s npm packages from its lockfile ..." >&2
-  (cd "$STGS_ROOT/web" && npm ci --no-audit --no-fund --loglevel=error >/dev/null) \
-    || stgs_die "npm ci in web/ failed"
-  echo "$want" > "$STGS_ROOT/web/node_modules/.stgs-stamp"
+  echo "stgs setup: building the web player (web/dist) ..." >&2
+  (cd "$STGS_ROOT/web" && node build.mjs >/dev/null) || stgs_die "building the web player failed (cd web && npm run build)"
+  echo "$want" > "$STGS_ROOT/web/dist/.stgs-stamp"
 }
 
 stgs_bootstrap() {

@@ -73,7 +73,8 @@ def run_pack(args: argparse.Namespace) -> int:
 def add_serve(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("serve", help="serve packaged scenes over HTTP (DASH)",
                        description="Serve the DASH trees under ROOT (byte ranges, ETag/304, CORS, "
-                       "immutable segments) with a scene catalogue at / and /scenes, /healthz and /metrics.")
+                       "immutable segments) with a scene catalogue at / and /scenes, the web player at /player/, "
+                       "/healthz and /metrics.")
     p.add_argument("root", type=Path, help="folder of packaged scenes (or one packaged scene)")
     p.add_argument("--host", default="127.0.0.1", help="listen address (default: 127.0.0.1)")
     p.add_argument("--port", type=int, default=8080, help="listen port (default: 8080; 0 picks one)")
@@ -91,6 +92,8 @@ def add_serve(sub: argparse._SubParsersAction) -> None:
                    help="server processes sharing the port (default: 1; up to one per core)")
     p.add_argument("--io-threads", type=non_negative_int, default=0,
                    help="threads for file stat/open (default: 0, on the event loop; more for network storage)")
+    p.add_argument("--player-dir", type=Path,
+                   help="the built web player to serve at /player/ (default: web/dist of this checkout)")
     p.add_argument("--quiet", action="store_true", help="no access log")
     p.set_defaults(run=run_serve)
 
@@ -103,11 +106,14 @@ def run_serve(args: argparse.Namespace) -> int:
         raise UsageError(f"{args.root}: not a folder")
     if not 0 <= args.port <= 65535:
         raise UsageError(f"--port must be in 0..65535, got {args.port}")
+    if args.player_dir is not None and not (args.player_dir / "index.html").is_file():
+        raise UsageError(f"--player-dir {args.player_dir}: no index.html there "
+                         "(build the player: cd web && npm run build)")
     run(ServeConfig(root=args.root, host=args.host, port=args.port, max_transfers=args.max_transfers,
                     max_transfers_per_client=args.max_transfers_per_client,
                     max_connections_per_client=args.max_connections_per_client, send_timeout=args.send_timeout,
                     shutdown_timeout=args.shutdown_timeout, workers=args.workers, io_threads=args.io_threads,
-                    access_log=not args.quiet))
+                    player_dir=args.player_dir, access_log=not args.quiet))
     return 0
 
 

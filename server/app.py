@@ -44,6 +44,7 @@ from stgs.server.config import (
 )
 from stgs.server.files import BeneathOpener
 from stgs.server.metrics import Metrics, flush_metrics, observe
+from stgs.server.player import player_files, player_root, serve_player
 from stgs.server.protocol import ConnectionLimits, GuardedServer
 from stgs.server.responses import FileFastPath, serve_file
 from stgs.server.slots import TransferSlots
@@ -106,12 +107,15 @@ def build_app(cfg: ServeConfig) -> web.Application:
     app.on_startup.append(make_slots)
     app.cleanup_ctx.append(flush_metrics)
     app.cleanup_ctx.append(catalogue_thread)
+    app.cleanup_ctx.append(player_files)
     if cfg.io_threads is not None:
         app.cleanup_ctx.append(file_io_executor(cfg.io_threads))
     app.router.add_get("/healthz", healthz)
     app.router.add_get("/metrics", metrics)
     app.router.add_get("/scenes", scenes)
     app.router.add_get("/", scenes)
+    app.router.add_get("/player", player_root)
+    app.router.add_get("/player/{tail:.*}", serve_player)
     app.router.add_route("OPTIONS", "/{tail:.*}", preflight)
     app.router.add_get("/{tail:.*}", serve_file)  # also answers HEAD
     return app

@@ -17,12 +17,18 @@ CONTENT_TYPES = {
     KEYFRAME_EXTENSION: KEYFRAME_MIME_TYPE,
     STATIC_EXTENSION: STATIC_MIME_TYPE,
     ".json": "application/json",
+    ".html": "text/html; charset=utf-8",
+    ".js": "text/javascript; charset=utf-8",
+    ".mjs": "text/javascript; charset=utf-8",
+    ".wasm": "application/wasm",
+    ".css": "text/css; charset=utf-8",
 }
 """The only files served, by extension."""
 
 
-MUTABLE_SUFFIXES = (".mpd", ".json")
-"""Mutable documents: short cache lifetime. Everything else is an immutable segment."""
+MUTABLE_SUFFIXES = (".mpd", ".json", ".html")
+"""Mutable documents: short cache lifetime. Everything else is an immutable segment (or a content-hashed asset of
+the web player, when a tree is served with the built player beside it)."""
 
 
 CORS_HEADERS = {
@@ -82,6 +88,8 @@ class ServeConfig:
     """Write one JSON line per request to stderr."""
     workers: int = 1
     """Server processes sharing the port (SO_REUSEPORT: the kernel spreads connections); /metrics sums them all."""
+    player_dir: Path | None = None
+    """The built web player served at /player/ (None: web/dist of this checkout)."""
     io_threads: int | None = 0
     """Threads for each file's stat/open/close: 0 does them on the event loop (microseconds on a local disk,
     far less than a hop to a thread), N uses N threads (slow network storage), None leaves the loop's

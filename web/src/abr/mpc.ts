@@ -1,0 +1,98 @@
+// The look-ahead rule (client/abr_mpc.py, ported): RobustMPC over the next GOPs' exact sizes and rendered PSNR
+// from stats.json. Every rung sequence over the horizon is scored in the same order as the Python's
+// itertools.product, so ties break the same way.
+import { type AbrRule, type AbrSettings, type AbrState, type Decision, DEFAULT_SETTINGS, type UpcomingGOP, fixed, latencyS,
+  sampleKbps, sizes } from "./state";
+
+export class MpcRule implements AbrRule {
+  readonly name = "mpc";
+  readonly errors: number[] = [];
+  predicted: [number, number] | null = null;
+
+  constructor(readonly settings: AbrSettings = DEFAULT_SETTINGS) {}
+
+  predictKbps(state: AbrState): [number, number] | null {
+    const samples = state.samples;
+    if (!samples.length) return null;
+    if (this.predicted !== null && this.predicted[0] < samples.length) {
+      const actual = sampleKbps(samples[samples.length - 1]);
+      this.errors.push(Math.abs(this.predicted[1] - actual) / Math.max(actual, 1e-9));
+    }
+    const n = this.settings.mpcHistory;
+    const recent = samples.slice(-n);
+    const harmonic = recent.length / recent.reduce((a, s) => a + 1 / Math.max(sampleKbps(s), 1e-9), 0);
+    this.predicted = [samples.length, harmonic];
+    const bound = this.errors.slice(-n).reduce((a, e) => Math.max(a, e), 0);
+    return [harmonic, harmonic / (1 + bound)];
+  }
+
+  table(state: AbrState): UpcomingGOP[] {
+    let gops = state.upcoming.slice(0, this.settings.mpcHorizon);
+    if (!gops.length) gops = Array.from({ length: this.settings.mpcHorizon }, () => ({ keyframeBits: state.keyframeBits, segmentBits: sizes(state), psnr: null }));
+    gops[0] = { keyframeBits: state.keyframeBits, segmentBits: sizes(state), psnr: gops[0].psnr };
+    return gops;
+  }
+
+  choose(state: AbrState): Decision {
+    const predicted = this.predictKbps(state);
+    if (predicted === null) return { index: 0, rule: this.name, reason: "no throughput sample yet: lowest rung" };
+    const [harmonic, robust] = predicted;
+    const gops = this.table(state);
+    const T = state.segmentS;
+    const rungs = state.bandwidths.length;
+    const s = this.settings;
+    const H = gops.length;
+    const psnr = s.mpcUtility === "psnr" && gops.every((gp) => gp.psnr !== null && gp.psnr.every((p) => p !== null));
+    const bits = gops.map((gp) => gp.segmentBits.map((b) => gp.keyframeBits + b));
+    const utility = psnr ? gops.map((gp) => gp.psnr!.slice()) : bits.map((row) => row.map((b) => b / T / 1e6));
+    const mu = psnr ? s.mpcRebufferPsnr : s.mpcRebufferBitrate;
+    const download = bits.map((row) => row.slice());
+    const trips = new Array<number>(H).fill(state.roundTrips);
+    if (state.keyframeFetched) {
+      download[0] = download[0].map((b) => b - gops[0].keyframeBits);
+      trips[0] -= 1;
+    }
+    const latency = latencyS(state.samples);
+    const plan = new Array<number>(H).fill(0);
+    let bestScore = -Infinity;
+    let bestPlan: number[] = plan.slice();
+    let bestStall = 0;
+    const total = rungs ** H;
+    for (let p = 0; p < total; p++) {
+      let rest = p;
+      for (let j = H - 1; j >= 0; j--) {
+        plan[j] = rest % rungs;
+        rest = Math.floor(rest / rungs);
+      }
+      let buffer = state.bufferS;
+      let stall = 0;
+      let qsum = 0;
+      for (let j = 0; j < H; j++) {
+        const seconds = trips[j] * latency + download[j][plan[j]] / (robust * 1e3);
+        qsum += utility[j][plan[j]];
+        if (j === 0 && !state.playing) {
+          stall += seconds;
+          buffer = T;
+          continue;
+        }
+        stall += Math.max(seconds - buffer, 0);
+        buffer = Math.min(Math.max(buffer - seconds, 0) + T, state.bufferCapacityS);
+      }
+      const q0 = utility[0][plan[0]];
+      const previous = state.current !== null ? utility[0][state.current] : q0;
+      let diffs = 0;
+      for (let j = 1; j < H; j++) diffs += Math.abs(utility[j][plan[j]] - utility[j - 1][plan[j - 1]]);
+      const switches = Math.abs(q0 - previous) + diffs;
+      const shortfall = Math.max(s.mpcReservoir * state.bufferCapacityS - buffer, 0);
+      const score = qsum - mu * (stall + s.mpcReservoirWeight * shortfall) - s.mpcSwitchWeight * switches;
+      if (score > bestScore) {
+        bestScore = score;
+        bestPlan = plan.slice();
+        bestStall = stall;
+      }
+    }
+    const unit = psnr ? "dB" : "Mbit/s";
+    return { index: bestPlan[0], rule: this.name, reason: `throughput ${fixed(harmonic, 0)} kbit/s, robust ${fixed(robust, 0)}; plan ` +
+      `${bestPlan.join("-")} over ${H} GOPs scores ${fixed(bestScore, 2)} (${unit} utility, stall ${fixed(bestStall, 2)} s)` };
+  }
+}

@@ -1,0 +1,89 @@
+// The page's entry: options from the query string (?mpd=URL&abr=&quality=&camera=&size=WxH&autoplay=),
+// the assets the build named, then the player and its controls. Without ?mpd it lists the scenes of the
+// server it came from (stgs serve's /scenes), when there is one.
+import { RULES } from "./abr/index";
+import { describe, UnsupportedError } from "./errors";
+import { Player, type PlayerOptions } from "./player";
+import type { Assets } from "./stream/workers";
+import { bindControls, showError } from "./ui";
+
+declare global {
+  interface Window {
+    stgsPlayer?: Player;
+  }
+}
+
+async function main(): Promise<void> {
+  const params = new URLSearchParams(location.search);
+  const assets = JSON.parse(document.querySelector<HTMLMetaElement>('meta[name="stgs-assets"]')!.content) as Assets;
+  const mpd = params.get("mpd");
+  if (!mpd) return listScenes();
+  if (typeof VideoDecoder === "undefined") throw new UnsupportedError("this browser has no WebCodecs VideoDecoder, which the feature video (AV1) needs");
+  const abr = params.get("abr") ?? "dynamic";
+  if (!(abr in RULES)) throw new Error(`abr=${abr} is not a rule; known: ${Object.keys(RULES).join(", ")}`);
+  const size = params.get("size");
+  const sizeMatch = size ? /^(\d{1,5})x(\d{1,5})$/.exec(size) : null;
+  if (size && !sizeMatch) throw new Error(`size=${size} is not WIDTHxHEIGHT`);
+  const bg = (params.get("background") ?? "0,0,0").split(",").map(Number);
+  const options: PlayerOptions = {
+    abr, rung: null, bufferGops: Number(params.get("buffer") ?? 3) || 3,
+    background: [bg[0] || 0, bg[1] || 0, bg[2] || 0],
+    size: sizeMatch ? [Number(sizeMatch[1]), Number(sizeMatch[2])] : null,
+    syncTiming: params.get("timing") === "sync",
+    digests: params.get("debug") === "features",
+  };
+  const player = new Player(document.getElementById("view") as HTMLCanvasElement, assets, options);
+  window.stgsPlayer = player;
+  player.onError = showError;
+  const status = document.getElementById("status")!;
+  status.textContent = "loading…";
+  const quality = params.get("quality");
+  if (params.get("autoplay") === "0") player.paused = true;
+  await player.load(mpd);
+  const codec = player.manifest.rungs[0].codecs;
+  const side = 4 * player.manifest.shape.side;
+  const { supported } = await VideoDecoder.isConfigSupported({ codec, codedWidth: side, codedHeight: side });
+  if (!supported) throw new UnsupportedError(`this browser's WebCodecs cannot decode ${codec} (AV1 10-bit), which the feature video needs`);
+  if (quality !== null && quality !== "auto") {
+    const rung = player.manifest.rungs.findIndex((r) => r.id === quality);
+    if (rung < 0) throw new Error(`quality=${quality} is not a rung; the scene has ${player.manifest.rungs.map((r) => r.id).join(", ")}`);
+    player.options.rung = rung;
+    player.setRung(rung);
+  }
+  const camera = params.get("camera");
+  if (camera !== null) {
+    const index = player.cameras.findIndex((c) => c.name === camera);
+    if (index < 0) throw new Error(`camera=${camera} is not a camera of this scene`);
+    player.snapTo(index);
+  }
+  const gop = Number(params.get("gop") ?? 0);
+  if (gop > 0) player.seek(gop);
+  bindControls(player);
+  status.textContent = "";
+  document.getElementById("view")!.focus();
+}
+
+async function listScenes(): Promise<void> {
+  const status = document.getElementById("status")!;
+  try {
+    const response = await fetch(new URL("../scenes", location.href), { credentials: "omit" });
+    const { scenes } = (await response.json()) as { scenes: { name: string; manifest: string; error?: string }[] };
+    const list = document.createElement("ul");
+    list.setAttribute("aria-label", "Scenes");
+    for (const s of scenes) {
+      const item = document.createElement("li");
+      const link = document.createElement("a");
+      link.href = `?mpd=${encodeURIComponent(new URL(s.manifest, location.href).href)}`;
+      link.textContent = s.name === "." ? "scene" : s.name;
+      item.append(link, s.error ? ` (${s.error})` : "");
+      list.append(item);
+    }
+    document.getElementById("error")!.replaceChildren(list);
+    document.getElementById("error")!.hidden = false;
+  } catch {
+    showError("no manifest: open this page with ?mpd=URL of a scene's manifest.mpd");
+  }
+  status.textContent = "";
+}
+
+main().catch((err) => showError(describe(err)));

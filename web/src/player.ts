@@ -1,0 +1,325 @@
+// The player: loads a manifest and what sits beside it, streams GOPs through the downloader and the decoders,
+// and presents frames on the wall clock: the frame the clock asks for is shown if its keyframe and feature
+// window are here, frames it passed are dropped, and only when nothing new is ready does the clock stop (a
+// stall). Each shown frame: deform the dynamic layer (GPU), read back its means, depth-sort both layers
+// (worker), splat (GPU).
+import { DEFAULT_SETTINGS, type Decision, makeRule } from "./abr/index";
+import { SPECS, staticMetadata, imageTensors, SH1_SPECS } from "./container";
+import { type SceneCamera, ViewerCamera, parseSceneCameras, sceneCenter, sceneUp } from "./camera";
+import { describe } from "./errors";
+import * as L from "./limits";
+import { type Manifest, parseManifest } from "./manifest";
+import { UrlPolicy } from "./urlpolicy";
+import { DeformPass } from "./render/deform";
+import { createContext } from "./render/gl";
+import { SplatPass, type StaticTextures, cameraCenter, staticTextures } from "./render/splat";
+import { Downloader, type GopDownload } from "./stream/downloader";
+import { fetchJson, fetchStream } from "./stream/fetch";
+import { FeatureRing } from "./stream/ring";
+import { type Assets, FeatureDecoder, KeyframePool, Sorter } from "./stream/workers";
+import { guardLimits } from "./sort";
+import { PlayerStats } from "./stats";
+import type { DecodedSegment } from "./workers/keyframe.worker";
+
+export interface PlayerOptions {
+  abr: string;
+  /** Pinned rung index, or null for adaptive. */
+  rung: number | null;
+  bufferGops: number;
+  background: [number, number, number];
+  /** Fixed render size (else the canvas' CSS size x devicePixelRatio). */
+  size: [number, number] | null;
+  /** After each draw, wait for the GPU (exact per-stage times, for benchmarks). */
+  syncTiming: boolean;
+  /** Keep a SHA-256 of every decoded feature frame (tests). */
+  digests: boolean;
+}
+
+interface GopState {
+  download: GopDownload;
+  decoded: DecodedSegment | null;
+}
+
+export class Player {
+  manifest!: Manifest;
+  cameras: SceneCamera[] = [];
+  readonly camera = new ViewerCamera();
+  readonly stats = new PlayerStats();
+  readonly digests = new Map<string, string>();
+  private downloader!: Downloader;
+  private ring!: FeatureRing;
+  private features!: FeatureDecoder;
+  private keyframes!: KeyframePool;
+  private sorter!: Sorter;
+  private deform!: DeformPass;
+  private splat!: SplatPass;
+  private staticLayer: StaticTextures | null = null;
+  private readonly gops = new Map<number, GopState>();
+  private loadedGop = -1;
+  /** Last presented frame (global index), -1 before the first. */
+  current = -1;
+  private clockFrame = 0;
+  private clockStart = 0;
+  paused = false;
+  ended = false;
+  private started = false;
+  private busy = false;
+  private dirty = false;
+  /** `current` was presented since the last seek (so it can be drawn again when the camera moves). */
+  private presentable = false;
+  onError: (message: string) => void = () => undefined;
+  onDecision: (d: Decision, gop: number, rung: number) => void = () => undefined;
+
+  constructor(private readonly canvas: HTMLCanvasElement, private readonly assets: Assets, readonly options: PlayerOptions) {}
+
+  get totalFrames(): number {
+    return this.manifest.gops * this.manifest.shape.gopSize;
+  }
+
+  playheadS(): number {
+    return Math.max(0, this.current + 1) / this.manifest.fps;
+  }
+
+  async load(url: string): Promise<void> {
+    const start = performance.now();
+    const ctx = createContext(this.canvas);
+    const absolute = new URL(url, document.baseURI).href;
+    const text = await fetchStream(absolute, new UrlPolicy(absolute), L.MAX_MPD_BYTES, "manifest", null);
+    this.manifest = parseManifest(new TextDecoder().decode(text.data), absolute);
+    const m = this.manifest;
+    const stats = await fetchJson(m.statsUrl, m.policy, L.MAX_DOC_BYTES, "stats.json").catch(() => null);
+    try {
+      this.cameras = parseSceneCameras(await fetchJson(m.camerasUrl, m.policy, L.MAX_DOC_BYTES, "cameras.json"), L.MAX_PATH_CAMERAS);
+    } catch {
+      this.cameras = [];
+    }
+    this.camera.up = sceneUp(this.cameras);
+    this.camera.target = sceneCenter(this.cameras);
+    if (this.cameras.length) this.snapTo(0);
+    this.keyframes = new KeyframePool(this.assets, Math.max(1, Math.min(4, (navigator.hardwareConcurrency || 2) - 1)));
+    this.features = new FeatureDecoder(this.assets);
+    this.sorter = new Sorter(this.assets);
+    this.features.onFrame = (f) => {
+      if (this.options.digests) void crypto.subtle.digest("SHA-256", f.data).then((d) => this.digests.set(`${f.gop}:${f.index}`,
+        Array.from(new Uint8Array(d), (b) => b.toString(16).padStart(2, "0")).join("")));
+      this.ring.add(f);
+    };
+    this.features.onError = (_gop, err) => this.fail(err);
+    this.ring = new FeatureRing(this.features, Math.max(8, 2 * m.shape.window + 2));
+    this.deform = new DeformPass(ctx.gl, m.shape, this.ring.capacity + m.shape.window);
+    this.splat = new SplatPass(ctx.gl, ctx.floatBlend);
+    this.stats.floatBlend = ctx.floatBlend;
+    if (m.staticLayer) {
+      const s = m.staticLayer;
+      const maxBytes = Math.min(L.MAX_SEGMENT_BYTES, Math.ceil(s.bandwidth / 8 * m.durationS * L.SEGMENT_SLACK) + 4096);
+      const got = await fetchStream(s.url, m.policy, maxBytes, "static-layer segment", null);
+      const specs = s.shDegree ? [...SPECS, ...SH1_SPECS] : SPECS;
+      const decoded = await this.keyframes.decode({ data: got.data, what: "static-layer", metadata: staticMetadata(s.capacity, s.side, s.shDegree),
+        want: [...imageTensors(specs)], side: s.side, shDegree: s.shDegree, maxBytes });
+      this.staticLayer = staticTextures(ctx.gl, decoded.attributes, s.capacity, s.side, s.shDegree);
+      const positions = new Float32Array(4 * s.capacity);
+      const tex = decoded.attributes;
+      for (let i = 0; i < s.capacity; i++) {
+        positions.set(tex.position.subarray(3 * i, 3 * i + 3), 4 * i);
+        positions[4 * i + 3] = 1 / (1 + Math.exp(-tex.opacity[i]));
+      }
+      this.sorter.setStatic(positions);
+      this.stats.staticMs = decoded.ms;
+    }
+    const settings = DEFAULT_SETTINGS;
+    this.downloader = new Downloader(m, makeRule(this.options.abr, settings), settings, this.features, this.keyframes,
+      this.options.bufferGops * m.gopSeconds, stats, {
+        playheadS: () => this.playheadS(),
+        playing: () => this.started,
+        onGop: (d) => this.onGop(d),
+        onError: (e) => this.fail(e),
+      });
+    this.downloader.pinned = this.options.rung;
+    this.stats.loadMs = performance.now() - start;
+    this.seek(0);
+    requestAnimationFrame((t) => this.tick(t));
+  }
+
+  private fail(err: unknown): void {
+    this.paused = true;
+    this.downloader?.stop();
+    this.onError(describe(err));
+  }
+
+  private onGop(d: GopDownload): void {
+    const state: GopState = { download: d, decoded: null };
+    this.gops.set(d.gop, state);
+    this.stats.onGop(d, this.manifest.rungs[d.rung].id);
+    this.onDecision(d.decision, d.gop, d.rung);
+    d.keyframe.then((k) => {
+      state.decoded = k;
+      this.stats.keyframeMs = k.ms;
+    }, (e) => this.fail(e));
+  }
+
+  snapTo(index: number): void {
+    const cam = this.cameras[index];
+    if (!cam) return;
+    const center = sceneCenter(this.cameras);
+    const v = cam.viewmat;
+    const c = cameraCenter(v.flat());
+    const dist = Math.max(0.1, Math.hypot(center[0] - c[0], center[1] - c[1], center[2] - c[2]));
+    this.camera.snap(cam, dist);
+    this.dirty = true;
+  }
+
+  invalidate(): void {
+    this.dirty = true;
+  }
+
+  setRung(rung: number | null): void {
+    this.downloader.pinned = rung;
+  }
+
+  /** Jump to GOP k: drop what is buffered and fetch from k on (only what k needs: its keyframe and features). */
+  seek(k: number): void {
+    const gop = Math.max(0, Math.min(this.manifest.gops - 1, k));
+    this.downloader.stop();
+    this.features.reset();
+    this.gops.clear();
+    this.deform.forget();
+    this.loadedGop = -1;
+    this.current = gop * this.manifest.shape.gopSize - 1;
+    this.clockFrame = this.current + 1;
+    this.clockStart = -1;
+    this.started = false;
+    this.ended = false;
+    this.presentable = false;
+    this.stats.seekStart = performance.now();
+    this.ring.start(gop);
+    this.downloader.start(gop);
+  }
+
+  togglePause(): void {
+    this.paused = !this.paused;
+    if (!this.paused) {
+      if (this.ended) this.seek(0);
+      this.clockFrame = this.current + 1;
+      this.clockStart = -1;
+    }
+  }
+
+  /** Pause and show presentation frame `frame` (seeking to its GOP unless it is ahead in the current one) once
+   * its data is here: what the tests and the benchmark use to look at one exact frame. */
+  async showFrame(frame: number, timeoutMs = 60000): Promise<{ gop: number; frame: number }> {
+    const G = this.manifest.shape.gopSize;
+    const k = Math.floor(frame / G);
+    this.paused = true;
+    if (frame < this.current || Math.floor(Math.max(0, this.current + 1) / G) !== k) this.seek(k);
+    this.ring.release(k, frame % G);
+    const until = performance.now() + timeoutMs;
+    while (!this.ready(frame) || this.busy) {
+      if (performance.now() > until) throw new Error(`frame ${frame} did not arrive within ${timeoutMs} ms`);
+      await new Promise((r) => setTimeout(r, 20));
+    }
+    this.busy = true;
+    try {
+      await this.present(frame, performance.now());
+    } finally {
+      this.busy = false;
+    }
+    return { gop: k, frame: frame % G };
+  }
+
+  /** The canvas as a PNG data URL (the last presented frame). */
+  capture(): string {
+    return this.canvas.toDataURL("image/png");
+  }
+
+  private ready(frame: number): boolean {
+    const G = this.manifest.shape.gopSize;
+    const k = Math.floor(frame / G);
+    return this.gops.get(k)?.decoded != null && this.ring.has(k, frame % G, this.manifest.shape.window);
+  }
+
+  private async tick(now: number): Promise<void> {
+    requestAnimationFrame((t) => this.tick(t));
+    if (this.busy || !this.manifest) return;
+    let next = -1;
+    if (!this.paused && !this.ended) {
+      if (this.clockStart < 0 && this.ready(this.clockFrame)) this.clockStart = now;
+      const due = this.clockStart < 0 ? this.clockFrame : this.clockFrame + Math.floor(((now - this.clockStart) / 1e3) * this.manifest.fps);
+      const target = Math.min(due, this.totalFrames - 1);
+      for (let f = target; f > this.current; f--) {
+        if (this.ready(f)) {
+          next = f;
+          break;
+        }
+      }
+      if (next < 0 && target > this.current && this.clockStart >= 0) {
+        // nothing new is here: the clock stops at the next frame (a stall)
+        this.stats.stalled(now);
+        this.clockFrame = this.current + 1;
+        this.clockStart = -1;
+      }
+    }
+    if (next < 0 && !(this.dirty && this.presentable)) return;
+    const frame = next >= 0 ? next : this.current;
+    this.busy = true;
+    try {
+      await this.present(frame, now);
+    } catch (err) {
+      this.fail(err);
+    } finally {
+      this.busy = false;
+    }
+  }
+
+  private async present(frame: number, now: number): Promise<void> {
+    const G = this.manifest.shape.gopSize;
+    const W = this.manifest.shape.window;
+    const k = Math.floor(frame / G);
+    const i = frame % G;
+    if (frame !== this.current) {
+      this.stats.presented(now, frame - this.current - 1, this.started);
+      if (!this.started) {
+        this.started = true;
+        this.stats.started(now);
+      }
+      this.current = frame;
+      if (frame === this.totalFrames - 1) this.ended = true;
+    }
+    this.dirty = false;
+    this.presentable = true;
+    const state = this.gops.get(k)!;
+    if (this.loadedGop !== k) {
+      this.deform.loadGop(state.decoded!.attributes, state.decoded!.floats);
+      this.loadedGop = k;
+      for (const old of this.gops.keys()) if (old < k) this.gops.delete(old);
+    }
+    const [w, h] = this.renderSize();
+    if (this.canvas.width !== w || this.canvas.height !== h) [this.canvas.width, this.canvas.height] = [w, h];
+    const view = this.camera.view(w, h);
+    const t0 = performance.now();
+    const layers = Array.from({ length: W }, (_, j) => this.deform.layer(k, i + j, () => this.ring.get(k, i + j)!));
+    this.deform.run(i, layers, cameraCenter(view.viewmat));
+    const side = this.manifest.shape.side;
+    const means = new Float32Array(4 * side * side);
+    this.deform.readMeans(means);
+    const t1 = performance.now();
+    const [fx, , cx, fy, cy] = view.K;
+    const { order, ms } = await this.sorter.sort(means, view.viewmat, guardLimits(fx, cx, fy, cy, w, h));
+    const t2 = performance.now();
+    this.splat.draw(view, order, order.length, this.staticLayer, this.deform.outputs, side, this.options.background);
+    if (this.options.syncTiming) this.deform.sync();
+    const t3 = performance.now();
+    this.ring.release(k, i);
+    this.stats.frame(t1 - t0, ms, t2 - t1, t3 - t2, this.ring.copyMs, order.length);
+    this.stats.shown = { gop: k, frame: i };
+  }
+
+  renderSize(): [number, number] {
+    if (this.options.size) return this.options.size;
+    const dpr = Math.min(2, window.devicePixelRatio || 1);
+    return [Math.max(1, Math.round(this.canvas.clientWidth * dpr)), Math.max(1, Math.round(this.canvas.clientHeight * dpr))];
+  }
+
+  bufferS(): number {
+    return Math.max(0, this.downloader.downloadedUntilS - this.playheadS());
+  }
+}

@@ -1,0 +1,137 @@
+// The viewer's controls: orbit and fly with mouse, touch and keys; play/pause, seek bar, quality menu, scene
+// cameras, stats overlay, full screen, and the error panel. Every control is a native, focusable element.
+import type { Player } from "./player";
+
+const $ = <T extends HTMLElement>(id: string) => document.getElementById(id) as T;
+
+export function showError(message: string): void {
+  const panel = $("error");
+  panel.textContent = message;
+  panel.hidden = false;
+}
+
+export function bindControls(player: Player): void {
+  const canvas = $<HTMLCanvasElement>("view");
+  const play = $<HTMLButtonElement>("play");
+  const seek = $<HTMLInputElement>("seek");
+  const time = $<HTMLOutputElement>("time");
+  const quality = $<HTMLSelectElement>("quality");
+  const camera = $<HTMLSelectElement>("camera");
+  const statsToggle = $<HTMLButtonElement>("stats-toggle");
+  const stats = $<HTMLPreElement>("stats");
+  const m = player.manifest;
+
+  seek.max = String(m.gops - 1);
+  m.rungs.forEach((r, i) => quality.add(new Option(`${r.id} (${Math.round(r.bandwidth / 1e3)} kbit/s)`, String(i))));
+  if (player.options.rung !== null) quality.value = String(player.options.rung);
+  player.cameras.forEach((c, i) => camera.add(new Option(c.name, String(i))));
+  if (player.cameras.length) camera.value = "0";
+
+  const togglePause = () => {
+    player.togglePause();
+    play.textContent = player.paused ? "Play" : "Pause";
+    play.setAttribute("aria-label", player.paused ? "Play" : "Pause");
+  };
+  const seekTo = (k: number) => {
+    player.seek(k);
+    seek.value = String(k);
+  };
+  const toggleStats = () => {
+    stats.hidden = !stats.hidden;
+    statsToggle.setAttribute("aria-pressed", String(!stats.hidden));
+  };
+  const fullscreen = () => {
+    if (document.fullscreenElement) void document.exitFullscreen();
+    else void $("player").requestFullscreen?.();
+  };
+  const snap = (i: number) => {
+    if (i >= player.cameras.length) return;
+    player.snapTo(i);
+    camera.value = String(i);
+  };
+  const moved = () => {
+    camera.value = "";
+    player.invalidate();
+  };
+
+  play.onclick = togglePause;
+  seek.onchange = () => seekTo(Number(seek.value));
+  quality.onchange = () => player.setRung(quality.value === "auto" ? null : Number(quality.value));
+  camera.onchange = () => (camera.value === "" ? moved() : snap(Number(camera.value)));
+  statsToggle.onclick = toggleStats;
+  $<HTMLButtonElement>("fullscreen").onclick = fullscreen;
+
+  const pointers = new Map<number, { x: number; y: number }>();
+  canvas.addEventListener("pointerdown", (e) => {
+    canvas.setPointerCapture(e.pointerId);
+    pointers.set(e.pointerId, { x: e.clientX, y: e.clientY });
+  });
+  const release = (e: PointerEvent) => pointers.delete(e.pointerId);
+  canvas.addEventListener("pointerup", release);
+  canvas.addEventListener("pointercancel", release);
+  canvas.addEventListener("pointermove", (e) => {
+    const last = pointers.get(e.pointerId);
+    if (!last) return;
+    const dx = e.clientX - last.x;
+    const dy = e.clientY - last.y;
+    if (pointers.size === 2) {
+      const [a, b] = [...pointers.values()];
+      const before = Math.hypot(a.x - b.x, a.y - b.y);
+      pointers.set(e.pointerId, { x: e.clientX, y: e.clientY });
+      const [c, d] = [...pointers.values()];
+      player.camera.zoom(before / Math.max(1, Math.hypot(c.x - d.x, c.y - d.y)));
+    } else if (e.shiftKey || e.buttons === 2 || e.buttons === 4) {
+      pointers.set(e.pointerId, { x: e.clientX, y: e.clientY });
+      player.camera.fly(0, -dx / 20, dy / 20);
+    } else {
+      pointers.set(e.pointerId, { x: e.clientX, y: e.clientY });
+      player.camera.orbit(-dx * 0.005, dy * 0.005);
+    }
+    moved();
+  });
+  canvas.addEventListener("contextmenu", (e) => e.preventDefault());
+  canvas.addEventListener("wheel", (e) => {
+    e.preventDefault();
+    player.camera.zoom(Math.exp(e.deltaY * 0.001));
+    moved();
+  }, { passive: false });
+
+  const flyKeys: Record<string, [number, number, number]> = { w: [1, 0, 0], s: [-1, 0, 0], a: [0, -1, 0], d: [0, 1, 0], q: [0, 0, -1], e: [0, 0, 1] };
+  document.addEventListener("keydown", (e) => {
+    const target = e.target as HTMLElement;
+    if (e.ctrlKey || e.metaKey || e.altKey || ["INPUT", "SELECT", "TEXTAREA"].includes(target.tagName)) return;
+    const key = e.key.toLowerCase();
+    const G = m.shape.gopSize;
+    const gop = Math.floor(Math.max(0, player.current) / G);
+    if (key === " " && target.tagName !== "BUTTON") togglePause();
+    else if (key === ",") seekTo(Math.max(0, gop - 1));
+    else if (key === ".") seekTo(Math.min(m.gops - 1, gop + 1));
+    else if (key === "arrowleft") player.camera.orbit(0.05, 0);
+    else if (key === "arrowright") player.camera.orbit(-0.05, 0);
+    else if (key === "arrowup") player.camera.orbit(0, 0.05);
+    else if (key === "arrowdown") player.camera.orbit(0, -0.05);
+    else if (key === "+" || key === "=") player.camera.zoom(0.9);
+    else if (key === "-") player.camera.zoom(1 / 0.9);
+    else if (key in flyKeys) player.camera.fly(...flyKeys[key]);
+    else if (key === "c") return snap((Number(camera.value || -1) + 1) % Math.max(1, player.cameras.length));
+    else if (/^[1-9]$/.test(key)) return snap(Number(key) - 1);
+    else if (key === "i") return toggleStats();
+    else if (key === "f") return fullscreen();
+    else return;
+    e.preventDefault();
+    if (key.startsWith("arrow") || key === "+" || key === "=" || key === "-" || key in flyKeys) moved();
+  });
+
+  const refresh = () => {
+    const shown = Math.max(0, player.current + 1);
+    time.value = `${(shown / m.fps).toFixed(2)} / ${m.durationS.toFixed(2)} s`;
+    if (document.activeElement !== seek) seek.value = String(Math.floor(Math.max(0, player.current) / m.shape.gopSize));
+    if (!stats.hidden) stats.textContent = player.stats.lines(player.bufferS()).join("\n");
+    if (player.ended && !player.paused) {
+      play.textContent = "Replay";
+      play.setAttribute("aria-label", "Replay");
+    }
+    setTimeout(refresh, 250);
+  };
+  refresh();
+}

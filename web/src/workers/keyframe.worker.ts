@@ -1,0 +1,80 @@
+// A keyframe decoder: one of a pool of workers that parse a keyframe or static-layer segment (container.ts),
+// decode its lossless JPEG XL images with jxl-oxide (WASM; 16-bit output, which the browsers' own JXL decoders
+// do not give) and dequantise them, so the main thread gets float attributes ready for the GPU.
+import { decode as decodePng } from "fast-png";
+import initJxl, { JxlImage } from "jxl-oxide-wasm";
+import { SPECS, SH1_SPECS, dequantize, readContainer, type AttributeSpec } from "../container";
+import { SegmentError } from "../errors";
+
+export interface DecodeJob {
+  id: number;
+  data: ArrayBuffer;
+  what: "keyframe" | "static-layer";
+  metadata: Record<string, string>;
+  want: [string, number[] | null][];
+  side: number;
+  shDegree: number;
+  maxBytes: number;
+}
+
+export interface DecodedSegment {
+  attributes: Record<string, Float32Array>;
+  /** Float tensors of the container (ranges and deformation weights) by name. */
+  floats: Record<string, Float32Array>;
+  ms: number;
+}
+
+let ready: Promise<unknown> | null = null;
+
+function decodeImage(bytes: Uint8Array, spec: AttributeSpec, side: number, what: string): Uint8Array | Uint16Array {
+  const image = new JxlImage();
+  try {
+    image.feedBytes(bytes);
+    // tryInit succeeds once the header is in; `loaded` only when every pass is (else a progressive partial image)
+    if (!image.tryInit() || !image.loaded) throw new SegmentError(`${what} image ${spec.name}: incomplete JPEG XL stream`);
+    if (image.width !== side || image.height !== side) {
+      throw new SegmentError(`${what} image ${spec.name} is ${image.width}x${image.height}, expected ${side}x${side}`);
+    }
+    const png = decodePng(image.render().encodeToPng());
+    const depth = spec.levels <= 256 ? 8 : 16;
+    if (png.width !== side || png.height !== side || png.channels !== spec.channels || png.depth !== depth) {
+      throw new SegmentError(`${what} image ${spec.name} is ${png.width}x${png.height}x${png.channels} at ${png.depth} bits, ` +
+        `expected ${side}x${side}x${spec.channels} at ${depth}`);
+    }
+    return png.data as Uint8Array | Uint16Array;
+  } finally {
+    image.free();
+  }
+}
+
+function run(job: DecodeJob): DecodedSegment {
+  const start = performance.now();
+  const tensors = readContainer(job.data, job.metadata, new Map(job.want), job.maxBytes, job.what);
+  const specs = job.shDegree ? [...SPECS, ...SH1_SPECS] : SPECS;
+  const attributes: Record<string, Float32Array> = {};
+  for (const spec of specs) {
+    const codes = decodeImage(tensors.get(`image.${spec.name}`) as Uint8Array, spec, job.side, job.what);
+    attributes[spec.name] = dequantize(spec, codes, tensors.get(`range.${spec.name}`) as Float32Array);
+  }
+  const floats: Record<string, Float32Array> = {};
+  for (const [name, t] of tensors) if (t instanceof Float32Array) floats[name] = t;
+  return { attributes, floats, ms: performance.now() - start };
+}
+
+self.onmessage = async (event: MessageEvent) => {
+  const msg = event.data as { init?: string; job?: DecodeJob };
+  if (msg.init) {
+    ready = initJxl({ module_or_path: msg.init });
+    return;
+  }
+  const job = msg.job!;
+  try {
+    await ready;
+    const out = run(job);
+    const transfer = [...Object.values(out.attributes), ...Object.values(out.floats)].map((a) => a.buffer as ArrayBuffer);
+    self.postMessage({ id: job.id, ok: out }, { transfer });
+  } catch (err) {
+    const message = err instanceof Error ? err.message : String(err);
+    self.postMessage({ id: job.id, error: message, kind: err instanceof SegmentError ? "segment" : "decode" });
+  }
+};
