@@ -258,6 +258,9 @@ export class Player {
         this.clockStart = -1;
       }
     }
+    if (this.paused && !this.presentable && this.clockFrame < this.totalFrames && this.ready(this.clockFrame)) {
+      next = this.clockFrame; // a seek while paused shows the new GOP's first frame
+    }
     if (next < 0 && !(this.dirty && this.presentable)) return;
     const frame = next >= 0 ? next : this.current;
     this.busy = true;

@@ -5,6 +5,7 @@
 //
 // PLAN: {"webgpu": bool, "viewport": [w, h], "steps": [...]}; each step one of
 //   {"goto": URL}                                   open a page (console errors and page errors are collected)
+//   {"initScript": JS}                              run before every page's own scripts (e.g. remove an API)
 //   {"click": SELECTOR} / {"press": KEY}            a click or a key press
 //   {"select": SELECTOR, "value": V}                choose an option
 //   {"wait": JS_EXPRESSION, "timeout": ms}          until the expression (evaluated in the page) is truthy
@@ -54,6 +55,7 @@ try {
   let cdp = null;
   for (const step of plan.steps) {
     if (step.goto) await page.goto(step.goto);
+    else if (step.initScript) await page.addInitScript(step.initScript);
     else if (step.click) await page.click(step.click);
     else if (step.press) await page.keyboard.press(step.press);
     else if (step.select) await page.selectOption(step.select, step.value);

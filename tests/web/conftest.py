@@ -1,0 +1,109 @@
+"""Shared by the web player's tests: a small layered scene packed with the browsers' AV1 set, the real `stgs serve`
+on loopback (which also serves the built player at /player/), and a driver for Debian's Chromium (web/tools/
+browse.mjs, playwright-core on the system binary)."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from stgs.packager import PackConfig, pack
+from stgs.synth import SynthConfig, synthesize
+
+WEB = Path(__file__).resolve().parents[2] / "web"
+DIST = WEB / "dist"
+CHROMIUM = shutil.which("chromium")
+NODE = shutil.which("node")
+
+WEB_SCENE = SynthConfig(grid_side=16, num_gops=10, gop_size=6, fps=12.0, width=96, height=72, num_cameras=3,
+                        fit_steps=60, effects=("rigid", "nonrigid", "color", "static_background"),
+                        static_grid_side=16)
+"""Ten half-second GOPs of a layered scene (a static layer of 256 Gaussians, a dynamic layer of 256)."""
+AV1_QPS = (16, 32, 41)
+
+
+def need_node() -> None:
+    if NODE is None:
+        pytest.skip("Node.js is not installed: the web player is not built")
+    if not (DIST / "index.html").is_file():
+        pytest.fail("web/dist is missing: ./bin/test builds the web player when Node is installed")
+
+
+def need_browser() -> None:
+    need_node()
+    if CHROMIUM is None:
+        pytest.skip("Debian's chromium is not installed (./bin/test installs it when root)")
+
+
+@pytest.fixture(scope="session")
+def web_root(tmp_path_factory) -> Path:
+    """ROOT with `small` (the scene), `broken` (its manifest not XML) and `foreign` (segments on another host)."""
+    base = tmp_path_factory.mktemp("web")
+    synthesize(WEB_SCENE, base / "model", progress=False)
+    root = base / "root"
+    pack(base / "model", root / "small", PackConfig(codecs=("av1",), av1_qps=AV1_QPS, jobs=2), progress=False)
+    shutil.copytree(root / "small", root / "broken")
+    (root / "broken" / "manifest.mpd").write_text("<MPD this is not xml")
+    shutil.copytree(root / "small", root / "foreign")
+    mpd = (root / "small" / "manifest.mpd").read_text()
+    foreign = re.sub(r'media="(v-[^"]*/keyframes/)', r'media="http://192.0.2.7/\1', mpd)
+    (root / "foreign" / "manifest.mpd").write_text(foreign)
+    return root
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="session")
+def served(web_root) -> str:
+    """The real `stgs serve ROOT` on loopback; yields its base URL (ends in /)."""
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "stgs.cli", "serve", str(web_root), "--port", str(port), "--quiet"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    base = f"http://127.0.0.1:{port}/"
+    deadline = time.monotonic() + 30
+    while True:
+        try:
+            urllib.request.urlopen(base + "healthz", timeout=1).read()
+            break
+        except OSError:
+            if proc.poll() is not None or time.monotonic() > deadline:
+                proc.kill()
+                raise RuntimeError(f"stgs serve did not start: {proc.stderr.read().decode()[-500:]}") from None
+            time.sleep(0.1)
+    yield base
+    os.killpg(proc.pid, signal.SIGTERM)
+    proc.wait(timeout=15)
+
+
+def browse(plan: dict, tmp_path: Path, timeout: float = 240) -> dict:
+    """Run a plan of browser steps (web/tools/browse.mjs) and return what it gathered; a failed step fails."""
+    need_browser()
+    path = tmp_path / f"plan-{time.monotonic_ns()}.json"
+    path.write_text(json.dumps(plan))
+    result = subprocess.run([NODE, str(WEB / "tools" / "browse.mjs"), str(path), CHROMIUM], capture_output=True,
+                            text=True, timeout=timeout)
+    out = json.loads(result.stdout) if result.stdout.strip() else {}
+    assert result.returncode == 0, \
+        f"{result.stderr.strip()} (console: {out.get('console')}, errors: {out.get('errors')})"
+    return out
+
+
+ERROR_TEXT = "document.getElementById('error').hidden ? null : document.getElementById('error').textContent"
+"""The error panel's text, or null while it is hidden."""
+LOADED = "window.stgsPlayer && stgsPlayer.manifest && document.getElementById('status').textContent === ''"
+"""The player has read the manifest and bound its controls."""

@@ -1,0 +1,182 @@
+"""The web player in a real headless Chromium (Debian's, SwiftShader's WebGL2) against `stgs serve` on loopback:
+playback from the catalogue link, parity with `stgs play` at a scene camera, the decoded features against the
+Python decode, seeking, a throttled link, bad manifests, a browser without WebCodecs, and a screenshot held to
+thresholds."""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import re
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+
+from stgs.codec.video import AV1, decode_segment
+from stgs.metrics import psnr
+from tests.web.conftest import ERROR_TEXT, LOADED, WEB_SCENE, browse
+
+FRAMES = WEB_SCENE.num_gops * WEB_SCENE.gop_size
+E = WEB_SCENE.gop_size + 3 - 1  # the feature frames of a GOP (window 3)
+SIDE = 4 * WEB_SCENE.grid_side
+STATE = ("({current: stgsPlayer.current, ended: stgsPlayer.ended, presented: stgsPlayer.stats.presentedFrames, "
+         "dropped: stgsPlayer.stats.dropped, stalls: stgsPlayer.stats.stalls, stallMs: stgsPlayer.stats.stallMs, "
+         "decisions: stgsPlayer.stats.decisions, shown: stgsPlayer.stats.shown})")
+
+
+def player(served: str, scene: str = "small", **params: str) -> str:
+    query = "&".join(f"{k}={v}" for k, v in params.items())
+    return f"{served}player/?mpd=/{scene}/manifest.mpd" + (f"&{query}" if query else "")
+
+
+def png(data_url: str) -> np.ndarray:
+    raw = np.frombuffer(base64.b64decode(data_url.split(",", 1)[1]), np.uint8)
+    return cv2.cvtColor(cv2.imdecode(raw, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB).astype(np.float32) / 255
+
+
+def test_the_demo_scene_plays_to_the_end_from_the_catalogue_link(served, tmp_path):
+    out = browse({"viewport": [360, 300], "steps": [
+        {"goto": served},
+        {"click": "a[href*='small']"},
+        {"wait": "window.stgsPlayer && stgsPlayer.ended", "timeout": 180000},
+        {"eval": STATE, "as": "state"},
+        {"eval": ERROR_TEXT, "as": "error"},
+    ]}, tmp_path)
+    state = out["results"]["state"]
+    assert out["results"]["error"] is None and "player/?mpd=" in out["url"]
+    assert state["current"] == FRAMES - 1
+    # every frame is presented or counted as dropped (SwiftShader renders slower than 12 fps: it drops)
+    assert state["presented"] + state["dropped"] == FRAMES
+    assert state["stalls"] == 0, f"stalled {state['stallMs']:.0f} ms on loopback"
+    assert [d["gop"] for d in state["decisions"]] == list(range(WEB_SCENE.num_gops))
+    assert all(d["reason"] for d in state["decisions"])
+    assert not [c for c in out["console"] if c["type"] == "error"] and not out["errors"]
+
+
+def test_a_frame_at_a_scene_camera_matches_stgs_play(served, tmp_path):
+    gop, frame = 3, 4
+    out = browse({"viewport": [360, 300], "steps": [
+        {"goto": player(served, camera="cam01", size="96x72", quality="av1q16", autoplay="0")},
+        {"wait": LOADED},
+        {"eval": f"stgsPlayer.showFrame({gop * WEB_SCENE.gop_size + frame})", "as": "shown"},
+        {"eval": "stgsPlayer.capture()", "as": "png"},
+    ]}, tmp_path)
+    assert out["results"]["shown"] == {"gop": gop, "frame": frame}
+    web = png(out["results"]["png"])
+    start = gop * WEB_SCENE.gop_size / WEB_SCENE.fps
+    result = subprocess.run([sys.executable, "-m", "stgs.cli", "play", served + "small/manifest.mpd", "--codec", "av1",
+                             "--qp", "16", "--camera", "cam01", "--start", str(start), "--duration",
+                             str((frame + 1) / WEB_SCENE.fps), "--out", str(tmp_path / "ref")],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    ref = cv2.cvtColor(cv2.imread(str(tmp_path / "ref" / f"{gop * WEB_SCENE.gop_size + frame:05d}.png")),
+                       cv2.COLOR_BGR2RGB).astype(np.float32) / 255
+    assert web.shape == ref.shape == (72, 96, 3)
+    assert ref.std() > 0.05  # a real image, not a flat one that any renderer matches
+    import torch
+    assert psnr(torch.from_numpy(web), torch.from_numpy(ref)) >= 40.0
+
+
+def test_the_pages_feature_frames_equal_the_python_decode(served, web_root, tmp_path):
+    gop = 2
+    out = browse({"viewport": [360, 300], "steps": [
+        {"goto": player(served, size="64x48", quality="av1q32", autoplay="0", debug="features")},
+        {"wait": LOADED},
+        {"eval": f"stgsPlayer.showFrame({gop * WEB_SCENE.gop_size + WEB_SCENE.gop_size - 1})", "as": "shown"},
+        {"wait": f"[...Array({E}).keys()].every(e => stgsPlayer.digests.has('{gop}:' + e))"},
+        {"eval": f"[...Array({E}).keys()].map(e => stgsPlayer.digests.get('{gop}:' + e))", "as": "digests"},
+    ]}, tmp_path)
+    folder = next((web_root / "small").glob("v-*/features/av1q32"))
+    frames = decode_segment((folder / "init.mp4").read_bytes(), (folder / f"seg_{gop:05d}.m4s").read_bytes(), E, SIDE,
+                            SIDE, codec=AV1)
+    assert np.ptp(frames) > 100
+    assert out["results"]["digests"] == [hashlib.sha256(f.astype("<u2").tobytes()).hexdigest() for f in frames]
+
+
+def test_a_seek_lands_on_the_asked_gop_and_fetches_only_from_it(served, tmp_path):
+    out = browse({"viewport": [360, 300], "steps": [
+        {"goto": player(served, autoplay="0", size="64x48")},
+        {"wait": LOADED},
+        {"wait": "stgsPlayer.stats.shown !== null"},
+        {"eval": "(performance.clearResourceTimings(), 1)", "as": "_"},
+        {"eval": "(() => { const s = document.getElementById('seek'); s.value = '7'; "
+                 "s.dispatchEvent(new Event('change')); return 1; })()", "as": "_"},
+        {"wait": "stgsPlayer.stats.shown && stgsPlayer.stats.shown.gop === 7"},
+        {"eval": "performance.getEntriesByType('resource').map(e => e.name)", "as": "fetched"},
+        {"eval": STATE, "as": "state"},
+    ]}, tmp_path)
+    assert out["results"]["state"]["shown"] == {"gop": 7, "frame": 0}
+    keyframes = sorted(int(n[-10:-5]) for n in out["results"]["fetched"] if "/keyframes/gop_" in n)
+    assert keyframes and keyframes[0] == 7
+
+
+def test_a_throttled_link_makes_the_abr_go_down_within_a_bounded_stall(served, web_root, tmp_path):
+    # A link of (keyframe + lowest rung) / 0.85: the lowest rung fits with room to spare, the top one does not fit
+    # in the throughput rule's budget (0.9 x the estimate, less the round trips).
+    mpd = (web_root / "small" / "manifest.mpd").read_text()
+    keyframe = int(re.search(r'id="keyframes" bandwidth="(\d+)"', mpd)[1])
+    ladder = sorted(int(b) for b in re.findall(r'id="av1q\d+" bandwidth="(\d+)"', mpd))
+    kbps = (keyframe + ladder[0]) / 0.85 / 1e3
+    assert 0.9 * kbps * 1e3 < keyframe + ladder[-1]
+    out = browse({"viewport": [360, 300], "steps": [
+        {"goto": served + "healthz"},
+        {"throttle": {"kbps": kbps, "latencyMs": 40}},
+        {"goto": player(served, size="64x48", abr="throughput")},
+        {"wait": "window.stgsPlayer && stgsPlayer.ended", "timeout": 180000},
+        {"eval": STATE, "as": "state"},
+    ]}, tmp_path)
+    state = out["results"]["state"]
+    rungs = [d["rung"] for d in state["decisions"]]
+    assert "av1q16" not in rungs[1:], rungs  # never the top rung once the throughput is measured
+    assert rungs[0] == "av1q41" and len(rungs) == WEB_SCENE.num_gops
+    total_s = FRAMES / WEB_SCENE.fps
+    assert state["stallMs"] / 1e3 <= 0.5 * total_s, f"stalled {state['stallMs']:.0f} ms of a {total_s:.0f} s scene"
+
+
+def test_bad_manifests_show_the_error_panel(served, tmp_path):
+    out = browse({"viewport": [360, 300], "steps": [
+        {"goto": player(served, scene="broken")},
+        {"wait": ERROR_TEXT},
+        {"eval": ERROR_TEXT, "as": "broken"},
+        {"goto": player(served, scene="foreign")},
+        {"wait": ERROR_TEXT},
+        {"eval": ERROR_TEXT, "as": "foreign"},
+        {"goto": player(served, scene="missing")},
+        {"wait": ERROR_TEXT},
+        {"eval": ERROR_TEXT, "as": "missing"},
+    ]}, tmp_path)
+    r = out["results"]
+    assert r["broken"].startswith("ManifestError: the manifest is not XML")
+    assert r["foreign"].startswith("RefusedUrlError: host 192.0.2.7 is neither the manifest's")
+    assert r["missing"].startswith("FetchError: manifest:") and "404" in r["missing"]
+
+
+def test_a_browser_without_webcodecs_says_so(served, tmp_path):
+    out = browse({"viewport": [360, 300], "steps": [
+        {"initScript": "delete window.VideoDecoder"},
+        {"goto": player(served)},
+        {"wait": ERROR_TEXT},
+        {"eval": ERROR_TEXT, "as": "error"},
+    ]}, tmp_path)
+    assert out["results"]["error"].startswith("UnsupportedError: this browser has no WebCodecs VideoDecoder")
+
+
+SCREENSHOT_MIN_STD = 0.04
+"""A mid-playback frame is a picture, not a flat fill: its pixels' standard deviation is at least this ..."""
+SCREENSHOT_MIN_LIT = 0.5
+"""... and at least this share of it is not the black background (the static layer fills the view)."""
+
+
+def test_a_mid_playback_screenshot_holds_its_thresholds(served, tmp_path):
+    shot = tmp_path / "web.png"
+    browse({"viewport": [360, 300], "steps": [
+        {"goto": player(served, camera="cam00")},
+        {"wait": LOADED},
+        {"wait": f"stgsPlayer.current >= {FRAMES // 2}", "timeout": 120000},
+        {"screenshot": str(shot), "selector": "#view"},
+    ]}, tmp_path)
+    image = cv2.imread(str(shot)).astype(np.float32) / 255
+    assert image.std() >= SCREENSHOT_MIN_STD
+    assert (image.max(axis=2) > 0.05).mean() >= SCREENSHOT_MIN_LIT
