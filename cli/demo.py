@@ -167,7 +167,33 @@ def run(out: Path, progress: bool = True, fit_steps: int | None = None) -> int:
           f"({summary['render_fps']:.0f} fps)")
     print(f"wrote {orbit}, {out / 'contact_sheet.png'}, {out / 'compare.png'}, {out / 'playback.json'}, "
           f"{out / 'summary.json'}")
+    web_screenshot(out / "dash", out / "web.png")
+    print(f"watch it in a browser and fly the camera yourself: stgs serve {out / 'dash'}  then open "
+          f"http://127.0.0.1:8080/player/?mpd=/{MANIFEST}")
     return 0
+
+
+def web_screenshot(tree: Path, png: Path) -> None:
+    """The web player mid-playback in headless Chromium, saved to `png` (where Node, the built player and
+    Chromium are here; else one line says why not)."""
+    from stgs.cli.browser import browse, missing_browser, served
+
+    why = missing_browser()
+    if why:
+        print(f"web player screenshot skipped: {why}")
+        return
+    with served(tree) as base:
+        _, failure = browse({"viewport": [800, 560], "steps": [
+            {"goto": f"{base}player/?mpd=/{MANIFEST}&camera=cam00"},
+            {"wait": "window.stgsPlayer && stgsPlayer.current >= stgsPlayer.totalFrames / 2", "timeout": 300_000},
+            {"press": "i"},
+            {"sleep": 600},
+            {"screenshot": str(png)},
+        ]})
+    if failure:
+        print(f"web player screenshot failed: {failure}")
+    else:
+        print(f"web player mid-playback: {png}")
 
 
 def model_capacity(model_dir: Path) -> int:

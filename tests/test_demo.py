@@ -42,6 +42,14 @@ def test_demo_streams_the_default_scene_end_to_end(tmp_path):
     for rid in two:  # the backdrop sent once costs less than in every GOP
         assert two[rid]["kb_per_frame"] < one[rid]["kb_per_frame"]
     assert "format 2 (static layer sent once) vs format 1" in result.stdout
+    assert "/player/?mpd=/manifest.mpd" in result.stdout  # how to watch it in a browser
+    from stgs.cli.browser import missing_browser
+
+    if missing_browser() is None:  # the web player mid-playback, where Chromium is here
+        shot = cv2.imread(str(out / "web.png"))
+        assert shot is not None and shot.std() > 5
+    else:
+        assert "web player screenshot skipped" in result.stdout
 
 
 def test_bench_render_smoke():

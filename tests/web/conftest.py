@@ -4,24 +4,18 @@ browse.mjs, playwright-core on the system binary)."""
 
 from __future__ import annotations
 
-import json
-import os
 import re
 import shutil
-import signal
-import socket
-import subprocess
-import sys
-import time
-import urllib.request
 from pathlib import Path
 
 import pytest
 
+from stgs.cli.browser import WEB
+from stgs.cli.browser import browse as run_plan
+from stgs.cli.browser import served as serve_root
 from stgs.packager import PackConfig, pack
 from stgs.synth import SynthConfig, synthesize
 
-WEB = Path(__file__).resolve().parents[2] / "web"
 DIST = WEB / "dist"
 CHROMIUM = shutil.which("chromium")
 NODE = shutil.which("node")
@@ -62,44 +56,18 @@ def web_root(tmp_path_factory) -> Path:
     return root
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(scope="session")
 def served(web_root) -> str:
     """The real `stgs serve ROOT` on loopback; yields its base URL (ends in /)."""
-    port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "stgs.cli", "serve", str(web_root), "--port", str(port), "--quiet"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
-    base = f"http://127.0.0.1:{port}/"
-    deadline = time.monotonic() + 30
-    while True:
-        try:
-            urllib.request.urlopen(base + "healthz", timeout=1).read()
-            break
-        except OSError:
-            if proc.poll() is not None or time.monotonic() > deadline:
-                proc.kill()
-                raise RuntimeError(f"stgs serve did not start: {proc.stderr.read().decode()[-500:]}") from None
-            time.sleep(0.1)
-    yield base
-    os.killpg(proc.pid, signal.SIGTERM)
-    proc.wait(timeout=15)
+    with serve_root(web_root) as base:
+        yield base
 
 
-def browse(plan: dict, tmp_path: Path, timeout: float = 240) -> dict:
+def browse(plan: dict, timeout: float = 240) -> dict:
     """Run a plan of browser steps (web/tools/browse.mjs) and return what it gathered; a failed step fails."""
     need_browser()
-    path = tmp_path / f"plan-{time.monotonic_ns()}.json"
-    path.write_text(json.dumps(plan))
-    result = subprocess.run([NODE, str(WEB / "tools" / "browse.mjs"), str(path), CHROMIUM], capture_output=True,
-                            text=True, timeout=timeout)
-    out = json.loads(result.stdout) if result.stdout.strip() else {}
-    assert result.returncode == 0, \
-        f"{result.stderr.strip()} (console: {out.get('console')}, errors: {out.get('errors')})"
+    out, failure = run_plan(plan, timeout)
+    assert failure is None, f"{failure} (console: {out.get('console')}, errors: {out.get('errors')})"
     return out
 
 

@@ -36,14 +36,14 @@ def png(data_url: str) -> np.ndarray:
     return cv2.cvtColor(cv2.imdecode(raw, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB).astype(np.float32) / 255
 
 
-def test_the_demo_scene_plays_to_the_end_from_the_catalogue_link(served, tmp_path):
+def test_the_demo_scene_plays_to_the_end_from_the_catalogue_link(served):
     out = browse({"viewport": [360, 300], "steps": [
         {"goto": served},
         {"click": "a[href*='small']"},
         {"wait": "window.stgsPlayer && stgsPlayer.ended", "timeout": 180000},
         {"eval": STATE, "as": "state"},
         {"eval": ERROR_TEXT, "as": "error"},
-    ]}, tmp_path)
+    ]})
     state = out["results"]["state"]
     assert out["results"]["error"] is None and "player/?mpd=" in out["url"]
     assert state["current"] == FRAMES - 1
@@ -62,7 +62,7 @@ def test_a_frame_at_a_scene_camera_matches_stgs_play(served, tmp_path):
         {"wait": LOADED},
         {"eval": f"stgsPlayer.showFrame({gop * WEB_SCENE.gop_size + frame})", "as": "shown"},
         {"eval": "stgsPlayer.capture()", "as": "png"},
-    ]}, tmp_path)
+    ]})
     assert out["results"]["shown"] == {"gop": gop, "frame": frame}
     web = png(out["results"]["png"])
     start = gop * WEB_SCENE.gop_size / WEB_SCENE.fps
@@ -79,7 +79,7 @@ def test_a_frame_at_a_scene_camera_matches_stgs_play(served, tmp_path):
     assert psnr(torch.from_numpy(web), torch.from_numpy(ref)) >= 40.0
 
 
-def test_the_pages_feature_frames_equal_the_python_decode(served, web_root, tmp_path):
+def test_the_pages_feature_frames_equal_the_python_decode(served, web_root):
     gop = 2
     out = browse({"viewport": [360, 300], "steps": [
         {"goto": player(served, size="64x48", quality="av1q32", autoplay="0", debug="features")},
@@ -87,7 +87,7 @@ def test_the_pages_feature_frames_equal_the_python_decode(served, web_root, tmp_
         {"eval": f"stgsPlayer.showFrame({gop * WEB_SCENE.gop_size + WEB_SCENE.gop_size - 1})", "as": "shown"},
         {"wait": f"[...Array({E}).keys()].every(e => stgsPlayer.digests.has('{gop}:' + e))"},
         {"eval": f"[...Array({E}).keys()].map(e => stgsPlayer.digests.get('{gop}:' + e))", "as": "digests"},
-    ]}, tmp_path)
+    ]})
     folder = next((web_root / "small").glob("v-*/features/av1q32"))
     frames = decode_segment((folder / "init.mp4").read_bytes(), (folder / f"seg_{gop:05d}.m4s").read_bytes(), E, SIDE,
                             SIDE, codec=AV1)
@@ -95,7 +95,7 @@ def test_the_pages_feature_frames_equal_the_python_decode(served, web_root, tmp_
     assert out["results"]["digests"] == [hashlib.sha256(f.astype("<u2").tobytes()).hexdigest() for f in frames]
 
 
-def test_a_seek_lands_on_the_asked_gop_and_fetches_only_from_it(served, tmp_path):
+def test_a_seek_lands_on_the_asked_gop_and_fetches_only_from_it(served):
     out = browse({"viewport": [360, 300], "steps": [
         {"goto": player(served, autoplay="0", size="64x48")},
         {"wait": LOADED},
@@ -106,13 +106,13 @@ def test_a_seek_lands_on_the_asked_gop_and_fetches_only_from_it(served, tmp_path
         {"wait": "stgsPlayer.stats.shown && stgsPlayer.stats.shown.gop === 7"},
         {"eval": "performance.getEntriesByType('resource').map(e => e.name)", "as": "fetched"},
         {"eval": STATE, "as": "state"},
-    ]}, tmp_path)
+    ]})
     assert out["results"]["state"]["shown"] == {"gop": 7, "frame": 0}
     keyframes = sorted(int(n[-10:-5]) for n in out["results"]["fetched"] if "/keyframes/gop_" in n)
     assert keyframes and keyframes[0] == 7
 
 
-def test_a_throttled_link_makes_the_abr_go_down_within_a_bounded_stall(served, web_root, tmp_path):
+def test_a_throttled_link_makes_the_abr_go_down_within_a_bounded_stall(served, web_root):
     # A link of (keyframe + lowest rung) / 0.85: the lowest rung fits with room to spare, the top one does not fit
     # in the throughput rule's budget (0.9 x the estimate, less the round trips).
     mpd = (web_root / "small" / "manifest.mpd").read_text()
@@ -126,7 +126,7 @@ def test_a_throttled_link_makes_the_abr_go_down_within_a_bounded_stall(served, w
         {"goto": player(served, size="64x48", abr="throughput")},
         {"wait": "window.stgsPlayer && stgsPlayer.ended", "timeout": 180000},
         {"eval": STATE, "as": "state"},
-    ]}, tmp_path)
+    ]})
     state = out["results"]["state"]
     rungs = [d["rung"] for d in state["decisions"]]
     assert "av1q16" not in rungs[1:], rungs  # never the top rung once the throughput is measured
@@ -135,7 +135,7 @@ def test_a_throttled_link_makes_the_abr_go_down_within_a_bounded_stall(served, w
     assert state["stallMs"] / 1e3 <= 0.5 * total_s, f"stalled {state['stallMs']:.0f} ms of a {total_s:.0f} s scene"
 
 
-def test_bad_manifests_show_the_error_panel(served, tmp_path):
+def test_bad_manifests_show_the_error_panel(served):
     out = browse({"viewport": [360, 300], "steps": [
         {"goto": player(served, scene="broken")},
         {"wait": ERROR_TEXT},
@@ -146,20 +146,20 @@ def test_bad_manifests_show_the_error_panel(served, tmp_path):
         {"goto": player(served, scene="missing")},
         {"wait": ERROR_TEXT},
         {"eval": ERROR_TEXT, "as": "missing"},
-    ]}, tmp_path)
+    ]})
     r = out["results"]
     assert r["broken"].startswith("ManifestError: the manifest is not XML")
     assert r["foreign"].startswith("RefusedUrlError: host 192.0.2.7 is neither the manifest's")
     assert r["missing"].startswith("FetchError: manifest:") and "404" in r["missing"]
 
 
-def test_a_browser_without_webcodecs_says_so(served, tmp_path):
+def test_a_browser_without_webcodecs_says_so(served):
     out = browse({"viewport": [360, 300], "steps": [
         {"initScript": "delete window.VideoDecoder"},
         {"goto": player(served)},
         {"wait": ERROR_TEXT},
         {"eval": ERROR_TEXT, "as": "error"},
-    ]}, tmp_path)
+    ]})
     assert out["results"]["error"].startswith("UnsupportedError: this browser has no WebCodecs VideoDecoder")
 
 
@@ -176,7 +176,7 @@ def test_a_mid_playback_screenshot_holds_its_thresholds(served, tmp_path):
         {"wait": LOADED},
         {"wait": f"stgsPlayer.current >= {FRAMES // 2}", "timeout": 120000},
         {"screenshot": str(shot), "selector": "#view"},
-    ]}, tmp_path)
+    ]})
     image = cv2.imread(str(shot)).astype(np.float32) / 255
     assert image.std() >= SCREENSHOT_MIN_STD
     assert (image.max(axis=2) > 0.05).mean() >= SCREENSHOT_MIN_LIT

@@ -115,11 +115,13 @@ export class ViewerCamera {
 
   view(width: number, height: number): View {
     if (this.pose) {
+      // the camera's view filling the canvas without distortion (one scale; at the camera's own size, its K)
       const c = this.pose;
-      const sx = width / c.width;
-      const sy = height / c.height;
+      const s = Math.max(width / c.width, height / c.height);
+      const dx = (width - c.width * s) / 2;
+      const dy = (height - c.height * s) / 2;
       return { viewmat: Float64Array.from(c.viewmat.flat()), width, height,
-        K: [c.K[0][0] * sx, c.K[0][1] * sx, c.K[0][2] * sx, c.K[1][1] * sy, c.K[1][2] * sy] };
+        K: [c.K[0][0] * s, c.K[0][1] * s, c.K[0][2] * s + dx, c.K[1][1] * s, c.K[1][2] * s + dy] };
     }
     const f = (0.5 * width) / Math.tan((this.fovX * Math.PI) / 360);
     return { viewmat: lookAt(this.eye(), this.target, this.up), width, height, K: [f, 0, width / 2, f, height / 2] };

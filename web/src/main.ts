@@ -1,4 +1,5 @@
-// The page's entry: options from the query string (?mpd=URL&abr=&quality=&camera=&size=WxH&autoplay=),
+// The page's entry: options from the query string (?mpd=URL&abr=&quality=&camera=&size=WxH&autoplay=&gop=
+// &buffer=GOPs&background=r,g,b; for tests and benchmarks timing=sync, debug=features, weights=uniform|texture),
 // the assets the build named, then the player and its controls. Without ?mpd it lists the scenes of the
 // server it came from (stgs serve's /scenes), when there is one.
 import { RULES } from "./abr/index";
@@ -31,7 +32,11 @@ async function main(): Promise<void> {
     size: sizeMatch ? [Number(sizeMatch[1]), Number(sizeMatch[2])] : null,
     syncTiming: params.get("timing") === "sync",
     digests: params.get("debug") === "features",
+    weights: null,
   };
+  const weights = params.get("weights");
+  if (weights !== null && weights !== "uniform" && weights !== "texture") throw new Error(`weights=${weights} is not uniform or texture`);
+  options.weights = weights;
   const player = new Player(document.getElementById("view") as HTMLCanvasElement, assets, options);
   window.stgsPlayer = player;
   player.onError = showError;

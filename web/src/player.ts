@@ -10,7 +10,7 @@ import { describe } from "./errors";
 import * as L from "./limits";
 import { type Manifest, parseManifest } from "./manifest";
 import { UrlPolicy } from "./urlpolicy";
-import { DeformPass } from "./render/deform";
+import { DeformPass, type WeightStorage } from "./render/deform";
 import { createContext } from "./render/gl";
 import { SplatPass, type StaticTextures, cameraCenter, staticTextures } from "./render/splat";
 import { Downloader, type GopDownload } from "./stream/downloader";
@@ -33,6 +33,8 @@ export interface PlayerOptions {
   syncTiming: boolean;
   /** Keep a SHA-256 of every decoded feature frame (tests). */
   digests: boolean;
+  /** Where the deformation weights live (null: a texture). */
+  weights: WeightStorage | null;
 }
 
 interface GopState {
@@ -106,7 +108,7 @@ export class Player {
     };
     this.features.onError = (_gop, err) => this.fail(err);
     this.ring = new FeatureRing(this.features, Math.max(8, 2 * m.shape.window + 2));
-    this.deform = new DeformPass(ctx.gl, m.shape, this.ring.capacity + m.shape.window);
+    this.deform = new DeformPass(ctx.gl, m.shape, this.ring.capacity + m.shape.window, this.options.weights ?? undefined);
     this.splat = new SplatPass(ctx.gl, ctx.floatBlend);
     this.stats.floatBlend = ctx.floatBlend;
     if (m.staticLayer) {

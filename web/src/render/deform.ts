@@ -6,6 +6,7 @@
 // RGBA32F texture (each matrix row padded to whole texels).
 import { FEATURE_DIM, HIDDEN, fieldShapes } from "../container";
 import type { SceneShape } from "../manifest";
+import { UnsupportedError } from "../errors";
 import { bindTextures, compile, floatTexture, framebuffer, rgba } from "./gl";
 
 const WEIGHT_TEXTURE_WIDTH = 1024;
@@ -39,8 +40,8 @@ const MATRICES: [string, string][] = [["temporal.weight", "mT"], ["d_pos.0.weigh
   ["d_cov.0.weight", "mC0"], ["d_cov.2.weight", "mC2"], ["d_opacity.0.weight", "mO0"], ["d_opacity.2.weight", "mO2"],
   ["d_color.0.weight", "mK0"], ["d_color.2.weight", "mK2"]];
 
-/** Where the weights live: one uniform block per matrix (fast; needs blocks of 64 KB on the scene's largest
- * matrix) or one float texture (any device). */
+/** Where the weights live: one uniform block per matrix (needs uniform blocks as large as the largest matrix,
+ * 17 KB at W = 3) or one float texture (any device). */
 export type WeightStorage = "uniform" | "texture";
 
 /** The fragment shader. Loops, not unrolled code: a fully unrolled field (about 5,000 dot products) crashed
@@ -177,7 +178,10 @@ export class DeformPass {
     const layout = packWeights(zeros, shape.window, shape.peFreqs);
     const largest = Math.max(...Object.values(shapes).map(([r, c]) => r * Math.ceil(c / 4) * 16));
     const fits = largest <= gl.getParameter(gl.MAX_UNIFORM_BLOCK_SIZE) && MATRICES.length <= gl.getParameter(gl.MAX_FRAGMENT_UNIFORM_BLOCKS);
-    this.storage = storage ?? (fits ? "uniform" : "texture");
+    if (storage === "uniform" && !fits) throw new UnsupportedError("the deformation weights do not fit this GPU's uniform blocks");
+    // a texture by default: as fast as uniform blocks on SwiftShader (docs/BENCHMARKS.md, "Web player") and it
+    // fits on every device
+    this.storage = storage ?? "texture";
     this.program = compile(gl, FULLSCREEN_VS, shader(shape, layout, this.storage));
     if (this.storage === "uniform") {
       MATRICES.forEach(([, id], binding) => {

@@ -1,0 +1,78 @@
+"""The web player from Python: `stgs serve` in a child process on a free loopback port, and Debian's Chromium
+driven through web/tools/browse.mjs (playwright-core on the system binary; never a downloaded browser). Used by
+`stgs demo` (its screenshot), the web benchmark and the browser tests."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+
+from stgs.errors import StgsError
+
+WEB = Path(__file__).resolve().parents[1] / "web"
+"""The web player's sources; its build is WEB / "dist"."""
+
+
+def missing_browser() -> str | None:
+    """Why the player cannot be driven here (no build, Node or Chromium), or None when it can."""
+    if shutil.which("node") is None:
+        return "Node.js is not installed"
+    if not (WEB / "dist" / "index.html").is_file():
+        return "the web player is not built (./bin/stgs builds it when Node is installed)"
+    if shutil.which("chromium") is None:
+        return "Debian's chromium is not installed"
+    return None
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@contextlib.contextmanager
+def served(root: Path, startup_s: float = 30.0) -> Iterator[str]:
+    """`stgs serve ROOT` on a free loopback port; yields its base URL (ends in /)."""
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "stgs.cli", "serve", str(root), "--port", str(port), "--quiet"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    base = f"http://127.0.0.1:{port}/"
+    try:
+        deadline = time.monotonic() + startup_s
+        while True:
+            try:
+                urllib.request.urlopen(base + "healthz", timeout=1).read()
+                break
+            except OSError:
+                if proc.poll() is not None or time.monotonic() > deadline:
+                    raise StgsError(f"stgs serve did not start: {proc.stderr.read().decode()[-300:]}") from None
+                time.sleep(0.1)
+        yield base
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGTERM)
+        proc.wait(timeout=15)
+
+
+def browse(plan: dict, timeout: float = 600) -> tuple[dict, str | None]:
+    """Run a plan of browser steps (web/tools/browse.mjs); returns what it gathered and the failure (None: ok)."""
+    with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as f:
+        json.dump(plan, f)
+    try:
+        result = subprocess.run(["node", str(WEB / "tools" / "browse.mjs"), f.name, shutil.which("chromium") or ""],
+                                capture_output=True, text=True, timeout=timeout)
+    finally:
+        os.unlink(f.name)
+    out = json.loads(result.stdout) if result.stdout.strip() else {}
+    return out, (result.stderr.strip() or "browse failed") if result.returncode else None
