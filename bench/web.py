@@ -2,7 +2,8 @@
 this machine's CPU cores): per-stage milliseconds (feature copy, deform + read-back, depth sort in its worker,
 splat + composite), frames per second, start-up and seek times, per packaged scene.
 
-    python -m bench.web TREE [TREE ...] [--size 640x360] [--quality top|lowest] [--frames 20] [--weights uniform]
+    python -m bench.web TREE [TREE ...] [--size 640x360] [--quality top|lowest] [--frames 20]
+        [--backend webgl2-texture|webgl2-uniform|webgpu ...]
 
 Each TREE is a packaged scene folder with an AV1 set. `stgs serve` offers them on loopback; the page shows
 each scene's first frames one by one at a scene camera with `timing=sync` (a one-pixel read after each draw, so
@@ -32,7 +33,11 @@ def run(plan: dict) -> dict:
     return out
 
 
-def measure(base: str, name: str, size: str, quality: str, frames: int, weights: str) -> dict:
+BACKENDS = {"webgl2-texture": "weights=texture", "webgl2-uniform": "weights=uniform", "webgpu": "deform=webgpu"}
+"""Deformation back ends: WebGL2 with the weights in a texture (the default) or in uniform blocks, WebGPU compute."""
+
+
+def measure(base: str, name: str, size: str, quality: str, frames: int, backend: str) -> dict:
     """Stage times over `frames` frames shown one by one (each presented: no frame is dropped), start-up (first
     frame after load) and a seek to the middle GOP (first frame after the seek), at the scene's first camera."""
     mpd = json.loads(urllib.request.urlopen(base + "scenes").read())["scenes"]
@@ -42,12 +47,12 @@ def measure(base: str, name: str, size: str, quality: str, frames: int, weights:
     rung = ladder[-1] if quality == "top" else ladder[0]
     cams = json.loads(urllib.request.urlopen(f"{base}{name}/cameras.json").read())["cameras"]
     url = (f"{base}player/?mpd=/{name}/manifest.mpd&timing=sync&size={size}&quality={rung}"
-           f"&camera={cams[0]['name']}&autoplay=0&weights={weights}")
+           f"&camera={cams[0]['name']}&autoplay=0&{BACKENDS[backend]}")
     middle = scene["gops"] // 2
     state = ("({times: s.frameTimes, startup: s.startupMs, keyframe: s.keyframeMs, copy: s.copyMs, "
              "visible: s.visible, capacity: p.manifest.shape.capacity, staticCount: p.manifest.staticLayer ? "
-             "p.manifest.staticLayer.capacity : 0, storage: p.deform.storage})")
-    out = run({"viewport": [900, 700], "steps": [
+             "p.manifest.staticLayer.capacity : 0, storage: p.deform.kind})")
+    out = run({"webgpu": True, "viewport": [900, 700], "steps": [
         {"goto": url},
         {"wait": "window.stgsPlayer && stgsPlayer.stats.shown !== null", "timeout": 600_000},
         {"eval": f"(async () => {{ for (let f = 1; f < {frames}; f++) await stgsPlayer.showFrame(f, 600000); "
@@ -78,8 +83,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("trees", nargs="+", type=Path)
     p.add_argument("--size", default="640x360")
     p.add_argument("--quality", choices=("top", "lowest"), default="top")
-    p.add_argument("--weights", choices=("uniform", "texture"), action="append",
-                   help="where the deformation weights live (repeat to compare; default: uniform)")
+    p.add_argument("--backend", choices=tuple(BACKENDS), action="append",
+                   help="deformation back end (repeat to compare; default: webgl2-texture)")
     p.add_argument("--frames", type=int, default=20, help="frames shown one by one per scene (default: 20)")
     args = p.parse_args(argv)
     if missing_browser():
@@ -89,10 +94,10 @@ def main(argv: list[str] | None = None) -> int:
         for tree in args.trees:
             shutil.copytree(tree, root / tree.resolve().name)  # the server follows no symlink out of its root
         with served(root) as base:
-            rows = [measure(base, tree.resolve().name, args.size, args.quality, args.frames, weights)
-                    for tree in args.trees for weights in (args.weights or ["uniform"])]
+            rows = [measure(base, tree.resolve().name, args.size, args.quality, args.frames, backend)
+                    for tree in args.trees for backend in (args.backend or ["webgl2-texture"])]
     print(f"Chromium: {rows[0]['agent']}\n")
-    print("| scene | Gaussians (static + dynamic) | drawn | size | weights | copy ms | deform + read-back ms | "
+    print("| scene | Gaussians (static + dynamic) | drawn | size | deformation | copy ms | deform + read-back ms | "
           "sort ms (worker; round trip) | draw ms | frame ms | fps | keyframe decode ms | start-up ms | seek ms |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:

@@ -13,6 +13,8 @@ import sys
 
 import cv2
 import numpy as np
+import pytest
+import torch
 
 from stgs.codec.video import AV1, decode_segment
 from stgs.metrics import psnr
@@ -55,10 +57,14 @@ def test_the_demo_scene_plays_to_the_end_from_the_catalogue_link(served):
     assert not [c for c in out["console"] if c["type"] == "error"] and not out["errors"]
 
 
-def test_a_frame_at_a_scene_camera_matches_stgs_play(served, tmp_path):
+@pytest.mark.parametrize("backend", ["weights=texture", "weights=uniform", "deform=webgpu"])
+def test_a_frame_at_a_scene_camera_matches_stgs_play(served, tmp_path, backend):
+    """Every deformation back end (WebGL2 with its weights in a texture or uniform blocks, WebGPU compute on
+    SwiftShader's Vulkan) against the CPU player's frame."""
     gop, frame = 3, 4
-    out = browse({"viewport": [360, 300], "steps": [
-        {"goto": player(served, camera="cam01", size="96x72", quality="av1q16", autoplay="0")},
+    key, value = backend.split("=")
+    out = browse({"webgpu": True, "viewport": [360, 300], "steps": [
+        {"goto": player(served, camera="cam01", size="96x72", quality="av1q16", autoplay="0", **{key: value})},
         {"wait": LOADED},
         {"eval": f"stgsPlayer.showFrame({gop * WEB_SCENE.gop_size + frame})", "as": "shown"},
         {"eval": "stgsPlayer.capture()", "as": "png"},
@@ -75,7 +81,6 @@ def test_a_frame_at_a_scene_camera_matches_stgs_play(served, tmp_path):
                        cv2.COLOR_BGR2RGB).astype(np.float32) / 255
     assert web.shape == ref.shape == (72, 96, 3)
     assert ref.std() > 0.05  # a real image, not a flat one that any renderer matches
-    import torch
     assert psnr(torch.from_numpy(web), torch.from_numpy(ref)) >= 40.0
 
 

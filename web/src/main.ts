@@ -1,5 +1,5 @@
 // The page's entry: options from the query string (?mpd=URL&abr=&quality=&camera=&size=WxH&autoplay=&gop=
-// &buffer=GOPs&background=r,g,b; for tests and benchmarks timing=sync, debug=features, weights=uniform|texture),
+// &buffer=GOPs&background=r,g,b; for tests and benchmarks timing=sync, debug=features, weights=uniform|texture, deform=webgpu),
 // the assets the build named, then the player and its controls. Without ?mpd it lists the scenes of the
 // server it came from (stgs serve's /scenes), when there is one.
 import { RULES } from "./abr/index";
@@ -33,6 +33,7 @@ async function main(): Promise<void> {
     syncTiming: params.get("timing") === "sync",
     digests: params.get("debug") === "features",
     weights: null,
+    webgpu: params.get("deform") === "webgpu",
   };
   const weights = params.get("weights");
   if (weights !== null && weights !== "uniform" && weights !== "texture") throw new Error(`weights=${weights} is not uniform or texture`);

@@ -11,6 +11,8 @@ import * as L from "./limits";
 import { type Manifest, parseManifest } from "./manifest";
 import { UrlPolicy } from "./urlpolicy";
 import { DeformPass, type WeightStorage } from "./render/deform";
+import { WebGpuDeform } from "./render/deform-webgpu";
+import type { Deformer } from "./render/layers";
 import { createContext } from "./render/gl";
 import { SplatPass, type StaticTextures, cameraCenter, staticTextures } from "./render/splat";
 import { Downloader, type GopDownload } from "./stream/downloader";
@@ -35,6 +37,8 @@ export interface PlayerOptions {
   digests: boolean;
   /** Where the deformation weights live (null: a texture). */
   weights: WeightStorage | null;
+  /** Run the deformation as a WebGPU compute shader (where navigator.gpu exists) instead of WebGL2. */
+  webgpu: boolean;
 }
 
 interface GopState {
@@ -53,7 +57,7 @@ export class Player {
   private features!: FeatureDecoder;
   private keyframes!: KeyframePool;
   private sorter!: Sorter;
-  private deform!: DeformPass;
+  private deform!: Deformer;
   private splat!: SplatPass;
   private staticLayer: StaticTextures | null = null;
   private readonly gops = new Map<number, GopState>();
@@ -108,7 +112,10 @@ export class Player {
     };
     this.features.onError = (_gop, err) => this.fail(err);
     this.ring = new FeatureRing(this.features, Math.max(8, 2 * m.shape.window + 2));
-    this.deform = new DeformPass(ctx.gl, m.shape, this.ring.capacity + m.shape.window, this.options.weights ?? undefined);
+    const slots = this.ring.capacity + m.shape.window;
+    this.deform = this.options.webgpu ? await WebGpuDeform.create(ctx.gl, m.shape, slots)
+      : new DeformPass(ctx.gl, m.shape, slots, this.options.weights ?? undefined);
+    this.stats.deformer = this.deform.kind;
     this.splat = new SplatPass(ctx.gl, ctx.floatBlend);
     this.stats.floatBlend = ctx.floatBlend;
     if (m.staticLayer) {
@@ -302,10 +309,8 @@ export class Player {
     const view = this.camera.view(w, h);
     const t0 = performance.now();
     const layers = Array.from({ length: W }, (_, j) => this.deform.layer(k, i + j, () => this.ring.get(k, i + j)!));
-    this.deform.run(i, layers, cameraCenter(view.viewmat));
+    const means = await this.deform.deform(i, layers, cameraCenter(view.viewmat));
     const side = this.manifest.shape.side;
-    const means = new Float32Array(4 * side * side);
-    this.deform.readMeans(means);
     const t1 = performance.now();
     const [fx, , cx, fy, cy] = view.K;
     const { order, ms } = await this.sorter.sort(means, view.viewmat, guardLimits(fx, cx, fy, cy, w, h));

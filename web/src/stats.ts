@@ -27,6 +27,7 @@ export class PlayerStats {
   seekStart = 0;
   visible = 0;
   floatBlend = true;
+  deformer = "";
   shown: { gop: number; frame: number } | null = null;
   readonly decisions: { gop: number; rung: string; rule: string; reason: string }[] = [];
   readonly frameTimes: { deform: number; sort: number; sortWait: number; draw: number }[] = [];
@@ -87,7 +88,7 @@ export class PlayerStats {
       `rung ${this.rung || "-"}  ${this.kbps.toFixed(0)} kbit/s  buffer ${bufferS.toFixed(2)} s`,
       `${this.fps.toFixed(1)} fps  ${this.visible} splats  dropped ${this.dropped}  stalls ${this.stalls} (${(this.stallMs / 1e3).toFixed(2)} s)`,
       `decode: keyframe ${this.keyframeMs.toFixed(1)} ms, feature copy ${this.copyMs.toFixed(2)} ms`,
-      `deform ${this.deformMs.toFixed(1)}  sort ${this.sortMs.toFixed(1)}  draw ${this.drawMs.toFixed(1)} ms${this.floatBlend ? "" : "  (16-bit blending)"}`,
+      `${this.deformer}: deform ${this.deformMs.toFixed(1)}  sort ${this.sortMs.toFixed(1)}  draw ${this.drawMs.toFixed(1)} ms${this.floatBlend ? "" : "  (16-bit blending)"}`,
       `ABR ${this.rule}: ${this.reason}`,
     ];
   }

@@ -4,9 +4,10 @@
 // deformed, activated Gaussian into four RGBA32F render targets: (mean, opacity), scale, quaternion, colour.
 // Features come from R16UI texture layers (the 10-bit codes as decoded, dequantised here), weights from one
 // RGBA32F texture (each matrix row padded to whole texels).
-import { FEATURE_DIM, HIDDEN, fieldShapes } from "../container";
+import { HIDDEN, fieldShapes } from "../container";
 import type { SceneShape } from "../manifest";
 import { UnsupportedError } from "../errors";
+import { type Deformer, LayerRing, dequantisation, positionalEncoding } from "./layers";
 import { bindTextures, compile, floatTexture, framebuffer, rgba } from "./gl";
 
 const WEIGHT_TEXTURE_WIDTH = 1024;
@@ -153,7 +154,7 @@ const FULLSCREEN_VS = `#version 300 es
 void main() { vec2 p = vec2(float((gl_VertexID << 1) & 2), float(gl_VertexID & 2)); gl_Position = vec4(p * 2.0 - 1.0, 0.0, 1.0); }`;
 export { FULLSCREEN_VS };
 
-export class DeformPass {
+export class DeformPass implements Deformer {
   readonly outputs: WebGLTexture[];
   private readonly program: WebGLProgram;
   private readonly fb: WebGLFramebuffer;
@@ -161,10 +162,10 @@ export class DeformPass {
   private readonly weights: WebGLTexture;
   readonly features: WebGLTexture;
   private readonly side: number;
-  private lo = new Float32Array(16);
-  private step = new Float32Array(16);
-  private readonly layerOf = new Map<string, number>();
-  private nextLayer = 0;
+  private lo: Float32Array = new Float32Array(16);
+  private step: Float32Array = new Float32Array(16);
+  private readonly ring: LayerRing;
+  readonly kind: string;
 
   readonly storage: WeightStorage;
   private readonly blocks: WebGLBuffer[] = [];
@@ -198,6 +199,12 @@ export class DeformPass {
     gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.features);
     gl.texStorage3D(gl.TEXTURE_2D_ARRAY, 1, gl.R16UI, 4 * s, 4 * s, ringLayers);
     for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D_ARRAY, p, gl.NEAREST);
+    this.kind = `webgl2 (${this.storage} weights)`;
+    this.ring = new LayerRing(ringLayers, (layer, codes) => {
+      gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.features);
+      gl.pixelStorei(gl.UNPACK_ALIGNMENT, 2);
+      gl.texSubImage3D(gl.TEXTURE_2D_ARRAY, 0, 0, 0, layer, 4 * s, 4 * s, 1, gl.RED_INTEGER, gl.UNSIGNED_SHORT, codes);
+    });
   }
 
   /** A GOP's canonical attributes, weights and feature ranges (from its decoded keyframe). */
@@ -224,45 +231,29 @@ export class DeformPass {
       gl.bindTexture(gl.TEXTURE_2D, this.weights);
       gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, WEIGHT_TEXTURE_WIDTH, packed.texels.length / 4 / WEIGHT_TEXTURE_WIDTH, gl.RGBA, gl.FLOAT, packed.texels);
     }
-    const r = floats["range.features"];
-    for (let c = 0; c < FEATURE_DIM; c++) {
-      this.lo[c] = r[c];
-      this.step[c] = Math.fround(Math.fround(r[16 + c] - r[c]) / CODE_MAX);
-    }
+    [this.lo, this.step] = dequantisation(floats["range.features"], CODE_MAX);
   }
 
-  /** The texture layer holding feature frame `e` of GOP `gop`, uploading it from `codes` when not resident. */
   layer(gop: number, e: number, codes: () => Uint16Array): number {
-    const key = `${gop}:${e}`;
-    const have = this.layerOf.get(key);
-    if (have !== undefined) return have;
-    const layer = this.nextLayer;
-    this.nextLayer = (this.nextLayer + 1) % this.ringLayers;
-    for (const [k, v] of this.layerOf) if (v === layer) this.layerOf.delete(k);
-    const gl = this.gl;
-    const side = 4 * this.side;
-    gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.features);
-    gl.pixelStorei(gl.UNPACK_ALIGNMENT, 2);
-    gl.texSubImage3D(gl.TEXTURE_2D_ARRAY, 0, 0, 0, layer, side, side, 1, gl.RED_INTEGER, gl.UNSIGNED_SHORT, codes());
-    this.layerOf.set(key, layer);
-    return layer;
+    return this.ring.slot(gop, e, codes);
   }
 
   forget(): void {
-    this.layerOf.clear();
+    this.ring.forget();
+  }
+
+  async deform(frame: number, layers: number[], camera: ArrayLike<number>): Promise<Float32Array> {
+    this.run(frame, layers, camera);
+    const means = new Float32Array(4 * this.side * this.side);
+    this.readMeans(means);
+    return means;
   }
 
   /** Deform frame `frame` of the loaded GOP with the window's texture layers, seen from `camera` (its centre). */
   run(frame: number, layers: number[], camera: ArrayLike<number>): void {
     const gl = this.gl;
     const { gopSize, peFreqs } = this.shape;
-    const t = gopSize > 1 ? frame / (gopSize - 1) : 0;
-    const pe = new Float32Array(Math.max(4, 4 * Math.ceil((2 * peFreqs) / 4)));
-    for (let k = 0; k < peFreqs; k++) {
-      const angle = Math.fround(Math.fround(Math.fround(2 ** k) * Math.fround(Math.PI)) * Math.fround(t));
-      pe[k] = Math.sin(angle);
-      pe[peFreqs + k] = Math.cos(angle);
-    }
+    const pe = positionalEncoding(frame, gopSize, peFreqs);
     gl.useProgram(this.program);
     gl.bindFramebuffer(gl.FRAMEBUFFER, this.fb);
     gl.viewport(0, 0, this.side, this.side);
