@@ -185,3 +185,27 @@ def test_a_mid_playback_screenshot_holds_its_thresholds(served, tmp_path):
     image = cv2.imread(str(shot)).astype(np.float32) / 255
     assert image.std() >= SCREENSHOT_MIN_STD
     assert (image.max(axis=2) > 0.05).mean() >= SCREENSHOT_MIN_LIT
+
+
+def test_the_keyboard_drives_the_player(served):
+    out = browse({"viewport": [360, 300], "steps": [
+        {"goto": player(served, autoplay="0", size="64x48")},
+        {"wait": LOADED},
+        {"wait": "stgsPlayer.stats.shown !== null"},
+        {"press": "."},
+        {"wait": "stgsPlayer.stats.shown.gop === 1"},
+        {"press": "i"},
+        {"eval": "document.getElementById('stats').hidden", "as": "stats_hidden"},
+        {"press": "2"},
+        {"eval": "document.getElementById('camera').value", "as": "camera"},
+        {"press": "ArrowLeft"},
+        {"eval": "document.getElementById('camera').value", "as": "moved"},
+        {"press": " "},
+        {"eval": "[stgsPlayer.paused, document.getElementById('play').getAttribute('aria-label')]", "as": "play"},
+        {"press": "Tab"},
+        {"eval": "document.activeElement.id", "as": "focus"},
+    ]})
+    r = out["results"]
+    assert r["stats_hidden"] is False and r["camera"] == "1" and r["moved"] == ""
+    assert r["play"] == [False, "Pause"]
+    assert r["focus"] == "play"  # from the canvas, Tab reaches the controls in order

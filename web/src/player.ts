@@ -4,7 +4,6 @@
 // stall). Each shown frame: deform the dynamic layer (GPU), read back its means, depth-sort both layers
 // (worker), splat (GPU).
 import { DEFAULT_SETTINGS, type Decision, makeRule } from "./abr/index";
-import { SPECS, staticMetadata, imageTensors, SH1_SPECS } from "./container";
 import { type SceneCamera, ViewerCamera, parseSceneCameras, sceneCenter, sceneUp } from "./camera";
 import { describe } from "./errors";
 import * as L from "./limits";
@@ -14,9 +13,10 @@ import { DeformPass, type WeightStorage } from "./render/deform";
 import { WebGpuDeform } from "./render/deform-webgpu";
 import type { Deformer } from "./render/layers";
 import { createContext } from "./render/gl";
-import { SplatPass, type StaticTextures, cameraCenter, staticTextures } from "./render/splat";
+import { SplatPass, type StaticTextures, cameraCenter } from "./render/splat";
 import { Downloader, type GopDownload } from "./stream/downloader";
 import { fetchJson, fetchStream } from "./stream/fetch";
+import { loadStaticLayer } from "./stream/static-layer";
 import { FeatureRing } from "./stream/ring";
 import { type Assets, FeatureDecoder, KeyframePool, Sorter } from "./stream/workers";
 import { guardLimits } from "./sort";
@@ -118,23 +118,7 @@ export class Player {
     this.stats.deformer = this.deform.kind;
     this.splat = new SplatPass(ctx.gl, ctx.floatBlend);
     this.stats.floatBlend = ctx.floatBlend;
-    if (m.staticLayer) {
-      const s = m.staticLayer;
-      const maxBytes = Math.min(L.MAX_SEGMENT_BYTES, Math.ceil(s.bandwidth / 8 * m.durationS * L.SEGMENT_SLACK) + 4096);
-      const got = await fetchStream(s.url, m.policy, maxBytes, "static-layer segment", null);
-      const specs = s.shDegree ? [...SPECS, ...SH1_SPECS] : SPECS;
-      const decoded = await this.keyframes.decode({ data: got.data, what: "static-layer", metadata: staticMetadata(s.capacity, s.side, s.shDegree),
-        want: [...imageTensors(specs)], side: s.side, shDegree: s.shDegree, maxBytes });
-      this.staticLayer = staticTextures(ctx.gl, decoded.attributes, s.capacity, s.side, s.shDegree);
-      const positions = new Float32Array(4 * s.capacity);
-      const tex = decoded.attributes;
-      for (let i = 0; i < s.capacity; i++) {
-        positions.set(tex.position.subarray(3 * i, 3 * i + 3), 4 * i);
-        positions[4 * i + 3] = 1 / (1 + Math.exp(-tex.opacity[i]));
-      }
-      this.sorter.setStatic(positions);
-      this.stats.staticMs = decoded.ms;
-    }
+    if (m.staticLayer) [this.staticLayer, this.stats.staticMs] = await loadStaticLayer(m, ctx.gl, this.keyframes, this.sorter);
     const settings = DEFAULT_SETTINGS;
     this.downloader = new Downloader(m, makeRule(this.options.abr, settings), settings, this.features, this.keyframes,
       this.options.bufferGops * m.gopSeconds, stats, {

@@ -9,9 +9,6 @@ import { CODE_MAX, packWeights } from "./deform";
 import { floatTexture, rgba } from "./gl";
 import { type Deformer, LayerRing, dequantisation, positionalEncoding } from "./layers";
 
-const MATRICES = ["temporal.weight", "d_pos.0.weight", "d_pos.2.weight", "d_cov.0.weight", "d_cov.2.weight",
-  "d_opacity.0.weight", "d_opacity.2.weight", "d_color.0.weight", "d_color.2.weight"];
-
 function wgsl(shape: SceneShape, offsets: Record<string, [number, number]>): string {
   const W = shape.window;
   const peVec = Math.max(1, Math.ceil((2 * shape.peFreqs) / 4));
