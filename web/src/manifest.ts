@@ -13,7 +13,6 @@ export const STATIC_SCHEME = "urn:streamstgs:static:2026";
 export const FEATURE_SCHEME = "urn:streamstgs:features:2026";
 export const AV1_BITS = 10;
 export const FEATURE_TILES = 4;
-export const FEATURE_DIM = 16;
 
 export interface SceneShape {
   capacity: number;

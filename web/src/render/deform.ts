@@ -4,7 +4,7 @@
 // deformed, activated Gaussian into four RGBA32F render targets: (mean, opacity), scale, quaternion, colour.
 // Features come from R16UI texture layers (the 10-bit codes as decoded, dequantised here), weights from one
 // RGBA32F texture (each matrix row padded to whole texels).
-import { HIDDEN, fieldShapes } from "../container";
+import { fieldShapes } from "../container";
 import type { SceneShape } from "../manifest";
 import { UnsupportedError } from "../errors";
 import { type Deformer, LayerRing, dequantisation, positionalEncoding } from "./layers";
@@ -287,4 +287,3 @@ export class DeformPass implements Deformer {
     gl.bindFramebuffer(gl.READ_FRAMEBUFFER, null);
   }
 }
-export { HIDDEN };
