@@ -173,27 +173,31 @@ def run(out: Path, progress: bool = True, fit_steps: int | None = None) -> int:
     return 0
 
 
-def web_screenshot(tree: Path, png: Path) -> None:
+def web_screenshot(tree: Path, png: Path, tries: int = 2) -> None:
     """The web player mid-playback in headless Chromium, saved to `png` (where Node, the built player and
-    Chromium are here; else one line says why not)."""
+    Chromium are here; else one line says why not). A failed try is reported with what the page logged, and a
+    fresh browser tries again: a headless browser's first start on a new machine can miss a step's deadline."""
     from stgs.cli.browser import browse, missing_browser, served
 
     why = missing_browser()
     if why:
         print(f"web player screenshot skipped: {why}")
         return
-    with served(tree) as base:
-        _, failure = browse({"viewport": [800, 560], "steps": [
-            {"goto": f"{base}player/?mpd=/{MANIFEST}&camera=cam00"},
-            {"wait": "window.stgsPlayer && stgsPlayer.current >= stgsPlayer.totalFrames / 2", "timeout": 300_000},
-            {"press": "i"},
-            {"sleep": 600},
-            {"screenshot": str(png)},
-        ]})
-    if failure:
-        print(f"web player screenshot failed: {failure}")
-    else:
-        print(f"web player mid-playback: {png}")
+    for attempt in range(1, tries + 1):
+        with served(tree) as base:
+            out, failure = browse({"viewport": [800, 560], "steps": [
+                {"goto": f"{base}player/?mpd=/{MANIFEST}&camera=cam00"},
+                {"wait": "window.stgsPlayer && stgsPlayer.current >= stgsPlayer.totalFrames / 2", "timeout": 120_000},
+                {"press": "i"},
+                {"sleep": 600},
+                {"screenshot": str(png)},
+            ]})
+        if failure is None:
+            print(f"web player mid-playback: {png}")
+            return
+        logged = "; ".join(out.get("errors", []) + [m["text"] for m in out.get("console", []) if m["type"] == "error"])
+        print(f"web player screenshot failed (try {attempt} of {tries}): {failure}"
+              + (f" (the page logged: {logged[:400]})" if logged else ""))
 
 
 def model_capacity(model_dir: Path) -> int:

@@ -47,7 +47,7 @@ def test_demo_streams_the_default_scene_end_to_end(tmp_path):
 
     if missing_browser() is None:  # the web player mid-playback, where Chromium is here
         shot = cv2.imread(str(out / "web.png"))
-        assert shot is not None and shot.std() > 5
+        assert shot is not None and shot.std() > 5, [ln for ln in result.stdout.splitlines() if "web player" in ln]
     else:
         assert "web player screenshot skipped" in result.stdout
 

@@ -8,6 +8,7 @@ export function showError(message: string): void {
   const panel = $("error");
   panel.textContent = message;
   panel.hidden = false;
+  console.error(message); // for the developer tools, and for a driving script's log
 }
 
 export function bindControls(player: Player): void {
