@@ -42,11 +42,13 @@ def free_port() -> int:
 
 
 @contextlib.contextmanager
-def served(root: Path, startup_s: float = 30.0) -> Iterator[str]:
-    """`stgs serve ROOT` on a free loopback port; yields its base URL (ends in /)."""
+def served(root: Path, startup_s: float = 30.0, player_dir: Path | None = None) -> Iterator[str]:
+    """`stgs serve ROOT` on a free loopback port (offering `player_dir` at /player/ when given); yields its base
+    URL (ends in /)."""
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "stgs.cli", "serve", str(root), "--port", str(port), "--quiet"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    extra = ["--player-dir", str(player_dir)] if player_dir else []
+    proc = subprocess.Popen([sys.executable, "-m", "stgs.cli", "serve", str(root), "--port", str(port), "--quiet",
+                             *extra], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
     base = f"http://127.0.0.1:{port}/"
     try:
         deadline = time.monotonic() + startup_s

@@ -35,13 +35,34 @@ def instructions(path: Path) -> list[tuple[str, str]]:
 def test_server_image():
     ins = instructions(DOCKER / "server.Dockerfile")
     kinds = [k for k, _ in ins]
-    assert ins[0][0] == "FROM" and "slim" in ins[0][1]
+    final = [a for k, a in ins if k == "FROM"][-1]
+    assert final.startswith("python:") and "slim" in final
     user = [a for k, a in ins if k == "USER"]
     assert user and user[-1] not in ("root", "0")
     assert any(k == "HEALTHCHECK" and "/healthz" in a for k, a in ins)
     assert any(k == "VOLUME" and "/data" in a for k, a in ins)
     assert "EXPOSE" in kinds and "ENTRYPOINT" in kinds
     assert any(k == "RUN" and "requirements.lock" in a for k, a in ins)
+
+
+def test_server_image_serves_the_web_player():
+    """A Node stage builds web/dist from the lockfile; only the build reaches the final image, and the server is
+    pointed at it (else /player/ answers 503)."""
+    path = DOCKER / "server.Dockerfile"
+    web_stage = stage(path, "web")
+    assert web_stage[0][1].startswith("node:20") and "slim" in web_stage[0][1]
+    runs = [a for k, a in web_stage if k == "RUN"]
+    assert any(a.startswith("npm ci") for a in runs) and "node build.mjs" in runs
+    copies = [a for k, a in web_stage if k == "COPY"]
+    assert any("package-lock.json" in a for a in copies)
+    for needed in ("web/build.mjs", "web/tsconfig.json", "web/src"):  # what build.mjs reads
+        assert any(needed in a for a in copies), needed
+    final = instructions(path)
+    assert ("COPY", "--from=web /web/dist ./web/dist") in final
+    cmd = next(a for k, a in reversed(final) if k == "CMD")
+    assert '"--player-dir", "/app/web/dist"' in cmd
+    workdir = [a for k, a in final if k == "WORKDIR"][-1]
+    assert workdir == "/app"
 
 
 def server_slice_pattern() -> re.Pattern:

@@ -5,6 +5,7 @@
 // (worker), splat (GPU).
 import { DEFAULT_SETTINGS, type Decision, makeRule } from "./abr/index";
 import { type SceneCamera, ViewerCamera, parseSceneCameras, sceneCenter, sceneUp } from "./camera";
+import { PresentationClock } from "./clock";
 import { describe } from "./errors";
 import * as L from "./limits";
 import { type Manifest, parseManifest } from "./manifest";
@@ -14,14 +15,13 @@ import { WebGpuDeform } from "./render/deform-webgpu";
 import type { Deformer } from "./render/layers";
 import { createContext } from "./render/gl";
 import { SplatPass, type StaticTextures, cameraCenter } from "./render/splat";
-import { Downloader, type GopDownload } from "./stream/downloader";
+import { Downloader, type GopDownload, type GopState } from "./stream/downloader";
 import { fetchJson, fetchStream } from "./stream/fetch";
 import { loadStaticLayer } from "./stream/static-layer";
 import { FeatureRing } from "./stream/ring";
 import { type Assets, FeatureDecoder, KeyframePool, Sorter } from "./stream/workers";
 import { guardLimits } from "./sort";
-import { PlayerStats } from "./stats";
-import type { DecodedSegment } from "./workers/keyframe.worker";
+import { PlayerStats, sha256Hex } from "./stats";
 
 export interface PlayerOptions {
   abr: string;
@@ -39,11 +39,6 @@ export interface PlayerOptions {
   weights: WeightStorage | null;
   /** Run the deformation as a WebGPU compute shader (where navigator.gpu exists) instead of WebGL2. */
   webgpu: boolean;
-}
-
-interface GopState {
-  download: GopDownload;
-  decoded: DecodedSegment | null;
 }
 
 export class Player {
@@ -64,8 +59,7 @@ export class Player {
   private loadedGop = -1;
   /** Last presented frame (global index), -1 before the first. */
   current = -1;
-  private clockFrame = 0;
-  private clockStart = 0;
+  private clock!: PresentationClock;
   paused = false;
   ended = false;
   private started = false;
@@ -93,12 +87,10 @@ export class Player {
     const text = await fetchStream(absolute, new UrlPolicy(absolute), L.MAX_MPD_BYTES, "manifest", null);
     this.manifest = parseManifest(new TextDecoder().decode(text.data), absolute);
     const m = this.manifest;
+    this.clock = new PresentationClock(m.fps);
     const stats = await fetchJson(m.statsUrl, m.policy, L.MAX_DOC_BYTES, "stats.json").catch(() => null);
-    try {
-      this.cameras = parseSceneCameras(await fetchJson(m.camerasUrl, m.policy, L.MAX_DOC_BYTES, "cameras.json"), L.MAX_PATH_CAMERAS);
-    } catch {
-      this.cameras = [];
-    }
+    this.cameras = await fetchJson(m.camerasUrl, m.policy, L.MAX_DOC_BYTES, "cameras.json")
+      .then((doc) => parseSceneCameras(doc, L.MAX_PATH_CAMERAS)).catch(() => []); // a scene may come without cameras
     this.camera.up = sceneUp(this.cameras);
     this.camera.target = sceneCenter(this.cameras);
     if (this.cameras.length) this.snapTo(0);
@@ -106,8 +98,7 @@ export class Player {
     this.features = new FeatureDecoder(this.assets);
     this.sorter = new Sorter(this.assets);
     this.features.onFrame = (f) => {
-      if (this.options.digests) void crypto.subtle.digest("SHA-256", f.data).then((d) => this.digests.set(`${f.gop}:${f.index}`,
-        Array.from(new Uint8Array(d), (b) => b.toString(16).padStart(2, "0")).join("")));
+      if (this.options.digests) void sha256Hex(f.data).then((hex) => this.digests.set(`${f.gop}:${f.index}`, hex));
       this.ring.add(f);
     };
     this.features.onError = (_gop, err) => this.fail(err);
@@ -178,8 +169,7 @@ export class Player {
     this.deform.forget();
     this.loadedGop = -1;
     this.current = gop * this.manifest.shape.gopSize - 1;
-    this.clockFrame = this.current + 1;
-    this.clockStart = -1;
+    this.clock.restart(this.current + 1);
     this.started = false;
     this.ended = false;
     this.presentable = false;
@@ -192,8 +182,7 @@ export class Player {
     this.paused = !this.paused;
     if (!this.paused) {
       if (this.ended) this.seek(0);
-      this.clockFrame = this.current + 1;
-      this.clockStart = -1;
+      this.clock.restart(this.current + 1);
     }
   }
 
@@ -235,24 +224,12 @@ export class Player {
     if (this.busy || !this.manifest) return;
     let next = -1;
     if (!this.paused && !this.ended) {
-      if (this.clockStart < 0 && this.ready(this.clockFrame)) this.clockStart = now;
-      const due = this.clockStart < 0 ? this.clockFrame : this.clockFrame + Math.floor(((now - this.clockStart) / 1e3) * this.manifest.fps);
-      const target = Math.min(due, this.totalFrames - 1);
-      for (let f = target; f > this.current; f--) {
-        if (this.ready(f)) {
-          next = f;
-          break;
-        }
-      }
-      if (next < 0 && target > this.current && this.clockStart >= 0) {
-        // nothing new is here: the clock stops at the next frame (a stall)
-        this.stats.stalled(now);
-        this.clockFrame = this.current + 1;
-        this.clockStart = -1;
-      }
+      const due = this.clock.next(now, this.current, this.totalFrames, (f) => this.ready(f));
+      next = due.frame;
+      if (due.stalled) this.stats.stalled(now);
     }
-    if (this.paused && !this.presentable && this.clockFrame < this.totalFrames && this.ready(this.clockFrame)) {
-      next = this.clockFrame; // a seek while paused shows the new GOP's first frame
+    if (this.paused && !this.presentable && this.clock.frame < this.totalFrames && this.ready(this.clock.frame)) {
+      next = this.clock.frame; // a seek while paused shows the new GOP's first frame
     }
     if (next < 0 && !(this.dirty && this.presentable)) return;
     const frame = next >= 0 ? next : this.current;

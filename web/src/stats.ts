@@ -93,3 +93,9 @@ export class PlayerStats {
     ];
   }
 }
+
+/** SHA-256 of `data` as hex (the tests compare decoded feature frames with the Python decoder's). */
+export async function sha256Hex(data: Uint16Array<ArrayBuffer>): Promise<string> {
+  const digest = await crypto.subtle.digest("SHA-256", data);
+  return Array.from(new Uint8Array(digest), (b) => b.toString(16).padStart(2, "0")).join("");
+}

@@ -21,6 +21,12 @@ export interface GopDownload {
   seconds: number;
 }
 
+/** A downloaded GOP in the player, with its keyframe once decoded. */
+export interface GopState {
+  download: GopDownload;
+  decoded: DecodedSegment | null;
+}
+
 export interface DownloaderHooks {
   /** Seconds of media played so far (the playhead). */
   playheadS(): number;
