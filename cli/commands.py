@@ -22,7 +22,9 @@ from stgs.errors import FieldError, StgsError
 FLAGS = {"qps": "--qps", "preset": "--preset", "codec": "--codec", "codecs": "--codecs", "av1_qps": "--av1-qps",
          "av1_preset": "--av1-preset", "jobs": "--jobs", "abr": "--abr",
          "buffer_s": "--buffer", "start_s": "--start", "duration_s": "--duration", "precision": "--precision",
-         "camera": "--camera", "eye": "--eye/--target", "holdout": "--holdout", "qp": "--qp", "speed": "--speed"}
+         "camera": "--camera", "eye": "--eye/--target", "holdout": "--holdout", "qp": "--qp", "speed": "--speed",
+         "max_transfers": "--max-transfers", "max_transfers_per_client": "--max-transfers-per-client",
+         "max_waiting_transfers": "--max-waiting-transfers", "trusted_proxies": "--trusted-proxy"}
 """Config field -> the flag that sets it, for FieldError messages."""
 
 

@@ -79,9 +79,16 @@ def add_serve(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--host", default="127.0.0.1", help="listen address (default: 127.0.0.1)")
     p.add_argument("--port", type=int, default=8080, help="listen port (default: 8080; 0 picks one)")
     p.add_argument("--max-transfers", type=positive_int, default=512,
-                   help="file transfers in flight at once, server-wide (default: 512)")
-    p.add_argument("--max-transfers-per-client", type=positive_int, default=32,
-                   help="file transfers in flight at once from one client address (default: 32)")
+                   help="file transfers sending at once, server-wide (default: 512)")
+    p.add_argument("--max-transfers-per-client", type=positive_int,
+                   help="file transfers sending at once for one client address, at most a quarter of "
+                        "--max-transfers (default: 32, or that quarter when smaller)")
+    p.add_argument("--max-waiting-transfers", type=positive_int, default=1024,
+                   help="transfers parked on a client that takes no bytes (they hold no slot); one more cuts "
+                        "the one with the least recent progress (default: 1024)")
+    p.add_argument("--trusted-proxy", action="append", default=[], metavar="CIDR",
+                   help="a proxy's address range whose X-Forwarded-For / Forwarded name the client, for the "
+                        "per-client limits (repeatable; without it those headers are ignored)")
     p.add_argument("--max-connections-per-client", type=non_negative_int, default=128,
                    help="open connections one client address may hold (default: 128; 0: no limit)")
     p.add_argument("--send-timeout", type=positive_seconds, default=30.0,
@@ -98,8 +105,19 @@ def add_serve(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=run_serve)
 
 
-def run_serve(args: argparse.Namespace) -> int:
+def serve_config(args: argparse.Namespace):
+    """The ServeConfig of parsed `stgs serve` flags (its checks raise FieldError, naming the setting)."""
     from stgs.server.config import ServeConfig
+
+    return ServeConfig(root=args.root, host=args.host, port=args.port, max_transfers=args.max_transfers,
+                       max_transfers_per_client=args.max_transfers_per_client,
+                       max_waiting_transfers=args.max_waiting_transfers, trusted_proxies=tuple(args.trusted_proxy),
+                       max_connections_per_client=args.max_connections_per_client, send_timeout=args.send_timeout,
+                       shutdown_timeout=args.shutdown_timeout, workers=args.workers, io_threads=args.io_threads,
+                       player_dir=args.player_dir, access_log=not args.quiet)
+
+
+def run_serve(args: argparse.Namespace) -> int:
     from stgs.server.workers import run
 
     if not args.root.is_dir():
@@ -109,11 +127,7 @@ def run_serve(args: argparse.Namespace) -> int:
     if args.player_dir is not None and not (args.player_dir / "index.html").is_file():
         raise UsageError(f"--player-dir {args.player_dir}: no index.html there "
                          "(build the player: cd web && npm run build)")
-    run(ServeConfig(root=args.root, host=args.host, port=args.port, max_transfers=args.max_transfers,
-                    max_transfers_per_client=args.max_transfers_per_client,
-                    max_connections_per_client=args.max_connections_per_client, send_timeout=args.send_timeout,
-                    shutdown_timeout=args.shutdown_timeout, workers=args.workers, io_threads=args.io_threads,
-                    player_dir=args.player_dir, access_log=not args.quiet))
+    run(serve_config(args))
     return 0
 
 

@@ -70,7 +70,8 @@ async def preflight(request: web.Request) -> web.Response:
 
 
 async def healthz(request: web.Request) -> web.Response:
-    """200 ok, or 503 saturated while every transfer slot is taken and requests wait for one."""
+    """200 ok, or 503 saturated while every transfer slot is taken and requests wait for one, or while the parked
+    transfers are at their cap (stgs.server.slots)."""
     if request.app[SLOTS_KEY].saturated:
         return web.json_response({"status": "saturated"}, status=503, headers={"Cache-Control": "no-store"})
     return web.json_response({"status": "ok"}, headers={"Cache-Control": "no-store"})
@@ -102,7 +103,8 @@ def build_app(cfg: ServeConfig) -> web.Application:
     app[HEADERS_KEY] = response_headers(cfg)
 
     async def make_slots(app: web.Application) -> None:
-        app[SLOTS_KEY] = TransferSlots(cfg.max_transfers, cfg.max_transfers_per_client)
+        app[SLOTS_KEY] = TransferSlots(cfg.max_transfers, cfg.max_transfers_per_client, cfg.max_waiting_transfers)
+        app[METRICS_KEY].slots = app[SLOTS_KEY]
 
     app.on_startup.append(make_slots)
     app.cleanup_ctx.append(flush_metrics)

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from aiohttp import web
 
-from stgs.server.slots import TransferSlots
+from stgs.errors import FieldError
+from stgs.server.clients import Network, trusted_networks
+from stgs.server.slots import TransferSlots, per_client_slots
 from stgs.tree import KEYFRAME_EXTENSION, KEYFRAME_MIME_TYPE, STATIC_EXTENSION, STATIC_MIME_TYPE
 
 CONTENT_TYPES = {
@@ -63,9 +65,16 @@ class ServeConfig:
     port: int = 8080
     """Listen port (0: any free port)."""
     max_transfers: int = 512
-    """File transfers in flight at once, server-wide; further requests wait for a slot."""
-    max_transfers_per_client: int = 32
-    """File transfers in flight at once from one client address (slow readers cannot take every slot)."""
+    """File transfers sending at once, server-wide; further requests wait for a slot (stgs.server.slots)."""
+    max_transfers_per_client: int | None = None
+    """File transfers sending at once for one client address: at most a quarter of max_transfers (None: 32, or
+    that quarter when it is smaller)."""
+    max_waiting_transfers: int = 1024
+    """Transfers parked on a socket that takes no bytes (they hold no slot); one more cuts the parked transfer
+    with the least recent progress. Each holds 3 file descriptors: the process's limit is raised to fit."""
+    trusted_proxies: tuple[str, ...] = ()
+    """Address ranges (CIDR) of proxies whose X-Forwarded-For / Forwarded name the client; from anyone else
+    those headers are ignored."""
     send_timeout: float = 30.0
     """Seconds a transfer may go without the client taking a byte before its connection is closed."""
     keepalive_timeout: float = 15.0
@@ -94,6 +103,15 @@ class ServeConfig:
     """Threads for each file's stat/open/close: 0 does them on the event loop (microseconds on a local disk,
     far less than a hop to a thread), N uses N threads (slow network storage), None leaves the loop's
     default executor alone (a server sharing its loop with other code, like the demo's player)."""
+    trusted: tuple[Network, ...] = field(init=False, repr=False)
+    """trusted_proxies, parsed."""
+
+    def __post_init__(self) -> None:
+        for name in ("max_transfers", "max_waiting_transfers"):
+            if getattr(self, name) < 1:
+                raise FieldError(name, f"must be at least 1, got {getattr(self, name)}")
+        self.max_transfers_per_client = per_client_slots(self.max_transfers, self.max_transfers_per_client)
+        self.trusted = trusted_networks(self.trusted_proxies)
 
 
 def cache_control(suffix: str, cfg: ServeConfig) -> str:

@@ -46,6 +46,13 @@ class Metrics:
         self.latency = Histogram("stgs_http_request_seconds", "Request handling time including the transfer",
                                  buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10),
                                  registry=self.registry)
+        self.parked = Gauge("stgs_transfers_waiting", "Transfers parked on a client that takes no bytes",
+                            registry=self.registry, multiprocess_mode="livesum")
+        self.shed = Counter("stgs_transfers_shed", "Waiting transfers reset to make room for another",
+                            registry=self.registry)
+        self.slots = None
+        """The app's TransferSlots, once it has started (their counts are folded in at each flush)."""
+        self._shed_seen = 0
         self.handling = 0
         """Requests being handled now (the gauge gets it at each flush)."""
         self._answered: collections.Counter[tuple[str, int]] = collections.Counter()
@@ -66,6 +73,11 @@ class Metrics:
         if sent:
             self.bytes.inc(sent)
         self.in_flight.set(self.handling)
+        if self.slots is not None:
+            self.parked.set(self.slots.parked)
+            if self.slots.shed > self._shed_seen:
+                self.shed.inc(self.slots.shed - self._shed_seen)
+                self._shed_seen = self.slots.shed
 
     def exposition(self) -> bytes:
         """The text format: this process's values, or with several workers the sum over all of them."""
@@ -95,17 +107,21 @@ async def flush_metrics(app: web.Application) -> AsyncIterator[None]:
 
 
 class JsonAccessLogger(AbstractAccessLogger):
-    """One JSON object per request: time, client, method, path, range, status, body bytes, seconds."""
+    """One JSON object per request: time, peer address (and the forwarded client behind a trusted proxy), method,
+    path, range, status, body bytes, seconds."""
 
     @property
     def enabled(self) -> bool:
         return self.logger.isEnabledFor(logging.INFO)
 
     def log(self, request: web.BaseRequest, response: web.StreamResponse, time_s: float) -> None:
-        self.logger.info(json.dumps({
-            "ts": round(time.time(), 3), "remote": request.remote, "method": request.method,
-            "path": request.path, "range": request.headers.get("Range"), "status": response.status,
-            "bytes": body_bytes(request, response), "seconds": round(time_s, 6)}))
+        line = {"ts": round(time.time(), 3), "remote": request.remote, "method": request.method,
+                "path": request.path, "range": request.headers.get("Range"), "status": response.status,
+                "bytes": body_bytes(request, response), "seconds": round(time_s, 6)}
+        client = getattr(response, "client", "")
+        if client and client != request.remote:  # a trusted proxy's forwarded client (stgs.server.clients)
+            line["client"] = client
+        self.logger.info(json.dumps(line))
 
 
 @web.middleware

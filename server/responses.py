@@ -1,13 +1,16 @@
 """File responses: one class (`FileTransfer`) answers every GET/HEAD of a file, whole, ranged or conditional: it
 opens and stats the file, lets `decide` pick 200/206/304/412/416 and the span, and only then does I/O (the
-body by os.sendfile), inside a transfer slot and reported to the metrics. The route handler and the fast path in
-front of the router both answer with it."""
+body by os.sendfile), holding a transfer slot only while the socket takes bytes (stgs.server.slots), and reports
+itself to the metrics. The route handler and the fast path in front of the router both answer with it."""
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
+import socket
 import stat
+import struct
 import time
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING
@@ -15,9 +18,11 @@ from typing import TYPE_CHECKING
 from aiohttp import web
 from aiohttp.abc import AbstractStreamWriter
 
-from stgs.server.config import CONFIG_KEY, HEADERS_KEY, METRICS_KEY, ROOT_KEY, SLOTS_KEY
+from stgs.server.clients import client_address
+from stgs.server.config import CONFIG_KEY, HEADERS_KEY, METRICS_KEY, MUTABLE_SUFFIXES, ROOT_KEY, SLOTS_KEY
 from stgs.server.decide import decide
 from stgs.server.files import BeneathOpener, open_and_stat, resolve_path, servable_parts
+from stgs.server.slots import SLOT_FREE_BYTES, TransferSlots
 
 if TYPE_CHECKING:
     from stgs.server.metrics import Metrics
@@ -41,17 +46,22 @@ def body_bytes(request: web.BaseRequest, response: web.StreamResponse) -> int:
 async def counted_transfer(app: web.Application, request: web.BaseRequest, response: web.StreamResponse,
                            send: Callable[[web.BaseRequest], Awaitable[AbstractStreamWriter | None]],
                            ) -> AbstractStreamWriter | None:
-    """Run a file response's `send` inside one of the app's transfer slots; report it to the metrics (status,
-    time including the transfer, body bytes) once it ends, also when the client hung up."""
+    """Run a file response's `send`; report it to the metrics (status, time including the transfer, body bytes)
+    once it ends, also when the client hung up."""
     metrics: Metrics = app[METRICS_KEY]
     start = time.perf_counter()
     metrics.handling += 1
     try:
-        async with app[SLOTS_KEY].hold(request.remote or ""):
-            return await send(request)
+        return await send(request)
     finally:
         metrics.handling -= 1
         metrics.answered(request.method, response.status, time.perf_counter() - start, body_bytes(request, response))
+
+
+def needs_slot(path: str, count: int) -> bool:
+    """Whether a body of `count` bytes of `path` is sent inside transfer slots: documents (MPD, JSON) and small
+    bodies (init segments) never queue behind segments."""
+    return count > SLOT_FREE_BYTES and os.path.splitext(path)[1] not in MUTABLE_SUFFIXES
 
 
 class FileTransfer(web.StreamResponse):
@@ -71,6 +81,8 @@ class FileTransfer(web.StreamResponse):
         self._opened = opened  # (descriptor, stat) of the file the fast path opened; this response closes it
         self.body_sent = [0]
         """Body bytes sent so far (what the metrics count, also for a transfer cut short)."""
+        self.client = ""
+        """The address the per-client limits counted (the peer's, or a trusted proxy's forwarded client)."""
 
     async def prepare(self, request: web.BaseRequest) -> AbstractStreamWriter | None:
         try:
@@ -81,6 +93,7 @@ class FileTransfer(web.StreamResponse):
                 self._opened = None
 
     async def _send(self, request: web.BaseRequest) -> AbstractStreamWriter | None:
+        self.client = client_address(request.remote or "", request.headers, self._app[CONFIG_KEY].trusted)
         try:
             if self._opened is not None:
                 (fd, st), self._opened = self._opened, None
@@ -98,8 +111,10 @@ class FileTransfer(web.StreamResponse):
             self.headers.update(answer.headers)
             writer = await super().prepare(request)
             if request.method != "HEAD" and answer.count:
-                await send_file_body(request, fd, answer.offset, answer.count, self.body_sent,
-                                     self._app[CONFIG_KEY].send_timeout)
+                cfg = self._app[CONFIG_KEY]
+                slots = self._app[SLOTS_KEY] if needs_slot(self._path, answer.count) else None
+                await send_file_body(request, fd, answer.offset, answer.count, self.body_sent, cfg.send_timeout,
+                                     Sender(slots, self.client, self._app[SLOTS_KEY]))
                 await super().write_eof()
             return writer
         finally:
@@ -110,14 +125,39 @@ class ShortFileError(ConnectionResetError):
     """The file ended before the span its headers announced (truncated in place during the transfer)."""
 
 
+class Sender:
+    """A transfer's standing with the slots: holding one while it sends (when it needs one), parked while its
+    socket takes nothing."""
+
+    def __init__(self, slots: TransferSlots | None, client: str, parking: TransferSlots):
+        self.slots, self.client, self.parking = slots, client, parking
+        self.holding = False
+        self.last_progress = time.monotonic()
+
+    async def sending(self) -> None:
+        if self.slots is not None and not self.holding:
+            await self.slots.acquire(self.client)
+            self.holding = True
+
+    def waiting(self) -> None:
+        if self.holding:
+            self.slots.release(self.client)
+            self.holding = False
+
+    def done(self) -> None:
+        self.waiting()
+
+
 async def send_file_body(request: web.BaseRequest, fd: int, offset: int, count: int, progress: list[int],
-                         timeout: float) -> None:
+                         timeout: float, sender: Sender) -> None:
     """Send bytes [offset, offset + count) of the file; `progress[0]` counts what has gone out.
 
-    os.sendfile straight on the socket while it takes bytes, waiting for it to become writable in between; a
-    client that takes nothing for `timeout` seconds has its connection aborted (as nginx's send_timeout), and so
-    does a file that ends early (truncated while it was being sent): the body would end short of its
-    Content-Length and the next response on the keep-alive connection would be read as the rest of it."""
+    os.sendfile straight on the socket while it takes bytes, inside the sender's slot; while the socket is full
+    the transfer gives its slot back and parks until it is writable again. A client that takes nothing for
+    `timeout` seconds has its connection aborted (as nginx's send_timeout), and so does a transfer cut to make
+    room for another parked one, and a file that ends early (truncated while it was being sent): the body would
+    end short of its Content-Length and the next response on the keep-alive connection would be read as the
+    rest of it."""
     transport = request.transport
     if transport is None or transport.is_closing():
         raise ConnectionResetError("connection lost")
@@ -128,13 +168,15 @@ async def send_file_body(request: web.BaseRequest, fd: int, offset: int, count: 
     sent, watch = 0, -1
     try:
         while sent < count:
+            await sender.sending()
             try:
                 n = os.sendfile(sock.fileno(), fd, offset + sent, count - sent)
             except BlockingIOError:
+                sender.waiting()
                 if watch < 0:  # asyncio lets no one else watch a transport's descriptor: watch a duplicate
                     watch = os.dup(sock.fileno())
-                if not await _writable(loop, watch, timeout):
-                    transport.abort()
+                if not await _parked(loop, watch, timeout, sender, transport):
+                    reset(transport)
                     raise ConnectionResetError(f"the client took nothing for {timeout:g} s") from None
                 continue
             except OSError as exc:  # peer gone (EPIPE, ECONNRESET)
@@ -145,21 +187,48 @@ async def send_file_body(request: web.BaseRequest, fd: int, offset: int, count: 
                 raise ShortFileError(f"the file ended {count - sent} bytes before the announced span")
             sent += n
             progress[0] = sent
+            sender.last_progress = time.monotonic()
     finally:
+        sender.done()
         if watch >= 0:
             os.close(watch)
 
 
-async def _writable(loop: asyncio.AbstractEventLoop, fd: int, timeout: float) -> bool:
-    """Whether the socket behind descriptor `fd` becomes writable within `timeout` seconds."""
+def reset(transport: asyncio.BaseTransport) -> None:
+    """Abort a connection whose client takes nothing with a reset (SO_LINGER 0, as nginx's
+    reset_timedout_connection): a plain close would leave the kernel holding the unsent bytes for a peer that
+    never reads them."""
+    sock = transport.get_extra_info("socket")
+    if sock is not None:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+    transport.abort()
+
+
+class ShedError(ConnectionResetError):
+    """A parked transfer cut to make room for another (the one with the least recent progress)."""
+
+
+async def _parked(loop: asyncio.AbstractEventLoop, fd: int, timeout: float, sender: Sender,
+                  transport: asyncio.BaseTransport) -> bool:
+    """Wait, parked, until the socket behind descriptor `fd` is writable: True, or False after `timeout`
+    seconds. Raises ShedError when the slots cut this transfer for another."""
     ready = loop.create_future()
+
+    def cut() -> None:
+        reset(transport)
+        if not ready.done():
+            ready.set_exception(ShedError("cut to make room for another waiting transfer"))
+
     loop.add_writer(fd, lambda: ready.done() or ready.set_result(None))
+    sender.parking.park(ready, sender.last_progress, cut)
     try:
         await asyncio.wait_for(ready, timeout)
         return True
     except TimeoutError:
         return False
     finally:
+        sender.parking.unpark(ready)
         loop.remove_writer(fd)
 
 

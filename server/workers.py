@@ -26,10 +26,12 @@ from prometheus_client import multiprocess
 from stgs.server.app import SceneRunner, build_app
 from stgs.server.config import ServeConfig
 from stgs.server.metrics import MULTIPROCESS_ENV, JsonAccessLogger
+from stgs.server.slots import reserve_descriptors
 
 
 def run(cfg: ServeConfig) -> None:
     """Serve until SIGINT/SIGTERM; in-flight transfers get cfg.shutdown_timeout seconds to finish."""
+    reserve_descriptors(cfg.max_transfers, cfg.max_waiting_transfers)  # before a port is taken; workers inherit it
     if cfg.workers == 1:
         serve_process(cfg)
     else:

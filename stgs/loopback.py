@@ -12,9 +12,11 @@ from aiohttp import web
 
 
 @contextlib.asynccontextmanager
-async def on_loopback(app: web.Application, runner_class: type[web.AppRunner] = web.AppRunner) -> AsyncIterator[str]:
-    """Serve `app` on 127.0.0.1 at a free port; yields its base URL (ending in /)."""
-    runner = runner_class(app, access_log=None)
+async def on_loopback(app: web.Application, runner_class: type[web.AppRunner] = web.AppRunner,
+                     **runner_kwargs) -> AsyncIterator[str]:
+    """Serve `app` on 127.0.0.1 at a free port; yields its base URL (ending in /). `runner_kwargs` go to the
+    runner (default: no access log)."""
+    runner = runner_class(app, **({"access_log": None} | runner_kwargs))
     await runner.setup()
     try:
         await web.TCPSite(runner, "127.0.0.1", 0).start()

@@ -128,10 +128,30 @@ def test_compose_puts_a_caching_proxy_in_front():
     conf = (DOCKER / "nginx-cache.conf").read_text()
     assert "proxy_cache_path" in conf and "proxy_pass http://server:8080" in conf
     assert "proxy_cache stgs;" in conf
-    # the server sees only the proxy's address: its per-client limits are off, the proxy's apply per client
+    # the server's connections all come from the proxy: connections per client are the proxy's to limit
     server_section = compose.split("  cache:")[0]
     assert '"--max-connections-per-client", "0"' in server_section
     assert re.search(r"limit_conn \w+ \d+;", conf) and "limit_conn_zone $binary_remote_addr" in conf
+    # the transfer limits key on the client the proxy forwards (overwritten, so a client cannot choose it)
+    assert "proxy_set_header X-Forwarded-For $remote_addr;" in conf
+
+
+def test_compose_server_command_is_a_valid_configuration(tmp_path):
+    """The compose file's `stgs serve` flags parse and make a ServeConfig (its checks run at start-up), which
+    trusts X-Forwarded-For from the compose networks' private ranges only."""
+    import ipaddress
+
+    import yaml
+
+    from stgs.cli import build_parser
+    from stgs.cli.stream import serve_config
+
+    command = yaml.safe_load((DOCKER / "compose.yaml").read_text())["services"]["server"]["command"]
+    args = build_parser(("serve",)).parse_args(["serve", *command])
+    cfg = serve_config(args)
+    assert cfg.max_connections_per_client == 0 and cfg.player_dir == Path("/app/web/dist")
+    assert cfg.trusted and all(net.is_private for net in cfg.trusted)
+    assert not any(ipaddress.ip_address("203.0.113.9") in net for net in cfg.trusted)
 
 
 def stage(path: Path, name: str) -> list[tuple[str, str]]:
