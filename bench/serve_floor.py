@@ -61,7 +61,7 @@ def floor_server(root: Path, port: int) -> None:
     from aiohttp import web
 
     from stgs.server.files import open_and_stat
-    from stgs.server.responses import send_file_body
+    from stgs.server.sending import Sender, send_file_body
 
     files = {f"/{p.relative_to(root)}": str(p) for p in root.rglob("*") if p.is_file()}
 
@@ -74,7 +74,7 @@ def floor_server(root: Path, port: int) -> None:
             response = web.StreamResponse(headers={"Content-Type": "video/iso.segment",
                                                    "Content-Length": str(st.st_size)})
             await response.prepare(request)
-            await send_file_body(request, fd, 0, st.st_size, [0], 30.0)
+            await send_file_body(request, fd, 0, st.st_size, [0], 30.0, Sender())
             await response.write_eof()
             return response
         finally:

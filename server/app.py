@@ -16,7 +16,7 @@ through prometheus_client's multiprocess mode.
 
 This module is the assembly (routes, cleanup contexts, SceneRunner, the
 loopback helper); the parts are in `config`, `files`, `decide`, `responses`,
-`metrics`, `catalogue` and `workers`.
+`sending`, `slots`, `clients`, `metrics`, `catalogue` and `workers`.
 """
 
 from __future__ import annotations

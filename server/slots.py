@@ -2,7 +2,7 @@
 
 A **slot** bounds concurrent file I/O. A transfer holds one server-wide slot and one of its client's only while
 it sends: when the client's socket takes no more bytes, the transfer gives both back and **parks** until the
-socket is writable again (stgs.server.responses.send_file_body), so clients that request large segments and
+socket is writable again (stgs.server.sending), so clients that request large segments and
 never read them hold no slot, however many they are and whatever address they share. Small responses (the
 documents and any body of at most SLOT_FREE_BYTES: MPDs, stats.json, cameras.json, init segments) take no slot
 at all.

@@ -98,10 +98,13 @@ function generator(internals: PlayerInternals, capacity: number, dynSide: number
       inTypes[names[i]] = "sampler2D";
       inputs[names[i]] = sampler(t);
     });
+    type Glsl = { inputs: Record<string, string>; outputs: Record<string, string> };
+    // The inputs are assembled at run time (the static layer's textures only where there is one), which Dyno's
+    // generic parameter types cannot follow: hence the casts.
     const d = new dyno.Dyno({
       inTypes, outTypes: { gsplat: dyno.Gsplat }, inputs,
-      statements: ({ inputs: glsl, outputs }: { inputs: Record<string, string>; outputs: Record<string, string> }) => gaussianProgram(staticCount, s ? s.side : 1, s ? s.shDegree : 0, dynSide,
-        glsl, outputs.gsplat),
+      statements: ({ inputs: glsl, outputs }: Glsl) => gaussianProgram(staticCount, s ? s.side : 1,
+        s ? s.shDegree : 0, dynSide, glsl, outputs.gsplat),
     } as never) as dyno.Dyno<{ index: "int" }, { gsplat: typeof dyno.Gsplat }>;
     return { gsplat: d.outputs.gsplat };
   });
