@@ -146,6 +146,31 @@ async def test_slots_bound_each_client_to_its_share_and_tell_saturation():
     assert not slots.saturated and slots.waiting == 0
 
 
+def _rss_bytes() -> int:
+    return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+async def test_parked_transfers_cost_the_server_a_few_kilobytes_each(tree):
+    """The memory that bounds waiting transfers (docs/SECURITY.md states ~16 KB each): 300 parked transfers of
+    plain-socket non-readers (which keep nothing in this process) grow the process by well under 40 KB each."""
+    cfg = ServeConfig(root=tree, port=0, access_log=False, max_transfers=8)
+    async with server(cfg) as (app, _base, host, port):
+        warm = [raw_non_reader("127.0.2.1", host, port) for _ in range(10)]  # first allocations, not counted
+        while app[SLOTS_KEY].parked < len(warm):
+            await asyncio.sleep(0.02)
+        before = _rss_bytes()
+        socks = []
+        for i in range(300):
+            socks.append(raw_non_reader(f"127.0.2.{2 + i % 50}", host, port))
+            await asyncio.sleep(0)  # the server accepts as they come (its listen backlog is finite)
+        while app[SLOTS_KEY].parked < len(warm) + len(socks):
+            await asyncio.sleep(0.05)
+        grown = _rss_bytes() - before
+        for sock in [*warm, *socks]:
+            sock.close()
+    assert grown < 300 * (40 << 10), f"{grown / 300 / 1024:.1f} KB per parked transfer"
+
+
 def test_a_per_client_cap_above_the_share_is_refused_at_start_up(tree):
     with pytest.raises(FieldError, match="max_transfers_per_client"):
         ServeConfig(root=tree, max_transfers=8, max_transfers_per_client=3)
