@@ -47,10 +47,10 @@ async def send_file_body(request: web.BaseRequest, fd: int, offset: int, count: 
 
     os.sendfile straight on the socket while it takes bytes, inside the sender's slot; while the socket is full
     the transfer gives its slot back and parks until it is writable again. A client that takes nothing for
-    `timeout` seconds has its connection aborted (as nginx's send_timeout), and so does a transfer cut to make
-    room for another parked one, and a file that ends early (truncated while it was being sent): the body would
-    end short of its Content-Length and the next response on the keep-alive connection would be read as the
-    rest of it."""
+    `timeout` seconds has its connection reset (as nginx's send_timeout with reset_timedout_connection), and so
+    does a parked transfer cut to make room for another; a file that ends early (truncated while it was being
+    sent) has its connection aborted: the body would end short of its Content-Length and the next response on
+    the keep-alive connection would be read as the rest of it."""
     transport = request.transport
     if transport is None or transport.is_closing():
         raise ConnectionResetError("connection lost")
