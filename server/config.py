@@ -76,7 +76,7 @@ class ServeConfig:
     """Address ranges (CIDR) of proxies whose X-Forwarded-For / Forwarded name the client; from anyone else
     those headers are ignored."""
     send_timeout: float = 30.0
-    """Seconds a transfer may go without the client taking a byte before its connection is closed."""
+    """Seconds a transfer may go without the client taking a byte before its connection is reset."""
     keepalive_timeout: float = 15.0
     """Seconds an idle keep-alive connection stays open."""
     max_header_bytes: int = 8190

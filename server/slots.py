@@ -2,14 +2,14 @@
 
 A **slot** bounds concurrent file I/O. A transfer holds one server-wide slot and one of its client's only while
 it sends: when the client's socket takes no more bytes, the transfer gives both back and **parks** until the
-socket is writable again (stgs.server.sending), so clients that request large segments and
-never read them hold no slot, however many they are and whatever address they share. Small responses (the
+socket is writable again (stgs.server.sending), so clients that request large segments and never read them hold
+no slot, however many they are and whatever address they share. Small responses (the
 documents and any body of at most SLOT_FREE_BYTES: MPDs, stats.json, cameras.json, init segments) take no slot
 at all.
 
 What bounds parked transfers is file descriptors and memory: each holds three descriptors (the file, the
-socket, a duplicate of the socket to watch it) and a few kilobytes, and there are at most `max_waiting` of them.
-When one more would park, the parked transfer with the least recent progress is cut (its connection aborted),
+socket, a duplicate of the socket to watch it) and about 16 KB, and there are at most `max_waiting` of them.
+When one more would park, the parked transfer with the least recent progress is cut (its connection reset),
 never the newest request. A transfer that makes no progress for the send timeout is cut too.
 """
 
@@ -54,9 +54,9 @@ def per_client_slots(total: int, per_client: int | None) -> int:
     return per_client
 
 
-def reserve_descriptors(max_transfers: int, max_waiting: int) -> int:
+def reserve_descriptors(max_transfers: int, max_waiting: int) -> None:
     """Raise this process's descriptor limit to fit `max_waiting` parked and `max_transfers` sending transfers
-    (up to the hard limit); returns the soft limit. A hard limit too low for them is an error."""
+    (up to the hard limit). A hard limit too low for them is an error."""
     needed = DESCRIPTORS_PER_PARKED * max_waiting + 2 * max_transfers + DESCRIPTOR_HEADROOM
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     if hard != resource.RLIM_INFINITY and hard < needed:
@@ -64,8 +64,6 @@ def reserve_descriptors(max_transfers: int, max_waiting: int) -> int:
                          f"need {needed} file descriptors; this process may open {hard} (ulimit -Hn)")
     if soft != resource.RLIM_INFINITY and soft < needed:
         resource.setrlimit(resource.RLIMIT_NOFILE, (needed, hard))
-        soft = needed
-    return soft
 
 
 class TransferSlots:
