@@ -24,7 +24,8 @@ FLAGS = {"qps": "--qps", "preset": "--preset", "codec": "--codec", "codecs": "--
          "buffer_s": "--buffer", "start_s": "--start", "duration_s": "--duration", "precision": "--precision",
          "camera": "--camera", "eye": "--eye/--target", "holdout": "--holdout", "qp": "--qp", "speed": "--speed",
          "max_transfers": "--max-transfers", "max_transfers_per_client": "--max-transfers-per-client",
-         "max_waiting_transfers": "--max-waiting-transfers", "trusted_proxies": "--trusted-proxy"}
+         "max_waiting_transfers": "--max-waiting-transfers", "trusted_proxies": "--trusted-proxy",
+         "seconds": "--seconds"}
 """Config field -> the flag that sets it, for FieldError messages."""
 
 

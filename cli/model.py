@@ -7,7 +7,15 @@ import dataclasses
 import sys
 from pathlib import Path
 
-from stgs.cli.args import UsageError, add_ray, effect_list, name_list, name_number, positive_int
+from stgs.cli.args import (
+    UsageError,
+    add_ray,
+    effect_list,
+    name_list,
+    name_number,
+    positive_int,
+    positive_seconds,
+)
 
 
 def add_synth(sub: argparse._SubParsersAction) -> None:
@@ -24,6 +32,8 @@ def add_synth(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--grid-side", type=positive_int, help="S: capacity N = S² Gaussians")
     p.add_argument("--gops", type=positive_int, dest="num_gops", help="number of GOPs")
     p.add_argument("--gop-size", type=positive_int, help="frames per GOP")
+    p.add_argument("--seconds", type=positive_seconds,
+                   help="the capture's length instead of --gops: as many GOPs as it takes at the scene's fps")
     p.add_argument("--width", type=positive_int, help="ground-truth image width")
     p.add_argument("--height", type=positive_int, help="ground-truth image height")
     p.add_argument("--cameras", type=positive_int, dest="num_cameras", help="ground-truth cameras")
@@ -53,6 +63,10 @@ def synth_config_from_args(args: argparse.Namespace):
     overrides = {f.name: getattr(args, f.name) for f in dataclasses.fields(cfg)
                  if getattr(args, f.name, None) is not None}
     cfg = dataclasses.replace(cfg, **overrides)
+    if args.seconds is not None:
+        if args.num_gops is not None:
+            raise UsageError("--seconds and --gops both set the scene's length: give one")
+        cfg = dataclasses.replace(cfg, num_gops=cfg.gops_for_seconds(args.seconds))
     cfg.validate()
     return cfg
 
@@ -67,7 +81,8 @@ def run_synth(args: argparse.Namespace) -> int:
     if cfg.fold:
         static = f" (backdrop of {cfg.static_grid_side ** 2} folded into every GOP)"
     print(f"wrote {args.out}: {cfg.grid_side ** 2} Gaussians{static}, {cfg.num_gops} GOPs x "
-          f"{cfg.gop_size} frames, effects {','.join(cfg.effects) or 'none'}")
+          f"{cfg.gop_size} frames ({cfg.num_gops * cfg.gop_size / cfg.fps:g} s at {cfg.fps:g} fps), "
+          f"effects {','.join(cfg.effects) or 'none'}")
     print(f"fidelity of the model vs ground truth: {report.fidelity_psnr:.2f} dB PSNR "
           f"over {report.fidelity_views} views")
     return 0

@@ -40,6 +40,7 @@ def test_the_parsers_load_neither_torch_nor_opencv():
     (["synth", "OUT", "--config", "missing.toml"], "cannot read synth config"),
     (["synth", "OUT", "--grid-side", "2"], "grid_side must be >= 4"),
     (["synth", "OUT", "--feature-smoothness", "-1"], "feature_smoothness must be in [0, 1e6)"),
+    (["synth", "OUT", "--seconds", "2", "--gops", "3"], "--seconds and --gops both set the scene's length"),
     (["bench", "render", "--sizes", "12,abc"], "--sizes must be comma-separated integers"),
     (["bench", "synth", "--smoothness", "0,x"], "--smoothness must be comma-separated numbers"),
     (["bench", "synth", "--smoothness", "nan"], "--smoothness must list numbers in [0, 1e6)"),
@@ -104,6 +105,16 @@ def test_unwritable_output_is_one_line(tmp_path, where):
     assert result.returncode == 2, result.stderr
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("stgs: ") and "Traceback" not in result.stderr
+
+
+def test_synth_takes_the_capture_length_in_seconds(tmp_path):
+    out = tmp_path / "scene"
+    result = stgs("synth", str(out), "--seconds", "1", "--gop-size", "4", "--grid-side", "4", "--width", "32",
+                  "--height", "24", "--cameras", "2", "--fit-steps", "2", "--effects", "rigid", "--quiet")
+    assert result.returncode == 0, result.stderr
+    meta, gops = load_model(out)
+    assert len(gops) == 8 and meta.fps == 30.0  # 30 frames of the small preset's 30 fps need 8 GOPs of 4
+    assert "8 GOPs x 4 frames (1.06667 s at 30 fps)" in result.stdout
 
 
 def test_synth_command_writes_a_model_dir(tmp_path):

@@ -7,11 +7,12 @@ generator loads.
 from __future__ import annotations
 
 import dataclasses
+import math
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
-from stgs.errors import StgsError
+from stgs.errors import FieldError, StgsError
 
 EFFECTS = ("rigid", "nonrigid", "color", "appear", "view_dependent", "static_background")
 """Every effect the generator knows."""
@@ -55,6 +56,12 @@ class SynthConfig:
     """Evaluate rendered fidelity on every n-th frame (all cameras)."""
     fold: bool = False
     """With static_background: fold the backdrop into every GOP (a format-1 model of the layered scene)."""
+
+    def gops_for_seconds(self, seconds: float) -> int:
+        """GOPs of gop_size frames at fps that a capture of `seconds` needs (the last one may run past it)."""
+        if not (math.isfinite(seconds) and seconds > 0):
+            raise FieldError("seconds", f"must be a positive number of seconds, got {seconds}")
+        return max(1, math.ceil(round(seconds * self.fps, 6) / self.gop_size))
 
     def validate(self) -> None:
         checks = [(self.grid_side >= 4, "grid_side must be >= 4"),

@@ -12,7 +12,7 @@ import torch
 from stgs.codec.features import feature_ranges, quantize_features, tile_frames
 from stgs.codec.video import VideoTiming, encode_gop
 from stgs.data import open_dataset
-from stgs.errors import StgsError
+from stgs.errors import FieldError, StgsError
 from stgs.model.gop import GOPShape
 from stgs.model.store import load_model, load_static, read_meta
 from stgs.synth import SynthConfig, config_from_toml, synthesize
@@ -110,6 +110,17 @@ def test_synth_refuses_to_clobber_a_foreign_folder(tmp_path):
         synthesize(dataclasses.replace(TINY, num_gops=1, fit_steps=1), target, progress=False)
     assert (target / "thesis.txt").read_text() == "do not delete"
     assert [p.name for p in tmp_path.iterdir()] == ["precious"], "no staging folder left behind"
+
+
+def test_a_duration_becomes_whole_gops():
+    cfg = SynthConfig(gop_size=60, fps=30.0)
+    assert cfg.gops_for_seconds(60) == 30  # one minute: 1,800 frames
+    assert cfg.gops_for_seconds(5) == 3  # 150 frames: the last GOP runs past the capture's end
+    assert SynthConfig(gop_size=30, fps=30.0).gops_for_seconds(2.0) == 2
+    assert SynthConfig(gop_size=6, fps=12.0).gops_for_seconds(0.1) == 1
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(FieldError, match="seconds"):
+            cfg.gops_for_seconds(bad)
 
 
 def test_config_from_toml(tmp_path):
