@@ -42,6 +42,10 @@ class Dataset(Protocol):
     def mask(self, frame: int, camera: str) -> torch.Tensor | None:
         """(H, W) bool foreground mask, or None when the dataset has none."""
 
+    def check_views(self, frames: list[int], cameras: list[str]) -> None:
+        """Raise StgsError (one line) unless every view of `frames` x `cameras` is present and of its camera's
+        size, looking at no more than the files' headers: what a run checks before it trains."""
+
 
 def check_frame(ds: Dataset, frame: int) -> None:
     if not 0 <= frame < ds.num_frames:

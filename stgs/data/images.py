@@ -2,12 +2,41 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from pathlib import Path
 
 import cv2
 import torch
 
 from stgs.errors import StgsError
+
+
+def image_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) from an image file's header (nothing decoded), or None when it is missing or unreadable."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        oiio.geterror()  # clear OpenImageIO's pending error message
+        return None
+    try:
+        spec = inp.spec()
+        return spec.width, spec.height
+    finally:
+        inp.close()
+
+
+def check_image_sizes(root: Path, expected: Iterable[tuple[Path, tuple[int, int]]]) -> None:
+    """Raise one StgsError unless every (file, (width, height)) has that size, reading only the headers."""
+    bad, checked = [], 0
+    for path, size in expected:
+        checked += 1
+        found = image_size(path)
+        if found != size:
+            what = "missing or not a readable image" if found is None else f"{found[0]}x{found[1]}"
+            bad.append(f"{path.relative_to(root)} is {what}, expected {size[0]}x{size[1]}")
+    if bad:
+        raise StgsError(f"{root}: {len(bad)} of {checked} image(s) are missing or of another size, e.g. {bad[0]}")
 
 
 def read_rgb(path: Path, size: tuple[int, int] | None = None) -> torch.Tensor:

@@ -124,3 +124,7 @@ class N3DVReader:
 
     def mask(self, frame: int, camera: str) -> torch.Tensor | None:
         return None
+
+    def check_views(self, frames: list[int], cameras: list[str]) -> None:
+        """Nothing beyond the constructor's checks: every camera's frames are counted from its video, and each
+        frame is scaled to its camera's size as it is extracted."""

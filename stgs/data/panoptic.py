@@ -13,7 +13,7 @@ from pathlib import Path
 import torch
 
 from stgs.camera import Camera
-from stgs.data.images import read_mask, read_rgb
+from stgs.data.images import check_image_sizes, read_mask, read_rgb
 from stgs.errors import StgsError
 
 META = "train_meta.json"
@@ -77,4 +77,10 @@ class PanopticReader:
         path = self.root / "seg" / Path(self._file(frame, camera)).with_suffix(".png")
         return read_mask(path, (self.height, self.width)) if path.is_file() else None
 
-
+    def check_views(self, frames: list[int], cameras: list[str]) -> None:
+        """Every image (and mask, where there is one) of the views at the meta's size, from the headers."""
+        size = (self.width, self.height)
+        names = [self._file(frame, camera) for frame in frames for camera in cameras]
+        masks = (self.root / "seg" / Path(name).with_suffix(".png") for name in names)
+        check_image_sizes(self.root, [(self.root / "ims" / name, size) for name in names]
+                          + [(mask, size) for mask in masks if mask.is_file()])

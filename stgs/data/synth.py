@@ -7,7 +7,7 @@ from pathlib import Path
 import torch
 
 from stgs.camera import Camera
-from stgs.data.images import read_mask, read_rgb
+from stgs.data.images import check_image_sizes, read_mask, read_rgb
 from stgs.errors import StgsError
 from stgs.synth import load_ground_truth
 from stgs.tree import CAMERAS, GROUND_TRUTH_DIR, MASKS_DIR
@@ -47,3 +47,20 @@ class SynthReader:
             raise StgsError(f"{self.name}: no camera {camera!r}")
         path = self.root / GROUND_TRUTH_DIR / MASKS_DIR / self.pattern.format(camera=camera, frame=frame)
         return read_mask(path, (cam.height, cam.width)) if path.is_file() else None
+
+    def check_views(self, frames: list[int], cameras: list[str]) -> None:
+        """Every ground-truth image (and mask, where there is one) of the views at its camera's size."""
+        by_name = {c.name: c for c in self._cameras}
+        unknown = sorted(set(cameras) - set(by_name))
+        if unknown:
+            raise StgsError(f"{self.name}: no camera(s) {unknown}")
+        items = []
+        for frame in frames:
+            for name in cameras:
+                size = (by_name[name].width, by_name[name].height)
+                rel = self.pattern.format(camera=name, frame=frame)
+                items.append((self.root / GROUND_TRUTH_DIR / rel, size))
+                mask = self.root / GROUND_TRUTH_DIR / MASKS_DIR / rel
+                if mask.is_file():
+                    items.append((mask, size))
+        check_image_sizes(self.root, items)

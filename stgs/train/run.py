@@ -168,6 +168,9 @@ def train(dataset: Path, out: Path, cfg: TrainConfig, progress: bool = True, res
     if ray is not None and cfg.threads is None:
         cfg = dataclasses.replace(cfg, threads=1)
     trainer = Trainer(Path(dataset), Path(out), cfg, progress, resume, kind)
+    # A missing or wrongly sized view is found now, from the files' headers, not when its GOP's turn comes.
+    span = range(cfg.start_frame, cfg.start_frame + trainer.num_gops * cfg.gop_size)
+    trainer.ds.check_views(list(span), trainer.train_names + trainer.val_names)
     runner = open_runner(ray, retries, progress)  # before anything is written: a bad address leaves no output
     try:
         trainer.prepare_output()

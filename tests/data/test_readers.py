@@ -117,3 +117,54 @@ def test_synth_reader_and_unknown_folders(tmp_path):
         open_dataset(tmp_path)
     with pytest.raises(StgsError, match=r"no camera\(s\) \['nope'\]"):
         split(ds, ["nope"])
+
+
+def test_views_are_checked_from_their_headers_before_anything_trains(tmp_path):
+    """A ground-truth image of another size or a missing one, in the last frame: one line from check_views, and
+    from `stgs train` before it writes anything."""
+    import cv2
+
+    from stgs.synth import SynthConfig, synthesize
+    from tests.conftest import run_stgs
+
+    synthesize(SynthConfig(grid_side=4, num_gops=2, gop_size=4, width=16, height=12, num_cameras=3, fit_steps=1),
+               tmp_path / "s", progress=False)
+    ds = open_dataset(tmp_path / "s")
+    ds.check_views(list(range(8)), ds.camera_names)  # as written: all present, all 16x12
+    late = tmp_path / "s" / "gt" / "cam01" / "00007.png"
+    cv2.imwrite(str(late), np.zeros((24, 32, 3), np.uint8))
+    with pytest.raises(StgsError, match=r"1 of \d+ image\(s\) are missing or of another size, e\.g\. "
+                                        r"gt/cam01/00007\.png is 32x24, expected 16x12"):
+        ds.check_views(list(range(8)), ds.camera_names)
+    ds.check_views(list(range(7)), ds.camera_names)  # the views a run would not train are not its business
+    result = run_stgs("train", str(tmp_path / "s"), str(tmp_path / "out"), "--budget", "quick", "--gop-size", "4",
+                      "--quiet")
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert result.stderr.strip().splitlines() == [f"stgs: {tmp_path / 's'}: 1 of 48 image(s) are missing or of "
+                                                  "another size, e.g. gt/cam01/00007.png is 32x24, expected 16x12"]
+    assert not (tmp_path / "out").exists()
+    late.unlink()
+    with pytest.raises(StgsError, match=r"gt/cam01/00007\.png is missing or not a readable image"):
+        ds.check_views(list(range(8)), ds.camera_names)
+
+
+@needs_panoptic
+def test_panoptic_views_of_another_size_are_found_from_the_headers(tmp_path):
+    import cv2
+
+    (tmp_path / "ims").mkdir()
+    for cam in (PANOPTIC / "ims").iterdir():
+        if cam.name != "3":
+            (tmp_path / "ims" / cam.name).symlink_to(cam)
+    (tmp_path / "ims" / "3").mkdir()
+    for image in (PANOPTIC / "ims" / "3").iterdir():
+        (tmp_path / "ims" / "3" / image.name).symlink_to(image)
+    odd = tmp_path / "ims" / "3" / "000120.jpg"
+    odd.unlink()
+    cv2.imwrite(str(odd), np.zeros((180, 320, 3), np.uint8))
+    shutil.copy(PANOPTIC / "train_meta.json", tmp_path / "train_meta.json")
+    ds = open_dataset(tmp_path)  # no seg/: images only
+    ds.check_views(list(range(120)), ds.camera_names)
+    with pytest.raises(StgsError, match=r"1 of 4050 image\(s\) .* e\.g\. ims/3/000120\.jpg is 320x180, expected "
+                                        r"640x360"):
+        ds.check_views(list(range(150)), ds.camera_names)
