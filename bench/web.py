@@ -16,14 +16,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import statistics
 import sys
-import tempfile
 import urllib.request
 from pathlib import Path
 
-from stgs.cli.browser import browse, missing_browser, served
+from stgs.cli.browser import browse, missing_browser, served_trees
 
 
 def run(plan: dict) -> dict:
@@ -89,13 +87,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if missing_browser():
         raise SystemExit(f"bench.web: {missing_browser()}")
-    with tempfile.TemporaryDirectory() as tmp:
-        root = Path(tmp)
-        for tree in args.trees:
-            shutil.copytree(tree, root / tree.resolve().name)  # the server follows no symlink out of its root
-        with served(root) as base:
-            rows = [measure(base, tree.resolve().name, args.size, args.quality, args.frames, backend)
-                    for tree in args.trees for backend in (args.backend or ["webgl2-texture"])]
+    with served_trees(args.trees) as base:
+        rows = [measure(base, tree.resolve().name, args.size, args.quality, args.frames, backend)
+                for tree in args.trees for backend in (args.backend or ["webgl2-texture"])]
     print(f"Chromium: {rows[0]['agent']}\n")
     print("| scene | Gaussians (static + dynamic) | drawn | size | deformation | copy ms | deform + read-back ms | "
           "sort ms (worker; round trip) | draw ms | frame ms | fps | keyframe decode ms | start-up ms | seek ms |")

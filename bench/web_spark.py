@@ -1,7 +1,7 @@
 """Spark (the three.js Gaussian splat renderer) against the web player's own splat pass, on the same deformed
 Gaussians, in headless Chromium (Debian's; WebGL2 on SwiftShader): per-frame milliseconds of each and the PSNR
 of Spark's picture against ours (ours matches `stgs play` to >= 40 dB: tests/web). Answers whether the player
-should hand its Gaussians to Spark instead of splatting them itself (docs/WEB.md, "Why our own splat pass").
+should hand its Gaussians to Spark instead of splatting them itself (docs/WEB.md, "Spark, measured").
 
     python -m bench.web_spark TREE [TREE ...] [--size 640x360] [--frames 12]
 
@@ -17,15 +17,13 @@ import argparse
 import base64
 import json
 import math
-import shutil
 import statistics
 import subprocess
 import sys
-import tempfile
 import urllib.request
 from pathlib import Path
 
-from stgs.cli.browser import WEB, browse, missing_browser, served
+from stgs.cli.browser import WEB, browse, missing_browser, served_trees
 
 OUR_EXTENT = math.sqrt(2 * math.log(255))
 """Spark's quad half-size (standard deviations) at which the most opaque splat's alpha reaches our 1/255 cut-off;
@@ -84,13 +82,9 @@ def main(argv: list[str] | None = None) -> int:
     if missing_browser():
         raise SystemExit(f"bench.web_spark: {missing_browser()}")
     page = build_bench_page()
-    with tempfile.TemporaryDirectory() as tmp:
-        root = Path(tmp)
-        for tree in args.trees:
-            shutil.copytree(tree, root / tree.resolve().name)  # the server follows no symlink out of its root
-        with served(root, player_dir=page) as base:
-            rows = [measure(base, tree.resolve().name, args.size, args.frames, ext, args.pictures, k)
-                    for tree in args.trees for ext in (False, True) for k in (args.max_std_dev or [OUR_EXTENT])]
+    with served_trees(args.trees, player_dir=page) as base:
+        rows = [measure(base, tree.resolve().name, args.size, args.frames, ext, args.pictures, k)
+                for tree in args.trees for ext in (False, True) for k in (args.max_std_dev or [OUR_EXTENT])]
     print(f"Chromium: {rows[0]['agent']}; the player's CSP refuses Spark's blob: worker: "
           f"{'yes' if rows[0]['blob_refused'] else 'no'}\n")
     print("| scene | Gaussians | size | Spark buffer | Spark quad (σ) | deform + read-back ms (both) | "

@@ -67,6 +67,18 @@ def served(root: Path, startup_s: float = 30.0, player_dir: Path | None = None) 
         proc.wait(timeout=15)
 
 
+@contextlib.contextmanager
+def served_trees(trees: list[Path], player_dir: Path | None = None) -> Iterator[str]:
+    """`served` over a temporary ROOT holding a copy of each packaged tree, under its folder's name (the server
+    follows no symlink out of its root); yields the base URL."""
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp)
+        for tree in trees:
+            shutil.copytree(tree, root / tree.resolve().name)
+        with served(root, player_dir=player_dir) as base:
+            yield base
+
+
 def browse(plan: dict, timeout: float = 600) -> tuple[dict, str | None]:
     """Run a plan of browser steps (web/tools/browse.mjs); returns what it gathered and the failure (None: ok)."""
     with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as f:
