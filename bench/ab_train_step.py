@@ -32,13 +32,12 @@ from stgs.train import losses
 from stgs.train.camera_colour import CameraColour, as_recorded
 from stgs.train.config import budget
 from stgs.train.dynamic import gop_dynamic_masks
-from stgs.train.layers import moving_masks
+from stgs.train.layers import moving_pixels
 from stgs.train.objective import canonical_regularisers, drop_gaussians
 from stgs.train.ops import Optimizer
-from stgs.train.run import base_stage
+from stgs.train.run import base_stage, stage_views
 from stgs.train.seeding import init_canonical, init_frames, initial_points
 from stgs.train.trainer import Trainer
-from stgs.train.views import load_views
 
 dataset, layers, steps = Path(sys.argv[1]), sys.argv[2], int(sys.argv[3])
 cfg = budget("cpu", layers=layers, holdout=["1", "14", "27"], max_gops=1, aux=False, seed=0, coarse_iterations=30)
@@ -66,9 +65,9 @@ def optimise(opt, loss):
 
 result = {}
 frames = trainer.gop_frames(0)[::6]
-views = load_views(trainer.ds, trainer.train_names, frames, cfg.scale, False)
+views, _ = stage_views(trainer, frames)
 if layers == "layered":
-    moving = moving_masks(trainer.ds, views, cfg.dynamic_theta).masks
+    views.set_masks(moving_pixels(trainer.ds, views, cfg.dynamic_theta))
     static = GOPModel(trainer.static_shape)
     colour = CameraColour(len(views.cameras))
     opt = Optimizer(static, cfg, trainer.extent, None, canonical_only=True, colour=colour)
@@ -82,19 +81,19 @@ if layers == "layered":
         c = int(torch.randint(len(views.cameras), (1,), generator=trainer.gen))
         g = static.canonical()
         img = as_recorded(colour, splat(drop_gaussians(g, cfg.static_drop_rate, trainer.gen), views.cameras[c]), c)
-        loss = losses.photometric(img, views.target(f, c), cfg.lambda_ssim, ~moving[f, c])
+        loss = losses.photometric(img, views.target(f, c), cfg.lambda_ssim, ~views.dynamic_pixels(f, c))
         optimise(opt, loss + canonical_regularisers(cfg, static, g.opacities))
 
     result["stage A step"] = median_ms(stage_a)
-    views.dynamic = moving
 else:
-    views.dynamic = gop_dynamic_masks(views.images, cfg.dynamic_frames, cfg.dynamic_theta)
+    masks = gop_dynamic_masks(views, cfg.dynamic_frames, cfg.dynamic_theta).numpy()
+    views.set_masks(lambda frame, c: masks[c])
 trainer.seed_stage("gop0")
 model = trainer.start_model(0, base.coarse)
 backdrops = static_backdrops(trainer.static, views.cameras) if trainer.static is not None else None
 opt = Optimizer(model, cfg, trainer.extent, None)
 key = "stage B step" if layers == "layered" else "format 1 GOP step"
-result[key] = median_ms(lambda: optimise(opt, trainer.gop_loss(model, None, views, backdrops).loss))
+result[key] = median_ms(lambda: optimise(opt, trainer.gop_loss(model, None, views.sample(0, 0), backdrops).loss))
 print(json.dumps(result))
 """
 

@@ -172,9 +172,10 @@ def model_rows(dirs: list[Path], dataset: Path, camera: str) -> list[str]:
 def sh_rows(model_dir: Path, dataset: Path, iterations: int, stride: int, work: Path) -> list[str]:
     from stgs.model.store import load_model, load_static, save_model
     from stgs.train.config import LearningRates, TrainConfig
-    from stgs.train.layers import fit_view_dependent, moving_masks
+    from stgs.train.layers import fit_view_dependent, moving_pixels
+    from stgs.train.run import stage_views
     from stgs.train.trainer import Trainer
-    from stgs.train.views import load_views
+    from stgs.train.views import view_draws
     from stgs.tree import CAMERAS, TRAIN_REPORT
 
     meta, gops = load_model(model_dir)
@@ -184,13 +185,13 @@ def sh_rows(model_dir: Path, dataset: Path, iterations: int, stride: int, work: 
     saved = meta.extra["config"]
     cfg = TrainConfig(**(saved | {"lr": LearningRates(**saved["lr"])}))
     trainer = Trainer(dataset, work / "state", cfg, progress=False)
-    views = load_views(trainer.ds, trainer.train_names, trainer.coarse_frames(), cfg.scale, False)
-    moving = moving_masks(trainer.ds, views, cfg.dynamic_theta).masks
+    views, _ = stage_views(trainer, trainer.coarse_frames())
+    views.set_masks(moving_pixels(trainer.ds, views, cfg.dynamic_theta))
     start = time.perf_counter()
-    shiny = fit_view_dependent(static, views, moving, iterations, cfg.lr.color, cfg.lambda_ssim,
-                               torch.Generator().manual_seed(cfg.seed))
+    draws = view_draws(cfg.seed, "static/sh1", iterations, len(views.frames), len(views.cameras))
+    shiny = fit_view_dependent(static, views, draws, cfg.lr.color, cfg.lambda_ssim)
     seconds = time.perf_counter() - start
-    del views, moving
+    views.close()
     scenes = {"sh 0 (as trained)": (model_dir, 0.0), "sh 1": (work / "sh1", seconds)}
     save_model(work / "sh1", gops, meta.fps, meta.extra, static=shiny)
     for name in (CAMERAS, TRAIN_REPORT):

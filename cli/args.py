@@ -88,6 +88,22 @@ def image_size(text: str) -> tuple[int, int]:
     return int(w), int(h)
 
 
+BYTE_UNITS = {"": 1, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
+
+
+def byte_size(text: str) -> int:
+    """A size in bytes: a number with an optional binary unit, e.g. 512M, 1.5G, 2GiB, 4096."""
+    body = text.strip().lower().removesuffix("ib").removesuffix("b")
+    unit = body[-1:] if body[-1:] in BYTE_UNITS else ""
+    try:
+        value = float(body[: len(body) - len(unit)])
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a size: {text!r} (e.g. 512M, 2G)") from None
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"must be a size of 0 or more: {text!r}")
+    return int(value * BYTE_UNITS[unit])
+
+
 def seconds_parser(positive: bool):
     def parse(text: str) -> float:
         try:

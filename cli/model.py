@@ -10,6 +10,7 @@ from pathlib import Path
 from stgs.cli.args import (
     UsageError,
     add_ray,
+    byte_size,
     effect_list,
     name_list,
     name_number,
@@ -176,6 +177,11 @@ def add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=positive_int,
                    help="torch threads (default: torch's; with --ray, 1 per task). The same seed and threads give "
                    "the same bytes, locally or on Ray")
+    p.add_argument("--max-memory", type=byte_size, metavar="SIZE",
+                   help="decoded views a stage holds, e.g. 512M or 2G (default: the machine's RAM / 16, at most "
+                   "1G); views beyond it are decoded again when drawn. The model's bytes do not depend on it")
+    p.add_argument("--static-frames", type=positive_int,
+                   help="layered: frames of the trained span stage A draws from, spread over it (default: all)")
     add_ray(p, "the base stage, then one task per GOP,")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run from its checkpoints")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -186,7 +192,8 @@ TRAIN_OVERRIDES = ("max_gops", "gop_size", "start_frame", "grid_side", "iteratio
                    "window", "aux", "dynamic", "temporal_weight", "relocate", "seed", "threads", "holdout",
                    "background_share", "init_frames", "layers", "static_grid_side", "migrate", "static_drop_rate",
                    "static_drop_until", "static_sh_degree", "static_sh_iterations", "dynamic_warmup", "hull_seeds",
-                   "camera_colour", "coarse_low_res", "gop_low_res", "static_triangulation")
+                   "camera_colour", "coarse_low_res", "gop_low_res", "static_triangulation", "max_memory",
+                   "static_frames")
 
 
 def train_overrides(args: argparse.Namespace) -> dict:
@@ -253,6 +260,8 @@ def add_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--lpips", choices=["alex", "vgg", "off"], default="alex",
                    help="LPIPS network, computed only where torchvision's cache ($TORCH_HOME/hub/checkpoints) "
                    "already holds its ImageNet backbone; nothing is downloaded (default: alex)")
+    p.add_argument("--max-memory", type=byte_size, metavar="SIZE",
+                   help="decoded held-out views held at once, e.g. 512M (default: the machine's RAM / 16, at most 1G)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(run=run_eval)
 
@@ -261,7 +270,8 @@ def run_eval(args: argparse.Namespace) -> int:
     from stgs.evaluate import evaluate
 
     result = evaluate(args.model_dir, args.dataset, args.out or args.model_dir, args.dash, args.holdout,
-                      args.stride, progress=not args.quiet, lpips_net=None if args.lpips == "off" else args.lpips)
+                      args.stride, progress=not args.quiet, lpips_net=None if args.lpips == "off" else args.lpips,
+                      max_memory=args.max_memory)
     for name, stream in result["streams"].items():
         regions = (f" (foreground {stream['psnr_foreground']:.2f} dB, background {stream['psnr_background']:.2f} dB)"
                    if "psnr_foreground" in stream and "psnr_background" in stream else "")

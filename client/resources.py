@@ -5,18 +5,12 @@ from __future__ import annotations
 
 import contextlib
 import gc
-import os
 from collections.abc import Iterator
 
 from stgs.client.config import PlaybackError
+from stgs.memory import physical_memory, process_peak_rss_mb
 
-
-def physical_memory() -> int | None:
-    """Bytes of RAM of this machine, or None where the OS does not say."""
-    try:
-        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
-        return None
+__all__ = ["check_decode_memory", "frozen_heap", "physical_memory", "process_peak_rss_mb"]
 
 
 @contextlib.contextmanager
@@ -30,26 +24,6 @@ def frozen_heap() -> Iterator[None]:
         yield
     finally:
         gc.unfreeze()
-
-
-def process_peak_rss_mb() -> float | None:
-    """The player process's peak resident memory so far (MB), where the OS reports it.
-
-    On Linux this is /proc/self/status's VmHWM, the high-water mark of this program's own memory: getrusage's
-    ru_maxrss survives exec, so a player started by a large process (a benchmark that packed a scene first)
-    would report its parent's peak instead of its own."""
-    try:
-        with open("/proc/self/status", encoding="ascii") as status:
-            for line in status:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024  # kB
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        import resource
-    except ImportError:
-        return None
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # kilobytes on Linux
 
 
 def check_decode_memory(gop_bytes: int, max_decoded: int, ram: int | None = None, static_bytes: int = 0) -> None:

@@ -42,7 +42,7 @@ from stgs.mpd_profile import (
     feature_set_codec,
 )
 from stgs.mpd_values import MPDError, expand_template
-from stgs.train.views import scale_camera
+from stgs.train.views import default_memory, open_views, scale_camera
 from stgs.tree import MANIFEST, TRAIN_REPORT
 
 GRID_ROWS = 4
@@ -94,8 +94,11 @@ def packaged_gops(dash: Path) -> dict[str, Callable[[int], GOPModel]]:
 
 
 def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None, holdout: list[str] | None = None,
-             stride: int = 1, progress: bool = True, lpips_net: str | None = "alex") -> dict:
-    """Write and return eval.json's document; `lpips_net` None: no LPIPS even where its weights are present."""
+             stride: int = 1, progress: bool = True, lpips_net: str | None = "alex", max_memory: int | None = None
+             ) -> dict:
+    """Write and return eval.json's document; `lpips_net` None: no LPIPS even where its weights are present;
+    `max_memory`: bytes of held-out views decoded ahead and kept for the next stream (None: the default share of
+    RAM, stgs.train.views.default_memory)."""
     from tqdm import tqdm
 
     meta = read_meta(model_dir)
@@ -125,26 +128,35 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
                     "gaussians": {"static": static.capacity if static is not None else 0,
                                   "dynamic": meta.shape.capacity}, "streams": {}}
     grid_rows: list[torch.Tensor] = []
-    for name, load in sources.items():
-        per_gop = []
-        for k in tqdm(range(meta.num_gops), desc=f"eval {name}", unit="gop", disable=not progress):
-            renderer = FrameRenderer(load(k), static=statics[name])
-            rows = []
-            for i in range(0, g, stride):
-                f = start + k * g + i
-                by_name = {c.name: c for c in ds.cameras(f)}
-                for cam_name in cams_val:
-                    cam, truth = scaled_view(ds, by_name[cam_name], f, scale)
-                    image = renderer.render(i, cam).clamp(0, 1)
-                    row = {"frame": f, "camera": cam_name, "psnr": _finite(psnr(image, truth)),
-                           "ssim": float(ssim(image, truth))} | region_psnr(image, truth, ds.mask(f, cam_name))
-                    if lpips is not None:
-                        row["lpips"] = lpips(image, truth)
-                    rows.append(row)
-                    if name == "uncompressed" and len(grid_rows) < 3 * GRID_ROWS and i % max(1, g // 2) == 0:
-                        grid_rows += [image, truth, ((image - truth).abs() * 10).clamp(0, 1)]
-            per_gop.append({"gop": k} | _means(rows) | {"frames": rows})
-        result["streams"][name] = _means(per_gop) | {"gops": per_gop}
+    # Every stream is scored on the same views: decoded ahead, in the order they are drawn, and kept for the next
+    # stream as far as the budget allows.
+    frames = [start + k * g + i for k in range(meta.num_gops) for i in range(0, g, stride)]
+    _, truths = open_views(ds, [], frames, scale, default_memory() if max_memory is None else max_memory, cams_val)
+    truths.plan([(p, c, 0) for _ in sources for p in range(len(frames)) for c in range(len(cams_val))])
+    try:
+        for name, load in sources.items():
+            per_gop = []
+            views = iter(range(len(frames)))
+            for k in tqdm(range(meta.num_gops), desc=f"eval {name}", unit="gop", disable=not progress):
+                renderer = FrameRenderer(load(k), static=statics[name])
+                rows = []
+                for i in range(0, g, stride):
+                    f, p = start + k * g + i, next(views)
+                    by_name = {c.name: c for c in ds.cameras(f)}
+                    for c, cam_name in enumerate(cams_val):
+                        cam, truth = scale_camera(by_name[cam_name], scale), truths.target(p, c)
+                        image = renderer.render(i, cam).clamp(0, 1)
+                        row = {"frame": f, "camera": cam_name, "psnr": _finite(psnr(image, truth)),
+                               "ssim": float(ssim(image, truth))} | region_psnr(image, truth, ds.mask(f, cam_name))
+                        if lpips is not None:
+                            row["lpips"] = lpips(image, truth)
+                        rows.append(row)
+                        if name == "uncompressed" and len(grid_rows) < 3 * GRID_ROWS and i % max(1, g // 2) == 0:
+                            grid_rows += [image, truth, ((image - truth).abs() * 10).clamp(0, 1)]
+                per_gop.append({"gop": k} | _means(rows) | {"frames": rows})
+            result["streams"][name] = _means(per_gop) | {"gops": per_gop}
+    finally:
+        truths.close()
     report = Path(model_dir) / TRAIN_REPORT
     if report.is_file():
         result["train_seconds_per_gop"] = [gop.get("seconds") for gop in json.loads(report.read_text())["gops"]]

@@ -1,12 +1,43 @@
-"""Process-wide tuning of glibc's allocator (mallopt): large allocations for training loops, a filled heap for
-reproducible encodes. Elsewhere than glibc both are no-ops that say so."""
+"""Memory as the project's parts see it: the machine's RAM, a process's own peak, and process-wide tuning of
+glibc's allocator (mallopt): large allocations for training loops, a filled heap for reproducible encodes.
+Elsewhere than glibc both tunings are no-ops that say so."""
 
 from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import os
 import threading
 from collections.abc import Callable
+
+
+def physical_memory() -> int | None:
+    """Bytes of RAM of this machine, or None where the OS does not say."""
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def process_peak_rss_mb() -> float | None:
+    """This process's peak resident memory so far (MB), where the OS reports it.
+
+    On Linux this is /proc/self/status's VmHWM, the high-water mark of this program's own memory: getrusage's
+    ru_maxrss survives exec, so a program started by a large process (a benchmark that packed a scene first)
+    would report its parent's peak instead of its own."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024  # kB
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        import resource
+    except ImportError:
+        return None
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # kilobytes on Linux
+
 
 M_TRIM_THRESHOLD = -1
 M_TOP_PAD = -2

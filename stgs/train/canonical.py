@@ -15,16 +15,15 @@ from stgs.train.camera_colour import CameraColour, as_recorded
 from stgs.train.objective import canonical_regularisers, drop_gaussians
 from stgs.train.ops import Optimizer, relocate, sort
 from stgs.train.seeding import init_canonical, init_frames, initial_points
-from stgs.train.views import LOW_RES, Views, downscaled
+from stgs.train.views import Views, view_draws
 
 if TYPE_CHECKING:
     from stgs.train.trainer import Trainer
 
 
-def fit_canonical(trainer: Trainer, views: Views, shape: GOPShape, moving: torch.Tensor | None = None,
-                  stage: str = "coarse") -> GOPModel:
+def fit_canonical(trainer: Trainer, views: Views, shape: GOPShape, stage: str = "coarse") -> GOPModel:
     """Canonical 3DGS (no deformation) on frames from all times, with each training camera's colour response
-    (TrainConfig.camera_colour, set as `trainer.colour`); with `moving` ((F, C, H, W) bool), on the pixels that do
+    (TrainConfig.camera_colour, set as `trainer.colour`); on views with moving-pixel masks, on the pixels that do
     not move only, with the GOP stage's regularisers (stage A). Resumes from and saves the trainer's
     checkpoints."""
     cfg = trainer.cfg
@@ -37,34 +36,32 @@ def fit_canonical(trainer: Trainer, views: Views, shape: GOPShape, moving: torch
     if resumed:  # the counts the interrupted run found, for the report
         trainer.triangulated, trainer.background_points = resumed[0].get("triangulated"), resumed[0].get("background")
     else:
-        region = "background" if moving is not None and cfg.static_triangulation else "foreground"
+        region = "background" if views.masked and cfg.static_triangulation else "foreground"
         init = initial_points(trainer.ds, trainer.train_names, init_frames(views.frames, cfg.init_frames),
                               shape.capacity, trainer.gen, cfg.init_points, cfg.background_share, region=region)
         trainer.triangulated, trainer.background_points = init.triangulated, init.background
         init_canonical(model, init)
     # Stage A's layer is final (no GOP stage refines it): it gets the GOP stage's regularisers, which
     # measurably generalise better to cameras not trained on (docs/BENCHMARKS.md, "Layered scenes").
-    regularised = moving is not None
+    regularised = views.masked
     sorting = regularised and cfg.smooth_weight > 0
     if sorting and start == 0:
         sort(model, opt, torch.zeros(2, shape.capacity), cfg.seed)
-    desc = "stage A: static layer" if moving is not None else "coarse canonical"
+    desc = "stage A: static layer" if regularised else "coarse canonical"
     low_until = round(cfg.coarse_low_res * cfg.coarse_iterations)
     drop_until = round(cfg.static_drop_until * cfg.coarse_iterations) if regularised else 0
-    low = downscaled(views, LOW_RES, moving) if start < low_until else None
+    draws = view_draws(cfg.seed, stage, cfg.coarse_iterations, len(views.frames), len(views.cameras), low_until)
+    views.plan(draws[start:])
     bar = tqdm(range(start, cfg.coarse_iterations), desc=desc, unit="it", disable=not trainer.progress)
     for it in bar:
         opt.set_progress(it / max(1, cfg.coarse_iterations))
-        f = int(torch.randint(len(views.frames), (1,), generator=trainer.gen))
-        c = int(torch.randint(len(views.cameras), (1,), generator=trainer.gen))
-        if it == low_until:
-            low = None  # the half-size images and masks are not drawn again
-        at, at_moving = low if low is not None else (views, moving)
+        f, c, level = draws[it]
+        view = views.at(level).sample(f, c)
         g = model.canonical()
         drawn = drop_gaussians(g, cfg.static_drop_rate, trainer.gen) if it < drop_until else g
-        img = as_recorded(colour, splat(drawn, at.cameras[c]), c)
-        mask = ~at_moving[f, c] if at_moving is not None else None
-        loss = losses.photometric(img, at.target(f, c), cfg.lambda_ssim, mask)
+        img = as_recorded(colour, splat(drawn, view.cam), c)
+        mask = ~view.dynamic if view.dynamic is not None else None
+        loss = losses.photometric(img, view.target, cfg.lambda_ssim, mask)
         if regularised:
             loss = loss + canonical_regularisers(cfg, model, g.opacities)
         trainer.step(opt, loss, stage, it, model)

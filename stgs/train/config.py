@@ -159,6 +159,11 @@ class TrainConfig:
     surrounds the action sees behind it (0: none; ignored for forward-facing rigs)."""
     threads: int | None = None
     """torch threads (None: torch's default)."""
+    max_memory: int | None = None
+    """Bytes of decoded views a stage holds (stgs.train.views; None: the machine's RAM / 16, at most 1 GiB).
+    Only how often a view is decoded depends on it, never the model's bytes."""
+    static_frames: int | None = None
+    """Layered: the frames stage A draws from, spread over the trained span (None: every frame)."""
 
     def untrained_tail(self, num_frames: int) -> tuple[int, int] | None:
         """First and last frame of a dataset of `num_frames` after the last whole GOP, which no GOP can hold
@@ -180,6 +185,8 @@ class TrainConfig:
                   (self.max_gops is None or self.max_gops >= 1, "max_gops must be >= 1"),
                   (0 <= self.background_share < 1, "background_share must be in [0, 1)"),
                   (self.init_frames >= 1, "init_frames must be >= 1"),
+                  (self.max_memory is None or self.max_memory >= 0, "max_memory must be >= 0 bytes"),
+                  (self.static_frames is None or self.static_frames >= 1, "static_frames must be >= 1"),
                   (self.layers in LAYERS, f"layers must be one of {', '.join(LAYERS)}"),
                   (self.static_grid_side >= 2, "static_grid_side must be >= 2"),
                   (0 <= self.migrate_score <= 1 and 0 <= self.migrate_share <= 1,

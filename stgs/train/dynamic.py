@@ -1,21 +1,45 @@
-"""Dynamic-aware density: which pixels of a camera move (per-pixel std over frames above θ)."""
+"""Dynamic-aware density: which pixels of a camera move (per-pixel luminance std over frames above θ), computed
+one frame at a time (Welford's running variance), so a camera's whole span is never held at once."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
+import numpy as np
 import torch
+
+from stgs.train.views import Views
+
+LUMA = np.array([0.299, 0.587, 0.114])
+
+
+def variance_mask(frames: Iterable[np.ndarray | torch.Tensor], theta: float) -> np.ndarray:
+    """(H, W) bool: pixels whose luminance std (unbiased) over `frames` ((H, W, 3) RGB in [0, 1]) exceeds theta."""
+    n, mean, m2 = 0, None, None
+    for frame in frames:
+        luma = np.asarray(frame, dtype=np.float64) @ LUMA
+        n += 1
+        if mean is None:
+            mean, m2 = luma.copy(), np.zeros_like(luma)
+            continue
+        delta = luma - mean
+        mean += delta / n
+        m2 += delta * (luma - mean)
+    if n < 2:
+        raise ValueError("a dynamic mask needs at least two frames")
+    return np.sqrt(m2 / (n - 1)) > theta
 
 
 def dynamic_mask(frames: torch.Tensor, theta: float) -> torch.Tensor:
-    """(H, W) bool: pixels whose luminance std over (F, H, W, 3) frames in [0, 1] exceeds theta."""
+    """(H, W) bool: `variance_mask` of (F >= 2, H, W, 3) frames in [0, 1]."""
     if frames.ndim != 4 or frames.shape[0] < 2:
         raise ValueError("dynamic_mask needs (F >= 2, H, W, 3) frames")
-    luma = frames.float() @ torch.tensor([0.299, 0.587, 0.114])
-    return luma.std(dim=0) > theta
+    return torch.from_numpy(variance_mask(frames.float(), theta))
 
 
-def gop_dynamic_masks(images: torch.Tensor, count: int, theta: float) -> torch.Tensor:
-    """(C, H, W) dynamic masks of a GOP's (F, C, H, W, 3) uint8 images from its first `count` frames (30 frames
-    spread over a 60-frame GOP instead measured 0.42 dB worse held out on Panoptic: docs/BENCHMARKS.md). One
-    camera at a time, so only `count` float frames are held at once."""
-    pick = images[: min(count, images.shape[0])]
-    return torch.stack([dynamic_mask(pick[:, c].float().div_(255.0), theta) for c in range(images.shape[1])])
+def gop_dynamic_masks(views: Views, count: int, theta: float) -> torch.Tensor:
+    """(C, H, W) dynamic masks of a GOP's views from its first `count` frames (30 frames spread over a 60-frame
+    GOP instead measured 0.42 dB worse held out on Panoptic: docs/BENCHMARKS.md), one view at a time."""
+    frames = range(min(count, len(views.frames)))
+    return torch.stack([torch.from_numpy(variance_mask((views.decoded(f, c) for f in frames), theta))
+                        for c in range(len(views.cameras))])

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from stgs.camera import Camera
 from stgs.codec.attributes import OPACITY_LOGIT_RANGE
 from stgs.data import Dataset
 from stgs.errors import StgsError
@@ -34,7 +35,7 @@ from stgs.model.static import STATIC_TENSORS, StaticLayer
 from stgs.model.view import splat, static_view
 from stgs.train import losses
 from stgs.train.camera_colour import CameraColour, as_recorded
-from stgs.train.dynamic import dynamic_mask
+from stgs.train.dynamic import variance_mask
 from stgs.train.init import grown, in_view
 from stgs.train.seeding import InitialPoints, init_canonical
 from stgs.train.views import Views
@@ -82,41 +83,69 @@ def static_background_psnr(static: StaticLayer, ds: Dataset, names: list[str], f
     return sum(values) / len(values)
 
 
-def moving_masks(ds: Dataset, views: Views, theta: float) -> MovingMasks:
-    """The moving pixels of every view in `views` (see the module docstring)."""
-    f, c, h, w = views.images.shape[:4]
-    masks = torch.zeros(f, c, h, w, dtype=torch.bool)
-    sources = set()
+@dataclass
+class MovingPixels:
+    """The moving pixels of the training views (a stgs.train.views.MaskSource): the dataset's foreground masks,
+    grown, for a camera that has one at the span's first frame (then it must have one at every frame); one
+    temporal-variance mask over the span for a camera that has none."""
+
+    ds: Dataset
+    cameras: list[Camera]
+    """The training cameras at the training scale."""
+    fixed: dict[int, np.ndarray]
+    """Temporal-variance masks, by camera position."""
+    source: str
+    """"dataset foreground masks", "temporal variance" or both (per camera, whichever it had)."""
+
+    def __call__(self, frame: int, c: int) -> np.ndarray:
+        if c in self.fixed:
+            return self.fixed[c]
+        cam = self.cameras[c]
+        mask = self.ds.mask(frame, cam.name)
+        if mask is None:
+            raise StgsError(f"{self.ds.name}: camera {cam.name} has foreground masks, but none at frame {frame}")
+        return grown_mask(mask, cam.width, cam.height).numpy()
+
+
+def moving_pixels(ds: Dataset, views: Views, theta: float) -> MovingPixels:
+    """The moving pixels of every view in `views` (see the module docstring), reading one view at a time."""
+    fixed, sources = {}, set()
     for j, cam in enumerate(views.cameras):
-        found = [ds.mask(frame, cam.name) for frame in views.frames]
-        if all(m is not None for m in found):
-            for i, m in enumerate(found):
-                masks[i, j] = grown_mask(m, w, h)
+        if ds.mask(views.frames[0], cam.name) is not None:
             sources.add("dataset foreground masks")
-        elif f >= 2:
-            masks[:, j] = dynamic_mask(views.images[:, j].float().div_(255.0), theta)
+        elif len(views.frames) >= 2:
+            fixed[j] = variance_mask((views.decoded(i, j) for i in range(len(views.frames))), theta)
             sources.add("temporal variance")
-    return MovingMasks(masks, " and ".join(sorted(sources)) or "none (one frame)")
+        else:
+            fixed[j] = np.zeros((cam.height, cam.width), dtype=bool)
+    return MovingPixels(ds, views.cameras, fixed, " and ".join(sorted(sources)) or "none (one frame)")
 
 
 @torch.no_grad()
-def motion_scores(model: GOPModel, views: Views, moving: torch.Tensor) -> torch.Tensor:
+def motion_scores(model: GOPModel, views: Views, moving: MovingPixels) -> tuple[torch.Tensor, float]:
     """(N,) the least, over the cameras that see a Gaussian's mean, of the share of frames that put it on a
-    moving pixel (0 for a Gaussian fewer than MIN_SCORE_CAMERAS cameras see)."""
-    n = model.shape.capacity
+    moving pixel (0 for a Gaussian fewer than MIN_SCORE_CAMERAS cameras see); and the share of all the views'
+    pixels that move. One mask at a time."""
+    n, frames = model.shape.capacity, views.frames
     least = torch.ones(n)
     seen = torch.zeros(n)
     xyz = model.xyz.detach().double().numpy()
+    moved = pixels = 0
     for j, cam in enumerate(views.cameras):
         uv, inside = in_view(cam, xyz)
         idx = torch.from_numpy(inside.nonzero()[0])
-        if len(idx) == 0:
-            continue
-        u, v = (torch.from_numpy(np.floor(uv[inside, k])).long() for k in (0, 1))
-        share = moving[:, j, v, u].float().mean(0)  # over frames, per visible Gaussian
-        least[idx] = torch.minimum(least[idx], share)
-        seen[idx] += 1
-    return torch.where(seen >= MIN_SCORE_CAMERAS, least, torch.zeros_like(least))
+        u, v = (np.floor(uv[inside, k]).astype(np.int64) for k in (0, 1))
+        hits, fixed = np.zeros(len(idx)), j in moving.fixed
+        for frame in frames[:1] if fixed else frames:  # a fixed mask is the same at every frame
+            mask = moving(frame, j)
+            hits += mask[v, u]
+            weight = len(frames) if fixed else 1
+            moved, pixels = moved + weight * int(mask.sum()), pixels + weight * mask.size
+        share = hits if fixed else hits / len(frames)
+        if len(idx):
+            least[idx] = torch.minimum(least[idx], torch.from_numpy(share).float())
+            seen[idx] += 1
+    return torch.where(seen >= MIN_SCORE_CAMERAS, least, torch.zeros_like(least)), moved / max(1, pixels)
 
 
 @dataclass
@@ -170,22 +199,21 @@ def init_dynamic(model: GOPModel, init: InitialPoints, migrated: Migrated | None
     return m
 
 
-def fit_view_dependent(static: StaticLayer, views: Views, moving: torch.Tensor, iterations: int, lr: float,
-                       lambda_ssim: float, gen: torch.Generator, progress: bool = False,
-                       colour: CameraColour | None = None) -> StaticLayer:
-    """A degree-1 copy of `static` whose colour and sh1 are fitted for `iterations` on the pixels that do not
-    move (one random training view per iteration); positions, scales, rotations and opacities stay."""
+def fit_view_dependent(static: StaticLayer, views: Views, draws: list[tuple[int, int, int]], lr: float,
+                       lambda_ssim: float, progress: bool = False, colour: CameraColour | None = None
+                       ) -> StaticLayer:
+    """A degree-1 copy of `static` whose colour and sh1 are fitted on the pixels that do not move, one view per
+    iteration (`draws`: stgs.train.views.view_draws); positions, scales, rotations and opacities stay."""
     layer = StaticLayer.from_canonical(static, sh_degree=1)
     for name in STATIC_TENSORS:
         getattr(layer, name).requires_grad_(name == "color")
     opt = torch.optim.Adam([layer.color, layer.sh1], lr=lr, eps=1e-15)
-    for _ in tqdm(range(iterations), desc="static layer: view-dependent colour", unit="it", disable=not progress):
-        f = int(torch.randint(len(views.frames), (1,), generator=gen))
-        c = int(torch.randint(len(views.cameras), (1,), generator=gen))
-        cam = views.cameras[c]
-        img = splat(layer.gaussians(cam.center.float()), cam)
-        img = as_recorded(colour, img, c)
-        loss = losses.photometric(img, views.target(f, c), lambda_ssim, ~moving[f, c])
+    views.plan(draws)
+    for f, c, level in tqdm(draws, desc="static layer: view-dependent colour", unit="it", disable=not progress):
+        view = views.at(level).sample(f, c)
+        img = as_recorded(colour, splat(layer.gaussians(view.cam.center.float()), view.cam), c)
+        moving = view.dynamic
+        loss = losses.photometric(img, view.target, lambda_ssim, ~moving if moving is not None else None)
         if not torch.isfinite(loss):
             raise StgsError(f"the static layer's view-dependent colour fit diverged (loss {loss.item()}); "
                             "lower the colour learning rate or fit without it")

@@ -1,13 +1,12 @@
 """What one GOP-stage iteration minimises (stgs.train.trainer's per-GOP loop), and the canonical regularisers
 the coarse stage and stage A share with it.
 
-One random (frame, camera) pair per iteration: the temporal features of the frame's window with feature noise
-λ·U(−0.5, 0.5) go through the deformation field; the deformed Gaussians are drawn (over the frozen static layer's
-backdrop for that camera in a layered scene), through the camera's colour response
-(stgs.train.camera_colour) and compared with the target (L1 + SSIM, again on the dynamic
-mask's pixels); the auxiliary transformer's pass, the temporal Huber term over all features (its gradient
-and the window's written in one pass), the canonical regularisers and the smoothness of the frame's feature grid
-are added (stgs.train.losses).
+One drawn (frame, camera) pair per iteration (stgs.train.views.view_draws): the temporal features of the frame's
+window with feature noise λ·U(−0.5, 0.5) go through the deformation field; the deformed Gaussians are drawn (over
+the frozen static layer's backdrop for that camera in a layered scene), through the camera's colour response
+(stgs.train.camera_colour) and compared with the target (L1 + SSIM, again on the dynamic mask's pixels); the
+auxiliary transformer's pass, the temporal Huber term over all features (its gradient and the window's written in
+one pass), the canonical regularisers and the smoothness of the frame's feature grid are added (stgs.train.losses).
 """
 
 from __future__ import annotations
@@ -24,7 +23,7 @@ from stgs.train import losses
 from stgs.train.aux import AuxTransformer
 from stgs.train.camera_colour import CameraColour, as_recorded
 from stgs.train.config import TrainConfig
-from stgs.train.views import Views
+from stgs.train.views import Sample
 
 
 class GOPLoss(NamedTuple):
@@ -57,17 +56,16 @@ def drop_gaussians(g: Gaussians, rate: float, gen: torch.Generator) -> Gaussians
     return dataclasses.replace(g, opacities=torch.where(keep, g.opacities / (1 - rate), 0).clamp(max=1.0))
 
 
-def gop_loss(cfg: TrainConfig, gen: torch.Generator, model: GOPModel, aux: AuxTransformer | None, views: Views,
+def gop_loss(cfg: TrainConfig, gen: torch.Generator, model: GOPModel, aux: AuxTransformer | None, view: Sample,
              static: list[Backdrop] | None = None, deform: bool = True, colour: CameraColour | None = None
              ) -> GOPLoss:
-    """One iteration's loss, drawing its pair and noise from `gen`; `static`: the frozen static layer's backdrop
-    for each training camera; `deform` False: the canonical Gaussians alone (the dynamic layer's warm-up,
+    """One iteration's loss on the drawn `view` (its frame's position in the GOP and its camera's among the
+    training cameras), drawing its noise from `gen`; `static`: the frozen static layer's backdrop for each
+    training camera; `deform` False: the canonical Gaussians alone (the dynamic layer's warm-up,
     TrainConfig.dynamic_warmup); `colour`: the training cameras' colour responses the drawn images go through
     (fitted in the base stage, frozen here)."""
     shape = model.shape
-    i = int(torch.randint(len(views.frames), (1,), generator=gen))
-    c = int(torch.randint(len(views.cameras), (1,), generator=gen))
-    cam, target = views.cameras[c], views.target(i, c)
+    i, c, cam, target = view.frame, view.camera, view.cam, view.target
     noise = (torch.rand(model.features.shape[1], cfg.window * 16, generator=gen) - 0.5) * cfg.feature_noise
     if cfg.temporal_weight:  # one gradient buffer for the window, the smoothness term and the temporal term
         block, temporal = losses.window_and_temporal_huber(model.features, i, shape.window, cfg.huber_delta)
@@ -84,7 +82,7 @@ def gop_loss(cfg: TrainConfig, gen: torch.Generator, model: GOPModel, aux: AuxTr
     img = as_recorded(colour, splat_over(backdrop, g, cam), c)
     ssim_values = ssim_map(img, target)
     loss = losses.photometric(img, target, cfg.lambda_ssim, ssim_values=ssim_values)
-    dynamic = views.dynamic_pixels(i, c) if cfg.dynamic else None
+    dynamic = view.dynamic if cfg.dynamic else None
     if dynamic is not None:
         loss = loss + cfg.dynamic_weight * losses.photometric(img, target, cfg.lambda_ssim, dynamic, ssim_values)
     if aux is not None and deform:

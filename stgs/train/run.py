@@ -21,15 +21,16 @@ from pathlib import Path
 from safetensors.torch import load_file
 
 from stgs.fsio import atomic_write_bytes
+from stgs.memory import process_peak_rss_mb
 from stgs.model.gop import GOPModel
 from stgs.model.store import save_gop, save_model
 from stgs.tasks import Task, open_runner
 from stgs.train.base import BASE_FILE, BaseStage
 from stgs.train.config import TrainConfig, config_from_dict
 from stgs.train.dynamic import gop_dynamic_masks
-from stgs.train.layers import moving_masks
+from stgs.train.layers import moving_pixels
 from stgs.train.trainer import Trainer
-from stgs.train.views import Views, load_views, scale_camera
+from stgs.train.views import Views, default_memory, open_views, scale_camera
 from stgs.tree import CAMERAS, CAMERAS_FORMAT, TRAIN_REPORT, gop_file, gop_stem
 
 LOG_DIR = "logs"
@@ -51,17 +52,20 @@ def base_stage(trainer: Trainer) -> BaseStage:
     path = trainer.state / BASE_FILE
     if path.is_file():
         return saved_base(trainer)
-    views = load_views(trainer.ds, trainer.train_names, trainer.coarse_frames(), trainer.cfg.scale,
-                       trainer.progress)
+    views, _ = stage_views(trainer, trainer.coarse_frames())
     start = time.perf_counter()
-    if trainer.layered:
-        trainer.stage_a(views)
-        base = BaseStage(static=trainer.static, migrated=trainer.migrated)
-    else:
-        base = BaseStage(coarse=trainer.coarse(views, trainer.shape))
+    try:
+        if trainer.layered:
+            trainer.stage_a(views)
+            base = BaseStage(static=trainer.static, migrated=trainer.migrated)
+        else:
+            base = BaseStage(coarse=trainer.coarse(views, trainer.shape))
+    finally:
+        views.close()
     base.colour = trainer.colour
     base.info = {"seconds": time.perf_counter() - start, "triangulated_points": trainer.triangulated,
-                 "background_points": trainer.background_points} | trainer.layer_info
+                 "background_points": trainer.background_points, "peak_rss_mb": process_peak_rss_mb()} \
+        | trainer.layer_info
     if base.colour is not None:
         base.info["camera_colour"] = base.colour.summary(trainer.train_names)
     trainer.state.mkdir(parents=True, exist_ok=True)
@@ -79,21 +83,34 @@ def gop_views(trainer: Trainer, k: int) -> tuple[Views, Views | None]:
     where it has them), since its layer holds only what moves; format 1's one mask per camera of what varied
     over the GOP's first frames missed 41 % of a Panoptic frame's moving pixels and was 60 % pixels where no
     player was in that frame (docs/BENCHMARKS.md)."""
-    cfg, frames = trainer.cfg, trainer.gop_frames(k)
-    views = load_views(trainer.ds, trainer.train_names, frames, cfg.scale, trainer.progress)
+    cfg = trainer.cfg
+    views, val = stage_views(trainer, trainer.gop_frames(k), holdout=True)
     if cfg.dynamic and trainer.layered:
-        views.dynamic = moving_masks(trainer.ds, views, cfg.dynamic_theta).masks
+        views.set_masks(moving_pixels(trainer.ds, views, cfg.dynamic_theta))
     elif cfg.dynamic:
-        views.dynamic = gop_dynamic_masks(views.images, cfg.dynamic_frames, cfg.dynamic_theta)
-    val = load_views(trainer.ds, trainer.val_names, frames, cfg.scale, False) if trainer.val_names else None
+        masks = gop_dynamic_masks(views, cfg.dynamic_frames, cfg.dynamic_theta).numpy()
+        views.set_masks(lambda frame, c: masks[c])
     return views, val
+
+
+def stage_views(trainer: Trainer, frames: list[int], holdout: bool = False) -> tuple[Views, Views | None]:
+    """The training views of `frames` (and the validation cameras', with `holdout`) through one cache of the
+    run's budget (TrainConfig.max_memory)."""
+    cfg = trainer.cfg
+    budget = default_memory() if cfg.max_memory is None else cfg.max_memory
+    return open_views(trainer.ds, trainer.train_names, frames, cfg.scale, budget,
+                      trainer.val_names if holdout else None)
 
 
 def gop_stage(trainer: Trainer, k: int) -> dict:
     """Train GOP k from the saved base stage; save it and its report in the state folder."""
     base = trainer.base or saved_base(trainer)
     views, val = gop_views(trainer, k)
-    model, report = trainer.train_gop(k, base.coarse, views, val)
+    try:
+        model, report = trainer.train_gop(k, base.coarse, views, val)
+    finally:
+        views.close()
+    report.peak_rss_mb = process_peak_rss_mb()
     save_gop(model, trainer.state / gop_file(k))
     atomic_write_bytes(trainer.state / report_file(k), json.dumps(dataclasses.asdict(report)).encode())
     return {"gop": k, "seconds": report.seconds, "val_psnr": report.val_psnr}
@@ -118,11 +135,13 @@ def finish(trainer: Trainer) -> dict:
     atomic_write_bytes(trainer.out / CAMERAS, (json.dumps(doc, indent=1) + "\n").encode())
     info = dict(base.info)
     coarse_s, colours = info.pop("seconds"), info.pop("camera_colour", None)
+    peaks = [info.pop("peak_rss_mb", None), process_peak_rss_mb()] + [r.get("peak_rss_mb") for r in reports]
     report = {"dataset": trainer.ds.name, "budget": cfg.budget, "gops": reports, "coarse_seconds": coarse_s,
               "triangulated_points": info.pop("triangulated_points"),
               "background_points": info.pop("background_points"), "capacity": trainer.shape.capacity,
               "train_cameras": trainer.train_names, "validation_cameras": trainer.val_names, "layers": cfg.layers,
-              "frames": trainer.ds.num_frames, "untrained_tail": trainer.tail_frames}
+              "frames": trainer.ds.num_frames, "untrained_tail": trainer.tail_frames,
+              "peak_rss_mb": max((p for p in peaks if p is not None), default=None)}
     if base.static is not None:
         report |= {"static_capacity": base.static.capacity, "static_seconds": coarse_s} | info
     if colours is not None:

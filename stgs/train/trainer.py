@@ -61,12 +61,12 @@ from stgs.train.canonical import fit_canonical
 from stgs.train.checkpoint import Checkpoints
 from stgs.train.config import TrainConfig, stage_seed
 from stgs.train.hull import HullConfig
-from stgs.train.layers import Migrated, fit_view_dependent, init_dynamic, migrate, motion_scores, moving_masks
+from stgs.train.layers import Migrated, fit_view_dependent, init_dynamic, migrate, motion_scores, moving_pixels
 from stgs.train.objective import GOPLoss, gop_loss
 from stgs.train.ops import Optimizer, opacity_level, prune, relocate, sort, track_opacities
 from stgs.train.seeding import init_frames, initial_points
 from stgs.train.validation import mean_scores
-from stgs.train.views import LOW_RES, Views, downscaled, scene_extent
+from stgs.train.views import Sample, Views, scene_extent, view_draws
 from stgs.tree import CAMERAS, MODEL_META, TRAIN_REPORT, gop_stem
 
 STATE_DIR = ".train"
@@ -89,6 +89,8 @@ class GOPReport:
     pruned: int = 0
     curve: list[dict] = field(default_factory=list)
     """(iteration, seconds, loss, validation PSNR and SSIM) samples: accuracy vs time."""
+    peak_rss_mb: float | None = None
+    """The training process's peak memory when the GOP was saved (stgs.memory.process_peak_rss_mb)."""
 
 
 class Trainer:
@@ -152,28 +154,30 @@ class Trainer:
 
     # --- stages ---
 
-    def coarse(self, views: Views, shape: GOPShape, moving: torch.Tensor | None = None,
-               stage: str = "coarse") -> GOPModel:
-        """Canonical 3DGS (no deformation) on frames from all times; with `moving` ((F, C, H, W) bool), on the
+    def coarse(self, views: Views, shape: GOPShape, stage: str = "coarse") -> GOPModel:
+        """Canonical 3DGS (no deformation) on frames from all times; on views with moving-pixel masks, on the
         pixels that do not move only (stage A of layered training). Sets the cameras' colour responses."""
-        return fit_canonical(self, views, shape, moving, stage)
+        return fit_canonical(self, views, shape, stage)
 
     def stage_a(self, views: Views) -> GOPModel:
         """The static layer (layered training): fitted on the pixels that do not move, then the Gaussians the
         data shows moving leave it for the dynamic layers."""
         cfg = self.cfg
-        moving = moving_masks(self.ds, views, cfg.dynamic_theta)
-        model = self.coarse(views, self.static_shape, moving.masks, "static")
-        scores = motion_scores(model, views, moving.masks)
+        moving = moving_pixels(self.ds, views, cfg.dynamic_theta)
+        views.set_masks(moving)
+        model = self.coarse(views, self.static_shape, "static")
+        scores, share = motion_scores(model, views, moving)
         limit = int(cfg.migrate_share * self.shape.capacity) if cfg.migrate else 0
         self.migrated = migrate(model, scores, cfg.migrate_score, limit, cfg.dead_opacity)
         self.static = StaticLayer.from_canonical(model)
         self.layer_info = {"moving_mask_source": moving.source, "migrated": len(self.migrated.index),
-                           "moving_pixel_share": float(moving.masks.float().mean())}
+                           "moving_pixel_share": share}
         if cfg.static_sh_degree:
             start = time.perf_counter()
-            self.static = fit_view_dependent(self.static, views, moving.masks, cfg.static_sh_iterations,
-                                             cfg.lr.color, cfg.lambda_ssim, self.gen, self.progress, self.colour)
+            draws = view_draws(cfg.seed, "static/sh1", cfg.static_sh_iterations, len(views.frames),
+                               len(views.cameras))
+            self.static = fit_view_dependent(self.static, views, draws, cfg.lr.color, cfg.lambda_ssim,
+                                             self.progress, self.colour)
             self.layer_info["view_dependent_seconds"] = time.perf_counter() - start
         return model
 
@@ -226,7 +230,9 @@ class Trainer:
             start, report = extra["iteration"], GOPReport(**extra["report"])
             accum = saved_accum if saved_accum is not None else accum
         low_until = round(cfg.gop_low_res * cfg.iterations)
-        low = self.low_res_views(views) if start < low_until else None
+        low = static_backdrops(self.static, views.at(1).cameras) if start < low_until and static is not None else None
+        draws = view_draws(cfg.seed, gop_stem(k), cfg.iterations, len(views.frames), len(views.cameras), low_until)
+        views.plan(draws[start:])
         clock = setup - report.seconds  # the dynamic layer's seeding counts as the GOP's training time
         bar = tqdm(range(start, cfg.iterations), desc=f"GOP {k}", unit="it", disable=not self.progress)
         loss_value = math.nan
@@ -237,10 +243,12 @@ class Trainer:
         peak = self.layered
         for it in bar:
             opt.set_progress(it / cfg.iterations)
+            f, c, level = draws[it]
             if it == low_until:
-                low = None  # the half-size images, masks and backdrops are not drawn again
-            at_views, at_static = low if low is not None else (views, static)
-            loss, img, target, opac = self.gop_loss(model, aux, at_views, at_static, deform=it >= warmup)
+                low = None  # the half-size backdrops are not drawn again
+            at_static = low if level else static
+            loss, img, target, opac = self.gop_loss(model, aux, views.at(level).sample(f, c), at_static,
+                                                    deform=it >= warmup)
             self.step(opt, loss, f"GOP {k}", it, model)
             loss_value = loss.item()
             window.append(loss_value)
@@ -274,17 +282,10 @@ class Trainer:
             report.val_psnr, report.val_ssim = mean_scores(model, self.static, val)
         return model, report
 
-    def low_res_views(self, views: Views) -> tuple[Views, list[Backdrop] | None]:
-        """A GOP's training views at LOW_RES with their dynamic masks, and the static layer kept for those cameras
-        (TrainConfig.gop_low_res)."""
-        small, masks = downscaled(views, LOW_RES, views.dynamic)
-        small.dynamic = masks
-        return small, static_backdrops(self.static, small.cameras) if self.static is not None else None
-
-    def gop_loss(self, model: GOPModel, aux: AuxTransformer | None, views: Views,
+    def gop_loss(self, model: GOPModel, aux: AuxTransformer | None, view: Sample,
                  static: list[Backdrop] | None = None, deform: bool = True) -> GOPLoss:
-        """One iteration's loss (stgs.train.objective), drawn with this run's generator."""
-        return gop_loss(self.cfg, self.gen, model, aux, views, static, deform, self.colour)
+        """One iteration's loss on the drawn `view` (stgs.train.objective), its noise from this run's generator."""
+        return gop_loss(self.cfg, self.gen, model, aux, view, static, deform, self.colour)
 
     # --- the run ---
 
@@ -294,7 +295,9 @@ class Trainer:
         return base
 
     def coarse_frames(self) -> list[int]:
-        """The frames of the coarse stage (stage A): at most two GOPs' worth, spread over the trained span."""
+        """The frames of the base stage: stage A (layered) draws from every frame of the trained span, or from
+        TrainConfig.static_frames of them spread over it; format 1's coarse stage from at most two GOPs' worth."""
         all_frames = [f for k in range(self.num_gops) for f in self.gop_frames(k)]
-        step = max(1, len(all_frames) // max(1, min(len(all_frames), 2 * self.cfg.gop_size)))
+        count = self.cfg.static_frames if self.layered else 2 * self.cfg.gop_size
+        step = max(1, len(all_frames) // max(1, min(len(all_frames), count or len(all_frames))))
         return all_frames[::step]

@@ -25,7 +25,8 @@ SCENE = SynthConfig(grid_side=16, num_gops=2, gop_size=6, width=96, height=72, n
 FLAGS = ("--gop-size", "6", "--grid-side", "16", "--coarse-iterations", "30", "--iterations", "120",
          "--threads", "1", "--quiet")
 CONFIG = {"gop_size": 6, "grid_side": 16, "coarse_iterations": 30, "iterations": 120, "threads": 1}
-REPORT_TIMES = {"seconds", "coarse_seconds", "static_seconds", "curve"}
+REPORT_TIMES = {"seconds", "coarse_seconds", "static_seconds", "curve", "peak_rss_mb"}
+"""What a training report measures of the run, not of the model: it differs from run to run."""
 """Fields of train_report.json that hold wall times (they differ between any two runs)."""
 
 

@@ -106,9 +106,9 @@ def test_stage_a_seeds_the_static_layer_on_the_background_unless_switched_off(pa
     Gaussians on the people; with --no-static-triangulation, the people's points and their jittered copies take
     a good part of it as before."""
     from stgs.train import budget
-    from stgs.train.layers import moving_masks
+    from stgs.train.layers import moving_pixels
+    from stgs.train.run import stage_views
     from stgs.train.trainer import Trainer
-    from stgs.train.views import load_views
     from tests.train.conftest import PANOPTIC
 
     on_people, triangulated = {}, {}
@@ -117,8 +117,9 @@ def test_stage_a_seeds_the_static_layer_on_the_background_unless_switched_off(pa
                      static_triangulation=on)
         trainer = Trainer(PANOPTIC, tmp_path / f"m{on}", cfg, progress=False)
         trainer.prepare_output()
-        views = load_views(trainer.ds, trainer.train_names, [0, 59], 1.0, False)
-        model = trainer.coarse(views, trainer.static_shape, moving_masks(trainer.ds, views, 0.05).masks, "static")
+        views, _ = stage_views(trainer, [0, 59])
+        views.set_masks(moving_pixels(trainer.ds, views, 0.05))
+        model = trainer.coarse(views, trainer.static_shape, "static")
         assert trainer.background_points == cfg.static_grid_side ** 2 // 2
         cams = [c for c in trainer.ds.cameras(0) if c.name in trainer.train_names]
         shares = shares_per_point(trainer.ds, cams, [0, 59], model.xyz.detach())  # the slots, PLAS-sorted

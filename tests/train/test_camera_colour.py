@@ -10,8 +10,9 @@ import torch
 
 from stgs.train import budget
 from stgs.train.camera_colour import CameraColour, as_recorded
+from stgs.train.run import stage_views
 from stgs.train.trainer import Trainer
-from stgs.train.views import load_views
+from stgs.train.views import tensor_views
 from tests.train.conftest import LAYERED
 
 TINT = torch.tensor([0.75, 1.0, 1.25])
@@ -60,9 +61,12 @@ def test_stage_a_learns_the_colour_of_a_tinted_camera(layered_scene, tmp_path):
     camera colours there are none."""
     cfg = budget("quick", **LAYERED, coarse_iterations=600)
     trainer = Trainer(layered_scene, tmp_path / "m", cfg, progress=False)
-    views = load_views(trainer.ds, trainer.train_names, [0, 2, 4], 1.0, False)
+    plain_views, _ = stage_views(trainer, [0, 2, 4])
+    images = torch.stack([torch.stack([torch.from_numpy(plain_views.source.decoded(f, c))
+                                       for c in range(len(plain_views.cameras))]) for f in range(3)])
     tinted = 1
-    views.images[:, tinted] = (views.images[:, tinted].float() * TINT).round().clamp(0, 255).to(torch.uint8)
+    images[:, tinted] = (images[:, tinted].float() * TINT).round().clamp(0, 255).to(torch.uint8)
+    views = tensor_views(plain_views.cameras, plain_views.frames, images)
     trainer.stage_a(views)
     gains = torch.exp(trainer.colour.centred()[0])
     others = torch.cat([gains[:tinted], gains[tinted + 1:]])
@@ -74,5 +78,5 @@ def test_stage_a_learns_the_colour_of_a_tinted_camera(layered_scene, tmp_path):
     assert (others - 1).abs().max() < 0.15, others
     assert not trainer.colour.log_gain.requires_grad, "frozen after the base stage"
     plain = Trainer(layered_scene, tmp_path / "p", dataclasses.replace(cfg, camera_colour=False), progress=False)
-    plain.stage_a(views)
+    plain.stage_a(tensor_views(plain_views.cameras, plain_views.frames, images))
     assert plain.colour is None

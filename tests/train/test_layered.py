@@ -26,11 +26,12 @@ from stgs.train import budget, train
 from stgs.train import canonical as canonical_module
 from stgs.train import losses as loss_module
 from stgs.train import trainer as trainer_module
-from stgs.train.layers import fit_view_dependent, migrate, motion_scores, moving_masks, static_background_psnr
+from stgs.train.dynamic import gop_dynamic_masks
+from stgs.train.layers import fit_view_dependent, migrate, motion_scores, moving_pixels, static_background_psnr
 from stgs.train.objective import drop_gaussians, gop_loss
-from stgs.train.run import gop_views
+from stgs.train.run import gop_views, stage_views
 from stgs.train.trainer import Trainer
-from stgs.train.views import Views, downscaled, load_views
+from stgs.train.views import open_views, tensor_views, view_draws
 from tests.conftest import run_stgs as stgs
 from tests.train.conftest import LAYERED, SCENE, shares_per_point
 
@@ -42,12 +43,11 @@ def scene(layered_scene) -> Path:
 
 def test_stage_a_recovers_the_static_background(scene, tmp_path):
     trainer = Trainer(scene, tmp_path / "m", budget("quick", **LAYERED, coarse_iterations=600), progress=False)
-    views = load_views(trainer.ds, trainer.train_names, [0, 2, 4], 1.0, False)
-    trainer.stage_a(views)
+    trainer.stage_a(stage_views(trainer, [0, 2, 4])[0])
     assert trainer.layer_info["moving_mask_source"] == "dataset foreground masks"
     fitted = static_background_psnr(trainer.static, trainer.ds, trainer.train_names, [1, 5])
     untrained = Trainer(scene, tmp_path / "u", budget("quick", **LAYERED, coarse_iterations=0), progress=False)
-    untrained.stage_a(views)
+    untrained.stage_a(stage_views(untrained, [0, 2, 4])[0])
     start = static_background_psnr(untrained.static, trainer.ds, trainer.train_names, [1, 5])
     # Measured: 21.3 dB after 600 iterations (the truth's backdrop is 256 Gaussians; 576 fit it), from 11.1 dB.
     assert fitted >= 19.0 and fitted >= start + 6.0, (fitted, start)
@@ -56,8 +56,8 @@ def test_stage_a_recovers_the_static_background(scene, tmp_path):
 def test_migration_moves_what_the_scene_moves(scene):
     ds = open_dataset(scene)
     cams = ds.cameras(0)
-    views = load_views(ds, ds.camera_names, [0, 1, 2, 3, 4, 5], 1.0, False)
-    moving = moving_masks(ds, views, 0.05)
+    views, _ = open_views(ds, ds.camera_names, [0, 1, 2, 3, 4, 5], 1.0, 1 << 30)
+    moving = moving_pixels(ds, views, 0.05)
     truth = ProceduralScene(SCENE.grid_side ** 2, SCENE.effects, SCENE.seed, SCENE.static_grid_side ** 2)
     ring = truth.at(0.0).means[truth.slices["ring"]]
     backdrop = truth.static.means
@@ -65,7 +65,9 @@ def test_migration_moves_what_the_scene_moves(scene):
     with torch.no_grad():
         model.xyz.copy_(torch.cat([backdrop, ring[:1]]))
         model.opacity_logit.fill_(2.0)
-    scores = motion_scores(model, views, moving.masks)
+    scores, share = motion_scores(model, views, moving)
+    whole = np.stack([moving(f, c) for f in views.frames for c in range(len(views.cameras))])
+    assert share == pytest.approx(whole.mean())
     assert scores[-1] > 0.8, "a Gaussian on the moving ring lands on moving pixels in nearly every view"
     assert (scores[:-1] < 0.5).float().mean() > 0.95, "the backdrop is static (players pass in front of it)"
     moved = migrate(model, scores, 0.5, limit=64, dead_opacity=0.02)
@@ -113,16 +115,17 @@ def test_view_dependent_fit_recovers_a_view_dependent_static_layer():
         shiny.sh1.copy_(torch.randn(shiny.sh1.shape, generator=torch.Generator().manual_seed(0)) * 0.25)
         images = torch.stack([splat(static_view(shiny, cam), cam).clamp(0, 1) for cam in cams])
     train_cams, held = cams[:-2], cams[-2:]
-    views = Views(train_cams, [0], (images[None, :-2] * 255).round().to(torch.uint8))
-    still = torch.zeros(1, len(train_cams), *images.shape[1:3], dtype=torch.bool)
+    views = tensor_views(train_cams, [0], (images[None, :-2] * 255).round().to(torch.uint8),
+                         torch.zeros(len(train_cams), *images.shape[1:3], dtype=torch.bool))
+    draws = view_draws(1, "sh1", 300, 1, len(train_cams))
 
     def held_psnr(layer):
         with torch.no_grad():
             return sum(psnr(splat(static_view(layer, c), c).clamp(0, 1), images[-2 + i])
                        for i, c in enumerate(held)) / len(held)
 
-    fitted = fit_view_dependent(truth, views, still, 300, 2.5e-2, 0.2, torch.Generator().manual_seed(1))
-    again = fit_view_dependent(truth, views, still, 300, 2.5e-2, 0.2, torch.Generator().manual_seed(1))
+    fitted = fit_view_dependent(truth, views, draws, 2.5e-2, 0.2)
+    again = fit_view_dependent(truth, views, draws, 2.5e-2, 0.2)
     assert fitted.sh_degree == 1 and torch.equal(fitted.sh1, again.sh1)  # seeded
     for name in ("xyz", "log_scale", "rotation", "opacity_logit"):  # geometry and opacity stay
         assert torch.equal(getattr(fitted, name), getattr(truth, name)), name
@@ -134,7 +137,7 @@ def test_view_dependent_fit_recovers_a_view_dependent_static_layer():
 
 def test_the_dynamic_layer_starts_with_no_opacity_offset_and_warms_up_without_its_field(scene, tmp_path):
     trainer = Trainer(scene, tmp_path / "m", budget("quick", **LAYERED, coarse_iterations=5), progress=False)
-    views = load_views(trainer.ds, trainer.train_names, [0, 2, 4], 1.0, False)
+    views, _ = stage_views(trainer, [0, 2, 4])
     trainer.stage_a(views)
     model = trainer.start_model(0, None)
     # The layer starts with no opacity offset: its seeded opacities are what it draws.
@@ -143,7 +146,7 @@ def test_the_dynamic_layer_starts_with_no_opacity_offset_and_warms_up_without_it
     static = static_backdrops(trainer.static, views.cameras)
     for deform in (False, True):
         model.zero_grad(set_to_none=True)
-        trainer.gop_loss(model, None, views, static, deform=deform)[0].backward()
+        trainer.gop_loss(model, None, views.sample(1, 0), static, deform=deform)[0].backward()
         assert model.opacity_logit.grad is not None and model.opacity_logit.grad.abs().sum() > 0
         field = [p.grad for p in model.field.parameters()]
         if deform:
@@ -157,28 +160,30 @@ def test_a_layered_gop_weights_each_frames_moving_pixels(scene, tmp_path):
     grown, as stage A's), where format 1's GOPs keep one mask per camera."""
     layered = Trainer(scene, tmp_path / "l", budget("quick", **LAYERED), progress=False)
     views, val = gop_views(layered, 0)
-    assert val is not None and val.dynamic is None
-    assert views.dynamic.shape == (*views.images.shape[:4],)
-    assert torch.equal(views.dynamic, moving_masks(layered.ds, views, layered.cfg.dynamic_theta).masks)
-    assert not torch.equal(views.dynamic[0], views.dynamic[-1])  # the objects move between the GOP's ends
+    assert val is not None and val.dynamic_pixels(0, 0) is None
+    moving = moving_pixels(layered.ds, views, layered.cfg.dynamic_theta)
+    for f, frame in enumerate(views.frames):
+        for c in range(len(views.cameras)):
+            assert np.array_equal(views.dynamic_pixels(f, c).numpy(), moving(frame, c)), (f, c)
+    assert not torch.equal(views.dynamic_pixels(0, 0), views.dynamic_pixels(5, 0))  # the objects move
     single_cfg = budget("quick", **(LAYERED | {"layers": "single"}))
     single, _ = gop_views(Trainer(scene, tmp_path / "s", single_cfg, progress=False), 0)
-    assert single.dynamic.shape == (views.images.shape[1], *views.images.shape[2:4])
-    assert torch.equal(single.dynamic_pixels(3, 1), single.dynamic[1])
+    per_camera = gop_dynamic_masks(single, single_cfg.dynamic_frames, single_cfg.dynamic_theta)
+    assert per_camera.shape == (len(single.cameras), *views.dynamic_pixels(0, 0).shape)
+    assert all(torch.equal(single.dynamic_pixels(f, 1), per_camera[1]) for f in (0, 3, 5))
 
     model = layered.start_model(0, None)
-    drawn = int(torch.randint(len(views.frames), (1,), generator=torch.Generator().manual_seed(5)))
+    drawn = views.sample(2, 1)
 
-    def loss(masks: torch.Tensor) -> float:
-        views.dynamic = masks
+    def loss(mask: torch.Tensor | None) -> float:
         with torch.no_grad():
-            return float(gop_loss(layered.cfg, torch.Generator().manual_seed(5), model, None, views)[0])
+            return float(gop_loss(layered.cfg, torch.Generator().manual_seed(5), model, None,
+                                  drawn._replace(dynamic=mask))[0])
 
-    none = torch.zeros_like(views.dynamic)
-    only_drawn, all_but_drawn = none.clone(), ~none
-    only_drawn[drawn], all_but_drawn[drawn] = True, False
-    assert loss(only_drawn) == loss(~none) > loss(none) == loss(all_but_drawn)
-    assert loss(~none) == loss(torch.ones(views.dynamic.shape[1:], dtype=torch.bool))
+    everywhere = torch.ones_like(drawn.dynamic)
+    assert loss(everywhere) > loss(drawn.dynamic) > loss(~everywhere)
+    views.close()
+    single.close()
 
 
 def test_the_dynamic_layer_is_seeded_on_the_moving_objects_hull(scene, tmp_path):
@@ -237,15 +242,15 @@ def test_low_resolution_views_average_the_pixels_and_keep_any_moving_one():
     images = torch.randint(0, 256, (1, 1, 6, 8, 3), dtype=torch.uint8, generator=torch.Generator().manual_seed(0))
     moving = torch.zeros(1, 1, 6, 8, dtype=torch.bool)
     moving[0, 0, 3, 5] = True
-    small, small_moving = downscaled(Views([cam], [7], images), 0.5, moving)
-    assert small.images.shape == (1, 1, 3, 4, 3) and small.frames == [7]
+    small = tensor_views([cam], [7], images, moving).at(1)
+    assert small.target(0, 0).shape == (3, 4, 3) and small.frames == [7]
     blocks = images[0, 0].double().reshape(3, 2, 4, 2, 3).mean((1, 3))
-    assert (small.images[0, 0].double() - blocks).abs().max() <= 0.5
-    assert small_moving[0, 0].nonzero().tolist() == [[1, 2]]
+    assert ((small.target(0, 0).double() * 255).round() - blocks).abs().max() <= 0.5
+    assert small.dynamic_pixels(0, 0).nonzero().tolist() == [[1, 2]]
     assert (small.cameras[0].width, small.cameras[0].height) == (4, 3)
     assert torch.allclose(small.cameras[0].K[:2], cam.K[:2] / 2)
-    _, per_camera = downscaled(Views([cam], [7], images), 0.5, moving[0])  # format 1's masks: one per camera
-    assert per_camera.shape == (1, 3, 4) and per_camera[0].nonzero().tolist() == [[1, 2]]
+    per_camera = tensor_views([cam], [7], images, moving[0]).at(1)  # format 1's masks: one per camera
+    assert per_camera.dynamic_pixels(0, 0).nonzero().tolist() == [[1, 2]]
 
 
 def test_gop_stage_at_low_resolution_first_draws_half_size_views_and_resumes_to_the_same_bytes(
@@ -257,7 +262,7 @@ def test_gop_stage_at_low_resolution_first_draws_half_size_views_and_resumes_to_
     def record(*args, **kwargs):
         if len(widths) == stop["at"]:
             raise KeyboardInterrupt
-        widths.append(args[4].cameras[0].width)  # gop_loss(cfg, gen, model, aux, views, ...)
+        widths.append(args[4].cam.width)  # gop_loss(cfg, gen, model, aux, view, ...)
         return real(*args, **kwargs)
 
     monkeypatch.setattr(trainer_module, "gop_loss", record)
@@ -284,11 +289,12 @@ def test_stage_a_at_low_resolution_first_resumes_to_the_same_bytes(scene, tmp_pa
     cfg = budget("quick", **LAYERED, coarse_iterations=20, coarse_low_res=0.75, checkpoint_every=10, threads=2)
     full = Trainer(scene, tmp_path / "a", cfg, progress=False)
     full.prepare_output()
-    views = load_views(full.ds, full.train_names, [0, 2, 4], 1.0, False)
-    fitted = full.coarse(views, full.static_shape, moving_masks(full.ds, views, 0.05).masks, "static")
+    views, _ = stage_views(full, [0, 2, 4])
+    views.set_masks(moving_pixels(full.ds, views, 0.05))
+    fitted = full.coarse(views, full.static_shape, "static")
     plain = Trainer(scene, tmp_path / "p", dataclasses.replace(cfg, coarse_low_res=0.0), progress=False)
     plain.prepare_output()
-    other = plain.coarse(views, plain.static_shape, moving_masks(plain.ds, views, 0.05).masks, "static")
+    other = plain.coarse(views, plain.static_shape, "static")
     assert not torch.equal(fitted.xyz, other.xyz)  # the first 15 iterations drew other pixels
     real, calls = loss_module.photometric, {"n": 0}
 
@@ -302,10 +308,10 @@ def test_stage_a_at_low_resolution_first_resumes_to_the_same_bytes(scene, tmp_pa
     run = Trainer(scene, tmp_path / "r", cfg, progress=False)
     run.prepare_output()
     with pytest.raises(KeyboardInterrupt):
-        run.coarse(views, run.static_shape, moving_masks(run.ds, views, 0.05).masks, "static")
+        run.coarse(views, run.static_shape, "static")
     monkeypatch.setattr(loss_module, "photometric", real)
     resumed = Trainer(scene, tmp_path / "r", cfg, progress=False, resume=True)
-    again = resumed.coarse(views, resumed.static_shape, moving_masks(resumed.ds, views, 0.05).masks, "static")
+    again = resumed.coarse(views, resumed.static_shape, "static")
     for name, value in fitted.state_dict().items():
         assert torch.equal(value, again.state_dict()[name]), name
 
@@ -343,15 +349,16 @@ def test_stage_a_draws_with_dropped_gaussians_and_the_coarse_stage_without(scene
     monkeypatch.setattr(canonical_module, "drop_gaussians", record)
     cfg = budget("quick", **LAYERED, coarse_iterations=4, static_drop_rate=0.3)
     trainer = Trainer(scene, tmp_path / "a", cfg, progress=False)
-    views = load_views(trainer.ds, trainer.train_names, [0, 2], 1.0, False)
+    views, _ = stage_views(trainer, [0, 2])
     trainer.stage_a(views)
     assert rates == [0.3] * 4
     single = Trainer(scene, tmp_path / "s", dataclasses.replace(cfg, layers="single"), progress=False)
+    views.set_masks(None)
     single.coarse(views, single.shape)
     assert rates == [0.3] * 4  # format 1's coarse stage is refined by every GOP: nothing dropped
     rates.clear()
     tapered = Trainer(scene, tmp_path / "t", dataclasses.replace(cfg, static_drop_until=0.5), progress=False)
-    tapered.stage_a(views)
+    tapered.stage_a(stage_views(tapered, [0, 2])[0])
     assert rates == [0.3] * 2  # the last half draws every static Gaussian
 
 

@@ -7,10 +7,12 @@ import math
 import pytest
 import torch
 
+from stgs.camera import Camera, intrinsics
 from stgs.metrics import SSIM_C1, SSIM_C2, psnr, ssim, ssim_map
 from stgs.native.build import available
 from stgs.train import losses
-from stgs.train.dynamic import dynamic_mask, gop_dynamic_masks
+from stgs.train.dynamic import dynamic_mask, gop_dynamic_masks, variance_mask
+from stgs.train.views import tensor_views
 
 
 def test_temporal_huber_by_hand():
@@ -165,11 +167,24 @@ def test_gop_dynamic_masks_are_each_cameras_mask_of_the_first_frames():
     images = torch.zeros(60, 2, 4, 4, 3, dtype=torch.uint8)
     images[10:, 1, 3, 0] = 255  # camera 1, pixel (3, 0) turns red at frame 10
     images[40:, 0, 1, 1] = 255  # camera 0, pixel (1, 1) turns red at frame 40
-    masks = gop_dynamic_masks(images, 30, 0.05)
+    cams = [Camera(str(c), intrinsics(4, 4, 60.0), torch.eye(4, dtype=torch.float64), 4, 4) for c in range(2)]
+    views = tensor_views(cams, list(range(60)), images)
+    masks = gop_dynamic_masks(views, 30, 0.05)
     assert masks.shape == (2, 4, 4) and masks[1, 3, 0] and masks.sum() == 1
     whole = torch.stack([dynamic_mask(images[:30, c].float() / 255, 0.05) for c in range(2)])
     assert torch.equal(masks, whole)
-    assert gop_dynamic_masks(images, 100, 0.05)[0, 1, 1]  # count beyond the GOP: every frame
+    assert gop_dynamic_masks(views, 100, 0.05)[0, 1, 1]  # count beyond the GOP: every frame
+
+
+def test_the_running_variance_mask_matches_the_whole_stacks_std():
+    frames = torch.rand(40, 8, 6, 3, generator=torch.Generator().manual_seed(3))
+    luma = frames.double() @ torch.tensor([0.299, 0.587, 0.114], dtype=torch.float64)
+    std = luma.std(dim=0)
+    theta = float(std.median()) + 1e-9  # between two pixels' values
+    assert torch.equal(dynamic_mask(frames, theta), std > theta)
+    assert torch.equal(torch.from_numpy(variance_mask(iter(frames), theta)), std > theta)
+    with pytest.raises(ValueError):
+        variance_mask([frames[0]], theta)
 
 
 def test_ssim_gradient_in_the_image_is_autograds():
