@@ -2,10 +2,10 @@
 draws the background, per setting and seed (`python -m bench.stage_a`, prints Markdown rows for
 docs/BENCHMARKS.md).
 
-Each row trains stage A (the budget's layered config, `cpu` by default, with `--set`'s overrides, `--no-aux`,
-one GOP, the `--holdout` cameras left out) in a fresh folder and draws the static layer alone at every 6th frame
-of the GOP: from the held-out cameras, and from every 6th training camera through its learnt colour response
-(what training fitted). PSNR over the pixels outside the dataset's foreground masks grown as
+Each row trains stage A (the budget's layered config, `cpu` by default, with `--set`'s overrides, `--no-aux`, one
+GOP unless `max_gops` is set, the `--holdout` cameras left out) in a fresh folder and draws the static layer alone
+at every 6th frame of the trained span: from the held-out cameras, and from every 6th training camera through its
+learnt colour response (what training fitted). PSNR over the pixels outside the dataset's foreground masks grown as
 stgs.train.layers.grown_mask grows them, the pixels stage A fits. The background is most of a layered run's held-out
 error (nine-tenths of Panoptic's pixels, about two-thirds of the squared error), and this measures it in half a
 run's time.
@@ -49,7 +49,8 @@ def row(dataset: Path, holdout: list[str], settings: dict, seed: int, work: Path
     set Adam's rates, as `stgs train --lr NAME=RATE` does)."""
     rates = {k.removeprefix(LR_PREFIX): v for k, v in settings.items() if k.startswith(LR_PREFIX)}
     fields = {k: v for k, v in settings.items() if not k.startswith(LR_PREFIX)}
-    cfg = budget(budget_name, layers="layered", holdout=holdout, max_gops=1, aux=False, seed=seed, **fields)
+    cfg = budget(budget_name, **({"layers": "layered", "holdout": holdout, "max_gops": 1, "aux": False,
+                                  "seed": seed} | fields))
     cfg = dataclasses.replace(cfg, lr=cfg.lr.with_rates(rates))
     trainer = Trainer(dataset, work, cfg, progress=False)
     trainer.prepare_output()
@@ -57,7 +58,7 @@ def row(dataset: Path, holdout: list[str], settings: dict, seed: int, work: Path
     base = base_stage(trainer)
     seconds = time.perf_counter() - start
     ds = open_dataset(dataset)
-    frames = list(range(0, cfg.gop_size, FRAME_STEP))
+    frames = list(range(cfg.start_frame, cfg.start_frame + trainer.num_gops * cfg.gop_size, FRAME_STEP))
     trained = trainer.train_names[::FRAME_STEP]
     held_out = static_background_psnr(base.static, ds, trainer.val_names, frames, MASK_DILATE_PX)
     fitted = static_background_psnr(base.static, ds, trained, frames, MASK_DILATE_PX, base.colour,

@@ -3,7 +3,7 @@
 A dataset is synchronized frames from calibrated cameras: `cameras(frame)`
 (OpenCV pinhole, world-to-camera), `image(frame, camera)` as (H, W, 3)
 float32 RGB in [0, 1], `mask(frame, camera)` (foreground, (H, W) bool) where
-the dataset has masks. Readers:
+the dataset has masks; `pixels(frame, camera)` is the image as stored, uint8. Readers:
 
 - `PanopticReader`: the Panoptic / Dynamic 3D Gaussians layout
   (`train_meta.json`, `ims/<cam>/<frame>.jpg`, `seg/<cam>/<frame>.png`);
@@ -19,6 +19,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Protocol
 
+import numpy as np
 import torch
 
 from stgs.camera import Camera
@@ -38,6 +39,9 @@ class Dataset(Protocol):
 
     def image(self, frame: int, camera: str) -> torch.Tensor:
         """(H, W, 3) float32 RGB in [0, 1]."""
+
+    def pixels(self, frame: int, camera: str) -> np.ndarray:
+        """The same view as (H, W, 3) uint8 RGB, as stored (what training's view cache decodes: no float copy)."""
 
     def mask(self, frame: int, camera: str) -> torch.Tensor | None:
         """(H, W) bool foreground mask, or None when the dataset has none."""

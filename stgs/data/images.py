@@ -6,6 +6,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 import cv2
+import numpy as np
 import torch
 
 from stgs.errors import StgsError
@@ -39,14 +40,14 @@ def check_image_sizes(root: Path, expected: Iterable[tuple[Path, tuple[int, int]
         raise StgsError(f"{root}: {len(bad)} of {checked} image(s) are missing or of another size, e.g. {bad[0]}")
 
 
-def read_rgb(path: Path, size: tuple[int, int] | None = None) -> torch.Tensor:
-    """(H, W, 3) float32 RGB of an image file; `size` = (H, W) it must have."""
+def read_rgb8(path: Path, size: tuple[int, int] | None = None) -> np.ndarray:
+    """(H, W, 3) uint8 RGB of an image file; `size` = (H, W) it must have."""
     data = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if data is None:
         raise StgsError(f"{path}: missing or not a readable image")
     if size is not None and data.shape[:2] != tuple(size):
         raise StgsError(f"{path}: image is {data.shape[1]}x{data.shape[0]}, expected {size[1]}x{size[0]}")
-    return torch.from_numpy(cv2.cvtColor(data, cv2.COLOR_BGR2RGB)).float().div_(255.0)
+    return cv2.cvtColor(data, cv2.COLOR_BGR2RGB)
 
 
 def read_mask(path: Path, size: tuple[int, int]) -> torch.Tensor:

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from stgs.camera import Camera
-from stgs.data.images import read_rgb
+from stgs.data.images import read_rgb8
 from stgs.errors import StgsError
 
 POSES = "poses_bounds.npy"
@@ -117,10 +117,13 @@ class N3DVReader:
         return out
 
     def image(self, frame: int, camera: str) -> torch.Tensor:
+        return torch.from_numpy(self.pixels(frame, camera)).float().div_(255.0)
+
+    def pixels(self, frame: int, camera: str) -> np.ndarray:
         if camera not in self._videos or not 0 <= frame < self.num_frames:
             raise StgsError(f"{self.name}: no frame {frame} of camera {camera!r}")
         cam = self._cams[self.camera_names.index(camera)]
-        return read_rgb(self._extract(camera) / f"{frame:05d}.png", (cam.height, cam.width))
+        return read_rgb8(self._extract(camera) / f"{frame:05d}.png", (cam.height, cam.width))
 
     def mask(self, frame: int, camera: str) -> torch.Tensor | None:
         return None

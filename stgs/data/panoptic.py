@@ -10,10 +10,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from stgs.camera import Camera
-from stgs.data.images import check_image_sizes, read_mask, read_rgb
+from stgs.data.images import check_image_sizes, read_mask, read_rgb8
 from stgs.errors import StgsError
 
 META = "train_meta.json"
@@ -71,7 +72,10 @@ class PanopticReader:
             raise StgsError(f"{self.name}: no frame {frame} of camera {camera!r}") from None
 
     def image(self, frame: int, camera: str) -> torch.Tensor:
-        return read_rgb(self.root / "ims" / self._file(frame, camera), (self.height, self.width))
+        return torch.from_numpy(self.pixels(frame, camera)).float().div_(255.0)
+
+    def pixels(self, frame: int, camera: str) -> np.ndarray:
+        return read_rgb8(self.root / "ims" / self._file(frame, camera), (self.height, self.width))
 
     def mask(self, frame: int, camera: str) -> torch.Tensor | None:
         path = self.root / "seg" / Path(self._file(frame, camera)).with_suffix(".png")

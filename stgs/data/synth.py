@@ -4,10 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from stgs.camera import Camera
-from stgs.data.images import check_image_sizes, read_mask, read_rgb
+from stgs.data.images import check_image_sizes, read_mask, read_rgb8
 from stgs.errors import StgsError
 from stgs.synth import load_ground_truth
 from stgs.tree import CAMERAS, GROUND_TRUTH_DIR, MASKS_DIR
@@ -34,11 +35,14 @@ class SynthReader:
         return list(self._cameras)
 
     def image(self, frame: int, camera: str) -> torch.Tensor:
+        return torch.from_numpy(self.pixels(frame, camera)).float().div_(255.0)
+
+    def pixels(self, frame: int, camera: str) -> np.ndarray:
         cam = next((c for c in self._cameras if c.name == camera), None)
         if cam is None or not 0 <= frame < self.num_frames:
             raise StgsError(f"{self.name}: no frame {frame} of camera {camera!r}")
-        return read_rgb(self.root / GROUND_TRUTH_DIR / self.pattern.format(camera=camera, frame=frame),
-                        (cam.height, cam.width))
+        return read_rgb8(self.root / GROUND_TRUTH_DIR / self.pattern.format(camera=camera, frame=frame),
+                         (cam.height, cam.width))
 
     def mask(self, frame: int, camera: str) -> torch.Tensor | None:
         """The foreground mask `stgs synth` wrote (None for a scene written before it wrote masks)."""

@@ -67,11 +67,12 @@ def scale_camera(cam: Camera, scale: float) -> Camera:
     return resize(cam, max(1, round(cam.width * scale)), max(1, round(cam.height * scale)))
 
 
-def quantised(image: torch.Tensor, width: int, height: int) -> np.ndarray:
-    """A dataset image ((H, W, 3) float32 in [0, 1]) at (width, height), area-averaged, as uint8."""
-    img = image.numpy()
-    if img.shape[:2] != (height, width):
-        img = cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
+def quantised(pixels: np.ndarray, width: int, height: int) -> np.ndarray:
+    """A dataset view ((H, W, 3) uint8) at (width, height): itself at its own size, else area-averaged in float
+    and rounded back to uint8."""
+    if pixels.shape[:2] == (height, width):
+        return pixels
+    img = cv2.resize(pixels.astype(np.float32) / 255, (width, height), interpolation=cv2.INTER_AREA)
     return np.clip(img * 255 + 0.5, 0, 255).astype(np.uint8)
 
 
@@ -98,7 +99,7 @@ class ViewSource:
 
     def _from_dataset(self, f: int, c: int) -> np.ndarray:
         cam = self.levels[0][c]
-        return quantised(self.ds.image(self.frames[f], cam.name), cam.width, cam.height)
+        return quantised(self.ds.pixels(self.frames[f], cam.name), cam.width, cam.height)
 
     def _bytes(self, key: ViewKey) -> int:
         cam = self.levels[key.level][key.camera]
@@ -110,7 +111,7 @@ class ViewSource:
         if key.level:
             cam = self.levels[key.level][key.camera]
             image, mask = smaller(image, mask, cam.width, cam.height)
-        return torch.from_numpy(image), torch.from_numpy(np.ascontiguousarray(mask)) if mask is not None else None
+        return torch.from_numpy(image), torch.from_numpy(mask) if mask is not None else None
 
     def decoded(self, f: int, c: int) -> np.ndarray:
         """View (f, c)'s (H, W, 3) uint8 pixels at level 0, decoded now and not kept."""

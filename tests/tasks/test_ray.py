@@ -26,8 +26,7 @@ FLAGS = ("--gop-size", "6", "--grid-side", "16", "--coarse-iterations", "30", "-
          "--threads", "1", "--quiet")
 CONFIG = {"gop_size": 6, "grid_side": 16, "coarse_iterations": 30, "iterations": 120, "threads": 1}
 REPORT_TIMES = {"seconds", "coarse_seconds", "static_seconds", "curve", "peak_rss_mb"}
-"""What a training report measures of the run, not of the model: it differs from run to run."""
-"""Fields of train_report.json that hold wall times (they differ between any two runs)."""
+"""Fields of train_report.json that measure the run (wall times, peak memory): they differ between any two runs."""
 
 
 @pytest.fixture(scope="module")

@@ -7,17 +7,23 @@ from __future__ import annotations
 import dataclasses
 import json
 import random
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from stgs.cli.browser import served
 from stgs.data import open_dataset
 from stgs.synth import SynthConfig, synthesize
 from stgs.synth.config import DEFAULT_EFFECTS
 from stgs.train import budget, train
+from stgs.train.base import BASE_FILE
 from stgs.train.layers import moving_pixels
 from stgs.train.views import open_views, quantised, smaller
+from stgs.tree import MANIFEST
 from tests.conftest import run_stgs as stgs
 from tests.train.conftest import LAYERED
 
@@ -39,7 +45,7 @@ def test_the_cache_serves_every_drawn_view_as_decoded_under_a_tiny_budget(layere
     views.plan(draws)
     for n, (f, c, level) in enumerate(draws):
         sample = views.at(level).sample(f, c)
-        image = quantised(ds.image(f, names[c]), cam.width, cam.height)
+        image = quantised(ds.pixels(f, names[c]), cam.width, cam.height)
         mask = moving(f, c)
         if level:
             image, mask = smaller(image, mask, sample.cam.width, sample.cam.height)
@@ -47,7 +53,7 @@ def test_the_cache_serves_every_drawn_view_as_decoded_under_a_tiny_budget(layere
         assert np.array_equal(sample.dynamic.numpy(), mask), n
         if n % 10 == 0:  # the held-out camera's views, outside the plan, share the cache and have no masks
             assert held.dynamic_pixels(f, 0) is None
-            truth = quantised(ds.image(f, ds.camera_names[-1]), cam.width, cam.height)
+            truth = quantised(ds.pixels(f, ds.camera_names[-1]), cam.width, cam.height)
             assert np.array_equal(held.target(f, 0).mul(255).round().byte().numpy(), truth)
         assert views.source.cache.used <= 3 * view_bytes
     views.close()
@@ -97,3 +103,63 @@ def test_peak_memory_does_not_grow_with_the_frame_count(tmp_path):
     small = peak_training_mb(short, tmp_path / "m60", 30)
     large = peak_training_mb(long, tmp_path / "m600", 300)
     assert large - small <= BUDGET_MB + GROWTH_MB, (small, large)
+
+
+MINUTE = ["--seconds", "60", "--width", "32", "--height", "24", "--cameras", "3", "--grid-side", "8",
+          "--static-grid-side", "8", "--fit-steps", "5", "--gop-size", "600", "--quiet",
+          "--effects", "rigid,appear,static_background"]
+"""A one-minute capture (1,800 frames in three 600-frame GOPs) at a small resolution."""
+MINUTE_TRAIN = ["--budget", "quick", "--layers", "layered", "--grid-side", "8", "--static-grid-side", "8",
+                "--gop-size", "600", "--coarse-iterations", "30", "--iterations", "10", "--threads", "1",
+                "--max-memory", "4M", "--quiet"]
+
+
+def test_a_one_minute_capture_trains_packs_serves_and_plays_to_its_end_locally_and_on_ray(tmp_path):
+    scene = tmp_path / "minute"
+    made = stgs("synth", str(scene), *MINUTE)
+    assert made.returncode == 0, made.stderr
+    assert open_dataset(scene).num_frames == 1800
+    model = tmp_path / "model"
+    trained = stgs("train", str(scene), str(model), *MINUTE_TRAIN)
+    assert trained.returncode == 0, trained.stderr
+    report = json.loads((model / "train_report.json").read_text())
+    assert len(report["gops"]) == 3 and report["untrained_tail"] is None
+    pytest.importorskip("ray")
+    on_ray = tmp_path / "ray"
+    ray_run = stgs("train", str(scene), str(on_ray), *MINUTE_TRAIN, "--ray", "local")
+    assert ray_run.returncode == 0, ray_run.stderr
+    for name in ("static.safetensors", *(f"gop_{k:04d}.safetensors" for k in range(3))):
+        assert (on_ray / name).read_bytes() == (model / name).read_bytes(), name
+    dash = tmp_path / "trees" / "minute"
+    packed = stgs("pack", str(model), str(dash), "--qps", "32", "--quiet")
+    assert packed.returncode == 0, packed.stderr
+    log = tmp_path / "play.json"
+    with served(dash.parent) as base:
+        played = stgs("play", f"{base}minute/{MANIFEST}", "--log", str(log), "--size", "32x24", "--allow-loopback")
+    assert played.returncode == 0, played.stderr
+    doc = json.loads(log.read_text())
+    assert doc["error"] is None and doc["gops_played"] == 3 and doc["frames"] == 1800
+
+
+def test_a_run_killed_mid_stage_a_resumes_to_the_same_bytes(layered_scene, tmp_path):
+    """SIGKILL once stage A has saved its first checkpoint (iteration 200 of 600), then --resume: the model is the
+    uninterrupted run's, byte for byte."""
+    flags = ["--budget", "quick", "--layers", "layered", "--gop-size", "6", "--grid-side", "12",
+             "--static-grid-side", "16", "--coarse-iterations", "600", "--iterations", "20", "--threads", "2",
+             "--max-memory", "64K", "--quiet"]
+    whole = stgs("train", str(layered_scene), str(tmp_path / "whole"), *flags)
+    assert whole.returncode == 0, whole.stderr
+    out = tmp_path / "killed"
+    proc = subprocess.Popen([sys.executable, "-m", "stgs.cli", "train", str(layered_scene), str(out), *flags],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    checkpoint, base = out / ".train" / "static.safetensors", out / ".train" / BASE_FILE
+    deadline = time.monotonic() + 300
+    while not checkpoint.is_file() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    proc.kill()
+    proc.wait()
+    assert checkpoint.is_file() and not base.is_file(), "killed inside stage A, after its first checkpoint"
+    resumed = stgs("train", str(layered_scene), str(out), *flags, "--resume")
+    assert resumed.returncode == 0, resumed.stderr
+    for name in MODEL_FILES:
+        assert (out / name).read_bytes() == (tmp_path / "whole" / name).read_bytes(), name
