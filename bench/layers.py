@@ -188,7 +188,7 @@ def sh_rows(model_dir: Path, dataset: Path, iterations: int, stride: int, work: 
     views, _ = stage_views(trainer, trainer.coarse_frames())
     views.set_masks(moving_pixels(trainer.ds, views, cfg.dynamic_theta))
     start = time.perf_counter()
-    draws = view_draws(cfg.seed, "static/sh1", iterations, len(views.frames), len(views.cameras))
+    draws = view_draws(cfg.seed, "static/sh1", iterations, *views.counts)
     shiny = fit_view_dependent(static, views, draws, cfg.lr.color, cfg.lambda_ssim)
     seconds = time.perf_counter() - start
     views.close()

@@ -49,10 +49,10 @@ def row(frames: int, work: Path, max_memory: str, play: bool) -> str:
                            "--grid-side", "16", "--static-grid-side", "16", "--gop-size", "60",
                            "--max-memory", max_memory, "--quiet")
     report = json.loads((model / "train_report.json").read_text())
-    cells = [f"{frames:,}", f"{len(report['gops'])}", f"{report['peak_rss_mb']:.0f}", f"{train_s:.0f}",
+    cells = [f"{report['frames']:,}", f"{len(report['gops'])}", f"{report['peak_rss_mb']:.0f}", f"{train_s:.0f}",
              f"{report['static_seconds']:.0f}"]
     if not play:
-        return "| " + " | ".join(cells + ["–"] * 4) + " |"
+        return "| " + " | ".join(cells + ["–"] * 3) + " |"
     pack_s, pack_mb = stgs_step("pack", str(model), str(dash), "--quiet")
     with served(dash.parent) as base:
         log = work / f"play{frames}.json"
@@ -62,13 +62,14 @@ def row(frames: int, work: Path, max_memory: str, play: bool) -> str:
     if doc["error"]:
         raise SystemExit(f"stgs play: {doc['error']}")
     cells += [f"{pack_mb:.0f} ({pack_s:.0f} s)", f"{doc['process_peak_rss_mb']:.0f} ({play_s:.0f} s)",
-              f"{doc['rendered_frames']:,} of {frames:,}"]
+              f"{doc['rendered_frames']:,} of {report['frames']:,}"]
     return "| " + " | ".join(cells) + " |"
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--frames", default="60,150,600,1800", help="capture lengths in frames (comma-separated)")
+    p.add_argument("--frames", default="60,150,600,1800",
+                   help="capture lengths in frames (comma-separated; synth rounds up to whole 60-frame GOPs)")
     p.add_argument("--max-memory", default="256M", help="stgs train --max-memory for every run")
     p.add_argument("--play", type=int, action="append", default=[],
                    help="also pack, serve and play the capture of this many frames (repeatable)")

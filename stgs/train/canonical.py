@@ -50,7 +50,7 @@ def fit_canonical(trainer: Trainer, views: Views, shape: GOPShape, stage: str = 
     desc = "stage A: static layer" if regularised else "coarse canonical"
     low_until = round(cfg.coarse_low_res * cfg.coarse_iterations)
     drop_until = round(cfg.static_drop_until * cfg.coarse_iterations) if regularised else 0
-    draws = view_draws(cfg.seed, stage, cfg.coarse_iterations, len(views.frames), len(views.cameras), low_until)
+    draws = view_draws(cfg.seed, stage, cfg.coarse_iterations, *views.counts, low_until)
     views.plan(draws[start:])
     bar = tqdm(range(start, cfg.coarse_iterations), desc=desc, unit="it", disable=not trainer.progress)
     for it in bar:

@@ -1,17 +1,15 @@
 """Per-GOP StreamSTGS training on the CPU (`stgs train DATASET OUT`).
 
-1. Load the dataset's training views, scaled; compute per-camera dynamic masks.
+1. Open the training views through a bounded cache (stgs.train.views); their dynamic or moving-pixel masks.
 2. Initial points: triangulated from the calibrated views of a few frames
    spread over the trained span (stgs.train.init), topped up with jittered
    copies and random frustum points to the capacity N = S².
 3. Coarse stage: canonical 3DGS (no deformation) on frames from all times (the first `coarse_low_res` share of
    its iterations at half resolution), and each training camera's colour response (stgs.train.camera_colour),
    which every later stage's images go through.
-4. Per GOP, from the coarse canonical Gaussians: canonical Gaussians +
-   temporal features + deformation field, one random (frame, camera) per
-   iteration, feature noise λ·U(−0.5, 0.5), losses of stgs.train.losses,
-   periodic PLAS sorting (for the grid smoothness term), MCMC-style
-   relocation of dead Gaussians, pruning by average opacity at the end.
+4. Per GOP, from the coarse canonical Gaussians: canonical Gaussians + temporal features + deformation field, one
+   drawn (frame, camera) per iteration, feature noise λ·U(−0.5, 0.5), losses of stgs.train.losses, periodic PLAS
+   sorting (for the grid smoothness term), MCMC-style relocation of dead Gaussians, pruning at the end.
 5. Write a model dir (docs/MODEL_FORMAT.md) + cameras.json + train_report.json.
 
 Layered (cfg.layers, model format 2): step 3 is stage A, which fits the static
@@ -26,7 +24,7 @@ a non-finite loss stops the run with the last good checkpoint kept. Each stage
 seeds its own generators, so GOPs are independent tasks (stgs.train.run runs
 them here or on Ray and writes the model dir).
 
-This module holds the stages; the parts: `views` (training images), `seeding`
+This module holds the stages; the parts: `views` (training images, read through `viewcache`), `seeding`
 (initial points and attributes; geometry in `init`), `losses`, `ops`
 (relocation, sorting, pruning and the Adam-state surgery they need),
 `checkpoint`, `aux` (the auxiliary transformer), `camera_colour`, `dynamic` (dynamic masks),
@@ -174,8 +172,7 @@ class Trainer:
                            "moving_pixel_share": share}
         if cfg.static_sh_degree:
             start = time.perf_counter()
-            draws = view_draws(cfg.seed, "static/sh1", cfg.static_sh_iterations, len(views.frames),
-                               len(views.cameras))
+            draws = view_draws(cfg.seed, "static/sh1", cfg.static_sh_iterations, *views.counts)
             self.static = fit_view_dependent(self.static, views, draws, cfg.lr.color, cfg.lambda_ssim,
                                              self.progress, self.colour)
             self.layer_info["view_dependent_seconds"] = time.perf_counter() - start
@@ -231,7 +228,7 @@ class Trainer:
             accum = saved_accum if saved_accum is not None else accum
         low_until = round(cfg.gop_low_res * cfg.iterations)
         low = static_backdrops(self.static, views.at(1).cameras) if start < low_until and static is not None else None
-        draws = view_draws(cfg.seed, gop_stem(k), cfg.iterations, len(views.frames), len(views.cameras), low_until)
+        draws = view_draws(cfg.seed, gop_stem(k), cfg.iterations, *views.counts, low_until)
         views.plan(draws[start:])
         clock = setup - report.seconds  # the dynamic layer's seeding counts as the GOP's training time
         bar = tqdm(range(start, cfg.iterations), desc=f"GOP {k}", unit="it", disable=not self.progress)
@@ -295,8 +292,8 @@ class Trainer:
         return base
 
     def coarse_frames(self) -> list[int]:
-        """The frames of the base stage: stage A (layered) draws from every frame of the trained span, or from
-        TrainConfig.static_frames of them spread over it; format 1's coarse stage from at most two GOPs' worth."""
+        """The base stage's frames: stage A's, every frame of the trained span (or TrainConfig.static_frames spread
+        over it); format 1's coarse stage's, at most two GOPs' worth."""
         all_frames = [f for k in range(self.num_gops) for f in self.gop_frames(k)]
         count = self.cfg.static_frames if self.layered else 2 * self.cfg.gop_size
         step = max(1, len(all_frames) // max(1, min(len(all_frames), count or len(all_frames))))

@@ -145,6 +145,11 @@ class Views:
         return self.source.frames
 
     @property
+    def counts(self) -> tuple[int, int]:
+        """(frames, cameras): what `view_draws` draws over."""
+        return len(self.source.frames), len(self.positions)
+
+    @property
     def masked(self) -> bool:
         return self.source.masks is not None
 
