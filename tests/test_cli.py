@@ -126,3 +126,15 @@ def test_synth_command_writes_a_model_dir(tmp_path):
     assert "fidelity of the model vs ground truth" in result.stdout
     meta, _ = load_model(out)
     assert meta.shape.capacity == 64 and meta.extra["config"]["effects"] == ["rigid", "color"]
+
+
+@pytest.mark.parametrize(("text", "size"), [("4096", 4096), ("512M", 512 << 20), ("1.5G", 3 << 29),
+                                            ("2GiB", 2 << 30), ("64kb", 64 << 10), ("0", 0)])
+def test_memory_sizes_take_binary_units(text, size):
+    assert build_parser().parse_args(["train", "d", "o", "--max-memory", text]).max_memory == size
+
+
+@pytest.mark.parametrize("text", ["lots", "-1G", "1X", "nanM"])
+def test_a_bad_memory_size_is_one_line(text):
+    result = stgs("train", "nowhere", "out", "--max-memory", text)
+    assert result.returncode == 2 and "--max-memory" in result.stderr and "Traceback" not in result.stderr
