@@ -30,13 +30,6 @@ def variance_mask(frames: Iterable[np.ndarray | torch.Tensor], theta: float) -> 
     return np.sqrt(m2 / (n - 1)) > theta
 
 
-def dynamic_mask(frames: torch.Tensor, theta: float) -> torch.Tensor:
-    """(H, W) bool: `variance_mask` of (F >= 2, H, W, 3) frames in [0, 1]."""
-    if frames.ndim != 4 or frames.shape[0] < 2:
-        raise ValueError("dynamic_mask needs (F >= 2, H, W, 3) frames")
-    return torch.from_numpy(variance_mask(frames.float(), theta))
-
-
 def gop_dynamic_masks(views: Views, count: int, theta: float) -> torch.Tensor:
     """(C, H, W) dynamic masks of a GOP's views from its first `count` frames (30 frames spread over a 60-frame
     GOP instead measured 0.42 dB worse held out on Panoptic: docs/BENCHMARKS.md), one view at a time."""

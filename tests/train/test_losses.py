@@ -11,7 +11,7 @@ from stgs.camera import Camera, intrinsics
 from stgs.metrics import SSIM_C1, SSIM_C2, psnr, ssim, ssim_map
 from stgs.native.build import available
 from stgs.train import losses
-from stgs.train.dynamic import dynamic_mask, gop_dynamic_masks, variance_mask
+from stgs.train.dynamic import gop_dynamic_masks, variance_mask
 from stgs.train.views import tensor_views
 
 
@@ -156,7 +156,7 @@ def test_grid_smoothness_and_opacity_by_hand():
 def test_dynamic_mask_marks_moving_pixels():
     frames = torch.zeros(6, 4, 4, 3)
     frames[::2, 1, 2] = 1.0  # blinking pixel
-    mask = dynamic_mask(frames, 0.05)
+    mask = variance_mask(frames, 0.05)
     assert mask[1, 2] and mask.sum() == 1
     assert not math.isnan(frames.std())
 
@@ -171,7 +171,7 @@ def test_gop_dynamic_masks_are_each_cameras_mask_of_the_first_frames():
     views = tensor_views(cams, list(range(60)), images)
     masks = gop_dynamic_masks(views, 30, 0.05)
     assert masks.shape == (2, 4, 4) and masks[1, 3, 0] and masks.sum() == 1
-    whole = torch.stack([dynamic_mask(images[:30, c].float() / 255, 0.05) for c in range(2)])
+    whole = torch.stack([torch.from_numpy(variance_mask(images[:30, c].float() / 255, 0.05)) for c in range(2)])
     assert torch.equal(masks, whole)
     assert gop_dynamic_masks(views, 100, 0.05)[0, 1, 1]  # count beyond the GOP: every frame
 
@@ -181,7 +181,7 @@ def test_the_running_variance_mask_matches_the_whole_stacks_std():
     luma = frames.double() @ torch.tensor([0.299, 0.587, 0.114], dtype=torch.float64)
     std = luma.std(dim=0)
     theta = float(std.median()) + 1e-9  # between two pixels' values
-    assert torch.equal(dynamic_mask(frames, theta), std > theta)
+    assert torch.equal(torch.from_numpy(variance_mask(frames, theta)), std > theta)
     assert torch.equal(torch.from_numpy(variance_mask(iter(frames), theta)), std > theta)
     with pytest.raises(ValueError):
         variance_mask([frames[0]], theta)
