@@ -17,6 +17,7 @@ from stgs.cli.args import (
     positive_int,
     positive_seconds,
 )
+from stgs.cli.interop import add_static_import, describe_import, static_import_overrides
 
 
 def add_synth(sub: argparse._SubParsersAction) -> None:
@@ -51,6 +52,7 @@ def add_synth(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fold", action="store_true", default=None,
                    help="with static_background: fold the backdrop into every GOP (the same scene as a "
                    "single-layer, format-1 model, to compare with the layered one)")
+    add_static_import(p, train=False)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(run=run_synth)
 
@@ -64,6 +66,14 @@ def synth_config_from_args(args: argparse.Namespace):
     overrides = {f.name: getattr(args, f.name) for f in dataclasses.fields(cfg)
                  if getattr(args, f.name, None) is not None}
     cfg = dataclasses.replace(cfg, **overrides)
+    if args.static_from is not None:
+        from stgs.interop.static import read_transform
+
+        matrix = None if args.static_transform is None else read_transform(args.static_transform).reshape(-1)
+        cfg = dataclasses.replace(cfg, static_from=str(args.static_from), effects=tuple(dict.fromkeys(
+            (*cfg.effects, "static_background"))), static_transform=None if matrix is None else tuple(matrix.tolist()))
+    elif args.static_transform is not None:
+        raise UsageError("--static-transform needs --static-from")
     if args.seconds is not None:
         if args.num_gops is not None:
             raise UsageError("--seconds and --gops both set the scene's length: give one")
@@ -79,6 +89,8 @@ def run_synth(args: argparse.Namespace) -> int:
     report = synthesize(cfg, args.out, progress=not args.quiet)
     layered = "static_background" in cfg.effects and not cfg.fold
     static = f" + a static layer of {cfg.static_grid_side ** 2}" if layered else ""
+    if cfg.static_from is not None:
+        static = f" + the static layer of {cfg.static_from}"
     if cfg.fold:
         static = f" (backdrop of {cfg.static_grid_side ** 2} folded into every GOP)"
     print(f"wrote {args.out}: {cfg.grid_side ** 2} Gaussians{static}, {cfg.num_gops} GOPs x "
@@ -182,6 +194,7 @@ def add_train(sub: argparse._SubParsersAction) -> None:
                    "1G); views beyond it are decoded again when drawn. The model's bytes do not depend on it")
     p.add_argument("--static-frames", type=positive_int,
                    help="layered: frames of the trained span stage A draws from, spread over it (default: all)")
+    add_static_import(p, train=True)
     add_ray(p, "the base stage, then one task per GOP,")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run from its checkpoints")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -201,6 +214,7 @@ def train_overrides(args: argparse.Namespace) -> dict:
     from stgs.train.config import BUDGETS
 
     overrides = {k: getattr(args, k) for k in TRAIN_OVERRIDES if getattr(args, k) is not None}
+    overrides |= static_import_overrides(args)
     rates = dict(name_number(text, "--lr") for text in args.lr or ())
     if args.position_lr is not None:
         if "position" in rates:
@@ -242,6 +256,8 @@ def run_train(args: argparse.Namespace) -> int:
         print(f"static layer: {report['static_capacity']} Gaussians in {report['static_seconds']:.0f} s "
               f"(moving pixels from {report['moving_mask_source']}; {report['migrated']} Gaussians migrated to the "
               "dynamic layers)")
+    if "static_import" in report:
+        print(describe_import(report["static_import"]))
     print(f"wrote {args.out} ({report['capacity']} Gaussians per GOP, {len(report['gops'])} GOP(s))")
     return 0
 

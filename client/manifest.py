@@ -29,11 +29,10 @@ from stgs.mpd_profile import (
     KeyframeDescriptor,
     StaticLayerDescriptor,
     choose_feature_set,
+    gop_count,
 )
 from stgs.mpd_values import MPDError, expand_template
 from stgs.tree import qp_of
-
-DURATION_PRECISION_S = 1e-3
 
 
 @dataclass(frozen=True)
@@ -114,9 +113,7 @@ class Presentation:
         self.segment_seconds = self.keyframes.segment_template.seconds
         if not 0 < self.segment_seconds <= 3600 or self.features.segment_template.seconds != self.segment_seconds:
             raise MPDError("keyframe and feature segments must have one positive duration")
-        # @mediaPresentationDuration is written to the millisecond: a GOP that starts within 1 ms of its end
-        # is rounding, not content.
-        self.num_gops = max(1, math.ceil((mpd.duration - DURATION_PRECISION_S) / self.segment_seconds))
+        self.num_gops = gop_count(mpd.duration, self.segment_seconds)
         if self.num_gops > MAX_GOPS:
             raise MPDError(f"{self.num_gops} GOPs is over the client limit of {MAX_GOPS}")
         self.ladder = sorted((Rung(r.id, r.bandwidth, qp_of(r.id)) for r in self.features.representations),

@@ -119,6 +119,15 @@ class FeatureDescriptor:
         return cls(bits)
 
 
+DURATION_PRECISION_S = 1e-3
+"""@mediaPresentationDuration is written to the millisecond: a GOP that starts within this of its end is rounding."""
+
+
+def gop_count(duration_s: float, segment_seconds: float) -> int:
+    """GOPs of a presentation of `duration_s` cut into segments of `segment_seconds` (at least one)."""
+    return max(1, math.ceil((duration_s - DURATION_PRECISION_S) / segment_seconds))
+
+
 def feature_set_codec(a: AdaptationSet) -> str:
     """The codec (a FEATURE_CODECS name) of a feature AdaptationSet, from its Representations' @codecs (one
     codec per set), checked against the code depth its descriptor announces (MPDError otherwise)."""

@@ -56,13 +56,16 @@ class StaticLayer(nn.Module):
                          color)
 
     @classmethod
-    def from_canonical(cls, source: GOPModel | StaticLayer, sh_degree: int = 0) -> StaticLayer:
+    def from_canonical(cls, source: GOPModel | StaticLayer, sh_degree: int = 0,
+                       sh1: torch.Tensor | None = None) -> StaticLayer:
         """A static layer of `sh_degree` holding the canonical attributes of a GOP model (the trainer fits the
-        static layer as one) or of another static layer (sh1 starts at zero)."""
-        layer = cls(source.xyz.shape[0], sh_degree)
+        static layer as one) or of another static layer; sh1 starts at zero, or at `sh1` (degree 1)."""
+        layer = cls(source.xyz.shape[0], 1 if sh1 is not None else sh_degree)
         with torch.no_grad():
             for name in STATIC_TENSORS:
                 getattr(layer, name).copy_(getattr(source, name))
+            if sh1 is not None:
+                layer.sh1.copy_(sh1)
         return layer
 
 

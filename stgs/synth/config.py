@@ -56,6 +56,11 @@ class SynthConfig:
     """Evaluate rendered fidelity on every n-th frame (all cameras)."""
     fold: bool = False
     """With static_background: fold the backdrop into every GOP (a format-1 model of the layered scene)."""
+    static_from: str | None = None
+    """With static_background: a 3DGS file (PLY, SPZ, glb) that is the backdrop instead of the procedural one
+    (its view-independent colour: the truth has no degree-1 term; stgs.interop.static)."""
+    static_transform: tuple[float, ...] | None = None
+    """With static_from: the 4x4 similarity (16 numbers, row-major) from the file's frame to the scene's."""
 
     def gops_for_seconds(self, seconds: float) -> int:
         """GOPs of gop_size frames at fps that a capture of `seconds` needs (the last one may run past it)."""
@@ -84,6 +89,8 @@ class SynthConfig:
             raise StgsError(f"synth config: unknown effect(s) {unknown}; known: {', '.join(EFFECTS)}")
         if self.fold and "static_background" not in self.effects:
             raise StgsError("synth config: fold needs the static_background effect (a layered scene to fold)")
+        if self.static_from is not None and "static_background" not in self.effects:
+            raise StgsError("synth config: static_from needs the static_background effect (it is the backdrop)")
 
 
 PRESETS = {

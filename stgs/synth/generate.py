@@ -10,6 +10,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import torch
 from tqdm import tqdm
 
@@ -73,6 +74,19 @@ def foreground_mask(scene: ProceduralScene, time_s: float, camera: Camera) -> to
     for name in FOREGROUND:
         keep[scene.slices[name]] = True
     return _draw([t.select(keep)], camera, [torch.ones(int(keep.sum()), 3)])[..., 0] > 0.5
+
+
+def imported_backdrop(cfg: SynthConfig) -> TruthFrame:
+    """The backdrop of a 3DGS file (SynthConfig.static_from), view-independent, as the scene's truth."""
+    from stgs.interop.static import import_static
+
+    matrix = None if cfg.static_transform is None else np.asarray(cfg.static_transform, np.float64).reshape(4, 4)
+    layer, _ = import_static(Path(cfg.static_from), matrix)
+    n = layer.capacity
+    with torch.no_grad():
+        return TruthFrame(layer.xyz.clone(), layer.log_scale.clone(), layer.rotation.clone(),
+                          torch.sigmoid(layer.opacity_logit), torch.relu(layer.color), torch.zeros(n, 3),
+                          torch.zeros(n, 3))
 
 
 def truth_static_layer(scene: ProceduralScene) -> StaticLayer | None:
@@ -148,6 +162,8 @@ def synthesize(cfg: SynthConfig, out: Path, progress: bool = True) -> SynthRepor
     layered = "static_background" in cfg.effects
     scene = ProceduralScene(shape.capacity, tuple(cfg.effects), cfg.seed,
                             cfg.static_grid_side ** 2 if layered else 0)
+    if cfg.static_from is not None:
+        scene.static = imported_backdrop(cfg)
     fit_scene = FoldedScene(scene) if cfg.fold else scene
     if cfg.fold:
         shape = dataclasses.replace(shape, capacity=fit_scene.capacity)

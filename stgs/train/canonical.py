@@ -3,12 +3,15 @@ the pixels that do not move (stgs.train.trainer's step 3)."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
 import torch
 from tqdm import tqdm
 
 from stgs.model.gop import GOPModel, GOPShape
+from stgs.model.static import STATIC_TENSORS
 from stgs.model.view import splat
 from stgs.train import losses
 from stgs.train.camera_colour import CameraColour, as_recorded
@@ -21,21 +24,24 @@ if TYPE_CHECKING:
     from stgs.train.trainer import Trainer
 
 
-def fit_canonical(trainer: Trainer, views: Views, shape: GOPShape, stage: str = "coarse") -> GOPModel:
+def fit_canonical(trainer: Trainer, views: Views, shape: GOPShape, stage: str = "coarse",
+                  start_model: GOPModel | None = None, iterations: int | None = None) -> GOPModel:
     """Canonical 3DGS (no deformation) on frames from all times, with each training camera's colour response
     (TrainConfig.camera_colour, set as `trainer.colour`); on views with moving-pixel masks, on the pixels that do
-    not move only, with the GOP stage's regularisers (stage A). Resumes from and saves the trainer's
-    checkpoints."""
+    not move only, with the GOP stage's regularisers (stage A). Starts from triangulated points, or fine-tunes
+    `start_model` for `iterations` (default: the config's coarse iterations). Resumes from and saves the
+    trainer's checkpoints."""
     cfg = trainer.cfg
     trainer.seed_stage(stage)
-    model = GOPModel(shape)
+    total = cfg.coarse_iterations if iterations is None else iterations
+    model = start_model if start_model is not None else GOPModel(shape)
     colour = CameraColour(len(views.cameras)) if cfg.camera_colour else None
     opt = Optimizer(model, cfg, trainer.extent, None, canonical_only=True, colour=colour)
     resumed = trainer.checkpoints.load(stage, model, opt, trainer.gen, {"colour": colour})
     start = resumed[0]["iteration"] if resumed else 0
     if resumed:  # the counts the interrupted run found, for the report
         trainer.triangulated, trainer.background_points = resumed[0].get("triangulated"), resumed[0].get("background")
-    else:
+    elif start_model is None:
         region = "background" if views.masked and cfg.static_triangulation else "foreground"
         init = initial_points(trainer.ds, trainer.train_names, init_frames(views.frames, cfg.init_frames),
                               shape.capacity, trainer.gen, cfg.init_points, cfg.background_share, region=region)
@@ -48,13 +54,13 @@ def fit_canonical(trainer: Trainer, views: Views, shape: GOPShape, stage: str = 
     if sorting and start == 0:
         sort(model, opt, torch.zeros(2, shape.capacity), cfg.seed)
     desc = "stage A: static layer" if regularised else "coarse canonical"
-    low_until = round(cfg.coarse_low_res * cfg.coarse_iterations)
-    drop_until = round(cfg.static_drop_until * cfg.coarse_iterations) if regularised else 0
-    draws = view_draws(cfg.seed, stage, cfg.coarse_iterations, *views.counts, low_until)
+    low_until = round(cfg.coarse_low_res * total)
+    drop_until = round(cfg.static_drop_until * total) if regularised else 0
+    draws = view_draws(cfg.seed, stage, total, *views.counts, low_until)
     views.plan(draws[start:])
-    bar = tqdm(range(start, cfg.coarse_iterations), desc=desc, unit="it", disable=not trainer.progress)
+    bar = tqdm(range(start, total), desc=desc, unit="it", disable=not trainer.progress)
     for it in bar:
-        opt.set_progress(it / max(1, cfg.coarse_iterations))
+        opt.set_progress(it / max(1, total))
         f, c, level = draws[it]
         view = views.at(level).sample(f, c)
         g = model.canonical()
@@ -65,16 +71,36 @@ def fit_canonical(trainer: Trainer, views: Views, shape: GOPShape, stage: str = 
         if regularised:
             loss = loss + canonical_regularisers(cfg, model, g.opacities)
         trainer.step(opt, loss, stage, it, model)
-        if sorting and (it + 1) % cfg.sort_every == 0 and it + 1 < cfg.coarse_iterations:
+        if sorting and (it + 1) % cfg.sort_every == 0 and it + 1 < total:
             sort(model, opt, torch.zeros(2, shape.capacity), cfg.seed)
-        if cfg.relocate and (it + 1) % cfg.relocate_every == 0 and it < cfg.relocate_until * cfg.coarse_iterations:
+        if cfg.relocate and (it + 1) % cfg.relocate_every == 0 and it < cfg.relocate_until * total:
             relocate(model, opt, torch.sigmoid(model.opacity_logit.detach()), cfg.dead_opacity, trainer.gen)
         if (it + 1) % cfg.checkpoint_every == 0:
             trainer.checkpoints.save(stage, model, opt, trainer.gen, _state(trainer, it + 1), {"colour": colour})
-    if cfg.coarse_iterations:
-        trainer.checkpoints.save(stage, model, opt, trainer.gen, _state(trainer, cfg.coarse_iterations),
+    if total:
+        trainer.checkpoints.save(stage, model, opt, trainer.gen, _state(trainer, total),
                                  {"colour": colour})
     trainer.colour = colour.requires_grad_(False) if colour is not None else None
+    return model
+
+
+def imported_static_model(trainer: Trainer, views: Views) -> GOPModel:
+    """Stage A's model from TrainConfig.static_from (stgs.interop.static), fine-tuned for static_refine
+    iterations on the pixels that do not move; how the file was brought in goes into the trainer's layer facts."""
+    from stgs.interop.static import import_static
+
+    cfg = trainer.cfg
+    matrix = None if cfg.static_transform is None else np.asarray(cfg.static_transform, dtype=np.float64).reshape(4, 4)
+    layer, report = import_static(Path(cfg.static_from), matrix, None if cfg.static_cameras is None else
+                                  Path(cfg.static_cameras), trainer.ds.cameras(cfg.start_frame), cfg.static_import_side)
+    trainer.imported = layer
+    trainer.layer_info["static_import"] = report
+    model = GOPModel(GOPShape(layer.capacity, 2, 1, 0))
+    with torch.no_grad():
+        for name in STATIC_TENSORS:
+            getattr(model, name).copy_(getattr(layer, name))
+    if cfg.static_refine:
+        model = fit_canonical(trainer, views, model.shape, "static", model, cfg.static_refine)
     return model
 
 

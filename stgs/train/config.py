@@ -164,6 +164,17 @@ class TrainConfig:
     Only how often a view is decoded depends on it, never the model's bytes."""
     static_frames: int | None = None
     """Layered: the frames stage A draws from, spread over the trained span (None: every frame)."""
+    static_from: str | None = None
+    """Layered: a 3DGS file (PLY, SPZ, glb) made elsewhere that is the static layer instead of stage A's fit."""
+    static_refine: int = 0
+    """With static_from: iterations of stage A that fine-tune it (0: used as it is)."""
+    static_transform: tuple[float, ...] | None = None
+    """With static_from: the 4x4 similarity (16 numbers, row-major) from the file's frame to the cameras' (None:
+    identity, or fitted from static_cameras)."""
+    static_cameras: str | None = None
+    """With static_from: the 3DGS cameras.json it was trained with, to fit static_transform from."""
+    static_import_side: int | None = None
+    """With static_from: the static layer's grid side (None: the smallest that holds the file)."""
 
     def untrained_tail(self, num_frames: int) -> tuple[int, int] | None:
         """First and last frame of a dataset of `num_frames` after the last whole GOP, which no GOP can hold
@@ -197,7 +208,13 @@ class TrainConfig:
                   (self.static_sh_iterations >= 0, "static_sh_iterations must be >= 0"),
                   (0 <= self.dynamic_warmup < 1, "dynamic_warmup must be in [0, 1)"),
                   (0 <= self.coarse_low_res < 1, "coarse_low_res must be in [0, 1)"),
-                  (0 <= self.gop_low_res < 1, "gop_low_res must be in [0, 1)")]
+                  (0 <= self.gop_low_res < 1, "gop_low_res must be in [0, 1)"),
+                  (self.static_from is None or self.layers == "layered", "static_from needs layers = layered"),
+                  (self.static_refine >= 0, "static_refine must be >= 0"),
+                  (self.static_transform is None or len(self.static_transform) == 16,
+                   "static_transform must be 16 numbers (a 4x4 matrix)"),
+                  (self.static_import_side is None or self.static_import_side >= 2,
+                   "static_import_side must be >= 2")]
         checks += [(math.isfinite(rate) and rate > 0, f"lr.{name} must be a positive number, got {rate}")
                    for name, rate in dataclasses.asdict(self.lr).items()]
         for ok, message in checks:

@@ -204,7 +204,7 @@ def fit_view_dependent(static: StaticLayer, views: Views, draws: list[tuple[int,
                        ) -> StaticLayer:
     """A degree-1 copy of `static` whose colour and sh1 are fitted on the pixels that do not move, one view per
     iteration (`draws`: stgs.train.views.view_draws); positions, scales, rotations and opacities stay."""
-    layer = StaticLayer.from_canonical(static, sh_degree=1)
+    layer = StaticLayer.from_canonical(static, 1, static.sh1 if static.sh_degree else None)
     for name in STATIC_TENSORS:
         getattr(layer, name).requires_grad_(name == "color")
     opt = torch.optim.Adam([layer.color, layer.sh1], lr=lr, eps=1e-15)

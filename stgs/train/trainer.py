@@ -55,7 +55,7 @@ from stgs.model.view import Backdrop, static_backdrops
 from stgs.train.aux import AuxTransformer
 from stgs.train.base import BaseStage
 from stgs.train.camera_colour import CameraColour
-from stgs.train.canonical import fit_canonical
+from stgs.train.canonical import fit_canonical, imported_static_model
 from stgs.train.checkpoint import Checkpoints
 from stgs.train.config import TrainConfig, stage_seed
 from stgs.train.hull import HullConfig
@@ -115,6 +115,7 @@ class Trainer:
         # Stage A fits the static layer as a GOP model without time (its features are never used).
         self.static_shape = GOPShape(cfg.static_grid_side ** 2, 2, 1, 0) if self.layered else None
         self.static: StaticLayer | None = None
+        self.imported: StaticLayer | None = None  # TrainConfig.static_from's layer, as read
         self.migrated: Migrated | None = None
         self.colour: CameraColour | None = None
         """The training cameras' colour responses, fitted in the base stage (TrainConfig.camera_colour)."""
@@ -163,13 +164,15 @@ class Trainer:
         cfg = self.cfg
         moving = moving_pixels(self.ds, views, cfg.dynamic_theta)
         views.set_masks(moving)
-        model = self.coarse(views, self.static_shape, "static")
+        imported = cfg.static_from is not None
+        model = imported_static_model(self, views) if imported else self.coarse(views, self.static_shape, "static")
         scores, share = motion_scores(model, views, moving)
         limit = int(cfg.migrate_share * self.shape.capacity) if cfg.migrate else 0
         self.migrated = migrate(model, scores, cfg.migrate_score, limit, cfg.dead_opacity)
-        self.static = StaticLayer.from_canonical(model)
-        self.layer_info = {"moving_mask_source": moving.source, "migrated": len(self.migrated.index),
-                           "moving_pixel_share": share}
+        self.static = StaticLayer.from_canonical(model, sh1=self.imported.sh1 if imported and self.imported.sh_degree
+                                                 else None)  # an imported layer keeps its degree-1 colour
+        self.layer_info |= {"moving_mask_source": moving.source, "migrated": len(self.migrated.index),
+                            "moving_pixel_share": share}
         if cfg.static_sh_degree:
             start = time.perf_counter()
             draws = view_draws(cfg.seed, "static/sh1", cfg.static_sh_iterations, *views.counts)
