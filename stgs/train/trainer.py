@@ -169,8 +169,8 @@ class Trainer:
         scores, share = motion_scores(model, views, moving)
         limit = int(cfg.migrate_share * self.shape.capacity) if cfg.migrate else 0
         self.migrated = migrate(model, scores, cfg.migrate_score, limit, cfg.dead_opacity)
-        self.static = StaticLayer.from_canonical(model, sh1=self.imported.sh1 if imported and self.imported.sh_degree
-                                                 else None)  # an imported layer keeps its degree-1 colour
+        kept = imported and self.imported.sh_degree and not cfg.static_refine  # refining re-sorts the slots
+        self.static = StaticLayer.from_canonical(model, sh1=self.imported.sh1 if kept else None)
         self.layer_info |= {"moving_mask_source": moving.source, "migrated": len(self.migrated.index),
                             "moving_pixel_share": share}
         if cfg.static_sh_degree:
