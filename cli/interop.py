@@ -120,13 +120,13 @@ def static_import_overrides(args: argparse.Namespace) -> dict:
     from stgs.interop.files import read_splats
 
     read_splats(args.static_from)  # a bad file is reported before anything is written
-    out = {"static_from": str(args.static_from), "layers": "layered"}
+    out = {"static_from": str(args.static_from.resolve()), "layers": "layered"}  # Ray tasks run elsewhere
     if args.static_transform is not None:
         from stgs.interop.static import read_transform
 
         out["static_transform"] = tuple(float(v) for v in read_transform(args.static_transform).reshape(-1))
     if args.static_cameras is not None:
-        out["static_cameras"] = str(args.static_cameras)
+        out["static_cameras"] = str(args.static_cameras.resolve())
     if args.static_refine is not None:
         out["static_refine"] = args.static_refine
     if args.static_grid_side is not None:

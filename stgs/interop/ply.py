@@ -48,20 +48,41 @@ def encode(splats: Splats) -> bytes:
     return out.getvalue()
 
 
+TYPE_BYTES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
+              "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+
+
 def _vertex_count(data: bytes, where: str) -> int:
-    """The vertex count of the header, checked before plyfile allocates anything."""
+    """The vertex count of the header, checked (with the bytes a binary file needs for it) before plyfile
+    allocates anything."""
     end = data.find(b"end_header", 0, MAX_HEADER_BYTES)
     if not data.startswith(b"ply") or end < 0:
         raise InteropError(f"{where}: not a PLY file (no 'ply' magic or no end_header in its first "
                            f"{MAX_HEADER_BYTES} bytes)")
+    count, row, element, binary = None, 0, None, False
     for line in data[:end].decode("ascii", "replace").splitlines():
         words = line.split()
-        if words[:2] == ["element", "vertex"] and len(words) == 3 and words[2].isdigit():
-            count = int(words[2])
-            if not 0 < count <= MAX_SPLATS:
-                raise InteropError(f"{where}: {count} vertices (between 1 and {MAX_SPLATS} are supported)")
-            return count
-    raise InteropError(f"{where}: no 'element vertex N' in the PLY header")
+        if words[:1] == ["format"]:
+            binary = len(words) > 1 and words[1].startswith("binary")
+        elif words[:1] == ["element"]:
+            element = words[1] if len(words) > 1 else None
+            if element == "vertex":
+                if len(words) != 3 or not words[2].isdigit():
+                    raise InteropError(f"{where}: malformed '{line.strip()}'")
+                count = int(words[2])
+        elif words[:1] == ["property"] and element == "vertex":
+            if len(words) != 3 or words[1] not in TYPE_BYTES:
+                raise InteropError(f"{where}: vertex property '{line.strip()}' is not a scalar of a known type")
+            row += TYPE_BYTES[words[1]]
+    if count is None:
+        raise InteropError(f"{where}: no 'element vertex N' in the PLY header")
+    if not 0 < count <= MAX_SPLATS:
+        raise InteropError(f"{where}: {count} vertices (between 1 and {MAX_SPLATS} are supported)")
+    body = len(data) - data.index(b"\n", end) - 1
+    if binary and body < count * row:
+        raise InteropError(f"{where}: truncated: {count} vertices of {row} bytes need {count * row} bytes, the file "
+                           f"has {body} after its header")
+    return count
 
 
 def decode(data: bytes, where: str) -> Splats:

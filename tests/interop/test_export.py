@@ -142,6 +142,13 @@ def test_train_and_synth_take_a_static_layer_from_a_file(scene, tmp_path):
     assert report["grid_side"] == 10 and report["padded"] == 0 and report["transform_source"].startswith("identity")
     static = load_file(str(out / "static.safetensors"))
     assert torch.equal(static["xyz"], source.static.xyz) and torch.equal(static["log_scale"], source.static.log_scale)
+    refined = tmp_path / "refined"
+    run = run_stgs("train", str(scene), str(refined), "--static-from", str(tmp_path / "bg.ply"), "--gop-size", "6",
+                   "--gops", "1", "--grid-side", "6", "--iterations", "5", "--static-refine", "8", "--no-aux",
+                   "--quiet")
+    assert run.returncode == 0, run.stderr
+    assert "static layer from" in run.stdout and "grid of side 10" in run.stdout
+    assert not torch.equal(load_file(str(refined / "static.safetensors"))["xyz"], source.static.xyz)
     bad = run_stgs("train", str(scene), str(tmp_path / "x"), "--static-from", str(tmp_path / "bg.ply"),
                    "--layers", "single")
     assert bad.returncode == 2 and "--layers single" in bad.stderr
