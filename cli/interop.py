@@ -57,6 +57,7 @@ def run_export(args: argparse.Namespace) -> int:
     from stgs.interop.files import format_of, write_sequence, write_splats
     from stgs.interop.frames import frame_splats, open_source, parse_frames
 
+    fmt = format_of(args.out, args.format) if args.frames is None else args.format or "ply"
     source = open_source(args.source, args.rep)
     cameras = scene_cameras(args.source)
     if args.eye is not None:
@@ -77,11 +78,10 @@ def run_export(args: argparse.Namespace) -> int:
     if args.frames is None:
         frame = parse_frames(str(args.frame), source.num_frames)[0]
         splats = splats_of(frame)
-        size = write_splats(args.out, splats, format_of(args.out, args.format))
+        size = write_splats(args.out, splats, fmt)
         print(f"wrote {args.out}: frame {frame} of {source.name}, {splats.count} Gaussians, {size} bytes")
         return 0
     frames = parse_frames(args.frames, source.num_frames)
-    fmt = args.format or "ply"
     with tqdm(total=len(frames), desc="export", unit="frame", disable=args.quiet, file=sys.stderr) as bar:
         doc = write_sequence(args.out, frames, splats_of, fmt, source.fps, source.name, lambda _: bar.update())
     total = sum(r["bytes"] for r in doc["files"])

@@ -50,12 +50,13 @@ def frame_name(frame: int, fmt: str) -> str:
 
 def write_sequence(folder: Path, frames: list[int], splats_of: Callable[[int], Splats], fmt: str, fps: float,
                    source: str, progress: Callable[[int], None] | None = None) -> dict:
-    """One file per frame in `folder` and the index, sequence.json (written last: a folder with an index is
-    whole): {"format", "version", "fps", "source", "files": [{"frame", "file", "bytes", "count"}]}."""
+    """One file per frame in `folder` and the index, sequence.json (removed first, written last: a folder with an
+    index is whole): {"format", "version", "fps", "source", "files": [{"frame", "file", "bytes", "count"}]}."""
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise InteropError(f"{folder}: exists and is not a folder")
     folder.mkdir(parents=True, exist_ok=True)
+    (folder / SEQUENCE_INDEX).unlink(missing_ok=True)  # an earlier index no longer describes the folder
     rows = []
     for frame in frames:
         splats = splats_of(frame)
