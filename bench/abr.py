@@ -128,7 +128,8 @@ def long_ladder(ladder: Ladder, mpd: str, seconds: int, qps: tuple[int, ...] | N
 
     ids = [r.rep_id for r in keep]
     return Ladder(long, rep(ladder.keyframe_bytes), {r: rep(ladder.media_bytes[r]) for r in ids},
-                  {r: ladder.init_bytes[r] for r in ids}, {r: rep(ladder.psnr[r]) for r in ids}, ladder.stats)
+                  {r: ladder.init_bytes[r] for r in ids}, {r: rep(ladder.psnr[r]) for r in ids}, ladder.stats,
+                  ladder.static_bytes)
 
 
 def run(ladder: Ladder, traces: list[Trace], ts: TraceSet, buffer_s: float, rule: str,
@@ -141,8 +142,9 @@ def run(ladder: Ladder, traces: list[Trace], ts: TraceSet, buffer_s: float, rule
         rows.append(metrics(simulate(ladder, sc, rule, settings), ladder, sc.effects))
     stall = sum(r["stall_s"] for r in rows)
     played = sum(len(r["qps"]) for r in rows) * ladder.pres.segment_seconds
-    return {"qoe": statistics.mean(r["qoe"] for r in rows),
-            "quality_qoe": statistics.mean(r["quality_qoe"] for r in rows),
+    return {"qoe_nominal": statistics.mean(r["qoe_nominal"] for r in rows),
+            "qoe_size": statistics.mean(r["qoe_size"] for r in rows),
+            "qoe_psnr": statistics.mean(r["qoe_psnr"] for r in rows),
             "rebuffer_pct": 100 * stall / (played + stall), "bitrate": statistics.mean(r["mean_bitrate_kbps"]
                                                                                       for r in rows),
             "psnr": statistics.mean(r["mean_quality_db"] for r in rows),
@@ -189,14 +191,15 @@ def main(dash: Path | None) -> int:
                 for buffer_s in BUFFERS:
                     print(f"\n**{ts.name}, ladder {lname}, buffer {buffer_s:g} s** ({len(traces)} traces written "
                           f"as {ts.fmt}, {ts.latency_ms:g} ms round trips, median trace mean {top_kbps:.0f} kbit/s)\n")
-                    print("| rule | QoE (bit rate) | QoE (PSNR) | rebuffer % | mean kbit/s | mean PSNR dB | switches "
-                          "| start-up s | playbacks/s |")
-                    print("|---|---|---|---|---|---|---|---|---|")
+                    print("| rule | QoE (nominal) | QoE (sizes) | QoE (PSNR) | rebuffer % | mean kbit/s | mean PSNR dB "
+                          "| switches | start-up s | playbacks/s |")
+                    print("|---|---|---|---|---|---|---|---|---|---|")
                     for name, (rule, settings) in RULES.items():
                         start = time.perf_counter()
                         m = run(ladder, traces, ts, buffer_s, rule, settings)
                         rate = len(traces) / (time.perf_counter() - start)
-                        print(f"| {name} | {m['qoe']:.3f} | {m['quality_qoe']:.2f} | {m['rebuffer_pct']:.2f} | "
+                        print(f"| {name} | {m['qoe_nominal']:.3f} | {m['qoe_size']:.3f} | {m['qoe_psnr']:.2f} | "
+                              f"{m['rebuffer_pct']:.2f} | "
                               f"{m['bitrate']:.0f} | {m['psnr']:.2f} | {m['switches']:.1f} | {m['startup']:.2f} | "
                               f"{rate:.1f} |", flush=True)
     return 0

@@ -70,7 +70,8 @@ def main(dash: Path | None, rule: str = "dynamic") -> int:
             ms, me = metrics(sim, ladder, sc.effects), metrics(emu, ladder, sc.effects)
             mf = metrics(fast, ladder, sc.effects)
             same = sum(a == b for a, b in zip(ms["qps"], me["qps"], strict=False))
-            rows.append(f"| {name} | {ms['qoe']:.3f} | {me['qoe']:.3f} | {mf['qoe']:.3f} | {ms['stall_s']:.2f} | "
+            q = "qoe_nominal"
+            rows.append(f"| {name} | {ms[q]:.3f} | {me[q]:.3f} | {mf[q]:.3f} | {ms['stall_s']:.2f} | "
                         f"{me['stall_s']:.2f} | {mf['stall_s']:.2f} | {ms['startup_delay_s']:.2f} / "
                         f"{me['startup_delay_s']:.2f} | {same}/{len(me['qps'])} | {sim_rate:,.0f} | {emu_rate:.3f} | "
                         f"{fast_rate:.3f} |")

@@ -33,6 +33,13 @@ class Ladder:
     static_bytes: int = 0
     """A layered scene's static-layer segment (fetched once per playback), 0 in format 1."""
 
+    def __post_init__(self) -> None:
+        # The static layer is the first transfer a player makes and its first throughput sample: a format-2
+        # ladder without its size would start every rule from a 0-byte transfer.
+        if (self.pres.static is not None) != (self.static_bytes > 0):
+            raise ValueError(f"static_bytes {self.static_bytes}: a ladder carries its static layer's size exactly "
+                             "when its presentation has one")
+
     @property
     def url(self) -> str:
         return self.pres.url

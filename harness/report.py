@@ -1,11 +1,15 @@
 """QoE reports of playback logs (simulated or emulated alike), timelines, plots and batch summaries.
 
-QoE is Pensieve's linear QoE (Mao et al., SIGCOMM 2017), per GOP:
-    QoE = (Σ_k q(R_k) − 4.3 · rebuffer_s − Σ_k |q(R_{k+1}) − q(R_k)|) / GOPs
-with R_k the bit rate of GOP k's download (keyframe + features over the
-GOP's duration) and q(R) = R in Mbit/s. The quality QoE is the same formula
-with q = the GOP's rendered PSNR in dB (stats.json) and 10 dB per second of
-stall (`REBUFFER_PENALTY_DB`, the look-ahead rule's default weight).
+Three QoEs, each Pensieve's linear form (Mao et al., SIGCOMM 2017) per GOP,
+    QoE = (Σ_k q_k − μ · rebuffer_s − Σ_k |q_{k+1} − q_k|) / GOPs,
+named apart by what q is:
+- `qoe_nominal`, as published (Pensieve, and simulators such as Sabre): q = the chosen rung's nominal bit rate
+  in Mbit/s, μ = 4.3. A rung's nominal rate is its mean over the scene's GOPs (keyframe + features), one number
+  per rung, so a steady rung pays no switch penalty, as with an encoder's nominal ladder.
+- `qoe_size`, ours: q = the bit rate of the GOP's download (keyframe + features over the GOP's duration), μ = 4.3;
+  a steady rung pays for its GOPs' size variation.
+- `qoe_psnr`, what the viewer sees: q = the GOP's rendered PSNR in dB (stats.json), 10 dB per second of stall
+  (`REBUFFER_PENALTY_DB`, the look-ahead rule's default weight).
 """
 
 from __future__ import annotations
@@ -36,11 +40,19 @@ def linear_qoe(values: list[float], stall_s: float, mu: float) -> float:
     return (sum(values) - mu * stall_s - sum(abs(b - a) for a, b in itertools.pairwise(values))) / len(values)
 
 
+def nominal_mbps(ladder: Ladder) -> dict[str, float]:
+    """Representation id -> its nominal bit rate (Mbit/s): keyframe + features, mean over the scene's GOPs."""
+    T = ladder.pres.segment_seconds
+    keyframe = sum(ladder.keyframe_bytes) / len(ladder.keyframe_bytes)
+    return {rep: (keyframe + sum(sizes) / len(sizes)) * 8 / T / 1e6 for rep, sizes in ladder.media_bytes.items()}
+
+
 def metrics(log: dict, ladder: Ladder, effects: Effects) -> dict:
     """One playback's report."""
     gops = [g for g in log["gops"] if g["rep"]]
     T = log["segment_s"]
     rates = [(g["keyframe_bytes"] + g["feature_bytes"]) * 8 / T / 1e6 for g in gops]
+    nominal = nominal_mbps(ladder)
     quality = [ladder.psnr[g["rep"]][g["index"]] for g in gops]
     stall = log["stalls"]["total_s"]
     played = len(gops) * T
@@ -51,9 +63,10 @@ def metrics(log: dict, ladder: Ladder, effects: Effects) -> dict:
         "mean_bitrate_kbps": sum(rates) / len(rates) * 1e3 if rates else 0.0,
         "mean_quality_db": (sum(quality) / len(quality)) if quality and None not in quality else None,
         "switches": log["switches"], "wasted_bytes": log["wasted_bytes"],
-        "qoe": linear_qoe(rates, stall, REBUFFER_PENALTY), "qps": [g["qp"] for g in gops],
+        "qoe_nominal": linear_qoe([nominal[g["rep"]] for g in gops], stall, REBUFFER_PENALTY),
+        "qoe_size": linear_qoe(rates, stall, REBUFFER_PENALTY), "qps": [g["qp"] for g in gops],
         "static_bytes": log.get("static_bytes", 0), "kb_per_frame": log.get("kb_per_frame"),
-        "quality_qoe": linear_qoe(quality, stall, REBUFFER_PENALTY_DB) if None not in quality else None,
+        "qoe_psnr": linear_qoe(quality, stall, REBUFFER_PENALTY_DB) if None not in quality else None,
         "error": log.get("error"),
     }
 
@@ -147,13 +160,15 @@ def row_groups(rows: list[dict]) -> dict[str, list[dict]]:
 def summary_table(rows: list[dict]) -> str:
     """Markdown: mean of each metric per group of `row_groups` over the playbacks in `rows`."""
     by_rule = row_groups(rows)
-    lines = ["| ABR (engine) | playbacks | QoE | mean bit rate (kbit/s) | mean quality (dB) | stalls | stall s | "
-             "rebuffer % | switches | startup s | kB/frame |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| ABR (engine) | playbacks | QoE (nominal) | QoE (sizes) | QoE (PSNR) | mean bit rate (kbit/s) | "
+             "mean quality (dB) | stalls | stall s | rebuffer % | switches | startup s | kB/frame |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for rule, rs in by_rule.items():
         def mean(key: str, rs=rs) -> float:
             vals = [r[key] for r in rs if r[key] is not None]
             return sum(vals) / len(vals) if vals else math.nan
-        lines.append(f"| {rule} | {len(rs)} | {mean('qoe'):.3f} | {mean('mean_bitrate_kbps'):.0f} | "
+        lines.append(f"| {rule} | {len(rs)} | {mean('qoe_nominal'):.3f} | {mean('qoe_size'):.3f} | "
+                     f"{mean('qoe_psnr'):.2f} | {mean('mean_bitrate_kbps'):.0f} | "
                      f"{mean('mean_quality_db'):.2f} | {mean('stall_count'):.2f} | {mean('stall_s'):.2f} | "
                      f"{100 * mean('rebuffer_ratio'):.1f} | {mean('switches'):.2f} | {mean('startup_delay_s'):.2f} | "
                      f"{mean('kb_per_frame'):.2f} |")

@@ -89,8 +89,8 @@ def run_batch(sc: Scenario, traces: Path, engines: list[str], out: Path, speed: 
                         "format": 1 if ladder.pres.static is None else 2})
     write_json(out / f"{sc.name}.batch.json", rows)
     (out / f"{sc.name}.batch.md").write_text(summary_table(rows) + "\n")
-    qoe = {label: [r["qoe"] for r in group] for label, group in row_groups(rows).items()}
-    plot_cdf(out / f"{sc.name}.qoe_cdf.png", qoe, "QoE per GOP (Pensieve linear)")
+    qoe = {label: [r["qoe_nominal"] for r in group] for label, group in row_groups(rows).items()}
+    plot_cdf(out / f"{sc.name}.qoe_cdf.png", qoe, "QoE per GOP (Pensieve linear, nominal bit rates)")
     return rows
 
 
@@ -107,7 +107,7 @@ async def _load(sc: Scenario, counts: list[int]) -> list[dict]:
             served = sum(log["bytes"] for log in logs)
             downloads = sorted(g["download_s"] for log in logs for g in log["gops"])
             ttfb = sorted(g["ttfb_s"] for log in logs for g in log["gops"])
-            qoe = [metrics(log, ladder, sc.effects)["qoe"] for log in logs]
+            qoe = [metrics(log, ladder, sc.effects)["qoe_nominal"] for log in logs]
             rows.append({"clients": n, "wall_s": wall, "server_mb_s": served / 1e6 / wall,
                          "gop_download_p50_s": _pct(downloads, 50), "gop_download_p99_s": _pct(downloads, 99),
                          "ttfb_p50_ms": _pct(ttfb, 50) * 1e3, "ttfb_p99_ms": _pct(ttfb, 99) * 1e3,

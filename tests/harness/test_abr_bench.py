@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
 import statistics
 
 import pytest
 
 from bench.abr import SETS, generate, long_ladder, write
+from stgs.harness.sim import simulate
 from stgs.harness.trace import load_trace
-from tests.harness.test_sim import EXAMPLE, hand_ladder
+from tests.harness.test_sim import EXAMPLE, hand_ladder, layered_ladder, layered_mpd, scenario
 
 
 @pytest.mark.parametrize("fmt, suffix", [("mahimahi", "down"), ("pensieve", "log")])
@@ -37,3 +39,16 @@ def test_long_ladder_repeats_gops_and_drops_rungs():
     assert long.pres.num_gops == 7 and [r.qp for r in long.pres.ladder] == [32, 28, 24]
     assert long.media_bytes["qp32"] == [1, 10, 1, 10, 1, 10, 1]
     assert set(long.media_bytes) == {"qp32", "qp28", "qp24"}
+
+
+def test_the_long_ladder_keeps_the_static_layer_and_it_is_the_first_throughput_sample():
+    base = layered_ladder(static=250_000, gops=2)
+    long = long_ladder(base, layered_mpd(2).decode(), 6)
+    assert long.static_bytes == 250_000 and long.pres.static is not None
+    log = simulate(long, scenario({"bandwidth": {"kbps": 500}}), "throughput")
+    first = log["gops"][0]
+    assert first["requests"][0] == {"kind": "static", "rep": "static", "outcome": "250000 bytes"}
+    # GOP 0's decision is made on the static layer's transfer: 2 Mbit at 500 kbit/s, not a 0-byte sample
+    assert "estimate 500 kbit/s" in first["decisions"][0]["reason"]
+    with pytest.raises(ValueError, match="static_bytes"):
+        dataclasses.replace(long, static_bytes=0)

@@ -44,14 +44,18 @@ STATIC_SET = (b'<AdaptationSet id="0" contentType="application" mimeType="applic
               b'<Representation id="static" bandwidth="400000"/></AdaptationSet>')
 
 
-def layered_ladder(static: int = 250_000, gops: int = 5) -> Ladder:
-    """hand_ladder's sizes with a static layer of `static` bytes (a format-2 presentation)."""
-    plain = hand_ladder(gops)
+def layered_mpd(gops: int) -> bytes:
+    """The example MPD with `gops` 1-second GOPs and a static layer (a format-2 presentation)."""
     data = EXAMPLE.replace(b'mediaPresentationDuration="PT2S"', f'mediaPresentationDuration="PT{gops}S"'.encode())
     head, sep, tail = data.partition(b"<Period")
     period_end = tail.index(b">") + 1
-    data = head + sep + tail[:period_end] + STATIC_SET + tail[period_end:]
-    pres = Presentation.parse(data, "http://h/manifest.mpd")
+    return head + sep + tail[:period_end] + STATIC_SET + tail[period_end:]
+
+
+def layered_ladder(static: int = 250_000, gops: int = 5) -> Ladder:
+    """hand_ladder's sizes with a static layer of `static` bytes (a format-2 presentation)."""
+    plain = hand_ladder(gops)
+    pres = Presentation.parse(layered_mpd(gops), "http://h/manifest.mpd")
     return Ladder(pres, plain.keyframe_bytes, plain.media_bytes, plain.init_bytes, plain.psnr, None, static)
 
 
@@ -110,6 +114,20 @@ def test_bandwidth_below_the_keyframe_rate_stalls_exactly():
     report = metrics(log, ladder, scenario({"bandwidth": {"kbps": 500}}).effects)
     assert report["rebuffer_ratio"] == pytest.approx(4.8 / (5 + 4.8))
     assert report["mean_quality_db"] == 40.0 and report["switches"] == 0
+
+
+def test_three_qoes_named_apart_and_a_steady_rung_pays_no_switch_penalty_at_nominal_rates():
+    ladder = hand_ladder(gops=4)
+    top = ladder.pres.ladder[-1].rep_id
+    ladder.media_bytes[top] = [150_000, 250_000, 150_000, 250_000]  # the pinned rung's GOPs alternate in size
+    sc = scenario({"bandwidth": {"kbps": 100_000}}, qp=16)
+    report = metrics(simulate(ladder, sc, "throughput"), ladder, sc.effects)
+    assert report["qps"] == [16] * 4 and report["stall_s"] == 0
+    nominal = (125_000 + 200_000) * 8 / 1e6  # keyframe + the rung's mean, Mbit/s over 1-second GOPs
+    assert report["qoe_nominal"] == pytest.approx(nominal)  # no switch penalty: one number per rung
+    sizes = [(125_000 + m) * 8 / 1e6 for m in ladder.media_bytes[top]]
+    assert report["qoe_size"] == pytest.approx((sum(sizes) - 3 * 0.8) / 4)  # three |ΔR| of 0.8 Mbit/s charged
+    assert report["qoe_psnr"] == pytest.approx(44.0)  # hand_ladder's top rung renders at 44 dB, steadily
 
 
 def test_a_step_down_moves_the_throughput_rule_down_on_the_next_gop():
