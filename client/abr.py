@@ -11,18 +11,21 @@ latency, estimated apart and budgeted per request).
 
 - `ThroughputRule`: EWMA throughput with a fast and a slow half-life (the
   lower of the two, as dash.js does), times a safety factor; the highest
-  rung whose keyframe + features arrive within one GOP after the round trips.
+  rung whose sustained keyframe + features (the mean over the next GOPs)
+  arrive within one GOP after the round trips, moving up only with headroom
+  to spare (hysteresis) and down at once.
 - `BolaRule`: BOLA (Spiteri et al., buffer-based Lyapunov optimisation):
   utility v_m = ln(size_m / size_0) + 1 of the whole GOP (keyframe +
-  features); choose argmax (V·(v_m + γp) − buffer) / size_m. Its target
+  features, the sustained size as above, as dash.js decides on nominal
+  rates); choose argmax (V·(v_m + γp) − buffer) / size_m. Its target
   buffer is the highest level a decision is ever made at (capacity − one
   GOP: the fetcher asks only when a whole GOP fits).
 - `BolaERule`: BOLA-E as dash.js runs it: start-up picks by throughput and
   sets a placeholder buffer so BOLA would agree; the placeholder grows while
   the fetcher waits for room, shrinks when it would overfill, vanishes at a
   stall; BOLA-O keeps it from climbing above what the throughput sustains.
-- `InsufficientBufferRule`: a cap: the next GOP must download within a
-  fraction of the buffer at the throughput estimate.
+- `InsufficientBufferRule`: a cap: a GOP of the rung's sustained size must
+  download within a fraction of the buffer at the throughput estimate.
 - `DynamicRule`: dash.js's default collection: throughput while the buffer
   is low, BOLA-E once it is full enough (with hysteresis) and only while its
   choice is at least the throughput rule's, then the insufficient-buffer cap.
@@ -84,13 +87,13 @@ class AbrRule(Protocol):
         """The rung for the next GOP (None: no change, which only AbandonRule answers)."""
 
 
-def highest_fitting(state: AbrState, kbps: float, seconds: float) -> int:
-    """The highest rung whose keyframe + features arrive within `seconds` at `kbps` after the round trips
-    (0 when none does)."""
+def highest_fitting(state: AbrState, kbps: float, seconds: float, bits: list[float] | None = None) -> int:
+    """The highest rung whose keyframe + features (`bits` per rung; default the next GOP's own) arrive within
+    `seconds` at `kbps` after the round trips (0 when none does)."""
     budget = kbps * 1e3 * (seconds - state.latency_s())
     best = 0
-    for i, bits in enumerate(state.sizes()):
-        if state.keyframe_bits + bits <= budget:
+    for i, b in enumerate(bits if bits is not None else [state.keyframe_bits + s for s in state.sizes()]):
+        if b <= budget:
             best = i
     return best
 
@@ -101,17 +104,23 @@ class ThroughputRule:
     name: str = "throughput"
 
     def choose(self, state: AbrState) -> Decision:
-        kbps = throughput_kbps(state.samples, self.settings)
+        s = self.settings
+        kbps = throughput_kbps(state.samples, s)
         if kbps is None:
             return Decision(0, self.name, "no throughput sample yet: lowest rung")
         T, latency = state.segment_s, state.latency_s()
-        spend = kbps * self.settings.safety_factor
-        best = highest_fitting(state, spend, T)
-        budget = spend * (T - latency) / T - state.keyframe_bits / T / 1e3
+        spend = kbps * s.safety_factor
+        sustained = state.sustained_bits(s.sustained_gops)
+        best = highest_fitting(state, spend, T, sustained)
+        held = ""
+        if state.current is not None and best > state.current:
+            up = highest_fitting(state, spend * (1 - s.switch_up_headroom), T, sustained)
+            if up < best:
+                best, held = max(up, state.current), f" (up needs {s.switch_up_headroom:g} of the budget to spare)"
+        budget = spend * (T - latency) / T
         rtt = f" after {latency * 1e3:.0f} ms of round trips" if latency else ""
-        return Decision(best, self.name, f"estimate {kbps:.0f} kbit/s x {self.settings.safety_factor:g} - keyframe "
-                        f"{state.keyframe_bits / T / 1e3:.0f} = budget {budget:.0f} kbit/s{rtt}; rung {best} needs "
-                        f"{state.sizes()[best] / T / 1e3:.0f}")
+        return Decision(best, self.name, f"estimate {kbps:.0f} kbit/s x {s.safety_factor:g} = budget {budget:.0f} "
+                        f"kbit/s{rtt}; rung {best} sustains {sustained[best] / T / 1e3:.0f}{held}")
 
 
 @dataclass
@@ -120,8 +129,8 @@ class BolaRule:
     name: str = "bola"
 
     def parameters(self, state: AbrState) -> tuple[list[float], list[float], float, float]:
-        """(sizes, utilities, V, γp) for this state."""
-        sizes = [state.keyframe_bits + b for b in state.sizes()]
+        """(sizes, utilities, V, γp) for this state, on each rung's sustained size (AbrSettings.sustained_gops)."""
+        sizes = state.sustained_bits(self.settings.sustained_gops)
         utilities = [math.log(s / sizes[0]) + 1 for s in sizes]
         min_buffer = self.settings.bola_min_buffer_s or state.segment_s
         # decisions happen at buffer <= capacity - T (a GOP must fit): a target above that is never reached
@@ -198,7 +207,7 @@ class BolaERule:
 
 @dataclass
 class InsufficientBufferRule:
-    """Cap: the next GOP must download within `insufficient_buffer_safety` x buffer at the throughput estimate
+    """Cap: a GOP of the sustained size must download within `insufficient_buffer_safety` x buffer at the estimate
     (only once playing, and only with a sample)."""
 
     settings: AbrSettings = field(default_factory=AbrSettings)
@@ -209,7 +218,7 @@ class InsufficientBufferRule:
         if kbps is None or not state.playing:
             return None
         window = state.buffer_s * self.settings.insufficient_buffer_safety
-        cap = highest_fitting(state, kbps, window)
+        cap = highest_fitting(state, kbps, window, state.sustained_bits(self.settings.sustained_gops))
         return Decision(cap, self.name, f"buffer {state.buffer_s:.2f} s: rung {cap} is the highest that arrives in "
                         f"{window:.2f} s at {kbps:.0f} kbit/s")
 

@@ -102,8 +102,15 @@ class MpcRule:
         shortfall = np.maximum(s.mpc_reservoir * state.buffer_capacity_s - buffer, 0.0)
         score = q.sum(axis=1) - mu * (stall + s.mpc_reservoir_weight * shortfall) - s.mpc_switch_weight * switches
         best = int(np.argmax(score))
+        held = ""
+        if state.current is not None and plans[best, 0] != state.current:
+            stay = int(np.argmax(np.where(plans[:, 0] == state.current, score, -np.inf)))
+            gain = score[best] - score[stay]
+            if gain < s.mpc_switch_margin:
+                held = f"; held at {state.current}: the best plan gains {gain:.2f} < {s.mpc_switch_margin:g}"
+                best = stay
         rung = int(plans[best, 0])
         unit = "dB" if psnr else "Mbit/s"
         return Decision(rung, self.name, f"throughput {harmonic:.0f} kbit/s, robust {robust:.0f}; plan "
                         f"{'-'.join(str(int(r)) for r in plans[best])} over {len(gops)} GOPs scores "
-                        f"{score[best]:.2f} ({unit} utility, stall {stall[best]:.2f} s)")
+                        f"{score[best]:.2f} ({unit} utility, stall {stall[best]:.2f} s){held}")

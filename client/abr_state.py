@@ -24,6 +24,13 @@ class AbrSettings:
     """DYNAMIC switches to BOLA when the buffer reaches this fraction of its capacity."""
     dynamic_bola_off: float = 0.3
     """... and back to throughput when it falls below this fraction."""
+    sustained_gops: int = 4
+    """The throughput and BOLA rules decide on each rung's sustained size: keyframe + features, the mean over this
+    many GOPs (the next one first, as far as the scene says), not the next GOP's alone, whose size alternates in
+    scenes of alternating GOPs (docs/BENCHMARKS.md, "ABR rules over trace sets")."""
+    switch_up_headroom: float = 0.1
+    """The throughput rule moves up only to a rung whose sustained rate leaves this share of its budget to spare
+    (down at once, as soon as the rung it holds no longer fits)."""
     insufficient_buffer_safety: float = 0.5
     """The insufficient-buffer rule lets the next GOP's download take at most this fraction of the buffer."""
     abandon_min_s: float = 0.2
@@ -40,6 +47,9 @@ class AbrSettings:
     """Mbit/s-GOPs a second of stall costs the bit-rate utility (Pensieve's linear QoE)."""
     mpc_switch_weight: float = 1.0
     """Weight of |utility change| between consecutive GOPs."""
+    mpc_switch_margin: float = 0.0
+    """The look-ahead rule leaves the rung it holds only for a plan scoring this much more than the best plan that
+    stays (hysteresis; utility units: dB, or Mbit/s-GOPs)."""
     mpc_reservoir: float = 0.5
     """Fraction of the buffer capacity a plan should leave filled at its end (the horizon is shorter than a large
     buffer: without it, the plan spends the buffer down and a fade after the horizon stalls)."""
@@ -156,7 +166,7 @@ class AbrState:
     waited_s: float = 0.0
     """Seconds the fetcher waited for buffer room since the previous GOP arrived (BOLA-E's placeholder)."""
     upcoming: Sequence[UpcomingGOP] = ()
-    """The GOPs after the next one, as far as the scene says (the look-ahead rule)."""
+    """The next GOP and those after it, as far as the scene says (the look-ahead rule, sustained sizes)."""
     playing: bool = True
     """Playback has started (False: the next GOP decides the start-up delay)."""
 
@@ -165,6 +175,13 @@ class AbrState:
         if self.segment_bits is not None:
             return [float(b) for b in self.segment_bits]
         return [b * self.segment_s for b in self.bandwidths]
+
+    def sustained_bits(self, gops: int) -> list[float]:
+        """Per rung: keyframe + features, the mean over the next `gops` GOPs (the next one's own sizes first, then
+        `upcoming`'s as far as they go)."""
+        table = [(self.keyframe_bits, self.sizes())]
+        table += [(g.keyframe_bits, list(g.segment_bits)) for g in list(self.upcoming)[1:gops]]
+        return [sum(k + sizes[i] for k, sizes in table) / len(table) for i in range(len(self.bandwidths))]
 
     def latency_s(self) -> float:
         """Estimated seconds of round trips per GOP."""

@@ -3,6 +3,7 @@
 // itertools.product, so ties break the same way.
 import { type AbrRule, type AbrSettings, type AbrState, type Decision, DEFAULT_SETTINGS, type UpcomingGOP, fixed, latencyS,
   sampleKbps, sizes } from "./state";
+import { g } from "./rules";
 
 export class MpcRule implements AbrRule {
   readonly name = "mpc";
@@ -57,6 +58,9 @@ export class MpcRule implements AbrRule {
     let bestScore = -Infinity;
     let bestPlan: number[] = plan.slice();
     let bestStall = 0;
+    let stayScore = -Infinity;
+    let stayPlan: number[] = plan.slice();
+    let stayStall = 0;
     const total = rungs ** H;
     for (let p = 0; p < total; p++) {
       let rest = p;
@@ -90,9 +94,19 @@ export class MpcRule implements AbrRule {
         bestPlan = plan.slice();
         bestStall = stall;
       }
+      if (plan[0] === state.current && score > stayScore) {
+        stayScore = score;
+        stayPlan = plan.slice();
+        stayStall = stall;
+      }
+    }
+    let held = "";
+    if (state.current !== null && bestPlan[0] !== state.current && bestScore - stayScore < s.mpcSwitchMargin) {
+      held = `; held at ${state.current}: the best plan gains ${fixed(bestScore - stayScore, 2)} < ${g(s.mpcSwitchMargin)}`;
+      [bestScore, bestPlan, bestStall] = [stayScore, stayPlan, stayStall];
     }
     const unit = psnr ? "dB" : "Mbit/s";
     return { index: bestPlan[0], rule: this.name, reason: `throughput ${fixed(harmonic, 0)} kbit/s, robust ${fixed(robust, 0)}; plan ` +
-      `${bestPlan.join("-")} over ${H} GOPs scores ${fixed(bestScore, 2)} (${unit} utility, stall ${fixed(bestStall, 2)} s)` };
+      `${bestPlan.join("-")} over ${H} GOPs scores ${fixed(bestScore, 2)} (${unit} utility, stall ${fixed(bestStall, 2)} s)${held}` };
   }
 }

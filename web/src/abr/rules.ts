@@ -1,7 +1,7 @@
 // The throughput, BOLA, BOLA-E, insufficient-buffer and DYNAMIC rules (client/abr.py, ported line for line:
 // the same arithmetic in the same order, so the decisions match the Python simulator's vectors).
 import { type AbrRule, type AbrSettings, type AbrState, type Decision, DEFAULT_SETTINGS, fixed, sizes, stateLatencyS,
-  throughputKbps } from "./state";
+  sustainedBits, throughputKbps } from "./state";
 
 /** Python's "{:g}": up to six significant digits, trailing zeros dropped. */
 function g(v: number): string {
@@ -21,11 +21,11 @@ function g3(v: number): string {
 }
 export { g, g3 };
 
-export function highestFitting(state: AbrState, kbps: number, seconds: number): number {
+export function highestFitting(state: AbrState, kbps: number, seconds: number, bits?: number[]): number {
   const budget = kbps * 1e3 * (seconds - stateLatencyS(state));
   let best = 0;
-  sizes(state).forEach((bits, i) => {
-    if (state.keyframeBits + bits <= budget) best = i;
+  (bits ?? sizes(state).map((b) => state.keyframeBits + b)).forEach((b, i) => {
+    if (b <= budget) best = i;
   });
   return best;
 }
@@ -35,17 +35,26 @@ export class ThroughputRule implements AbrRule {
   constructor(readonly settings: AbrSettings = DEFAULT_SETTINGS) {}
 
   choose(state: AbrState): Decision {
-    const kbps = throughputKbps(state.samples, this.settings);
+    const st = this.settings;
+    const kbps = throughputKbps(state.samples, st);
     if (kbps === null) return { index: 0, rule: this.name, reason: "no throughput sample yet: lowest rung" };
     const T = state.segmentS;
     const latency = stateLatencyS(state);
-    const spend = kbps * this.settings.safetyFactor;
-    const best = highestFitting(state, spend, T);
-    const budget = (spend * (T - latency)) / T - state.keyframeBits / T / 1e3;
+    const spend = kbps * st.safetyFactor;
+    const sustained = sustainedBits(state, st.sustainedGops);
+    let best = highestFitting(state, spend, T, sustained);
+    let held = "";
+    if (state.current !== null && best > state.current) {
+      const up = highestFitting(state, spend * (1 - st.switchUpHeadroom), T, sustained);
+      if (up < best) {
+        best = Math.max(up, state.current);
+        held = ` (up needs ${g(st.switchUpHeadroom)} of the budget to spare)`;
+      }
+    }
+    const budget = (spend * (T - latency)) / T;
     const rtt = latency ? ` after ${fixed(latency * 1e3, 0)} ms of round trips` : "";
-    return { index: best, rule: this.name, reason: `estimate ${fixed(kbps, 0)} kbit/s x ${g(this.settings.safetyFactor)} - keyframe ` +
-      `${fixed(state.keyframeBits / T / 1e3, 0)} = budget ${fixed(budget, 0)} kbit/s${rtt}; rung ${best} needs ` +
-      `${fixed(sizes(state)[best] / T / 1e3, 0)}` };
+    return { index: best, rule: this.name, reason: `estimate ${fixed(kbps, 0)} kbit/s x ${g(st.safetyFactor)} = budget ` +
+      `${fixed(budget, 0)} kbit/s${rtt}; rung ${best} sustains ${fixed(sustained[best] / T / 1e3, 0)}${held}` };
   }
 }
 
@@ -54,7 +63,7 @@ export class BolaRule implements AbrRule {
   constructor(readonly settings: AbrSettings = DEFAULT_SETTINGS) {}
 
   parameters(state: AbrState): [number[], number[], number, number] {
-    const s = sizes(state).map((b) => state.keyframeBits + b);
+    const s = sustainedBits(state, this.settings.sustainedGops);
     const utilities = s.map((x) => Math.log(x / s[0]) + 1);
     const minBuffer = this.settings.bolaMinBufferS || state.segmentS;
     const target = Math.max(state.bufferCapacityS - state.segmentS, minBuffer + state.segmentS);
@@ -141,7 +150,7 @@ export class InsufficientBufferRule {
     const kbps = throughputKbps(state.samples, this.settings);
     if (kbps === null || !state.playing) return null;
     const window = state.bufferS * this.settings.insufficientBufferSafety;
-    const cap = highestFitting(state, kbps, window);
+    const cap = highestFitting(state, kbps, window, sustainedBits(state, this.settings.sustainedGops));
     return { index: cap, rule: this.name, reason: `buffer ${fixed(state.bufferS, 2)} s: rung ${cap} is the highest that arrives in ` +
       `${fixed(window, 2)} s at ${fixed(kbps, 0)} kbit/s` };
   }

@@ -9,6 +9,8 @@ export interface AbrSettings {
   bolaMinBufferS: number | null;
   dynamicBolaOn: number;
   dynamicBolaOff: number;
+  sustainedGops: number;
+  switchUpHeadroom: number;
   insufficientBufferSafety: number;
   mpcHorizon: number;
   mpcHistory: number;
@@ -16,6 +18,7 @@ export interface AbrSettings {
   mpcRebufferPsnr: number;
   mpcRebufferBitrate: number;
   mpcSwitchWeight: number;
+  mpcSwitchMargin: number;
   mpcReservoir: number;
   mpcReservoirWeight: number;
 }
@@ -28,6 +31,8 @@ export const DEFAULT_SETTINGS: AbrSettings = {
   bolaMinBufferS: null,
   dynamicBolaOn: 0.6,
   dynamicBolaOff: 0.3,
+  sustainedGops: 4,
+  switchUpHeadroom: 0.1,
   insufficientBufferSafety: 0.5,
   mpcHorizon: 5,
   mpcHistory: 5,
@@ -35,6 +40,7 @@ export const DEFAULT_SETTINGS: AbrSettings = {
   mpcRebufferPsnr: 10.0,
   mpcRebufferBitrate: 4.3,
   mpcSwitchWeight: 1.0,
+  mpcSwitchMargin: 0.0,
   mpcReservoir: 0.5,
   mpcReservoirWeight: 0.2,
 };
@@ -79,6 +85,14 @@ export interface AbrState {
 
 export function sizes(state: AbrState): number[] {
   return state.segmentBits !== null ? state.segmentBits.slice() : state.bandwidths.map((b) => b * state.segmentS);
+}
+
+/** Per rung: keyframe + features, the mean over the next `gops` GOPs (the next one's own sizes first, then
+ * `upcoming`'s as far as they go): AbrState.sustained_bits. */
+export function sustainedBits(state: AbrState, gops: number): number[] {
+  const table: [number, number[]][] = [[state.keyframeBits, sizes(state)]];
+  for (const g of state.upcoming.slice(1, gops)) table.push([g.keyframeBits, g.segmentBits]);
+  return state.bandwidths.map((_, i) => table.reduce((a, [k, s]) => a + (k + s[i]), 0) / table.length);
 }
 
 const EWMA_NEGLIGIBLE = 1e-3;
