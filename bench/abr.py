@@ -5,7 +5,8 @@ packed at QPs 16-40), its GOPs repeated to 180 s as one long presentation
 (sizes and per-rung rendered PSNR from the packed files and stats.json).
 Trace sets (generated here, written in the public formats and read back
 through `load_trace`, so the readers are exercised too): each trace is a
-per-second log-rate AR(1) process with fades; each set is scaled by one
+per-second log-rate AR(1) process with fades (bursty, heavy-tailed sets with
+long outages among them); each set is scaled by one
 constant so that its median trace's mean equals the top rung (keyframe +
 top features). Every rule runs on every trace at 6 s and 25 s of buffer in
 the discrete-event simulator.
@@ -53,15 +54,22 @@ class TraceSet:
     fade_p: float
     """Chance per second that a fade starts."""
     fade_depth: tuple[float, float]
-    """A fade multiplies the rate by a factor drawn from this range, for 1-4 s."""
+    """A fade multiplies the rate by a factor drawn from this range ..."""
     latency_ms: float
+    fade_s: tuple[int, int] = (1, 4)
+    """... for a whole number of seconds drawn from this range."""
 
 
 SETS = (
     TraceSet("cellular (LTE-like)", "mahimahi", 0.92, 0.30, 0.03, (0.05, 0.3), 60.0),
     TraceSet("3G (HSDPA-like)", "pensieve", 0.85, 0.50, 0.05, (0.0, 0.2), 100.0),
     TraceSet("broadband (FCC-like)", "pensieve", 0.97, 0.10, 0.005, (0.3, 0.6), 20.0),
+    TraceSet("bursty (Puffer-like)", "mahimahi", 0.80, 0.80, 0.02, (0.0, 0.05), 40.0, (3, 12)),
+    TraceSet("broadband with dips", "pensieve", 0.98, 0.05, 0.02, (0.1, 0.3), 15.0, (1, 2)),
 )
+"""Generated trace sets. The last two are where rules lose most: heavy-tailed throughput (a log-normal of σ 0.8
+per second: a second at 5x the median is as common as one at a fifth) with outages of 3-12 s, and steady
+broadband with frequent brief dips."""
 RULES = {"throughput": ("throughput", None), "bola": ("bola", None), "bola-e": ("bola-e", None),
          "dynamic": ("dynamic", None), "mpc (PSNR)": ("mpc", AbrSettings()),
          "mpc (bit rate)": ("mpc", AbrSettings(mpc_utility="bitrate"))}
@@ -74,7 +82,7 @@ def generate(ts: TraceSet, seed: int) -> list[float]:
     for _ in range(TRACE_S):
         x = ts.phi * x + ts.sigma * rng.gauss(0, 1)
         if fade == 0 and rng.random() < ts.fade_p:
-            fade, factor = rng.randint(1, 4), rng.uniform(*ts.fade_depth)
+            fade, factor = rng.randint(*ts.fade_s), rng.uniform(*ts.fade_depth)
         rate = math.exp(x) * (factor if fade else 1.0)
         fade = max(0, fade - 1)
         out.append(rate)
@@ -102,7 +110,8 @@ def trace_set(ts: TraceSet, top_kbps: float, folder: Path) -> list[Trace]:
     scale = top_kbps / statistics.median(statistics.mean(r) for r in relative)
     traces = []
     for i, rel in enumerate(relative):
-        path = folder / f"{ts.name.split()[0]}-{i:02d}.{'down' if ts.fmt == 'mahimahi' else 'log'}"
+        slug = re.sub(r"\W+", "-", ts.name).strip("-").lower()
+        path = folder / f"{slug}-{i:02d}.{'down' if ts.fmt == 'mahimahi' else 'log'}"
         write([r * scale for r in rel], ts.fmt, path)
         traces.append(load_trace(path))
     return traces

@@ -1,4 +1,4 @@
-"""The experiment that sets the ABR hysteresis (AbrSettings.sustained_gops, switch_up_headroom, mpc_switch_margin):
+"""The experiment that sets the ABR hysteresis (AbrSettings.sustained_gops, switch_up_headroom, mpc_switch_margin_s):
 each setting over bench.abr's scene and trace sets, QoE against switches (`python -m bench.abr_stability`, prints
 Markdown for docs/BENCHMARKS.md, "ABR rules over trace sets").
 
@@ -25,16 +25,16 @@ from stgs.tree import MANIFEST
 VARIANTS = [
     ("throughput", "next GOP only, no headroom (before)", {"sustained_gops": 1, "switch_up_headroom": 0.0}),
     ("throughput", "sustained over 4 GOPs, no headroom", {"switch_up_headroom": 0.0}),
-    ("throughput", "sustained over 4 GOPs, headroom 0.1", {}),
+    ("throughput", "sustained over 4 GOPs, headroom 0.1 (default)", {}),
     ("throughput", "sustained over 4 GOPs, headroom 0.2", {"switch_up_headroom": 0.2}),
     ("dynamic", "next GOP only, no headroom (before)", {"sustained_gops": 1, "switch_up_headroom": 0.0}),
-    ("dynamic", "sustained over 4 GOPs, headroom 0.1", {}),
+    ("dynamic", "sustained over 4 GOPs, headroom 0.1 (default)", {}),
     ("bola", "next GOP only (before)", {"sustained_gops": 1}),
-    ("bola", "sustained over 4 GOPs", {}),
-    ("mpc", "margin 0 dB", {}),
-    ("mpc", "margin 0.5 dB", {"mpc_switch_margin": 0.5}),
-    ("mpc", "margin 1 dB", {"mpc_switch_margin": 1.0}),
-    ("mpc", "margin 2 dB", {"mpc_switch_margin": 2.0}),
+    ("bola", "sustained over 4 GOPs (default)", {}),
+    ("mpc", "margin 0 dB (before)", {"mpc_switch_margin_s": 0.0}),
+    ("mpc", "margin 0.5 dB (default)", {}),
+    ("mpc", "margin 1 dB", {"mpc_switch_margin_s": 0.1}),
+    ("mpc", "margin 2 dB", {"mpc_switch_margin_s": 0.2}),
 ]
 
 

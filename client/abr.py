@@ -113,10 +113,11 @@ class ThroughputRule:
         sustained = state.sustained_bits(s.sustained_gops)
         best = highest_fitting(state, spend, T, sustained)
         held = ""
-        if state.current is not None and best > state.current:
+        held_at = state.current or 0  # from the lowest rung at start-up
+        if best > held_at:
             up = highest_fitting(state, spend * (1 - s.switch_up_headroom), T, sustained)
             if up < best:
-                best, held = max(up, state.current), f" (up needs {s.switch_up_headroom:g} of the budget to spare)"
+                best, held = max(up, held_at), f" (up needs {s.switch_up_headroom:g} of the budget to spare)"
         budget = spend * (T - latency) / T
         rtt = f" after {latency * 1e3:.0f} ms of round trips" if latency else ""
         return Decision(best, self.name, f"estimate {kbps:.0f} kbit/s x {s.safety_factor:g} = budget {budget:.0f} "

@@ -104,10 +104,10 @@ class MpcRule:
         best = int(np.argmax(score))
         held = ""
         if state.current is not None and plans[best, 0] != state.current:
-            stay = int(np.argmax(np.where(plans[:, 0] == state.current, score, -np.inf)))
-            gain = score[best] - score[stay]
-            if gain < s.mpc_switch_margin:
-                held = f"; held at {state.current}: the best plan gains {gain:.2f} < {s.mpc_switch_margin:g}"
+            stay = int(np.argmax((plans == state.current).all(axis=1)))  # holding the rung over the whole horizon
+            gain, margin = score[best] - score[stay], s.mpc_switch_margin_s * mu
+            if gain < margin:
+                held = f"; held at {state.current}: the best plan gains {gain:.2f} < {margin:.2f}"
                 best = stay
         rung = int(plans[best, 0])
         unit = "dB" if psnr else "Mbit/s"

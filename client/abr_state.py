@@ -47,9 +47,9 @@ class AbrSettings:
     """Mbit/s-GOPs a second of stall costs the bit-rate utility (Pensieve's linear QoE)."""
     mpc_switch_weight: float = 1.0
     """Weight of |utility change| between consecutive GOPs."""
-    mpc_switch_margin: float = 0.0
-    """The look-ahead rule leaves the rung it holds only for a plan scoring this much more than the best plan that
-    stays (hysteresis; utility units: dB, or Mbit/s-GOPs)."""
+    mpc_switch_margin_s: float = 0.05
+    """The look-ahead rule leaves the rung it holds only for a plan scoring more than holding it over the whole
+    horizon by what this many seconds of stall cost (hysteresis: 0.5 dB with the PSNR utility)."""
     mpc_reservoir: float = 0.5
     """Fraction of the buffer capacity a plan should leave filled at its end (the horizon is shorter than a large
     buffer: without it, the plan spends the buffer down and a fade after the horizon stalls)."""

@@ -61,8 +61,12 @@ def test_throughput_rule_starts_low_then_spends_the_safe_budget():
     assert rule.choose(state(samples=kbps_samples((1000, 1)))).index == 2
 
 
+FIT_ONLY = AbrSettings(switch_up_headroom=0.0)
+"""The throughput rule's fit alone (its start-up headroom has a test of its own)."""
+
+
 def test_throughput_drop_moves_down_on_the_next_gop():
-    rule = ThroughputRule()
+    rule = ThroughputRule(FIT_ONLY)
     # estimate 336.81 kbit/s (test_ewma_by_hand): budget 0.9 * 336.81 - 100 = 203.1 kbit/s -> 200k rung
     assert rule.choose(state(samples=kbps_samples((1000, 1), (200, 3)))).index == 1
     # a deeper drop: nothing fits, the lowest rung
@@ -80,8 +84,8 @@ def test_throughput_rule_budgets_the_keyframe():
 def test_throughput_rule_uses_the_next_gops_actual_sizes():
     # The top rung's next segment is small (a quiet GOP): it fits a 250 kbit/s budget although @bandwidth does not.
     samples = kbps_samples((1000, 1))
-    assert ThroughputRule().choose(state(samples=samples, keyframe_bits=650_000)).index == 1
-    assert ThroughputRule().choose(state(samples=samples, keyframe_bits=650_000,
+    assert ThroughputRule(FIT_ONLY).choose(state(samples=samples, keyframe_bits=650_000)).index == 1
+    assert ThroughputRule(FIT_ONLY).choose(state(samples=samples, keyframe_bits=650_000,
                                          segment_bits=[50_000, 240_000, 245_000])).index == 2
 
 
@@ -180,6 +184,17 @@ def test_abandon_restarts_at_a_sustainable_rung_not_always_the_lowest():
     assert target == 2 and restart == pytest.approx(0.85) and remaining == pytest.approx(15.8)
 
 
+def test_the_throughput_rule_moves_up_only_with_headroom_and_down_at_once():
+    samples = kbps_samples((1000, 1))  # 900 kbit/s to spend; rung 2 (100 + 400) needs 500, rung 1 300
+    tight = state(samples=samples, keyframe_bits=450_000)  # rung 2 needs 850: fits, with 5.6 % to spare
+    assert ThroughputRule(FIT_ONLY).choose(tight).index == 2
+    from_below = ThroughputRule().choose(AbrState(**{**tight.__dict__, "current": 1}))
+    assert from_below.index == 1 and "up needs 0.1 of the budget to spare" in from_below.reason
+    assert ThroughputRule().choose(AbrState(**{**tight.__dict__, "current": 2})).index == 2  # held, no margin down
+    too_big = AbrState(**{**tight.__dict__, "current": 2, "keyframe_bits": 550_000})  # 950 > 900: down at once
+    assert ThroughputRule().choose(too_big).index == 1
+
+
 def test_decisions_carry_the_rule_and_the_numbers_it_used():
     fast = kbps_samples((1000, 1))
     d = ThroughputRule().choose(state(samples=fast, keyframe_bits=300_000))
@@ -209,7 +224,7 @@ def test_throughput_is_measured_on_the_body_and_round_trips_are_budgeted():
     sample = ThroughputSample(125_000, 1.1, 0.1)
     assert sample.kbps == pytest.approx(1000.0)
     assert ewma_kbps([sample], 3.0) == pytest.approx(1000.0)
-    rule = ThroughputRule()
+    rule = ThroughputRule(FIT_ONLY)
     # 900 kbit/s to spend: keyframe 300 kbit + rung 2 (400 kbit) = 700 kbit fits 1 s; after one 0.1-s round trip
     # 0.9 s x 900 = 810 kbit still does; after two 0.15-s ones (0.7 s x 900 = 630 kbit) only rung 1 (500) does
     assert rule.choose(state(samples=[sample], keyframe_bits=300_000)).index == 2

@@ -3,7 +3,6 @@
 // itertools.product, so ties break the same way.
 import { type AbrRule, type AbrSettings, type AbrState, type Decision, DEFAULT_SETTINGS, type UpcomingGOP, fixed, latencyS,
   sampleKbps, sizes } from "./state";
-import { g } from "./rules";
 
 export class MpcRule implements AbrRule {
   readonly name = "mpc";
@@ -94,15 +93,16 @@ export class MpcRule implements AbrRule {
         bestPlan = plan.slice();
         bestStall = stall;
       }
-      if (plan[0] === state.current && score > stayScore) {
+      if (plan.every((r) => r === state.current)) { // holding the rung over the whole horizon
         stayScore = score;
         stayPlan = plan.slice();
         stayStall = stall;
       }
     }
     let held = "";
-    if (state.current !== null && bestPlan[0] !== state.current && bestScore - stayScore < s.mpcSwitchMargin) {
-      held = `; held at ${state.current}: the best plan gains ${fixed(bestScore - stayScore, 2)} < ${g(s.mpcSwitchMargin)}`;
+    const margin = s.mpcSwitchMarginS * mu;
+    if (state.current !== null && bestPlan[0] !== state.current && bestScore - stayScore < margin) {
+      held = `; held at ${state.current}: the best plan gains ${fixed(bestScore - stayScore, 2)} < ${fixed(margin, 2)}`;
       [bestScore, bestPlan, bestStall] = [stayScore, stayPlan, stayStall];
     }
     const unit = psnr ? "dB" : "Mbit/s";

@@ -44,10 +44,11 @@ export class ThroughputRule implements AbrRule {
     const sustained = sustainedBits(state, st.sustainedGops);
     let best = highestFitting(state, spend, T, sustained);
     let held = "";
-    if (state.current !== null && best > state.current) {
+    const heldAt = state.current ?? 0; // from the lowest rung at start-up
+    if (best > heldAt) {
       const up = highestFitting(state, spend * (1 - st.switchUpHeadroom), T, sustained);
       if (up < best) {
-        best = Math.max(up, state.current);
+        best = Math.max(up, heldAt);
         held = ` (up needs ${g(st.switchUpHeadroom)} of the budget to spare)`;
       }
     }

@@ -18,7 +18,7 @@ export interface AbrSettings {
   mpcRebufferPsnr: number;
   mpcRebufferBitrate: number;
   mpcSwitchWeight: number;
-  mpcSwitchMargin: number;
+  mpcSwitchMarginS: number;
   mpcReservoir: number;
   mpcReservoirWeight: number;
 }
@@ -40,7 +40,7 @@ export const DEFAULT_SETTINGS: AbrSettings = {
   mpcRebufferPsnr: 10.0,
   mpcRebufferBitrate: 4.3,
   mpcSwitchWeight: 1.0,
-  mpcSwitchMargin: 0.0,
+  mpcSwitchMarginS: 0.05,
   mpcReservoir: 0.5,
   mpcReservoirWeight: 0.2,
 };
