@@ -32,7 +32,7 @@ class AbrSettings:
     """The throughput rule moves up only to a rung whose sustained rate leaves this share of its budget to spare
     (down at once, as soon as the rung it holds no longer fits)."""
     insufficient_buffer_safety: float = 0.5
-    """The insufficient-buffer rule lets the next GOP's download take at most this fraction of the buffer."""
+    """The insufficient-buffer rule lets a sustained GOP's download take at most this fraction of the buffer."""
     abandon_min_s: float = 0.2
     """A feature download is never abandoned before its body has arrived for this long."""
     mpc_horizon: int = 5
