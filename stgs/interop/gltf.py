@@ -17,7 +17,7 @@ import numpy as np
 import pygltflib as gl
 
 from stgs.interop.sh import coefficients, degree_of
-from stgs.interop.splats import LOGIT_LIMIT, MAX_SPLATS, InteropError, Splats, logit, preimage
+from stgs.interop.splats import LOGIT_LIMIT, MAX_SPLATS, InteropError, Splats, exp32, logit, preimage, sigmoid32
 
 EXTENSION = "KHR_gaussian_splatting"
 PREFIX = f"{EXTENSION}:"
@@ -33,9 +33,7 @@ def sh_attribute(k: int) -> str:
 
 
 def _activated(splats: Splats) -> dict[str, np.ndarray]:
-    with np.errstate(over="ignore"):
-        opacity = (1.0 / (1.0 + np.exp(-splats.opacity_logits.astype(np.float64)))).astype(np.float32)
-        scale = np.exp(splats.log_scales.astype(np.float64)).astype(np.float32)
+    opacity, scale = sigmoid32(splats.opacity_logits), exp32(splats.log_scales)
     q = splats.quats.astype(np.float64)
     norm = np.linalg.norm(q, axis=1, keepdims=True)
     unit = np.where(np.abs(norm - 1) < 1e-6, q, q / norm)  # a unit quaternion read back stays as it was
@@ -139,11 +137,9 @@ def decode(data: bytes, where: str) -> Splats:
     scale, opacity = cols[f"{PREFIX}SCALE"], cols[f"{PREFIX}OPACITY"]
     if (scale < 0).any() or (opacity < 0).any() or (opacity > 1).any():
         raise InteropError(f"{where}: scales must be >= 0 and opacities within [0, 1]")
-    exp = lambda x: np.exp(x.astype(np.float64)).astype(np.float32)  # noqa: E731
-    sigmoid = lambda x: (1.0 / (1.0 + np.exp(-x.astype(np.float64)))).astype(np.float32)  # noqa: E731
-    with np.errstate(divide="ignore", over="ignore"):
-        log_scales = preimage(exp, scale, np.clip(np.log(scale.astype(np.float64)), -LOGIT_LIMIT, LOGIT_LIMIT))
-        logits = preimage(sigmoid, opacity, logit(opacity))
+    with np.errstate(divide="ignore"):
+        log_scales = preimage(exp32, scale, np.clip(np.log(scale.astype(np.float64)), -LOGIT_LIMIT, LOGIT_LIMIT))
+    logits = preimage(sigmoid32, opacity, logit(opacity))
     xyzw = cols[f"{PREFIX}ROTATION"]
     sh = np.stack([cols[sh_attribute(i)] for i in range(k)], 1)
     return Splats(cols["POSITION"], log_scales, xyzw[:, [3, 0, 1, 2]], logits, sh).check(where)

@@ -107,6 +107,18 @@ def preimage(forward: Callable[[np.ndarray], np.ndarray], target: np.ndarray, id
     return best
 
 
+def sigmoid32(x: np.ndarray) -> np.ndarray:
+    """Opacities (float32) of logits: the sigmoid in float64, rounded once (the glb's and a frame's forward map)."""
+    with np.errstate(over="ignore"):
+        return (1.0 / (1.0 + np.exp(-np.asarray(x, dtype=np.float64)))).astype(np.float32)
+
+
+def exp32(x: np.ndarray) -> np.ndarray:
+    """Linear scales (float32) of log scales: exp in float64, rounded once."""
+    with np.errstate(over="ignore"):
+        return np.exp(np.asarray(x, dtype=np.float64)).astype(np.float32)
+
+
 def dc_to_colour(dc: np.ndarray) -> np.ndarray:
     """Our colour C (float32) of a DC coefficient: 0.5 + Y_0 · dc, rounded once."""
     return (0.5 + harmonics.C0 * dc.astype(np.float64)).astype(np.float32)
@@ -152,9 +164,7 @@ def from_gaussians(g: Gaussians, log_scales: torch.Tensor, sh: np.ndarray | None
     logits, canonically rounded, and colours DC terms, or the coefficients `sh` (N, K, 3) stand for them."""
     get = lambda t: t.detach().float().numpy()  # noqa: E731
     opacity = get(g.opacities)
-    sigmoid = lambda x: (1.0 / (1.0 + np.exp(-x.astype(np.float64)))).astype(np.float32)  # noqa: E731
-    with np.errstate(over="ignore"):
-        logits = preimage(sigmoid, opacity, logit(opacity))
+    logits = preimage(sigmoid32, opacity, logit(opacity))
     sh = colour_to_dc(get(g.colors))[:, None] if sh is None else np.asarray(sh, dtype=np.float32)
     return Splats(get(g.means).copy(), get(log_scales).copy(), get(g.quats).copy(), logits, sh)
 
