@@ -148,7 +148,8 @@ def fit_capacity(splats: Splats, side: int | None = None) -> tuple[Splats, int, 
                            "ask for a smaller static grid side to keep the most visible")
     dropped = max(0, n - capacity)
     if dropped:
-        visibility = splats.opacity_logits.astype(np.float64) + splats.log_scales.astype(np.float64).sum(1)
+        logits = splats.opacity_logits.astype(np.float64)
+        visibility = -np.logaddexp(0.0, -logits) + splats.log_scales.astype(np.float64).sum(1)  # log(o · volume)
         keep = np.sort(np.argsort(-visibility, kind="stable")[:capacity])
         splats = splats.select(keep)
     padded = capacity - splats.count

@@ -172,3 +172,14 @@ def test_a_bad_ply_is_one_clear_line_and_nothing_is_written(tmp_path, spoil):
     assert run.returncode == 2 and run.stderr.count("\n") == 1 and run.stderr.startswith("stgs: ")
     assert "Traceback" not in run.stderr and not out.exists()
     assert "bad.ply" in run.stderr
+
+
+def test_a_file_larger_than_the_grid_asked_for_keeps_its_most_visible_gaussians(tmp_path):
+    s = random_splats(30, 0, seed=11)
+    write_splats(tmp_path / "big.ply", s)
+    layer, report = import_static(tmp_path / "big.ply", side=5)
+    assert (report["grid_side"], report["dropped"], report["padded"], layer.capacity) == (5, 5, 0, 25)
+    o = 1 / (1 + np.exp(-s.opacity_logits.astype(np.float64)))
+    visibility = o * np.exp(s.log_scales.astype(np.float64).sum(1))
+    kept = np.sort(np.argsort(-visibility)[:25])  # the 25 most visible, in file order
+    assert np.array_equal(layer.xyz.detach().numpy(), s.means[kept])
