@@ -21,7 +21,8 @@ from pathlib import Path
 
 import torch
 
-from bench.realtime import frame_stats, loop_model, play_process
+from bench.playlog_stats import frame_stats
+from bench.realtime import loop_model, play_process
 from stgs.camera import Camera, resize
 from stgs.client.view import read_scene_cameras
 from stgs.evaluate import packaged_gops

@@ -24,7 +24,9 @@ SOURCES = ("project.cpp", "binning.cpp", "forward.cpp", "kept.cpp", "backward.cp
            "deform.cpp", "deform_bf16.cpp", "deform_int16.cpp")
 """The splatter by stage (projection, binning, forward, a kept layer's forward, backward), the training loss's
 SSIM and temporal term, then the deformation field."""
-HEADERS = ("stgs_abi.h", "splat.h", "splat_avx2.h", "splat_avx512.h", "backward_simd.h", "fastmath.h", "deform.h")
+HEADERS = ("stgs_abi.h", "splat.h", "splat_avx2.h", "splat_avx512.h", "backward_simd.h", "fastmath.h", "deform.h",
+           "project.h", "project_avx512.h", "tile_reach.h", "deform_int16.h", "deform_int16_avx2.h",
+           "deform_int16_avx512.h")
 """stgs_abi.h is the C ABI (every export, read by stgs.native.abi); the others are internal."""
 CSRC = Path(__file__).with_name("csrc")
 ARCH = os.environ.get("STGS_NATIVE_ARCH", "native")

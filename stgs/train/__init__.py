@@ -11,8 +11,8 @@ from stgs.lazy import lazy_attributes
 from stgs.train.config import BUDGETS, TrainConfig, budget
 
 if TYPE_CHECKING:
+    from stgs.train.gop_report import DivergedError
     from stgs.train.run import train
-    from stgs.train.trainer import DivergedError
 
 __all__ = ["BUDGETS", "DivergedError", "TrainConfig", "budget", "train"]
-__getattr__ = lazy_attributes(__name__, {"train": "stgs.train.run", "DivergedError": "stgs.train.trainer"})
+__getattr__ = lazy_attributes(__name__, {"train": "stgs.train.run", "DivergedError": "stgs.train.gop_report"})

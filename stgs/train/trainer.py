@@ -28,8 +28,8 @@ This module holds the stages; the parts: `views` (training images, read through 
 (initial points and attributes; geometry in `init`), `losses`, `ops`
 (relocation, sorting, pruning and the Adam-state surgery they need),
 `checkpoint`, `aux` (the auxiliary transformer), `camera_colour`, `dynamic` (dynamic masks),
-`objective` (what a GOP-stage iteration minimises), `validation` (the report's running scores), `canonical`
-(the coarse stage and stage A).
+`objective` (what a GOP-stage iteration minimises), `validation` (the report's running scores), `gop_report`
+(a GOP's report), `canonical` (the coarse stage and stage A).
 """
 
 from __future__ import annotations
@@ -38,7 +38,6 @@ import dataclasses
 import math
 import shutil
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -58,6 +57,7 @@ from stgs.train.camera_colour import CameraColour
 from stgs.train.canonical import fit_canonical, imported_static_model
 from stgs.train.checkpoint import Checkpoints
 from stgs.train.config import TrainConfig, stage_seed
+from stgs.train.gop_report import DivergedError, GOPReport
 from stgs.train.hull import HullConfig
 from stgs.train.layers import Migrated, fit_view_dependent, init_dynamic, migrate, motion_scores, moving_pixels
 from stgs.train.objective import GOPLoss, gop_loss
@@ -68,27 +68,6 @@ from stgs.train.views import Sample, Views, scene_extent, view_draws
 from stgs.tree import CAMERAS, MODEL_META, TRAIN_REPORT, gop_stem
 
 STATE_DIR = ".train"
-
-
-class DivergedError(StgsError):
-    """The loss became NaN or infinite; the last good checkpoint is kept."""
-
-
-@dataclass
-class GOPReport:
-    gop: int
-    seconds: float = 0.0
-    iterations: int = 0
-    final_loss: float = 0.0
-    train_psnr: float = 0.0
-    val_psnr: float | None = None
-    val_ssim: float | None = None
-    relocated: int = 0
-    pruned: int = 0
-    curve: list[dict] = field(default_factory=list)
-    """(iteration, seconds, loss, validation PSNR and SSIM) samples: accuracy vs time."""
-    peak_rss_mb: float | None = None
-    """The training process's peak memory when the GOP was saved (stgs.memory.process_peak_rss_mb)."""
 
 
 class Trainer:

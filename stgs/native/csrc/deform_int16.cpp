@@ -30,26 +30,11 @@
 #include <cstring>
 
 #include "deform.h"
-#include "stgs_abi.h"
+#include "deform_int16.h"
+#include "deform_int16_avx2.h"
+#include "deform_int16_avx512.h"
 #include "fastmath.h"
-
-#if defined(__AVX2__)
-#define STGS_HAVE_INT16 1
-#include <immintrin.h>
-#else
-#define STGS_HAVE_INT16 0
-#endif
-
-// The kernel stgs_deform_int16_available reports (its values: stgs_abi.h).
-#if defined(__AVX512BW__) && defined(__AVX512VNNI__)
-#define STGS_INT16_KERNEL 3
-#elif defined(__AVX512BW__)
-#define STGS_INT16_KERNEL 2
-#elif STGS_HAVE_INT16
-#define STGS_INT16_KERNEL 1
-#else
-#define STGS_INT16_KERNEL 0
-#endif
+#include "stgs_abi.h"
 
 namespace {
 
@@ -70,90 +55,6 @@ struct Int16Layer {
   const float* col_scale;
   float qx;
 };
-
-// How a layer's input rows are scaled to integers of at most qx (the layer's q).
-enum class Scale {
-  kRow,      // by the row's own max |x|
-  kReluRow,  // max(0, x) (NaN kept, as torch.relu), then by the row's own max
-  kUnit,     // by 1: inputs within [-1, 1] (tanh outputs, unit view directions)
-};
-
-#if STGS_INT16_KERNEL >= 2
-// A row in steps of 16 lanes; a K that is 8 past a multiple of 16 ends on 8.
-inline __mmask16 step_lanes(int K, int k) { return K - k >= 16 ? 0xFFFF : 0x00FF; }
-
-template <Scale S>
-inline __m512 load_step(const float* x, __mmask16 lanes) {
-  const __m512 v = _mm512_maskz_loadu_ps(lanes, x);
-  return S == Scale::kReluRow ? _mm512_max_ps(_mm512_setzero_ps(), v) : v;  // NaN kept
-}
-
-// q[0, K) = rint(x · inv) saturated to int16 (round to nearest even); true when x holds a NaN.
-template <Scale S>
-bool store_row(const float* x, int K, float inv, int16_t* q) {
-  const __m512 vinv = _mm512_set1_ps(inv);
-  __mmask16 bad = 0;
-  for (int k = 0; k < K; k += 16) {
-    const __mmask16 lanes = step_lanes(K, k);
-    const __m512 v = load_step<S>(x + k, lanes);
-    bad |= _mm512_cmp_ps_mask(v, v, _CMP_UNORD_Q);
-    _mm512_mask_cvtsepi32_storeu_epi16(q + k, lanes, _mm512_cvtps_epi32(_mm512_mul_ps(v, vinv)));
-  }
-  return bad != 0;
-}
-
-// The row's max |x|, NaN where it holds a NaN.
-template <Scale S>
-float row_absmax(const float* x, int K) {
-  __m512 amax = _mm512_setzero_ps();
-  __mmask16 nan = 0;
-  for (int k = 0; k < K; k += 16) {
-    const __m512 v = load_step<S>(x + k, step_lanes(K, k));
-    nan |= _mm512_cmp_ps_mask(v, v, _CMP_UNORD_Q);
-    amax = _mm512_max_ps(amax, _mm512_abs_ps(v));
-  }
-  return nan ? NAN : _mm512_reduce_max_ps(amax);
-}
-#else
-template <Scale S>
-inline __m256 load_step(const float* x) {
-  const __m256 v = _mm256_loadu_ps(x);
-  return S == Scale::kReluRow ? _mm256_max_ps(_mm256_setzero_ps(), v) : v;  // NaN kept
-}
-
-// q[0, K) = rint(x · inv) saturated to int16 (round to nearest even); true when x holds a NaN.
-template <Scale S>
-bool store_row(const float* x, int K, float inv, int16_t* q) {
-  const __m256 vinv = _mm256_set1_ps(inv);
-  __m256 bad = _mm256_setzero_ps();
-  for (int k = 0; k < K; k += 8) {
-    const __m256 v = load_step<S>(x + k);
-    bad = _mm256_or_ps(bad, _mm256_cmp_ps(v, v, _CMP_UNORD_Q));
-    const __m256i i32 = _mm256_cvtps_epi32(_mm256_mul_ps(v, vinv));
-    const __m128i i16 = _mm_packs_epi32(_mm256_castsi256_si128(i32), _mm256_extracti128_si256(i32, 1));
-    _mm_storeu_si128(reinterpret_cast<__m128i*>(q + k), i16);
-  }
-  return _mm256_movemask_ps(bad) != 0;
-}
-
-// The row's max |x|, NaN where it holds a NaN.
-template <Scale S>
-float row_absmax(const float* x, int K) {
-  const __m256 abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fffffff));
-  __m256 amax = _mm256_setzero_ps(), nan = _mm256_setzero_ps();
-  for (int k = 0; k < K; k += 8) {
-    const __m256 v = load_step<S>(x + k);
-    nan = _mm256_or_ps(nan, _mm256_cmp_ps(v, v, _CMP_UNORD_Q));
-    amax = _mm256_max_ps(amax, _mm256_and_ps(v, abs_mask));
-  }
-  if (_mm256_movemask_ps(nan)) return NAN;
-  alignas(32) float lanes[8];
-  _mm256_store_ps(lanes, amax);
-  float m = 0.0f;
-  for (float l : lanes) m = std::max(m, l);
-  return m;
-}
-#endif
 
 // x (rows x K floats, stride ldx; K a multiple of 8) to int16 (stride ldq) and one scale per row:
 // q = rint(x · (qx / m)), scale = m / qx, with m the row's max |x| (kRow, kReluRow) or 1 (kUnit).
@@ -180,83 +81,6 @@ void quantize_rows(const float* x, int rows, int K, int ldx, float qx, int16_t* 
     store_row<S>(xr, K, qx / m, qr);
   }
 }
-
-#if STGS_INT16_KERNEL == 1
-// y[r, c0 .. c0 + 8 V) = sum over pairs p of q[r, 2p .. 2p+1] · w[p, c, 0 .. 1], scaled, for R rows.
-// Always inlined with its loops unrolled, so that the accumulators stay in registers (as deform.cpp's
-// matmul_strip).
-template <int M, int R, int V>
-__attribute__((always_inline)) inline void qmatmul_strip(const int16_t* q, int pairs, int ldq, const int16_t* w,
-                                                         const float* row_scale, const float* col_scale, float* y) {
-  __m256i acc[R][V];
-#pragma GCC unroll 16
-  for (int r = 0; r < R; ++r)
-#pragma GCC unroll 4
-    for (int j = 0; j < V; ++j) acc[r][j] = _mm256_setzero_si256();
-  for (int p = 0; p < pairs; ++p) {
-    __m256i wv[V];
-#pragma GCC unroll 4
-    for (int j = 0; j < V; ++j) wv[j] = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(w + (p * M + 8 * j) * 2));
-#pragma GCC unroll 16
-    for (int r = 0; r < R; ++r) {
-      int32_t pair;
-      std::memcpy(&pair, q + r * ldq + 2 * p, sizeof(pair));
-      const __m256i xb = _mm256_set1_epi32(pair);
-#pragma GCC unroll 4
-      for (int j = 0; j < V; ++j) acc[r][j] = _mm256_add_epi32(acc[r][j], _mm256_madd_epi16(xb, wv[j]));
-    }
-  }
-  for (int r = 0; r < R; ++r) {
-    const __m256 rs = _mm256_set1_ps(row_scale[r]);
-    for (int j = 0; j < V; ++j) {
-      const __m256 s = _mm256_mul_ps(rs, _mm256_loadu_ps(col_scale + 8 * j));
-      _mm256_storeu_ps(y + r * M + 8 * j, _mm256_mul_ps(_mm256_cvtepi32_ps(acc[r][j]), s));
-    }
-  }
-}
-#else
-// acc + the pair products of x and w, summed per int32 lane (exact: see the header).
-__attribute__((always_inline)) inline __m512i add_pair_products(__m512i acc, __m512i x, __m512i w) {
-#if STGS_INT16_KERNEL == 3
-  return _mm512_dpwssd_epi32(acc, x, w);
-#else
-  return _mm512_add_epi32(acc, _mm512_madd_epi16(x, w));
-#endif
-}
-
-// y[r, c0 .. c0 + 16 V) = sum over pairs p of q[r, 2p .. 2p+1] · w[p, c, 0 .. 1], scaled, for R rows:
-// qmatmul_strip on 512-bit registers.
-template <int M, int R, int V>
-__attribute__((always_inline)) inline void qmatmul_strip512(const int16_t* q, int pairs, int ldq, const int16_t* w,
-                                                            const float* row_scale, const float* col_scale,
-                                                            float* y) {
-  __m512i acc[R][V];
-#pragma GCC unroll 16
-  for (int r = 0; r < R; ++r)
-#pragma GCC unroll 4
-    for (int j = 0; j < V; ++j) acc[r][j] = _mm512_setzero_si512();
-  for (int p = 0; p < pairs; ++p) {
-    __m512i wv[V];
-#pragma GCC unroll 4
-    for (int j = 0; j < V; ++j) wv[j] = _mm512_loadu_si512(w + (p * M + 16 * j) * 2);
-#pragma GCC unroll 16
-    for (int r = 0; r < R; ++r) {
-      int32_t pair;
-      std::memcpy(&pair, q + r * ldq + 2 * p, sizeof(pair));
-      const __m512i xb = _mm512_set1_epi32(pair);
-#pragma GCC unroll 4
-      for (int j = 0; j < V; ++j) acc[r][j] = add_pair_products(acc[r][j], xb, wv[j]);
-    }
-  }
-  for (int r = 0; r < R; ++r) {
-    const __m512 rs = _mm512_set1_ps(row_scale[r]);
-    for (int j = 0; j < V; ++j) {
-      const __m512 s = _mm512_mul_ps(rs, _mm512_loadu_ps(col_scale + 16 * j));
-      _mm512_storeu_ps(y + r * M + 16 * j, _mm512_mul_ps(_mm512_cvtepi32_ps(acc[r][j]), s));
-    }
-  }
-}
-#endif
 
 // y (rows x M, columns from Cols on left unwritten) = the quantised rows q times layer L.
 template <int M, int Cols = M>
