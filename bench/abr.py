@@ -3,13 +3,15 @@
 The scene: a packaged scene (`--dash`, default: the `demo` synthetic scene
 packed at QPs 16-40), its GOPs repeated to 180 s as one long presentation
 (sizes and per-rung rendered PSNR from the packed files and stats.json).
-Trace sets (generated here, written in the public formats and read back
-through `load_trace`, so the readers are exercised too): each trace is a
-per-second log-rate AR(1) process with fades (bursty, heavy-tailed sets with
-long outages among them); each set is scaled by one
-constant so that its median trace's mean equals the top rung (keyframe +
+Trace sets: recorded ones (`--traces DIR,...`: one set per folder of
+Mahimahi, Pensieve or Sabre-JSON files), or else generated here (written in
+the public formats and read back through `load_trace`, so the readers are
+exercised too): each trace a per-second log-rate AR(1) process with fades,
+bursty, heavy-tailed sets with long outages among them. Each set is scaled by
+one constant so that its median trace's mean equals the top rung (keyframe +
 top features). Every rule runs on every trace at 6 s and 25 s of buffer in
-the discrete-event simulator.
+the discrete-event simulator; each cell reports every rule's difference from
+the cell's best classic rule, paired by trace, with a 95 % confidence interval.
 """
 
 from __future__ import annotations
@@ -24,13 +26,16 @@ import tempfile
 import time
 from pathlib import Path
 
+import scipy.stats
+
 from stgs.client.abr import AbrSettings
 from stgs.client.manifest import Presentation
+from stgs.errors import StgsError
 from stgs.harness.ladder import Ladder, load_ladder
 from stgs.harness.report import metrics
 from stgs.harness.scenario import scenario_from_dict
 from stgs.harness.sim import simulate
-from stgs.harness.trace import MAHIMAHI_PACKET_BITS, Trace, load_trace
+from stgs.harness.trace import MAHIMAHI_PACKET_BITS, Trace, load_trace, load_trace_folder
 from stgs.packager import PackConfig, pack
 from stgs.synth import PRESETS, synthesize
 from stgs.tree import MANIFEST
@@ -70,9 +75,15 @@ SETS = (
 """Generated trace sets. The last two are where rules lose most: heavy-tailed throughput (a log-normal of σ 0.8
 per second: a second at 5x the median is as common as one at a fifth) with outages of 3-12 s, and steady
 broadband with frequent brief dips."""
+CLASSIC = ("throughput", "bola", "bola-e", "dynamic")
+"""The classic rules the targets are set against (the best of them per cell)."""
 RULES = {"throughput": ("throughput", None), "bola": ("bola", None), "bola-e": ("bola-e", None),
-         "dynamic": ("dynamic", None), "mpc (PSNR)": ("mpc", AbrSettings()),
-         "mpc (bit rate)": ("mpc", AbrSettings(mpc_utility="bitrate"))}
+         "dynamic": ("dynamic", None), "mpc": ("mpc", AbrSettings()),
+         "mpc (PSNR utility)": ("mpc", AbrSettings(mpc_utility="psnr")),
+         "RobustMPC (PSNR, harmonic)": ("mpc", AbrSettings(mpc_predictor="harmonic", mpc_buffer_constraint=False,
+                                                           mpc_utility="psnr"))}
+"""Every rule at its defaults; mpc also with rendered PSNR as its utility, and as RobustMPC was before its
+predictor and buffer constraint (the default until they were measured)."""
 
 
 def generate(ts: TraceSet, seed: int) -> list[float]:
@@ -141,14 +152,20 @@ def long_ladder(ladder: Ladder, mpd: str, seconds: int, qps: tuple[int, ...] | N
                   ladder.static_bytes)
 
 
-def run(ladder: Ladder, traces: list[Trace], ts: TraceSet, buffer_s: float, rule: str,
-        settings: AbrSettings | None) -> dict:
+def playbacks(ladder: Ladder, traces: list[Trace], latency_ms: float, buffer_s: float, rule: str,
+              settings: AbrSettings | None) -> list[dict]:
+    """One simulated playback per trace: its harness metrics, in trace order."""
     rows = []
     for trace in traces:
-        sc = scenario_from_dict({"scene": "unused", "buffer_s": buffer_s, "effects": {"latency_ms": ts.latency_ms}},
-                                ts.name, Path("."))
+        sc = scenario_from_dict({"scene": "unused", "buffer_s": buffer_s, "effects": {"latency_ms": latency_ms}},
+                                trace.source or "trace", Path("."))
         sc = dataclasses.replace(sc, effects=dataclasses.replace(sc.effects, bandwidth=trace))
         rows.append(metrics(simulate(ladder, sc, rule, settings), ladder, sc.effects))
+    return rows
+
+
+def summary(rows: list[dict], ladder: Ladder) -> dict:
+    """Means over playbacks; rebuffering pooled (all stall time over all played + stall time)."""
     stall = sum(r["stall_s"] for r in rows)
     played = sum(len(r["qps"]) for r in rows) * ladder.pres.segment_seconds
     return {"qoe_nominal": statistics.mean(r["qoe_nominal"] for r in rows),
@@ -159,6 +176,21 @@ def run(ladder: Ladder, traces: list[Trace], ts: TraceSet, buffer_s: float, rule
             "psnr": statistics.mean(r["mean_quality_db"] for r in rows),
             "switches": statistics.mean(r["switches"] for r in rows),
             "startup": statistics.mean(r["startup_delay_s"] for r in rows)}
+
+
+def run(ladder: Ladder, traces: list[Trace], ts: TraceSet, buffer_s: float, rule: str,
+        settings: AbrSettings | None) -> dict:
+    return summary(playbacks(ladder, traces, ts.latency_ms, buffer_s, rule, settings), ladder)
+
+
+def paired_ci(a: list[float], b: list[float], confidence: float = 0.95) -> tuple[float, float]:
+    """Mean of a − b paired by trace and the half-width of its Student-t confidence interval (inf below 2 pairs)."""
+    diffs = [x - y for x, y in zip(a, b, strict=True)]
+    mean = statistics.mean(diffs)
+    if len(diffs) < 2:
+        return mean, math.inf
+    half = scipy.stats.t.ppf(0.5 + confidence / 2, len(diffs) - 1) * statistics.stdev(diffs) / math.sqrt(len(diffs))
+    return mean, float(half)
 
 
 def packed_scene(tmp: Path) -> Path:
@@ -179,14 +211,66 @@ def rd_table(ladder: Ladder) -> None:
               f"| {statistics.mean(ladder.psnr[r.rep_id]):.2f} |")
 
 
-def main(dash: Path | None) -> int:
+@dataclasses.dataclass
+class CellSet:
+    """A trace set as the bench runs it: its name, traces (scaled) and round trip."""
+
+    name: str
+    traces: list[Trace]
+    latency_ms: float
+    origin: str
+    """How the traces came (generated and written in a format, or read from a folder)."""
+
+
+def recorded_sets(folders: list[Path], latency_ms: float, top_kbps: float | None) -> list[CellSet]:
+    """Each folder one recorded set (load_trace_folder); `top_kbps` not None: each set scaled by one constant so
+    that its median trace's mean equals it."""
+    sets = []
+    for folder in folders:
+        traces = load_trace_folder(folder)
+        origin = f"{len(traces)} recorded traces from {folder}"
+        if top_kbps is not None:
+            median = statistics.median(t.mean_kbps() for t in traces)
+            if median <= 0:
+                raise StgsError(f"{folder}: the median trace delivers nothing; it cannot be scaled")
+            traces = [t.scaled(top_kbps / median) for t in traces]
+            origin += f", scaled x{top_kbps / median:.3g}"
+        sets.append(CellSet(folder.name, traces, latency_ms, origin))
+    return sets
+
+
+def cell_table(ladder: Ladder, cs: CellSet, buffer_s: float) -> None:
+    """Every rule over one set at one buffer, and each rule's difference from the best classic rule of the cell,
+    paired by trace, with its 95 % confidence interval."""
+    results, rates = {}, {}
+    for name, (rule, settings) in RULES.items():
+        start = time.perf_counter()
+        results[name] = playbacks(ladder, cs.traces, cs.latency_ms, buffer_s, rule, settings)
+        rates[name] = len(cs.traces) / (time.perf_counter() - start)
+    means = {name: summary(rows, ladder) for name, rows in results.items()}
+    ref = max(CLASSIC, key=lambda name: means[name]["qoe_nominal"])
+    print(f"| rule | QoE (nominal) | QoE (sizes) | QoE (PSNR) | rebuffer % | mean kbit/s | mean PSNR dB | switches "
+          f"| start-up s | ΔQoE (nominal) vs {ref}, 95 % CI | Δstall s vs {ref}, 95 % CI | playbacks/s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for name, m in means.items():
+        dq = paired_ci([r["qoe_nominal"] for r in results[name]], [r["qoe_nominal"] for r in results[ref]])
+        ds = paired_ci([r["stall_s"] for r in results[name]], [r["stall_s"] for r in results[ref]])
+        print(f"| {name} | {m['qoe_nominal']:.3f} | {m['qoe_size']:.3f} | {m['qoe_psnr']:.2f} | "
+              f"{m['rebuffer_pct']:.2f} | {m['bitrate']:.0f} | {m['psnr']:.2f} | {m['switches']:.1f} | "
+              f"{m['startup']:.2f} | {dq[0]:+.3f} ± {dq[1]:.3f} | {ds[0]:+.2f} ± {ds[1]:.2f} | {rates[name]:.1f} |",
+              flush=True)
+
+
+def main(dash: Path | None, trace_dirs: list[Path] | None = None, latency_ms: float = 40.0,
+         scale: bool = True) -> int:
+    """`trace_dirs`: recorded trace sets, one per folder, instead of the generated ones."""
     with tempfile.TemporaryDirectory(prefix="stgs-bench-abr-") as tmp:
         dash = dash or packed_scene(Path(tmp))
         base = load_ladder(str(dash))
         qps = tuple(r.qp for r in base.pres.ladder)
         mpd = (dash / MANIFEST).read_text()
         ladders = {f"QP {min(qps)}-{max(qps)}": long_ladder(base, mpd, SECONDS)}
-        if max(qps) > 32:
+        if max(qps) > 32 and not trace_dirs:
             ladders[f"QP {min(qps)}-32 (no floor rungs)"] = long_ladder(base, mpd, SECONDS,
                                                                         tuple(q for q in qps if q <= 32))
         print(f"\nMachine: {platform.machine()} {platform.processor() or ''}; scene {dash} repeated to {SECONDS} s\n")
@@ -195,20 +279,14 @@ def main(dash: Path | None) -> int:
             top = ladder.pres.ladder[-1].rep_id
             top_kbps = (statistics.mean(ladder.keyframe_bytes) + statistics.mean(ladder.media_bytes[top])) * 8 \
                 / ladder.pres.segment_seconds / 1e3
-            for ts in SETS:
-                traces = trace_set(ts, top_kbps, Path(tmp))
+            if trace_dirs:
+                sets = recorded_sets(trace_dirs, latency_ms, top_kbps if scale else None)
+            else:
+                sets = [CellSet(ts.name, trace_set(ts, top_kbps, Path(tmp)), ts.latency_ms,
+                                f"{TRACES_PER_SET} traces written as {ts.fmt}") for ts in SETS]
+            for cs in sets:
                 for buffer_s in BUFFERS:
-                    print(f"\n**{ts.name}, ladder {lname}, buffer {buffer_s:g} s** ({len(traces)} traces written "
-                          f"as {ts.fmt}, {ts.latency_ms:g} ms round trips, median trace mean {top_kbps:.0f} kbit/s)\n")
-                    print("| rule | QoE (nominal) | QoE (sizes) | QoE (PSNR) | rebuffer % | mean kbit/s | mean PSNR dB "
-                          "| switches | start-up s | playbacks/s |")
-                    print("|---|---|---|---|---|---|---|---|---|---|")
-                    for name, (rule, settings) in RULES.items():
-                        start = time.perf_counter()
-                        m = run(ladder, traces, ts, buffer_s, rule, settings)
-                        rate = len(traces) / (time.perf_counter() - start)
-                        print(f"| {name} | {m['qoe_nominal']:.3f} | {m['qoe_size']:.3f} | {m['qoe_psnr']:.2f} | "
-                              f"{m['rebuffer_pct']:.2f} | "
-                              f"{m['bitrate']:.0f} | {m['psnr']:.2f} | {m['switches']:.1f} | {m['startup']:.2f} | "
-                              f"{rate:.1f} |", flush=True)
+                    print(f"\n**{cs.name}, ladder {lname}, buffer {buffer_s:g} s** ({cs.origin}, "
+                          f"{cs.latency_ms:g} ms round trips, top rung {top_kbps:.0f} kbit/s)\n")
+                    cell_table(ladder, cs, buffer_s)
     return 0

@@ -87,7 +87,8 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
                    "play: real-time playback (bench/realtime.py: drops, stalls, per-frame decode, wait, deform "
                    "and splat, start-up, seek, peak memory per QP); "
                    "sim: simulated vs emulated QoE and playbacks per second; abr: every ABR rule over trace "
-                   "sets at 6 s and 25 s of buffer, and the ladder floor; train: held-out quality vs "
+                   "sets (generated, or recorded with --traces) at 6 s and 25 s of buffer, each rule's paired "
+                   "difference from the best classic rule, and the ladder floor; train: held-out quality vs "
                    "training time of finished stgs train runs (--runs)")
     p.add_argument("--sizes", default="16384,65536,147456",
                    help="comma-separated Gaussian counts (default: 16384,65536,147456)")
@@ -108,6 +109,13 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", help="pack, play: synthetic scene preset to pack (default: demo)")
     p.add_argument("--dash", type=Path,
                    help="serve, play, sim, abr: a packaged scene (default: synthesise and pack one)")
+    p.add_argument("--traces", help="abr: comma-separated folders of recorded traces (Mahimahi, Pensieve or Sabre "
+                   "JSON files, the format sniffed per file), one trace set each, instead of the generated sets")
+    p.add_argument("--latency-ms", type=float, default=40.0,
+                   help="abr: round-trip time of the recorded sets of --traces (default: 40)")
+    p.add_argument("--no-trace-scale", action="store_true",
+                   help="abr: play --traces at their recorded rates (default: each set scaled by one constant so "
+                   "that its median trace's mean equals the top rung)")
     p.add_argument("--clients", default="1,16,64,256", help="serve: concurrent clients (default: 1,16,64,256)")
     p.add_argument("--seconds", type=positive_int, default=8, help="serve: seconds per measurement (default: 8)")
     p.add_argument("--runs", help="train: comma-separated model dirs written by stgs train (and stgs eval)")
@@ -139,7 +147,15 @@ def run_bench(args: argparse.Namespace) -> int:
     if args.suite == "train":
         return bench_suite(name).main([Path(d) for d in args.runs.split(",") if d],
                                       args.plot or Path("docs/train_curves.png"))
-    if args.suite in ("sim", "abr"):
+    if args.suite == "abr":
+        folders = [Path(d) for d in (args.traces or "").split(",") if d]
+        for folder in folders:
+            if not folder.is_dir():
+                raise UsageError(f"--traces {folder}: not a folder")
+        if not math.isfinite(args.latency_ms) or args.latency_ms < 0:
+            raise UsageError("--latency-ms must be a non-negative number")
+        return bench_suite(name).main(args.dash, folders or None, args.latency_ms, not args.no_trace_scale)
+    if args.suite == "sim":
         return bench_suite(name).main(args.dash)
     if args.suite == "serve":
         clients = int_list(args.clients, "--clients")

@@ -27,6 +27,7 @@ from functools import cache
 
 import numpy as np
 
+from stgs.client.abr_predict import MIN_KBPS, harmonic_kbps, predict_kbps, relative_error
 from stgs.client.abr_state import AbrSettings, AbrState, Decision, UpcomingGOP, latency_s
 
 
@@ -45,19 +46,16 @@ class MpcRule:
     """(samples seen, kbit/s) of the last prediction, to measure its error when the next sample arrives."""
 
     def predict_kbps(self, state: AbrState) -> tuple[float, float] | None:
-        """(harmonic-mean kbit/s, robust kbit/s), or None without samples."""
+        """(harmonic-mean kbit/s, the kbit/s plans run at: `mpc_predictor`'s), or None without samples."""
         samples = list(state.samples)
         if not samples:
             return None
+        kbps = [s.kbps for s in samples]
         if self.predicted is not None and self.predicted[0] < len(samples):
-            actual = samples[-1].kbps
-            self.errors.append(abs(self.predicted[1] - actual) / max(actual, 1e-9))
-        n = self.settings.mpc_history
-        recent = samples[-n:]
-        harmonic = len(recent) / sum(1 / max(s.kbps, 1e-9) for s in recent)
+            self.errors.append(relative_error(self.predicted[1], kbps[-1]))
+        harmonic = harmonic_kbps(kbps[-self.settings.mpc_history:])
         self.predicted = (len(samples), harmonic)
-        bound = max(self.errors[-n:], default=0.0)
-        return harmonic, harmonic / (1 + bound)
+        return harmonic, predict_kbps(self.settings.mpc_predictor, kbps, self.errors, self.settings)
 
     def table(self, state: AbrState) -> list[UpcomingGOP]:
         """The GOPs to plan over, the next one first (the scene's sizes where known, else repeats of the next)."""
@@ -86,7 +84,7 @@ class MpcRule:
         if state.keyframe_fetched:
             download[0] -= gops[0].keyframe_bits
             trips[0] -= 1
-        seconds = trips * latency_s(state.samples) + download[steps, plans] / (robust * 1e3)
+        seconds = trips * latency_s(state.samples) + download[steps, plans] / (max(robust, MIN_KBPS) * 1e3)
         q = utility[steps, plans]
         buffer = np.full(len(plans), state.buffer_s)
         stall = np.zeros(len(plans))
@@ -101,6 +99,11 @@ class MpcRule:
         switches = np.abs(q[:, 0] - previous) + np.abs(np.diff(q, axis=1)).sum(axis=1)
         shortfall = np.maximum(s.mpc_reservoir * state.buffer_capacity_s - buffer, 0.0)
         score = q.sum(axis=1) - mu * (stall + s.mpc_reservoir_weight * shortfall) - s.mpc_switch_weight * switches
+        if s.mpc_buffer_constraint:
+            # plans that end below the reservoir, or below where the buffer stands when it is under it, are out
+            feasible = buffer >= min(s.mpc_reservoir * state.buffer_capacity_s, state.buffer_s) - 1e-9
+            if feasible.any():
+                score = np.where(feasible, score, -np.inf)
         best = int(np.argmax(score))
         held = ""
         if state.current is not None and plans[best, 0] != state.current:

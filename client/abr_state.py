@@ -7,6 +7,11 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from stgs.errors import FieldError
+
+MPC_PREDICTORS = ("harmonic", "error-bound", "quantile", "ewma-lower")
+"""The look-ahead rule's throughput predictors (client/abr_predict.py)."""
+
 
 @dataclass
 class AbrSettings:
@@ -39,8 +44,24 @@ class AbrSettings:
     """GOPs the look-ahead rule plans over."""
     mpc_history: int = 5
     """GOP samples in the look-ahead rule's harmonic-mean throughput and its error bound."""
-    mpc_utility: str = "psnr"
-    """What the look-ahead rule maximises per GOP: rendered `psnr` (stats.json; bit rate where unknown) or `bitrate`."""
+    mpc_predictor: str = "ewma-lower"
+    """The look-ahead rule's throughput predictor (client/abr_predict.py): harmonic (RobustMPC's), error-bound,
+    quantile or ewma-lower (docs/BENCHMARKS.md, "ABR rules over trace sets", measures each)."""
+    mpc_error_horizon: int = 20
+    """GOPs of history the error-bound and quantile predictors read."""
+    mpc_quantile: float = 0.2
+    """The quantile predictor's quantile."""
+    mpc_ewma_half_life: float = 4.0
+    """Half-life (GOPs) of the ewma-lower predictor's mean and variance of log throughput."""
+    mpc_ewma_deviations: float = 1.0
+    """Standard deviations of log throughput the ewma-lower predictor stays below the mean."""
+    mpc_buffer_constraint: bool = True
+    """Plans that end below the reservoir (or, while the buffer is under it, below where it stands) are out, as
+    long as any plan is left; the reservoir's charge applies as well."""
+    mpc_utility: str = "bitrate"
+    """What the look-ahead rule maximises per GOP: `bitrate` (Pensieve's linear QoE, the published one) or rendered
+    `psnr` (stats.json; bit rate where unknown), which renders 1.2 dB better on the mean over the bench's trace sets
+    at 1.2 points more rebuffering and 9 more switches."""
     mpc_rebuffer_psnr: float = 10.0
     """dB a second of stall costs the PSNR utility (about the dB span of a QP 16-40 ladder)."""
     mpc_rebuffer_bitrate: float = 4.3
@@ -55,6 +76,16 @@ class AbrSettings:
     buffer: without it, the plan spends the buffer down and a fade after the horizon stalls)."""
     mpc_reservoir_weight: float = 0.2
     """Each second a plan ends below the reservoir costs this fraction of a second of stall."""
+
+    def __post_init__(self) -> None:
+        if self.mpc_predictor not in MPC_PREDICTORS:
+            raise FieldError("mpc_predictor", f"must be one of {', '.join(MPC_PREDICTORS)}, got {self.mpc_predictor!r}")
+        if not 0 <= self.mpc_quantile <= 1:
+            raise FieldError("mpc_quantile", f"must be in [0, 1], got {self.mpc_quantile}")
+        if self.mpc_error_horizon < 1 or self.mpc_history < 1:
+            raise FieldError("mpc_error_horizon" if self.mpc_error_horizon < 1 else "mpc_history", "must be >= 1")
+        if self.mpc_ewma_half_life <= 0:
+            raise FieldError("mpc_ewma_half_life", f"must be > 0, got {self.mpc_ewma_half_life}")
 
 
 @dataclass(frozen=True)

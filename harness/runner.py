@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 
 from stgs.client import PlayConfig, play
-from stgs.errors import StgsError
 from stgs.harness.emulate import emulate, scene_url
 from stgs.harness.ladder import load_ladder
 from stgs.harness.report import (
@@ -26,12 +25,10 @@ from stgs.harness.report import (
 )
 from stgs.harness.scenario import Scenario
 from stgs.harness.sim import simulate
-from stgs.harness.trace import TRACE_FORMATS, load_trace
+from stgs.harness.trace import load_trace, trace_files
 from stgs.tree import MANIFEST
 
 ENGINES = ("sim", "emulate")
-TRACE_SUFFIXES = (".json", ".csv", ".log", ".txt", ".up", ".down")
-"""Files a trace folder's batch reads (the format of .log, .txt, .up and .down is sniffed)."""
 
 
 def rules(sc: Scenario) -> list[str]:
@@ -71,9 +68,7 @@ def run_scenario(sc: Scenario, engines: list[str], out: Path, decode: bool = Fal
 
 def run_batch(sc: Scenario, traces: Path, engines: list[str], out: Path, speed: float = 1.0) -> list[dict]:
     """The scenario once per trace file in `traces` (its bandwidth replaced by the trace), per rule and engine."""
-    files = sorted(p for p in Path(traces).iterdir() if p.suffix in TRACE_SUFFIXES)
-    if not files:
-        raise StgsError(f"{traces}: no trace files ({', '.join(TRACE_SUFFIXES)}; formats {', '.join(TRACE_FORMATS)})")
+    files = trace_files(traces)
     rows = []
     for tree in sc.variants():
         ladder = load_ladder(tree.scene, tree.codec)

@@ -12,9 +12,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from stgs.errors import StgsError
-from stgs.limits import MAX_TRACE_POINTS
+from stgs.limits import MAX_TRACE_FILES, MAX_TRACE_POINTS
 
 TRACE_FORMATS = ("sabre", "mahimahi", "pensieve", "csv")
+TRACE_SUFFIXES = (".json", ".csv", ".log", ".txt", ".up", ".down")
+"""Files a trace folder's batch reads (the format of .log, .txt, .up and .down is sniffed)."""
 MAHIMAHI_PACKET_BITS = 1500 * 8
 """A Mahimahi trace line is one delivery opportunity for a 1500-byte packet."""
 MAHIMAHI_BIN_S = 0.1
@@ -43,6 +45,17 @@ class Trace:
         if math.isfinite(self.period) and sum(k * (e - s) for s, e, k in zip(self.times, ends, self.kbps,
                                                                               strict=True)) == 0:
             raise StgsError(f"{self.source or 'bandwidth'}: the trace never delivers a byte")
+
+    def mean_kbps(self) -> float:
+        """Time-weighted mean rate over one period (the last rate where the trace does not loop)."""
+        if not math.isfinite(self.period):
+            return self.kbps[-1]
+        ends = [*self.times[1:], self.period]
+        return sum(k * (e - s) for s, e, k in zip(self.times, ends, self.kbps, strict=True)) / self.period
+
+    def scaled(self, factor: float) -> Trace:
+        """The same trace with every rate times `factor`."""
+        return Trace(list(self.times), [k * factor for k in self.kbps], self.period, self.source)
 
     def segment(self, t: float) -> tuple[float, float]:
         """(kbit/s, seconds until the bandwidth next changes) at time t."""
@@ -133,6 +146,28 @@ def load_trace(path: Path, fmt: str | None = None) -> Trace:
         times = [t - shift for t in times]
     step = times[-1] - times[-2] if len(times) > 1 else 1.0
     return Trace(times, rates, times[-1] + step, source=str(path))
+
+
+def trace_files(folder: Path, every_file: bool = False) -> list[Path]:
+    """A trace folder's files in name order: those with a trace suffix (TRACE_SUFFIXES), or with `every_file` every
+    non-hidden file (recorded sets such as Pensieve's name their traces without a suffix, or with a host's)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise StgsError(f"{folder}: not a folder of traces")
+    files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")
+                   and (every_file or p.suffix in TRACE_SUFFIXES))
+    if not files:
+        kinds = "" if every_file else f" ({', '.join(TRACE_SUFFIXES)})"
+        raise StgsError(f"{folder}: no trace files{kinds}; formats {', '.join(TRACE_FORMATS)}")
+    if len(files) > MAX_TRACE_FILES:
+        raise StgsError(f"{folder}: more than {MAX_TRACE_FILES} trace files")
+    return files
+
+
+def load_trace_folder(folder: Path) -> list[Trace]:
+    """Every file of a folder (a recorded trace set: Mahimahi, Pensieve, Sabre JSON or CSV files, the format sniffed
+    per file; hidden files are skipped), in name order."""
+    return [load_trace(p) for p in trace_files(folder, every_file=True)]
 
 
 def _bounded(points: list, path: Path) -> list:

@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 from stgs.client.abr import RULES, AbrSettings, AbrState, Decision
+from stgs.client.abr_state import MPC_PREDICTORS
 from stgs.fsio import atomic_write_bytes
 from stgs.harness.ladder import Ladder, load_ladder
 from stgs.harness.scenario import Scenario, scenario_from_dict
@@ -31,6 +32,13 @@ FIXED_TRACES: dict[str, list[list[float]]] = {
 """Bandwidth steps the vectors are recorded over: [second, rate], the rate a multiple of the scene's full rate
 (keyframe @bandwidth + the top rung's), so each shape crosses the rungs of any ladder: ample, a fall, swings,
 starvation, and exactly the top rate."""
+
+
+MPC_VARIANTS = [AbrSettings(mpc_predictor=p) for p in MPC_PREDICTORS if p != AbrSettings().mpc_predictor] + \
+    [AbrSettings(mpc_buffer_constraint=not AbrSettings().mpc_buffer_constraint),
+     AbrSettings(mpc_utility="psnr" if AbrSettings().mpc_utility == "bitrate" else "bitrate")]
+"""The look-ahead rule's other predictors, its other buffer-target mode and its other utility, recorded beside every
+rule's default."""
 
 
 def state_json(state: AbrState) -> dict:
@@ -82,7 +90,8 @@ def decision_vector(ladder: Ladder, scenario: Scenario, rule: str, settings: Abr
 
 
 def decision_vectors(scene: Path, traces: dict[str, list[list[float]]] = FIXED_TRACES) -> list[dict]:
-    """Every rule over every trace on a packaged scene's AV1 set (the browsers' feature set)."""
+    """Every rule over every trace on a packaged scene's AV1 set (the browsers' feature set), and mpc under
+    MPC_VARIANTS."""
     ladder = load_ladder(str(scene), "av1")
     full_kbps = (ladder.pres.keyframe_rep.bandwidth + max(r.bandwidth for r in ladder.pres.ladder)) / 1e3
     vectors = []
@@ -92,6 +101,7 @@ def decision_vectors(scene: Path, traces: dict[str, list[list[float]]] = FIXED_T
                                                                               "latency_ms": 20}}
         scenario = scenario_from_dict(doc, name, Path(scene))
         vectors += [decision_vector(ladder, scenario, rule) for rule in RULES]
+        vectors += [decision_vector(ladder, scenario, "mpc", settings) for settings in MPC_VARIANTS]
     return vectors
 
 

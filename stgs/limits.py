@@ -50,3 +50,5 @@ MAX_TEMPLATE_NUMBER_WIDTH = 32
 # --- harness inputs ---
 MAX_TRACE_POINTS = 1_000_000
 """Most points of one bandwidth trace."""
+MAX_TRACE_FILES = 10_000
+"""Most trace files in one recorded trace set (a folder)."""

@@ -8,8 +8,8 @@ bins and renders the static layer alone once (csrc/kept.cpp); each frame then pr
 dynamic Gaussians, merges each reached tile's two lists front to back (equal depths in the order a bin of
 both would give them) and composites only those tiles, copying the others from the kept image. The image is
 bit for bit the one `rasterize` makes of both layers, the static layer first (tests/render/test_fixed.py);
-the saving follows the static layer's share of the binning and of the tiles (docs/BENCHMARKS.md, "A kept
-static layer"). Native float32 CPU only. With moving Gaussians that need gradients (training over a frozen
+the saving follows the static layer's share of the binning and of the tiles (docs/BENCHMARKS.md, "Real-time
+playback"). Native float32 CPU only. With moving Gaussians that need gradients (training over a frozen
 layer: a layered scene's GOP stage), `draw` is differentiable in them. The tiles they reach are composited as the
 differentiable `rasterize` of both layers composites them (its tracked kernel, bit for bit); the others are
 copied from the kept image (the inference kernel: float32 rounding apart) and carry no gradient for them, so

@@ -9,8 +9,8 @@ view-dependent colour sampled from random camera centres around the scene.
 Like the trainer (temporal and grid regularisers), the fit penalises features
 that differ between grid neighbours and between consecutive frames: without
 it Adam leaves noise-like features that the feature video spends about four
-bits per sample on, at no gain in fidelity (docs/BENCHMARKS.md, "Smooth
-features").
+bits per sample on, at no gain in fidelity (docs/BENCHMARKS.md, "Synthetic
+scene fit").
 """
 
 from __future__ import annotations

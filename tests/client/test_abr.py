@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -25,6 +26,9 @@ from stgs.client.abr import (
     ewma_kbps,
     throughput_kbps,
 )
+from stgs.client.abr_predict import harmonic_kbps, predict_kbps, relative_error
+from stgs.client.abr_state import MPC_PREDICTORS
+from stgs.errors import FieldError
 
 LADDER = [100_000, 200_000, 400_000]  # bit/s, one-second GOPs
 
@@ -301,13 +305,13 @@ def test_mpc_maximises_rendered_quality_not_bits():
     # rung 2 costs twice rung 1's bits but renders no better (a saturated ladder): PSNR utility keeps rung 1,
     # bit-rate utility takes rung 2
     flat = UpcomingGOP(100_000, [100_000, 200_000, 400_000], [30.0, 36.0, 36.0])
-    assert MpcRule().choose(mpc_state(3.0, samples, [flat] * 5, current=1)).index == 1
+    assert MpcRule(AbrSettings(mpc_utility="psnr")).choose(mpc_state(3.0, samples, [flat] * 5, current=1)).index == 1
     assert MpcRule(AbrSettings(mpc_utility="bitrate")).choose(mpc_state(3.0, samples, [flat] * 5,
                                                                          current=1)).index == 2
 
 
 def test_mpc_bounds_the_throughput_by_its_past_errors():
-    rule = MpcRule()
+    rule = MpcRule(AbrSettings(mpc_predictor="harmonic"))
     steady = [ThroughputSample(125_000, 1.0)] * 3
     assert rule.predict_kbps(AbrState(LADDER, 1.0, 1.0, 6.0, steady)) == pytest.approx((1000.0, 1000.0))
     # the next sample came in at half the prediction: error 100 %, the robust estimate halves
@@ -315,6 +319,62 @@ def test_mpc_bounds_the_throughput_by_its_past_errors():
     harmonic, robust = rule.predict_kbps(AbrState(LADDER, 1.0, 1.0, 6.0, dropped))
     assert harmonic == pytest.approx(4 / (3 / 1000 + 1 / 500)) and robust == pytest.approx(harmonic / 2)
     assert MpcRule().choose(AbrState(LADDER, 1.0, 0.0, 6.0, [])).index == 0
+
+
+HISTORIES = {
+    "empty": [],
+    "one sample": [700.0],
+    "zero throughput": [0.0, 0.0, 0.0],
+    "zero after steady": [1000.0] * 8 + [0.0],
+    "huge": [1e300, 1e308, 5.0],
+    "infinite": [math.inf, 1000.0],
+    "long heavy tail": [10.0 ** (k % 7) for k in range(60)],
+}
+
+
+@pytest.mark.parametrize("predictor", MPC_PREDICTORS)
+@pytest.mark.parametrize("history", list(HISTORIES))
+def test_every_predictor_is_finite_and_non_negative_on_any_history(predictor, history):
+    kbps = HISTORIES[history]
+    settings = AbrSettings(mpc_predictor=predictor)
+    errors = [relative_error(p, a) for p, a in zip([harmonic_kbps(kbps[:i]) for i in range(1, len(kbps))],
+                                                   kbps[1:], strict=True)]
+    assert all(math.isfinite(e) and e >= 0 for e in errors)
+    value = predict_kbps(predictor, kbps, errors, settings)
+    assert math.isfinite(value) and value >= 0
+    assert (value == 0) == (not kbps)  # 0 only without a sample
+    if len(set(kbps)) == 1 and kbps[0] > 0:  # a steady history predicts itself
+        assert value == pytest.approx(kbps[0])
+
+
+def test_the_lower_predictors_sit_below_a_bursty_historys_mean():
+    bursty = [4000.0, 300.0, 5000.0, 250.0, 6000.0, 3500.0, 200.0, 4500.0] * 3
+    mean = sum(bursty) / len(bursty)
+    for predictor in ("quantile", "ewma-lower"):
+        assert predict_kbps(predictor, bursty, [], AbrSettings()) < 0.5 * mean, predictor
+    assert predict_kbps("quantile", bursty, [], AbrSettings(mpc_quantile=0.0)) == pytest.approx(200.0)
+    # the long error bound keeps an outage's error for mpc_error_horizon GOPs, the short one for mpc_history
+    errors = [3.0] + [0.0] * 10
+    steady = [1000.0] * 11
+    assert predict_kbps("harmonic", steady, errors, AbrSettings()) == pytest.approx(1000.0)
+    assert predict_kbps("error-bound", steady, errors, AbrSettings()) == pytest.approx(250.0)
+    with pytest.raises(FieldError, match="mpc_predictor"):
+        AbrSettings(mpc_predictor="oracle")
+
+
+def test_mpc_with_the_buffer_constraint_keeps_the_reservoir():
+    samples = [ThroughputSample(125_000, 1.0)] * 5  # 1000 kbit/s, steady
+    # over a one-GOP horizon: the top rung takes 3 s (4 s of buffer -> 2 s), the middle rung 0.6 s (-> 4.4 s).
+    # Charged only for stalls, the plan takes the top rung; constrained to the 4-s reservoir, the middle one
+    heavy = UpcomingGOP(100_000, [100_000, 500_000, 2_900_000], [30.0, 36.0, 52.0])
+    one = AbrSettings(mpc_horizon=1, mpc_reservoir_weight=0.0, mpc_buffer_constraint=False, mpc_utility="psnr")
+    assert MpcRule(one).choose(mpc_state(4.0, samples, [heavy], capacity=8.0)).index == 2
+    kept = MpcRule(dataclasses.replace(one, mpc_buffer_constraint=True)).choose(
+        mpc_state(4.0, samples, [heavy], capacity=8.0))
+    assert kept.index == 1
+    # below the reservoir no plan can reach it: the plans that keep the buffer where it stands are left
+    low = MpcRule(AbrSettings(mpc_buffer_constraint=True)).choose(mpc_state(1.0, samples, [heavy] * 5, capacity=8.0))
+    assert low.index <= 1
 
 
 def test_upcoming_gop_from_stats_reads_bits_and_psnr_and_refuses_what_stats_does_not_say():

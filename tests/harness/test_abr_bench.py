@@ -1,15 +1,21 @@
-"""bench/abr.py's own parts: its trace writers agree with the readers, its long ladder repeats the scene."""
+"""bench/abr.py's own parts: its trace writers agree with the readers, its long ladder repeats the scene, recorded
+trace folders and the paired intervals of `stgs bench abr`."""
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import statistics
+from pathlib import Path
 
 import pytest
+import scipy.stats
 
-from bench.abr import SETS, generate, long_ladder, write
+from bench.abr import SETS, generate, long_ladder, paired_ci, recorded_sets, write
+from stgs.errors import StgsError
 from stgs.harness.sim import simulate
-from stgs.harness.trace import load_trace
+from stgs.harness.trace import load_trace, load_trace_folder
+from tests.conftest import run_stgs as stgs
 from tests.harness.test_sim import EXAMPLE, hand_ladder, layered_ladder, layered_mpd, scenario
 
 
@@ -52,3 +58,54 @@ def test_the_long_ladder_keeps_the_static_layer_and_it_is_the_first_throughput_s
     assert "estimate 500 kbit/s" in first["decisions"][0]["reason"]
     with pytest.raises(ValueError, match="static_bytes"):
         dataclasses.replace(long, static_bytes=0)
+
+
+def test_a_folder_is_a_recorded_trace_set_in_any_of_the_public_formats(tmp_path):
+    write([800.0, 2400.0], "mahimahi", tmp_path / "a.down")
+    write([1000.0, 3000.0], "pensieve", tmp_path / "b.log")
+    write([500.0, 700.0], "pensieve", tmp_path / "d_fcc_http---www.example.com_0")  # recorded sets' own naming
+    (tmp_path / "c.json").write_text('[{"duration_ms": 2000, "bandwidth_kbps": 600, "latency_ms": 30}]')
+    (tmp_path / ".notes").write_text("not a trace")  # hidden files are skipped
+    traces = load_trace_folder(tmp_path)
+    assert [Path(t.source).name for t in traces] == ["a.down", "b.log", "c.json", "d_fcc_http---www.example.com_0"]
+    assert [t.mean_kbps() for t in traces] == pytest.approx([1600.0, 2000.0, 600.0, 600.0], abs=12.0)
+    # each set is scaled by one constant: its median trace's mean becomes the top rung
+    scaled = recorded_sets([tmp_path], 40.0, 3200.0)[0]
+    median = statistics.median(t.mean_kbps() for t in traces)
+    assert statistics.median(t.mean_kbps() for t in scaled.traces) == pytest.approx(3200.0)
+    assert scaled.traces[2].kbps == pytest.approx([600.0 * 3200.0 / median])
+    assert recorded_sets([tmp_path], 40.0, None)[0].traces[1].kbps == traces[1].kbps
+    (tmp_path / "e.log").write_text("0 1.0 7\n")
+    with pytest.raises(StgsError, match=r"e\.log: malformed pensieve trace"):
+        load_trace_folder(tmp_path)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(StgsError, match="no trace files"):
+        load_trace_folder(tmp_path / "empty")
+
+
+def test_the_paired_interval_is_the_paired_t_tests():
+    a, b = [1.0, 2.5, 3.0, 4.2, 2.2], [0.8, 2.0, 3.1, 3.5, 2.0]
+    mean, half = paired_ci(a, b)
+    low, high = scipy.stats.ttest_rel(a, b).confidence_interval(0.95)
+    assert (mean - half, mean + half) == pytest.approx((low, high))
+    assert paired_ci([1.0], [0.5]) == (0.5, math.inf)
+
+
+def test_stgs_bench_abr_plays_recorded_trace_folders(packed, tmp_path):
+    lte, dsl = tmp_path / "lte", tmp_path / "dsl"
+    lte.mkdir(), dsl.mkdir()
+    for i, rates in enumerate(([400.0, 4000.0] * 5, [3000.0, 200.0, 2500.0] * 4)):
+        write(rates, "mahimahi", lte / f"{i}.down")
+        write([r * 2 for r in rates], "pensieve", dsl / f"{i}.log")
+    out = stgs("bench", "abr", "--dash", str(packed), "--traces", f"{lte},{dsl}", "--latency-ms", "30")
+    assert out.returncode == 0, out.stderr
+    for name in ("lte", "dsl"):
+        for buffer in (6, 25):
+            assert f"**{name}, ladder QP 16-32, buffer {buffer} s** (2 recorded traces from" in out.stdout
+    rows = [line.split(" | ") for line in out.stdout.splitlines() if line.startswith("| mpc |")]
+    assert len(rows) == 4 and all("±" in row[9] for row in rows)
+    bad = stgs("bench", "abr", "--dash", str(packed), "--traces", str(tmp_path / "missing"))
+    assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "not a folder" in bad.stderr
+    (lte / "2.down").write_text("0\nten\n")
+    bad = stgs("bench", "abr", "--dash", str(packed), "--traces", str(lte))
+    assert bad.returncode != 0 and "2.down: malformed" in bad.stderr and "Traceback" not in bad.stderr

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import statistics
 import subprocess
 import sys
 import time
@@ -21,9 +22,8 @@ from stgs.harness.report import metrics, sabre_manifest, timeline
 from stgs.harness.scenario import Effects, scenario_from_dict
 from stgs.harness.sim import simulate
 from stgs.harness.trace import constant, load_trace, steps
-from stgs.packager import PackConfig, pack
-from stgs.synth import SynthConfig, synthesize
 from tests.conftest import run_stgs as stgs
+from tests.harness.conftest import SCENE
 
 EXAMPLE = (Path(__file__).resolve().parents[2] / "manifests" / "example.mpd").read_bytes()
 
@@ -287,19 +287,6 @@ def test_a_scenario_is_read_without_torch():
     assert result.stdout.strip() == "[]"
 
 
-# fps = G: one-second GOPs
-SCENE = SynthConfig(grid_side=16, num_gops=3, gop_size=6, fps=6.0, width=48, height=36, num_cameras=2,
-                    fit_steps=40)
-
-
-@pytest.fixture(scope="module")
-def packed(tmp_path_factory) -> Path:
-    base = tmp_path_factory.mktemp("harness")
-    synthesize(SCENE, base / "model", progress=False)
-    pack(base / "model", base / "dash", PackConfig(qps=(16, 24, 32), codecs=("hevc",), jobs=2), progress=False)
-    return base / "dash"
-
-
 def rates(ladder: Ladder) -> tuple[float, float]:
     """(keyframe kbit/s, top GOP kbit/s) of the scene."""
     T = ladder.pres.segment_seconds
@@ -342,15 +329,19 @@ def test_the_per_frame_decode_model_agrees_with_emulation_when_decoding_is_the_b
     simulator's model of the same pipeline must predict the stall time within 10 % and the drops within 2,
     with and without rendering ahead (whose head start after each stall absorbs the drops here).
 
-    The decode costs are paced (machine-independent) and chosen off the model's edges: at 250 ms a GOP's
-    end coincides with a feature frame's completion, and a millisecond of jitter decides whether one more
-    frame (250 ms) is decoded before the next GOP's."""
+    The decode costs are paced and chosen off the model's edges: at 250 ms a GOP's end coincides with a
+    feature frame's completion, and a millisecond of jitter decides whether one more frame (250 ms) is decoded
+    before the next GOP's. A pace is a floor, not a promise: on a loaded machine a decode can take longer, so
+    the simulator is given what the decodes of this emulation actually cost (their mean), not the pace."""
     from stgs.codec import stream
     from stgs.codec.keyframe import KeyframeSegment
     from stgs.harness.emulate import emulate
 
     frame_s, keyframe_s = 0.235, 0.1
     real_frames, real_keyframe = stream.iter_frames, KeyframeSegment.decode
+
+    frame_costs: list[float] = []
+    keyframe_costs: list[float] = []
 
     def slow_frames(*args, **kwargs):  # a decoder this much slower than the machine's
         frames = real_frames(*args, **kwargs)
@@ -360,12 +351,14 @@ def test_the_per_frame_decode_model_agrees_with_emulation_when_decoding_is_the_b
             if frame is None:
                 return
             paced(frame_s, started)
+            frame_costs.append(time.perf_counter() - started)
             yield frame
 
     def slow_keyframe(*args, **kwargs):
         started = time.perf_counter()
         keyframe = real_keyframe(*args, **kwargs)
         paced(keyframe_s, started)
+        keyframe_costs.append(time.perf_counter() - started)
         return keyframe
 
     monkeypatch.setattr(stream, "iter_frames", slow_frames)
@@ -373,20 +366,23 @@ def test_the_per_frame_decode_model_agrees_with_emulation_when_decoding_is_the_b
     ladder = load_ladder(str(packed))
     _, top = rates(ladder)
 
-    def scenario(frame_cost_s: float):
+    def scenario(frame_cost_s: float, keyframe_cost_s: float = keyframe_s):
         return scenario_from_dict({"scene": str(packed), "abr": ["throughput"], "qp": 32,
                                    "effects": {"bandwidth": {"kbps": 20 * top}},
-                                   "decode": {"frame_ms": frame_cost_s * 1e3, "keyframe_ms": keyframe_s * 1e3,
+                                   "decode": {"frame_ms": frame_cost_s * 1e3, "keyframe_ms": keyframe_cost_s * 1e3,
                                               "ring_frames": 4, "render_ahead": ahead}},
                                   "decode-bound", Path("."))
 
     sc = scenario(frame_s)
-    sim = simulate(ladder, sc, "throughput")
+    paced_sim = simulate(ladder, sc, "throughput")
     for off in (0.98, 1.02):  # off an edge: 2 % of cost moves nothing by more than the tolerance below
         near = simulate(ladder, scenario(off * frame_s), "throughput")
-        assert near["dropped_frames"] == sim["dropped_frames"], off
-        assert abs(near["stalls"]["total_s"] - sim["stalls"]["total_s"]) <= 0.05 * sim["stalls"]["total_s"], off
+        assert near["dropped_frames"] == paced_sim["dropped_frames"], off
+        assert abs(near["stalls"]["total_s"] - paced_sim["stalls"]["total_s"]) <= \
+            0.05 * paced_sim["stalls"]["total_s"], off
     emu = emulate(sc, "throughput", decode=True)
+    assert frame_costs and keyframe_costs and min(frame_costs) >= frame_s and min(keyframe_costs) >= keyframe_s
+    sim = simulate(ladder, scenario(statistics.mean(frame_costs), statistics.mean(keyframe_costs)), "throughput")
     s, e = sim["stalls"]["total_s"], emu["stalls"]["total_s"]
     assert s > 1.0 and sim["stalls"]["count"] == emu["stalls"]["count"] == SCENE.num_gops - 1
     assert abs(s - e) <= 0.1 * s, (s, e)

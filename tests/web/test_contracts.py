@@ -9,7 +9,7 @@ import subprocess
 
 from stgs import limits
 from stgs.client.abr import AbrSettings
-from stgs.harness.vectors import FIXED_TRACES, decision_vectors, settings_json
+from stgs.harness.vectors import FIXED_TRACES, MPC_VARIANTS, decision_vectors, settings_json
 from tests.web.conftest import DIST, NODE, WEB, need_node
 
 
@@ -35,11 +35,16 @@ def test_the_abr_defaults_are_the_python_defaults():
 def test_the_pages_abr_rules_replay_the_simulators_decisions(web_root, tmp_path):
     need_node()
     vectors = decision_vectors(web_root / "small")
-    assert len(vectors) == 5 * len(FIXED_TRACES)
+    assert len(vectors) == (5 + len(MPC_VARIANTS)) * len(FIXED_TRACES)
     rungs = {s["decision"]["index"] for v in vectors for s in v["steps"]}
     deciders = {s["decision"]["rule"] for v in vectors for s in v["steps"]}
     assert rungs == {0, 1, 2}  # the vectors cross the whole ladder ...
     assert {"mpc", "throughput", "bola", "bola-e", "insufficient-buffer"} <= deciders  # ... and every rule decides
+    mpc = [((v["settings"]["mpcPredictor"], v["settings"]["mpcBufferConstraint"], v["settings"]["mpcUtility"]),
+            v["scenario"], tuple(s["decision"]["index"] for s in v["steps"])) for v in vectors if v["rule"] == "mpc"]
+    # each predictor, buffer mode and utility is replayed, and they plan differently somewhere
+    assert len({setting for setting, _, _ in mpc}) == 1 + len(MPC_VARIANTS)
+    assert len({(name, rungs) for _, name, rungs in mpc}) > len(FIXED_TRACES)
     path = tmp_path / "vectors.json"
     path.write_text(json.dumps({"vectors": vectors}))
     out = subprocess.run([NODE, str(WEB / "tools" / "abr-replay.mjs"), str(path)], capture_output=True, text=True,

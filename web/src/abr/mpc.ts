@@ -1,6 +1,7 @@
 // The look-ahead rule (client/abr_mpc.py, ported): RobustMPC over the next GOPs' exact sizes and rendered PSNR
 // from stats.json. Every rung sequence over the horizon is scored in the same order as the Python's
 // itertools.product, so ties break the same way.
+import { MIN_KBPS, harmonicKbps, predictKbps, relativeError } from "./predict";
 import { type AbrRule, type AbrSettings, type AbrState, type Decision, DEFAULT_SETTINGS, type UpcomingGOP, fixed, latencyS,
   sampleKbps, sizes } from "./state";
 
@@ -14,16 +15,13 @@ export class MpcRule implements AbrRule {
   predictKbps(state: AbrState): [number, number] | null {
     const samples = state.samples;
     if (!samples.length) return null;
+    const kbps = samples.map(sampleKbps);
     if (this.predicted !== null && this.predicted[0] < samples.length) {
-      const actual = sampleKbps(samples[samples.length - 1]);
-      this.errors.push(Math.abs(this.predicted[1] - actual) / Math.max(actual, 1e-9));
+      this.errors.push(relativeError(this.predicted[1], kbps[kbps.length - 1]));
     }
-    const n = this.settings.mpcHistory;
-    const recent = samples.slice(-n);
-    const harmonic = recent.length / recent.reduce((a, s) => a + 1 / Math.max(sampleKbps(s), 1e-9), 0);
+    const harmonic = harmonicKbps(kbps.slice(-this.settings.mpcHistory));
     this.predicted = [samples.length, harmonic];
-    const bound = this.errors.slice(-n).reduce((a, e) => Math.max(a, e), 0);
-    return [harmonic, harmonic / (1 + bound)];
+    return [harmonic, predictKbps(this.settings.mpcPredictor, kbps, this.errors, this.settings)];
   }
 
   table(state: AbrState): UpcomingGOP[] {
@@ -60,6 +58,12 @@ export class MpcRule implements AbrRule {
     let stayScore = -Infinity;
     let stayPlan: number[] = plan.slice();
     let stayStall = 0;
+    const reservoir = s.mpcReservoir * state.bufferCapacityS;
+    let anyFeasible = false;
+    let feasibleScore = -Infinity;
+    let feasiblePlan: number[] = plan.slice();
+    let feasibleStall = 0;
+    let stayFeasible = false;
     const total = rungs ** H;
     for (let p = 0; p < total; p++) {
       let rest = p;
@@ -71,7 +75,7 @@ export class MpcRule implements AbrRule {
       let stall = 0;
       let qsum = 0;
       for (let j = 0; j < H; j++) {
-        const seconds = trips[j] * latency + download[j][plan[j]] / (robust * 1e3);
+        const seconds = trips[j] * latency + download[j][plan[j]] / (Math.max(robust, MIN_KBPS) * 1e3);
         qsum += utility[j][plan[j]];
         if (j === 0 && !state.playing) {
           stall += seconds;
@@ -93,11 +97,22 @@ export class MpcRule implements AbrRule {
         bestPlan = plan.slice();
         bestStall = stall;
       }
+      // plans that end below the reservoir (or below where the buffer stands, under it) are out, if any is left
+      const feasible = !s.mpcBufferConstraint || buffer >= Math.min(reservoir, state.bufferS) - 1e-9;
+      if (feasible) {
+        anyFeasible = true;
+        if (score > feasibleScore) [feasibleScore, feasiblePlan, feasibleStall] = [score, plan.slice(), stall];
+      }
       if (plan.every((r) => r === state.current)) { // holding the rung over the whole horizon
         stayScore = score;
         stayPlan = plan.slice();
         stayStall = stall;
+        stayFeasible = feasible;
       }
+    }
+    if (s.mpcBufferConstraint && anyFeasible) {
+      [bestScore, bestPlan, bestStall] = [feasibleScore, feasiblePlan, feasibleStall];
+      if (!stayFeasible) stayScore = -Infinity;
     }
     let held = "";
     const margin = s.mpcSwitchMarginS * mu;

@@ -14,6 +14,12 @@ export interface AbrSettings {
   insufficientBufferSafety: number;
   mpcHorizon: number;
   mpcHistory: number;
+  mpcPredictor: "harmonic" | "error-bound" | "quantile" | "ewma-lower";
+  mpcErrorHorizon: number;
+  mpcQuantile: number;
+  mpcEwmaHalfLife: number;
+  mpcEwmaDeviations: number;
+  mpcBufferConstraint: boolean;
   mpcUtility: "psnr" | "bitrate";
   mpcRebufferPsnr: number;
   mpcRebufferBitrate: number;
@@ -36,7 +42,13 @@ export const DEFAULT_SETTINGS: AbrSettings = {
   insufficientBufferSafety: 0.5,
   mpcHorizon: 5,
   mpcHistory: 5,
-  mpcUtility: "psnr",
+  mpcPredictor: "ewma-lower",
+  mpcErrorHorizon: 20,
+  mpcQuantile: 0.2,
+  mpcEwmaHalfLife: 4.0,
+  mpcEwmaDeviations: 1.0,
+  mpcBufferConstraint: true,
+  mpcUtility: "bitrate",
   mpcRebufferPsnr: 10.0,
   mpcRebufferBitrate: 4.3,
   mpcSwitchWeight: 1.0,
