@@ -5,18 +5,20 @@ can tell: stats.json gives every upcoming GOP's keyframe and per-rung
 feature bytes and per-rung rendered PSNR, so the plan is made on the real
 segments, not on @bandwidth. Each decision enumerates every rung sequence
 over the horizon (vectorised; 7 rungs x 5 GOPs is 16,807 plans), runs the
-buffer forward with the round trips and a robust throughput (harmonic mean
-of recent GOP samples divided by 1 + the largest recent relative prediction
-error), scores
+buffer forward with the round trips and a robust throughput (one of
+client/abr_predict.py's lower bounds, `mpc_predictor`), scores
 
     Σ_j q_j − μ · (stall + start-up + ρ · shortfall) − w · Σ_j |q_j − q_{j−1}|
 
-with q = rendered PSNR (dB; `mpc_utility = "psnr"`, bit rate where the
-scene gives no PSNR) or whole-GOP bit rate (Mbit/s, Pensieve's linear QoE),
-where the shortfall is how far the plan ends below a reservoir of half the
-buffer capacity (ρ = 0.2): a five-GOP horizon is shorter than a 25-s buffer,
-and without it a plan spends the buffer down and stalls at the next fade.
-It takes the first rung of the best plan.
+with q = whole-GOP bit rate (Mbit/s, Pensieve's linear QoE) or, with
+`mpc_utility = "psnr"`, rendered PSNR (dB; bit rate where the scene gives no
+PSNR), where the shortfall is how far the plan ends below a reservoir of half
+the buffer capacity (ρ = 0.2): a five-GOP horizon is shorter than a 25-s
+buffer, and without it a plan spends the buffer down and stalls at the next
+fade. With `mpc_buffer_constraint` the plans that end below the reservoir
+are out as well, as long as one is left. It takes the first rung of the best
+plan, unless holding the current rung over the horizon scores within the
+hold margin of it.
 """
 
 from __future__ import annotations

@@ -60,8 +60,8 @@ class AbrSettings:
     long as any plan is left; the reservoir's charge applies as well."""
     mpc_utility: str = "bitrate"
     """What the look-ahead rule maximises per GOP: `bitrate` (Pensieve's linear QoE, the published one) or rendered
-    `psnr` (stats.json; bit rate where unknown), which renders 1.2 dB better on the mean over the bench's trace sets
-    at 1.2 points more rebuffering and 9 more switches."""
+    `psnr` (stats.json; bit rate where unknown), which renders 1.0 dB better on the mean over the bench's trace sets
+    at 1.3 points more rebuffering and 9 more switches."""
     mpc_rebuffer_psnr: float = 10.0
     """dB a second of stall costs the PSNR utility (about the dB span of a QP 16-40 ladder)."""
     mpc_rebuffer_bitrate: float = 4.3
