@@ -1,5 +1,5 @@
 """The look-ahead rule's throughput predictors: each turns the GOP throughput history (kbit/s, oldest first) and the
-relative errors of its own past predictions into the kbit/s a plan is run at.
+relative errors of the past harmonic-mean predictions (MpcRule keeps them) into the kbit/s a plan is run at.
 
 - `harmonic` (RobustMPC's): the harmonic mean of the last `mpc_history` samples, divided by 1 + the largest of the
   last `mpc_history` prediction errors.
@@ -45,7 +45,7 @@ def harmonic_kbps(kbps: Sequence[float]) -> float:
 
 
 def predict_kbps(name: str, kbps: Sequence[float], errors: Sequence[float], settings: AbrSettings) -> float:
-    """The throughput predictor `name` over the history `kbps` and the past relative `errors` of its predictions."""
+    """The throughput predictor `name` over the history `kbps` and the relative `errors` of past harmonic means."""
     if not kbps:
         return 0.0
     n, horizon = settings.mpc_history, settings.mpc_error_horizon

@@ -1,5 +1,5 @@
 // The look-ahead rule's throughput predictors (client/abr_predict.py, ported): each turns the GOP throughput
-// history (kbit/s, oldest first) and the relative errors of its own past predictions into the kbit/s a plan is
+// history (kbit/s, oldest first) and the relative errors of past harmonic-mean predictions into the kbit/s a plan is
 // run at. Every predictor is finite and non-negative on any history, 0 on an empty one.
 import type { AbrSettings } from "./state";
 
