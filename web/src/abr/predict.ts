@@ -1,6 +1,8 @@
 // The look-ahead rule's throughput predictors (client/abr_predict.py, ported): each turns the GOP throughput
 // history (kbit/s, oldest first) and the relative errors of past harmonic-mean predictions into the kbit/s a plan is
-// run at. Every predictor is finite and non-negative on any history, 0 on an empty one.
+// run at. Every predictor is finite and non-negative on any history, 0 on an empty one. The quantile is numpy's to
+// the bit; ewma-lower's Math.exp and Math.log may differ from Python's libm in the last bit (the decision vectors
+// agree: tests/web/test_contracts.py).
 import type { AbrSettings } from "./state";
 
 export const MIN_KBPS = 1e-6;
@@ -22,13 +24,15 @@ export function harmonicKbps(kbps: number[]): number {
   return kbps.length / kbps.reduce((a, k) => a + 1 / clamp(k), 0);
 }
 
-/** numpy.quantile's default (linear interpolation between order statistics). */
+/** numpy.quantile's default (linear between order statistics, interpolated from the nearer one as numpy's _lerp). */
 function quantile(values: number[], q: number): number {
   const sorted = values.slice().sort((a, b) => a - b);
   const pos = q * (sorted.length - 1);
   const lo = Math.floor(pos);
   const hi = Math.min(lo + 1, sorted.length - 1);
-  return sorted[lo] + (pos - lo) * (sorted[hi] - sorted[lo]);
+  const t = pos - lo;
+  const diff = sorted[hi] - sorted[lo];
+  return t >= 0.5 ? sorted[hi] - diff * (1 - t) : sorted[lo] + diff * t;
 }
 
 function ewmaLower(kbps: number[], halfLife: number, deviations: number): number {
