@@ -263,7 +263,8 @@ def cell_table(ladder: Ladder, cs: CellSet, buffer_s: float) -> None:
 
 def main(dash: Path | None, trace_dirs: list[Path] | None = None, latency_ms: float = 40.0,
          scale: bool = True) -> int:
-    """`trace_dirs`: recorded trace sets, one per folder, instead of the generated ones."""
+    """`trace_dirs`: recorded trace sets, one per folder, instead of the generated ones (then only the full ladder is
+    run: the ladder without its floor rungs is the generated sets' comparison)."""
     with tempfile.TemporaryDirectory(prefix="stgs-bench-abr-") as tmp:
         dash = dash or packed_scene(Path(tmp))
         base = load_ladder(str(dash))
