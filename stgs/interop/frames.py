@@ -98,7 +98,8 @@ def parse_frames(text: str, num_frames: int) -> list[int]:
 @torch.no_grad()
 def frame_splats(source: SceneSource, frame: int, eye: torch.Tensor, sh_degree: int = 0,
                  cameras: list[torch.Tensor] | None = None) -> Splats:
-    """Frame `frame` of the scene as seen from `eye` (3,), static layer first; `sh_degree` 1 fits the dynamic
+    """Frame `frame` of the scene as seen from `eye` (3,), static layer first, in canonical form
+    (Splats.canonical: what every lossless format reads back); `sh_degree` 1 fits the dynamic
     colours over the centres `cameras` (at least 4, around the scene) and keeps the static layer's degree 1."""
     if sh_degree not in (0, 1):
         raise StgsError(f"sh_degree {sh_degree}: 0 or 1")
@@ -126,7 +127,7 @@ def frame_splats(source: SceneSource, frame: int, eye: torch.Tensor, sh_degree: 
     dynamic = from_gaussians(g, model.log_scale + offsets[1], sh)
     static = source.static
     if static is None:
-        return dynamic
+        return dynamic.canonical()
     if sh_degree:
         layer = static if static.sh_degree else StaticLayer.from_canonical(static, sh_degree=1)
         fixed = from_static(layer)
@@ -135,4 +136,4 @@ def frame_splats(source: SceneSource, frame: int, eye: torch.Tensor, sh_degree: 
         if static.sh_degree:  # the view-dependent colour as the eye sees it
             fixed.sh = colour_to_dc(static.gaussians(eye).colors.detach().numpy())[:, None]
     return Splats(*(np.concatenate([getattr(fixed, f), getattr(dynamic, f)]) for f in
-                    ("means", "log_scales", "quats", "opacity_logits", "sh")))
+                    ("means", "log_scales", "quats", "opacity_logits", "sh"))).canonical()

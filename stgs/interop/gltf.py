@@ -17,7 +17,16 @@ import numpy as np
 import pygltflib as gl
 
 from stgs.interop.sh import coefficients, degree_of
-from stgs.interop.splats import LOGIT_LIMIT, MAX_SPLATS, InteropError, Splats, exp32, logit, preimage, sigmoid32
+from stgs.interop.splats import (
+    MAX_SPLATS,
+    InteropError,
+    Splats,
+    exp32,
+    log_scales_of,
+    logits_of,
+    sigmoid32,
+    unit_quats,
+)
 
 EXTENSION = "KHR_gaussian_splatting"
 PREFIX = f"{EXTENSION}:"
@@ -34,10 +43,7 @@ def sh_attribute(k: int) -> str:
 
 def _activated(splats: Splats) -> dict[str, np.ndarray]:
     opacity, scale = sigmoid32(splats.opacity_logits), exp32(splats.log_scales)
-    q = splats.quats.astype(np.float64)
-    norm = np.linalg.norm(q, axis=1, keepdims=True)
-    unit = np.where(np.abs(norm - 1) < 1e-6, q, q / norm)  # a unit quaternion read back stays as it was
-    xyzw = unit[:, [1, 2, 3, 0]].astype(np.float32)
+    xyzw = unit_quats(splats.quats)[:, [1, 2, 3, 0]]
     out = {"POSITION": splats.means, f"{PREFIX}ROTATION": xyzw, f"{PREFIX}SCALE": scale, f"{PREFIX}OPACITY": opacity}
     for k in range(splats.sh.shape[1]):
         out[sh_attribute(k)] = splats.sh[:, k]
@@ -137,9 +143,7 @@ def decode(data: bytes, where: str) -> Splats:
     scale, opacity = cols[f"{PREFIX}SCALE"], cols[f"{PREFIX}OPACITY"]
     if (scale < 0).any() or (opacity < 0).any() or (opacity > 1).any():
         raise InteropError(f"{where}: scales must be >= 0 and opacities within [0, 1]")
-    with np.errstate(divide="ignore"):
-        log_scales = preimage(exp32, scale, np.clip(np.log(scale.astype(np.float64)), -LOGIT_LIMIT, LOGIT_LIMIT))
-    logits = preimage(sigmoid32, opacity, logit(opacity))
+    log_scales, logits = log_scales_of(scale), logits_of(opacity)
     xyzw = cols[f"{PREFIX}ROTATION"]
     sh = np.stack([cols[sh_attribute(i)] for i in range(k)], 1)
     return Splats(cols["POSITION"], log_scales, xyzw[:, [3, 0, 1, 2]], logits, sh).check(where)

@@ -9,6 +9,11 @@ Float32 values do not survive a change of parameterisation unchanged (C = 0.5 + 
 C, nor exp every scale). Where we convert, the stored value is the canonical preimage (`preimage`): the float32
 nearest the exact inverse among those the forward map sends back to the value itself, when one exists. So a file
 we write, read back into a static layer and written again has the same bytes.
+
+A frame we export is put in canonical form first (`Splats.canonical`: unit rotations, log-scales and logits that
+are the canonical preimages of their scales and opacities), the form a file of activated values (glTF) reads back
+to. So an exported frame reads back from every lossless format to the same float32 values, on any CPU, rather
+than to values one rounding away that render alike only where the float32 arithmetic happens to agree.
 """
 
 from __future__ import annotations
@@ -83,6 +88,12 @@ class Splats:
             raise InteropError(f"{where}: quats of Gaussian {int((np.abs(self.quats).sum(1) == 0).argmax())} is zero")
         return self
 
+    def canonical(self) -> Splats:
+        """The same Gaussians as every lossless format reads them back: unit rotations (`unit_quats`), log-scales
+        and logits the canonical preimages of their float32 scales and opacities. Idempotent."""
+        return Splats(self.means, log_scales_of(exp32(self.log_scales)), unit_quats(self.quats),
+                      logits_of(sigmoid32(self.opacity_logits)), self.sh)
+
     def select(self, index: np.ndarray) -> Splats:
         return Splats(self.means[index], self.log_scales[index], self.quats[index], self.opacity_logits[index],
                       self.sh[index])
@@ -117,6 +128,26 @@ def exp32(x: np.ndarray) -> np.ndarray:
     """Linear scales (float32) of log scales: exp in float64, rounded once."""
     with np.errstate(over="ignore"):
         return np.exp(np.asarray(x, dtype=np.float64)).astype(np.float32)
+
+
+def log_scales_of(scale: np.ndarray) -> np.ndarray:
+    """Log-scales (float32) of linear scales >= 0: each the canonical preimage under exp32, within ±LOGIT_LIMIT."""
+    with np.errstate(divide="ignore"):
+        ideal = np.clip(np.log(np.asarray(scale, dtype=np.float64)), -LOGIT_LIMIT, LOGIT_LIMIT)
+    return preimage(exp32, scale, ideal)
+
+
+def logits_of(opacity: np.ndarray) -> np.ndarray:
+    """Opacity logits (float32) of opacities in [0, 1]: each the canonical preimage under sigmoid32."""
+    return preimage(sigmoid32, opacity, logit(opacity))
+
+
+def unit_quats(quats: np.ndarray) -> np.ndarray:
+    """(N, 4) rotations as unit quaternions (float32, same order): normalised in float64 and rounded once; one
+    already within 1e-6 of unit norm is kept as it is, so a unit quaternion read back stays as it was."""
+    q = np.asarray(quats, dtype=np.float64)
+    norm = np.linalg.norm(q, axis=1, keepdims=True)
+    return np.where(np.abs(norm - 1) < 1e-6, q, q / norm).astype(np.float32)
 
 
 def dc_to_colour(dc: np.ndarray) -> np.ndarray:
@@ -163,8 +194,7 @@ def from_gaussians(g: Gaussians, log_scales: torch.Tensor, sh: np.ndarray | None
     """Activated Gaussians (a deformed frame) with their scales' logs as computed (exact); opacities become
     logits, canonically rounded, and colours DC terms, or the coefficients `sh` (N, K, 3) stand for them."""
     get = lambda t: t.detach().float().numpy()  # noqa: E731
-    opacity = get(g.opacities)
-    logits = preimage(sigmoid32, opacity, logit(opacity))
+    logits = logits_of(get(g.opacities))
     sh = colour_to_dc(get(g.colors))[:, None] if sh is None else np.asarray(sh, dtype=np.float32)
     return Splats(get(g.means).copy(), get(log_scales).copy(), get(g.quats).copy(), logits, sh)
 

@@ -15,7 +15,7 @@ from stgs.cli.browser import WEB
 from stgs.interop import gltf, ply, spz
 from stgs.interop.files import read_splats, write_splats
 from stgs.interop.sh import C0
-from stgs.interop.splats import InteropError, from_static, to_static
+from stgs.interop.splats import InteropError, Splats, from_static, to_static
 from stgs.interop.static import import_static
 from tests.conftest import run_stgs
 from tests.interop.conftest import random_splats
@@ -37,6 +37,31 @@ def test_a_static_layer_written_read_into_a_layer_and_written_again_has_the_same
     first = codec.encode(from_static(layer))
     again = codec.encode(from_static(to_static(codec.decode(first, "test"))))
     assert again == first
+
+
+def hard_splats(n: int = 4000) -> Splats:
+    """Random Gaussians where the parameterisations are least injective or overflow: log-scales near 0 and past
+    float32's exp range, logits near 0 and past the sigmoid's saturation, quaternions far from unit norm."""
+    s = random_splats(n, 1, seed=11)
+    rng = np.random.default_rng(12)
+    s.log_scales[: n // 4] *= np.float32(1e-4)
+    s.log_scales[n // 4: n // 2] *= np.float32(80.0)
+    s.opacity_logits[: n // 4] *= np.float32(1e-5)
+    s.opacity_logits[n // 4: n // 2] *= np.float32(60.0)
+    s.quats *= rng.uniform(0.5, 2.0, (n, 1)).astype(np.float32)
+    return s
+
+
+@pytest.mark.parametrize("codec", [ply, gltf], ids=["ply", "glb"])
+def test_canonical_gaussians_read_back_as_the_same_values(codec):
+    # What an exported frame is (Splats.canonical): every lossless format gives back exactly these float32
+    # values, so the file renders bit for bit as what was exported, whatever the CPU's float32 arithmetic.
+    s = hard_splats().canonical()
+    back = codec.decode(codec.encode(s), "test")
+    for name in ("means", "log_scales", "quats", "opacity_logits", "sh"):
+        assert np.array_equal(getattr(back, name), getattr(s, name)), name
+    again = s.canonical()
+    assert all(np.array_equal(getattr(again, f), getattr(s, f)) for f in ("log_scales", "quats", "opacity_logits"))
 
 
 def test_ply_keeps_the_inria_values_exactly():
