@@ -102,6 +102,7 @@ def run_synth(args: argparse.Namespace) -> int:
 
 
 def add_train(sub: argparse._SubParsersAction) -> None:
+    from stgs.data import KINDS
     from stgs.train.config import BUDGETS, LearningRates
 
     p = sub.add_parser("train", help="train a StreamSTGS model dir from multi-view video (CPU)",
@@ -109,11 +110,12 @@ def add_train(sub: argparse._SubParsersAction) -> None:
                        "stage, then per GOP canonical Gaussians + temporal features + deformation field with the "
                        "paper's losses, relocation and pruning. Writes a model dir `stgs pack` accepts.")
     p.add_argument("dataset", type=Path, help="Panoptic folder (train_meta.json), N3DV folder "
-                   "(poses_bounds.npy + cam*.mp4) or a stgs synth model dir")
+                   "(poses_bounds.npy + cam*.mp4), a stgs synth model dir, a nerfstudio transforms.json or a COLMAP "
+                   "capture (docs/CAPTURE.md; `stgs inspect` shows what it holds)")
     p.add_argument("out", type=Path, help="output model dir")
     p.add_argument("--budget", choices=sorted(BUDGETS), default="quick",
                    help="quick (CI, minutes), cpu (a 60-frame GOP at 640x360 in ~1 h), paper (12k it, ~150k Gaussians)")
-    p.add_argument("--kind", choices=["auto", "panoptic", "n3dv", "synth"], default="auto", help="dataset layout")
+    p.add_argument("--kind", choices=["auto", *KINDS], default="auto", help="dataset layout (default: auto)")
     p.add_argument("--holdout", type=name_list, help="comma-separated validation cameras (default: the dataset's)")
     p.add_argument("--gops", type=positive_int, dest="max_gops", help="train at most this many GOPs")
     p.add_argument("--gop-size", type=positive_int, help="frames per GOP (default 60)")

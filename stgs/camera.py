@@ -108,6 +108,19 @@ def rig_focus(cameras: list[Camera]) -> tuple[torch.Tensor, float]:
     return focus, float((centres - focus).norm(dim=1).mean())
 
 
+def rig_size(cams: list[Camera]) -> float:
+    """1.1 × the largest distance of a camera centre from their mean: the rig's size, which sets the trainer's
+    unit of length (stgs.data.units); 0 where the cameras stand at one point."""
+    centres = torch.stack([c.center for c in cams])
+    return float((centres - centres.mean(0)).norm(dim=1).max()) * 1.1
+
+
+def scene_extent(cams: list[Camera]) -> float:
+    """rig_size + 1e-6 (never 0): what the trainer's position learning rate is scaled by (as 3DGS's
+    cameras_extent)."""
+    return rig_size(cams) + 1e-6
+
+
 def rig_down(cameras: list[Camera]) -> torch.Tensor:
     """The rig's down direction: the unit mean of the cameras' image-down axes (world, float64)."""
     down = torch.stack([c.viewmat[1, :3] for c in cameras]).double().mean(0)

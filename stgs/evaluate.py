@@ -25,6 +25,7 @@ from stgs.codec.keyframe import decode_keyframe
 from stgs.codec.static import decode_static
 from stgs.codec.video import CODECS, FeatureCodec, decode_segment
 from stgs.data import open_dataset
+from stgs.data.units import in_model_units
 from stgs.errors import FieldError, StgsError
 from stgs.fsio import atomic_write_bytes, image_grid, save_png
 from stgs.metrics import LPIPS, lpips_backbone_file, psnr, ssim
@@ -103,7 +104,7 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
 
     meta = read_meta(model_dir)
     extra = meta.extra or {}
-    ds = open_dataset(dataset)
+    ds = in_model_units(open_dataset(dataset), float(extra.get("world_scale", 1.0)))  # the model's unit of length
     cams_val = holdout or extra.get("validation_cameras") or list(ds.default_holdout)
     if not cams_val:
         raise FieldError("holdout", "no validation cameras: name them (the model dir names none)")

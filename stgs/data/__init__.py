@@ -9,7 +9,10 @@ the dataset has masks; `pixels(frame, camera)` is the image as stored, uint8. Re
   (`train_meta.json`, `ims/<cam>/<frame>.jpg`, `seg/<cam>/<frame>.png`);
 - `N3DVReader`: Neural 3D Video (LLFF `poses_bounds.npy` + `cam*.mp4`),
   frames decoded once (PyAV) and downscaled by 2 (the custom);
-- `SynthReader`: the ground truth inside a `stgs synth` model dir.
+- `SynthReader`: the ground truth inside a `stgs synth` model dir;
+- `NerfstudioReader`: a nerfstudio `transforms.json` whose images say their camera and time;
+- `ColmapReader`: a COLMAP model beside per-frame folders, per-camera folders or per-camera videos
+  (stgs.data.capture; docs/CAPTURE.md).
 
 `split(dataset, holdout)` gives the train / validation camera names.
 """
@@ -17,13 +20,15 @@ the dataset has masks; `pixels(frame, camera)` is the image as stored, uint8. Re
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
-import numpy as np
-import torch
-
-from stgs.camera import Camera
 from stgs.errors import StgsError
+
+if TYPE_CHECKING:  # the package's names load no torch: the command line's parsers read KINDS
+    import numpy as np
+    import torch
+
+    from stgs.camera import Camera
 
 
 class Dataset(Protocol):
@@ -45,6 +50,10 @@ class Dataset(Protocol):
 
     def mask(self, frame: int, camera: str) -> torch.Tensor | None:
         """(H, W) bool foreground mask, or None when the dataset has none."""
+
+    def points(self, frame: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """Reconstructed 3D points at `frame` ((P, 3) float32 positions, (P, 3) colours in [0, 1]) that seed
+        training instead of triangulating, or None where the dataset has none (a COLMAP model's points3D)."""
 
     def check_views(self, frames: list[int], cameras: list[str]) -> None:
         """Raise StgsError (one line) unless every view of `frames` x `cameras` is present and of its camera's
@@ -68,19 +77,48 @@ def split(ds: Dataset, holdout: list[str] | None = None) -> tuple[list[str], lis
     return train, val
 
 
-def open_dataset(path: Path, kind: str = "auto", **options) -> Dataset:
-    """The reader for `path` (kind: auto, panoptic, n3dv, synth)."""
+KINDS = ("panoptic", "n3dv", "synth", "nerfstudio", "colmap-frames", "colmap-images", "colmap-videos")
+"""Dataset layouts, in the order `--kind auto` tries them."""
+
+
+def detect_kind(path: Path) -> str | None:
+    """The first of KINDS whose layout `path` has, or None."""
+    from stgs.data.capture import detect_layout
     from stgs.data.n3dv import N3DVReader
+    from stgs.data.nerfstudio import NerfstudioReader
     from stgs.data.panoptic import PanopticReader
     from stgs.data.synth import SynthReader
 
     path = Path(path)
-    readers = {"panoptic": PanopticReader, "n3dv": N3DVReader, "synth": SynthReader}
+    for kind, reader in (("panoptic", PanopticReader), ("n3dv", N3DVReader), ("synth", SynthReader),
+                         ("nerfstudio", NerfstudioReader)):
+        if reader.recognises(path):
+            return kind
+    layout = detect_layout(path)
+    return f"colmap-{layout}" if layout else None
+
+
+def open_dataset(path: Path, kind: str = "auto", **options) -> Dataset:
+    """The reader for `path` (kind: auto or one of KINDS); `options` go to the reader (holdout, fps, ...)."""
+    from stgs.data.capture import ColmapReader
+    from stgs.data.n3dv import N3DVReader
+    from stgs.data.nerfstudio import NerfstudioReader
+    from stgs.data.panoptic import PanopticReader
+    from stgs.data.synth import SynthReader
+
+    path = Path(path)
     if kind == "auto":
-        kind = next((k for k, r in readers.items() if r.recognises(path)), "")
+        if not path.exists():
+            raise StgsError(f"{path}: no such file or folder")
+        kind = detect_kind(path) or ""
         if not kind:
             raise StgsError(f"{path}: not a dataset this version reads (Panoptic train_meta.json, N3DV "
-                            "poses_bounds.npy + cam*.mp4, or a stgs synth model dir)")
-    if kind not in readers:
-        raise StgsError(f"unknown dataset kind {kind!r}; known: auto, {', '.join(readers)}")
+                            "poses_bounds.npy + cam*.mp4, a stgs synth model dir, a nerfstudio transforms.json, "
+                            "or a COLMAP sparse/0 beside frameNNNNNN/images, images/<cam> or videos/; "
+                            "docs/CAPTURE.md)")
+    if kind not in KINDS:
+        raise StgsError(f"unknown dataset kind {kind!r}; known: auto, {', '.join(KINDS)}")
+    if kind.startswith("colmap-"):
+        return ColmapReader(path, layout=kind.removeprefix("colmap-"), **options)
+    readers = {"panoptic": PanopticReader, "n3dv": N3DVReader, "synth": SynthReader, "nerfstudio": NerfstudioReader}
     return readers[kind](path, **options)

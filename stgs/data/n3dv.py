@@ -11,22 +11,17 @@ lossless PNGs in a cache folder; cam00 is held out.
 from __future__ import annotations
 
 import hashlib
-import os
-import shutil
-import tempfile
 from pathlib import Path
 
-import av
-import cv2
 import numpy as np
 import torch
 
 from stgs.camera import Camera
+from stgs.data.frames import DEFAULT_CACHE, count_video_frames, extract_video
 from stgs.data.images import read_rgb8
 from stgs.errors import StgsError
 
 POSES = "poses_bounds.npy"
-DEFAULT_CACHE = Path(os.environ.get("STGS_DATA_CACHE", Path.home() / ".cache" / "stgs" / "frames"))
 
 
 def llff_to_opencv(row: np.ndarray, downscale: float) -> tuple[torch.Tensor, torch.Tensor, int, int]:
@@ -70,51 +65,19 @@ class N3DVReader:
         key = hashlib.sha256(f"{self.root.resolve()}:{downscale}".encode()).hexdigest()[:16]
         self.frames_dir = Path(cache or DEFAULT_CACHE) / f"n3dv-{key}"
         self.downscale = downscale
-        self.num_frames = min(self._frame_count(v) for v in videos)
+        self.num_frames = min(count_video_frames(v) for v in videos)
 
     @classmethod
     def recognises(cls, path: Path) -> bool:
         return (Path(path) / POSES).is_file()
 
-    @staticmethod
-    def _frame_count(video: Path) -> int:
-        """Frames of the video's first stream, counted from its packets (nothing is decoded)."""
-        try:
-            with av.open(str(video)) as container:
-                if not container.streams.video:
-                    raise StgsError(f"{video}: holds no video stream")
-                stream = container.streams.video[0]
-                return sum(1 for packet in container.demux(stream) if packet.size)
-        except av.FFmpegError as exc:
-            raise StgsError(f"{video}: not a readable video ({exc.strerror or exc})") from None
-
     def cameras(self, frame: int) -> list[Camera]:
         return list(self._cams)
 
     def _extract(self, camera: str) -> Path:
-        """The camera's frames as PNGs (extracted on first use; atomic: a temp folder renamed into place)."""
-        out = self.frames_dir / camera
-        if out.is_dir():
-            return out
-        self.frames_dir.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{camera}.", dir=self.frames_dir))
+        """The camera's frames as PNGs (extracted on first use: stgs.data.frames.extract_video)."""
         cam = self._cams[self.camera_names.index(camera)]
-        try:
-            with av.open(str(self._videos[camera])) as container:
-                for i, frame in enumerate(container.decode(video=0)):
-                    rgb = frame.to_ndarray(width=cam.width, height=cam.height, format="bgr24",
-                                           interpolation="AREA")
-                    if not cv2.imwrite(str(tmp / f"{i:05d}.png"), rgb):
-                        raise StgsError(f"{tmp}: cannot write frame {i}")
-        except (av.FFmpegError, StgsError) as exc:
-            shutil.rmtree(tmp, ignore_errors=True)
-            why = exc.strerror if isinstance(exc, av.FFmpegError) else exc
-            raise StgsError(f"{self._videos[camera]}: could not extract frames ({why})") from None
-        try:
-            tmp.rename(out)
-        except OSError:  # another process extracted it first
-            shutil.rmtree(tmp, ignore_errors=True)
-        return out
+        return extract_video(self._videos[camera], self.frames_dir / camera, (cam.width, cam.height))
 
     def image(self, frame: int, camera: str) -> torch.Tensor:
         return torch.from_numpy(self.pixels(frame, camera)).float().div_(255.0)
@@ -126,6 +89,9 @@ class N3DVReader:
         return read_rgb8(self._extract(camera) / f"{frame:05d}.png", (cam.height, cam.width))
 
     def mask(self, frame: int, camera: str) -> torch.Tensor | None:
+        return None
+
+    def points(self, frame: int) -> tuple[torch.Tensor, torch.Tensor] | None:
         return None
 
     def check_views(self, frames: list[int], cameras: list[str]) -> None:

@@ -81,6 +81,9 @@ class PanopticReader:
         path = self.root / "seg" / Path(self._file(frame, camera)).with_suffix(".png")
         return read_mask(path, (self.height, self.width)) if path.is_file() else None
 
+    def points(self, frame: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+        return None
+
     def check_views(self, frames: list[int], cameras: list[str]) -> None:
         """Every image (and mask, where there is one) of the views at the meta's size, from the headers."""
         size = (self.width, self.height)

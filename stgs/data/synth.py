@@ -52,6 +52,9 @@ class SynthReader:
         path = self.root / GROUND_TRUTH_DIR / MASKS_DIR / self.pattern.format(camera=camera, frame=frame)
         return read_mask(path, (cam.height, cam.width)) if path.is_file() else None
 
+    def points(self, frame: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+        return None
+
     def check_views(self, frames: list[int], cameras: list[str]) -> None:
         """Every ground-truth image (and mask, where there is one) of the views at its camera's size."""
         by_name = {c.name: c for c in self._cameras}

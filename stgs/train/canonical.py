@@ -91,6 +91,9 @@ def imported_static_model(trainer: Trainer, views: Views) -> GOPModel:
 
     cfg = trainer.cfg
     matrix = None if cfg.static_transform is None else np.asarray(cfg.static_transform, dtype=np.float64).reshape(4, 4)
+    if trainer.world_scale != 1.0 and cfg.static_cameras is None:  # the file is in the capture's unit of length
+        units = np.diag([trainer.world_scale] * 3 + [1.0])
+        matrix = units if matrix is None else units @ matrix
     layer, report = import_static(Path(cfg.static_from), matrix, None if cfg.static_cameras is None else
                                   Path(cfg.static_cameras), trainer.ds.cameras(cfg.start_frame), cfg.static_import_side)
     trainer.imported = layer

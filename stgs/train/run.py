@@ -128,7 +128,7 @@ def finish(trainer: Trainer) -> dict:
     reports = [json.loads((state / report_file(k)).read_text()) for k in range(trainer.num_gops)]
     extra = {"generator": "stgs.train", "dataset": trainer.ds.name, "start_frame": cfg.start_frame,
              "train_cameras": trainer.train_names, "validation_cameras": trainer.val_names,
-             "config": json.loads(json.dumps(dataclasses.asdict(cfg)))}
+             "world_scale": trainer.world_scale, "config": json.loads(json.dumps(dataclasses.asdict(cfg)))}
     save_model(trainer.out, gops, trainer.ds.fps, extra, static=base.static)
     cams = [scale_camera(c, cfg.scale) for c in trainer.ds.cameras(cfg.start_frame)]
     doc = {"format": CAMERAS_FORMAT, "version": 1, "cameras": [c.to_json() for c in cams]}
@@ -141,6 +141,7 @@ def finish(trainer: Trainer) -> dict:
               "background_points": info.pop("background_points"), "capacity": trainer.shape.capacity,
               "train_cameras": trainer.train_names, "validation_cameras": trainer.val_names, "layers": cfg.layers,
               "frames": trainer.ds.num_frames, "untrained_tail": trainer.tail_frames,
+              "world_scale": trainer.world_scale,
               "peak_rss_mb": max((p for p in peaks if p is not None), default=None)}
     if base.static is not None:
         report |= {"static_capacity": base.static.capacity, "static_seconds": coarse_s} | info

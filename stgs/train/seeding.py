@@ -47,12 +47,12 @@ def initial_points(ds: Dataset, names: list[str], frames: list[int], count: int,
                    limit: int = 0, background_share: float = 0.0, hull: HullConfig | None = None,
                    region: str = "foreground") -> InitialPoints:
     """`count` starting points, triangulated at each of `frames` (people who move are seeded where they are
-    at each of those times); `background_share` of them on the rig's walls and floor
-    (background_shell_points) when the cameras surround the scene; with `hull`, where the dataset has every
-    camera's foreground mask at a frame and the cameras surround the scene, the capacity left after those goes
-    to points on the surface of the masks' visual hull (stgs.train.hull) before any filler. `region`
-    "background": triangulate outside the dataset's foreground masks instead (BACKGROUND_MATCHING; the whole
-    image where it has none), for a static layer."""
+    at each of those times), or the dataset's own points at a frame where it has them (Dataset.points);
+    `background_share` of them on the rig's walls and floor (background_shell_points) when the cameras surround
+    the scene; with `hull`, where the dataset has every camera's foreground mask at a frame and the cameras
+    surround the scene, the capacity left after those goes to points on the surface of the masks' visual hull
+    (stgs.train.hull) before any filler. `region` "background": triangulate outside the dataset's foreground
+    masks instead (BACKGROUND_MATCHING; the whole image where it has none), for a static layer."""
     if region not in REGIONS:
         raise ValueError(f"region must be one of {', '.join(REGIONS)}, got {region!r}")
     cams, images = _training_views(ds, names, frames[0])  # the walls and floor are coloured from the first frame
@@ -60,7 +60,10 @@ def initial_points(ds: Dataset, names: list[str], frames: list[int], count: int,
     for i, frame in enumerate(frames):  # one more frame's images held at a time
         at_cams, at_images = (cams, images) if i == 0 else _training_views(ds, names, frame)
         masks = [ds.mask(frame, c.name) for c in at_cams]
-        if region == "background":
+        given = ds.points(frame)  # the capture's own reconstruction (a COLMAP model's points3D) where it has one
+        if given is not None:
+            found_at.append(given)
+        elif region == "background":
             found_at.append(triangulate(at_cams, at_images, [None if m is None else ~m for m in masks],
                                         BACKGROUND_MATCHING))
         else:

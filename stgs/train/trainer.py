@@ -43,8 +43,10 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from stgs.camera import scene_extent
 from stgs.codec.attributes import OPACITY_LOGIT_RANGE
 from stgs.data import open_dataset, split
+from stgs.data.units import in_model_units, world_scale
 from stgs.errors import StgsError
 from stgs.memory import reuse_large_allocations
 from stgs.metrics import psnr
@@ -64,7 +66,7 @@ from stgs.train.objective import GOPLoss, gop_loss
 from stgs.train.ops import Optimizer, opacity_level, prune, relocate, sort, track_opacities
 from stgs.train.seeding import init_frames, initial_points
 from stgs.train.validation import mean_scores
-from stgs.train.views import Sample, Views, scene_extent, view_draws
+from stgs.train.views import Sample, Views, view_draws
 from stgs.tree import CAMERAS, MODEL_META, TRAIN_REPORT, gop_stem
 
 STATE_DIR = ".train"
@@ -78,6 +80,9 @@ class Trainer:
             torch.set_num_threads(cfg.threads)
         reuse_large_allocations()
         self.ds = open_dataset(dataset, kind)
+        self.world_scale = world_scale(self.ds.cameras(cfg.start_frame))
+        """The capture's lengths × this are the model's (stgs.data.units): 1 for a rig of about Panoptic's size."""
+        self.ds = in_model_units(self.ds, self.world_scale)
         self.out, self.cfg, self.progress, self.resume = Path(out), cfg, progress, resume
         self.train_names, self.val_names = split(self.ds, cfg.holdout)
         usable = self.ds.num_frames - cfg.start_frame

@@ -227,7 +227,3 @@ def view_draws(seed: int, stage: str, iterations: int, frames: int, cameras: int
     c = torch.randint(cameras, (iterations,), generator=gen).tolist()
     return [(f[i], c[i], int(i < low_until)) for i in range(iterations)]
 
-
-def scene_extent(cams: list[Camera]) -> float:
-    centres = torch.stack([c.center for c in cams])
-    return float((centres - centres.mean(0)).norm(dim=1).max()) * 1.1 + 1e-6
