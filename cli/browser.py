@@ -83,10 +83,21 @@ def browse(plan: dict, timeout: float = 600) -> tuple[dict, str | None]:
     """Run a plan of browser steps (web/tools/browse.mjs); returns what it gathered and the failure (None: ok)."""
     with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as f:
         json.dump(plan, f)
+    proc = subprocess.Popen(["node", str(WEB / "tools" / "browse.mjs"), f.name, shutil.which("chromium") or ""],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
-        result = subprocess.run(["node", str(WEB / "tools" / "browse.mjs"), f.name, shutil.which("chromium") or ""],
-                                capture_output=True, text=True, timeout=timeout)
+        stdout, stderr = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        # SIGTERM first: Playwright closes the browser it started (its own process group) on it; then whatever is
+        # left of node's group goes.
+        proc.terminate()
+        try:
+            proc.communicate(timeout=10)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+        return {}, f"the browser plan did not finish in {timeout:g} s"
     finally:
         os.unlink(f.name)
-    out = json.loads(result.stdout) if result.stdout.strip() else {}
-    return out, (result.stderr.strip() or "browse failed") if result.returncode else None
+    out = json.loads(stdout) if stdout.strip() else {}
+    return out, (stderr.strip() or "browse failed") if proc.returncode else None

@@ -56,12 +56,14 @@ def inspect_dataset(path: Path, kind: str = "auto", holdout: list[str] | None = 
         except StgsError as exc:
             problems.append(str(exc))
     points = ds.points(0)
-    per_frame = len(getattr(ds, "models", [])) > 1
+    last = ds.cameras(ds.num_frames - 1)
+    moves = any(not (torch.equal(a.K, b.K) and torch.equal(a.viewmat, b.viewmat)) for a, b in zip(cams, last,
+                                                                                                    strict=True))
     return {
         "path": str(path), "kind": found, "name": ds.name, "frames": ds.num_frames, "fps": ds.fps,
         "seconds": ds.num_frames / ds.fps, "cameras": cameras, "camera_count": len(cams),
         "resolutions": sorted(f"{w}x{h}" for w, h in sizes), "distorted_cameras": distorted,
-        "calibration": "per frame" if per_frame else "one for every frame",
+        "calibration": "changes between frames" if moves else "the same for every frame",
         "rig": {"centre": [float(v) for v in focus], "radius": radius,
                 "span": float((centres.max(0).values - centres.min(0).values).norm()),
                 "up": [float(v) for v in -rig_down(cams)]},

@@ -50,6 +50,8 @@ class Rescaled:
         self.ds, self.factor = ds, float(factor)
 
     def __getattr__(self, name: str):
+        if name == "ds":  # not set yet (an unpickled copy): no recursion
+            raise AttributeError(name)
         return getattr(self.ds, name)
 
     def cameras(self, frame: int) -> list[Camera]:

@@ -17,6 +17,7 @@ from stgs.camera import Camera, rig_focus, rig_size
 from stgs.data import open_dataset, split
 from stgs.data.colmap import read_model
 from stgs.data.frames import write_png
+from stgs.data.inspect import inspect_dataset
 from stgs.data.synth import SynthReader
 from stgs.data.units import REFERENCE_SIZE, scale_view, world_scale
 from stgs.metrics import psnr
@@ -59,9 +60,20 @@ def test_the_per_frame_layout_holds_out_cam00_and_takes_any_camera_by_name(truth
     assert split(nerf, ["cam03"])[1] == ["cam03"] and split(nerf)[1] == []
 
 
+def test_the_per_frame_layout_takes_its_model_from_the_top_too(truth, tmp_path):
+    root = write_capture(truth, tmp_path / "cap", "frames")
+    (root / "sparse").mkdir()
+    (root / "frame000000" / "sparse" / "0").rename(root / "sparse" / "0")
+    ds = open_dataset(root)
+    assert ds.models[0].path == root / "sparse" / "0"
+    assert torch.allclose(ds.cameras(3)[1].viewmat, truth.cameras(3)[1].viewmat.double(), atol=1e-9)
+
+
 def test_per_frame_models_give_each_frame_its_own_cameras(truth, tmp_path):
-    ds = open_dataset(write_capture(truth, tmp_path / "cap", "frames", per_frame=True))
+    root = write_capture(truth, tmp_path / "cap", "frames", per_frame=True)
+    ds = open_dataset(root)
     assert len(ds.models) == truth.num_frames
+    assert inspect_dataset(root)["calibration"] == "changes between frames"
     for f in range(truth.num_frames):
         moved = ds.cameras(f)[2].center - truth.cameras(f)[2].center.double()
         assert torch.allclose(moved, torch.tensor([0.01 * f, 0, 0], dtype=torch.float64), atol=1e-9)
@@ -133,6 +145,7 @@ def test_inspect_reports_the_capture_and_draws_the_rig(truth, tmp_path):
     report = json.loads(run.stdout)
     assert report["kind"] == "colmap-frames" and report["frames"] == truth.num_frames
     assert report["camera_count"] == 5 and report["holdout"] == ["cam00"] and report["problems"] == []
+    assert report["calibration"] == "the same for every frame"
     assert report["distorted_cameras"] == truth.camera_names and report["resolutions"] == ["64x48"]
     focus, radius = rig_focus(truth.cameras(0))
     assert report["rig"]["radius"] == pytest.approx(radius) and np.allclose(report["rig"]["centre"], focus)

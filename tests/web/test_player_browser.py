@@ -1,7 +1,7 @@
 """The web player in a real headless Chromium (Debian's, SwiftShader's WebGL2) against `stgs serve` on loopback:
 playback from the catalogue link, parity with `stgs play` at a scene camera, the decoded features against the
-Python decode, seeking, a throttled link, bad manifests, a browser without WebCodecs, and a screenshot held to
-thresholds."""
+Python decode, seeking, a throttled link, bad manifests, a browser without WebCodecs, a screenshot held to
+thresholds, and a plan past its timeout (it fails at once and leaves no browser behind)."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import hashlib
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -18,7 +19,7 @@ import torch
 
 from stgs.codec.video import AV1, decode_segment
 from stgs.metrics import psnr
-from tests.web.conftest import ERROR_TEXT, LOADED, WEB_SCENE, browse
+from tests.web.conftest import ERROR_TEXT, LOADED, WEB_SCENE, browse, need_browser, run_plan
 
 FRAMES = WEB_SCENE.num_gops * WEB_SCENE.gop_size
 E = WEB_SCENE.gop_size + 3 - 1  # the feature frames of a GOP (window 3)
@@ -209,3 +210,23 @@ def test_the_keyboard_drives_the_player(served):
     assert r["stats_hidden"] is False and r["camera"] == "1" and r["moved"] == ""
     assert r["play"] == [False, "Pause"]
     assert r["focus"] == "play"  # from the canvas, Tab reaches the controls in order
+
+
+def _browser_processes() -> set[int]:
+    pids = set()
+    for proc in Path("/proc").iterdir():
+        try:
+            if proc.name.isdigit() and b"chromium" in (proc / "cmdline").read_bytes():
+                pids.add(int(proc.name))
+        except OSError:
+            pass
+    return pids
+
+
+def test_a_plan_past_its_timeout_fails_and_leaves_no_browser_behind():
+    need_browser()
+    before = _browser_processes()
+    out, failure = run_plan({"viewport": [100, 100], "steps": [
+        {"goto": "about:blank"}, {"wait": "false", "timeout": 600000}]}, 8)
+    assert out == {} and failure == "the browser plan did not finish in 8 s"
+    assert not _browser_processes() - before
