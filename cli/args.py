@@ -124,6 +124,17 @@ seconds = seconds_parser(positive=False)
 positive_seconds = seconds_parser(positive=True)
 
 
+def positive_float(text: str) -> float:
+    """A finite number above 0 (a frame rate)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number: {text!r}")
+    return value
+
+
 def int_list(text: str, option: str) -> list[int]:
     try:
         values = [int(s) for s in text.split(",") if s]

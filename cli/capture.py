@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from stgs.cli.args import name_list
+from stgs.cli.args import name_list, positive_float
 
 
 def add_inspect(sub: argparse._SubParsersAction) -> None:
@@ -19,6 +19,8 @@ def add_inspect(sub: argparse._SubParsersAction) -> None:
     p.add_argument("dataset", type=Path, help="the capture's folder (or its transforms.json)")
     p.add_argument("--kind", choices=["auto", *KINDS], default="auto", help="dataset layout (default: auto)")
     p.add_argument("--holdout", type=name_list, help="comma-separated validation cameras (default: the dataset's)")
+    p.add_argument("--fps", type=positive_float,
+                   help="frame rate of a capture of image files, which do not say theirs (default 30)")
     p.add_argument("--plot", type=Path, metavar="PNG", help="also draw the rig from above, each camera's frustum")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.add_argument("--no-check", dest="check", action="store_false",
@@ -51,9 +53,9 @@ def run_inspect(args: argparse.Namespace) -> int:
     from stgs.data import open_dataset
     from stgs.data.inspect import inspect_dataset, plot_rig
 
-    report = inspect_dataset(args.dataset, args.kind, args.holdout, args.check)
+    report = inspect_dataset(args.dataset, args.kind, args.holdout, args.check, args.fps)
     if args.plot is not None:
-        plot_rig(report, open_dataset(args.dataset, args.kind).cameras(0), args.plot)
+        plot_rig(report, open_dataset(args.dataset, args.kind, fps=args.fps).cameras(0), args.plot)
     print(json.dumps(report, indent=1) if args.json else describe(report))
     if args.plot is not None and not args.json:
         print(f"wrote {args.plot}")

@@ -14,6 +14,7 @@ from stgs.cli.args import (
     effect_list,
     name_list,
     name_number,
+    positive_float,
     positive_int,
     positive_seconds,
 )
@@ -117,6 +118,8 @@ def add_train(sub: argparse._SubParsersAction) -> None:
                    help="quick (CI, minutes), cpu (a 60-frame GOP at 640x360 in ~1 h), paper (12k it, ~150k Gaussians)")
     p.add_argument("--kind", choices=["auto", *KINDS], default="auto", help="dataset layout (default: auto)")
     p.add_argument("--holdout", type=name_list, help="comma-separated validation cameras (default: the dataset's)")
+    p.add_argument("--fps", type=positive_float,
+                   help="frame rate of a capture of image files, which do not say theirs (default 30; docs/CAPTURE.md)")
     p.add_argument("--gops", type=positive_int, dest="max_gops", help="train at most this many GOPs")
     p.add_argument("--gop-size", type=positive_int, help="frames per GOP (default 60)")
     p.add_argument("--start-frame", type=int, help="first frame")
@@ -208,7 +211,7 @@ TRAIN_OVERRIDES = ("max_gops", "gop_size", "start_frame", "grid_side", "iteratio
                    "background_share", "init_frames", "layers", "static_grid_side", "migrate", "static_drop_rate",
                    "static_drop_until", "static_sh_degree", "static_sh_iterations", "dynamic_warmup", "hull_seeds",
                    "camera_colour", "coarse_low_res", "gop_low_res", "static_triangulation", "max_memory",
-                   "static_frames")
+                   "static_frames", "fps")
 
 
 def train_overrides(args: argparse.Namespace) -> dict:
@@ -240,7 +243,7 @@ def run_train(args: argparse.Namespace) -> int:
     from stgs.data import open_dataset
     from stgs.train import train
 
-    num_frames = open_dataset(args.dataset, args.kind).num_frames
+    num_frames = open_dataset(args.dataset, args.kind, fps=cfg.fps).num_frames
     tail = cfg.untrained_tail(num_frames)
     if tail is not None:
         usable = num_frames - cfg.start_frame

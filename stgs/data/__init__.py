@@ -99,7 +99,8 @@ def detect_kind(path: Path) -> str | None:
 
 
 def open_dataset(path: Path, kind: str = "auto", **options) -> Dataset:
-    """The reader for `path` (kind: auto or one of KINDS); `options` go to the reader (holdout, fps, ...)."""
+    """The reader for `path` (kind: auto or one of KINDS); `options` go to the reader (holdout, fps: a frame rate
+    for captures whose files do not say it, None for the reader's own, ...)."""
     from stgs.data.capture import ColmapReader
     from stgs.data.n3dv import N3DVReader
     from stgs.data.nerfstudio import NerfstudioReader
@@ -118,6 +119,10 @@ def open_dataset(path: Path, kind: str = "auto", **options) -> Dataset:
                             "docs/CAPTURE.md)")
     if kind not in KINDS:
         raise StgsError(f"unknown dataset kind {kind!r}; known: auto, {', '.join(KINDS)}")
+    if options.get("fps") is None:
+        options.pop("fps", None)
+    elif kind in ("panoptic", "synth"):
+        raise StgsError(f"{path}: a {kind} capture says its own frame rate; fps is for captures of image files")
     if kind.startswith("colmap-"):
         return ColmapReader(path, layout=kind.removeprefix("colmap-"), **options)
     readers = {"panoptic": PanopticReader, "n3dv": N3DVReader, "synth": SynthReader, "nerfstudio": NerfstudioReader}

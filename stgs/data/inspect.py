@@ -26,12 +26,12 @@ def _intrinsics(ds, camera: Camera) -> dict:
 
 
 def inspect_dataset(path: Path, kind: str = "auto", holdout: list[str] | None = None,
-                    check_frames: bool = True) -> dict:
+                    check_frames: bool = True, fps: float | None = None) -> dict:
     """A report of the capture at `path` (StgsError where it cannot be opened at all); problems that leave it
     readable are listed under "problems"."""
     path = Path(path)
     found = detect_kind(path) if kind == "auto" else kind
-    ds = open_dataset(path, kind)
+    ds = open_dataset(path, kind, fps=fps)
     cams = ds.cameras(0)
     problems: list[str] = []
     focus, radius = rig_focus(cams) if len(cams) >= 2 else (cams[0].center, 0.0)

@@ -89,6 +89,9 @@ class TrainConfig:
     """Train at most this many GOPs (None: every whole GOP of the dataset)."""
     holdout: list[str] | None = None
     """Validation cameras (None: the dataset's convention)."""
+    fps: float | None = None
+    """Frame rate of a capture of image files, which do not say theirs (COLMAP layouts, nerfstudio; None: 30, or
+    what transforms.json or the videos say). A Panoptic or synth capture, which says its own, refuses it."""
     coarse_iterations: int = 1000
     """Canonical 3DGS stage on frames from all times (layered: stage A, the static layer, on static pixels)."""
     coarse_low_res: float = 0.0
@@ -196,6 +199,7 @@ class TrainConfig:
                   (self.max_gops is None or self.max_gops >= 1, "max_gops must be >= 1"),
                   (0 <= self.background_share < 1, "background_share must be in [0, 1)"),
                   (self.init_frames >= 1, "init_frames must be >= 1"),
+                  (self.fps is None or (math.isfinite(self.fps) and self.fps > 0), "fps must be a positive number"),
                   (self.max_memory is None or self.max_memory >= 0, "max_memory must be >= 0 bytes"),
                   (self.static_frames is None or self.static_frames >= 1, "static_frames must be >= 1"),
                   (self.layers in LAYERS, f"layers must be one of {', '.join(LAYERS)}"),

@@ -79,7 +79,7 @@ class Trainer:
         if cfg.threads:
             torch.set_num_threads(cfg.threads)
         reuse_large_allocations()
-        self.ds = open_dataset(dataset, kind)
+        self.ds = open_dataset(dataset, kind, fps=cfg.fps)
         self.world_scale = world_scale(self.ds.cameras(cfg.start_frame))
         """The capture's lengths × this are the model's (stgs.data.units): 1 for a rig of about Panoptic's size."""
         self.ds = in_model_units(self.ds, self.world_scale)

@@ -69,6 +69,16 @@ def test_the_per_frame_layout_takes_its_model_from_the_top_too(truth, tmp_path):
     assert torch.allclose(ds.cameras(3)[1].viewmat, truth.cameras(3)[1].viewmat.double(), atol=1e-9)
 
 
+def test_a_capture_of_image_files_takes_its_frame_rate_from_the_command_line(truth, tmp_path):
+    root = write_capture(truth, tmp_path / "cap", "frames")
+    assert open_dataset(root).fps == 30.0 and open_dataset(root, fps=25.0).fps == 25.0
+    run = run_stgs("inspect", str(root), "--fps", "25", "--json")
+    assert run.returncode == 0 and json.loads(run.stdout)["fps"] == 25.0
+    assert open_dataset(write_capture(truth, tmp_path / "v", "videos")).fps == 30.0  # the videos say it
+    bad = run_stgs("train", str(truth.root), str(tmp_path / "out"), "--fps", "25")
+    assert bad.returncode == 2 and "says its own frame rate" in bad.stderr and not (tmp_path / "out").exists()
+
+
 def test_per_frame_models_give_each_frame_its_own_cameras(truth, tmp_path):
     root = write_capture(truth, tmp_path / "cap", "frames", per_frame=True)
     ds = open_dataset(root)
