@@ -255,7 +255,7 @@ def test_a_capture_in_centimetres_or_in_hectometres_trains_to_the_same_model(tmp
 @pytest.mark.skipif(not PANOPTIC.is_dir(), reason="../shared/data/panoptic-basketball is absent")
 def test_panoptic_written_as_a_colmap_capture_trains_as_the_panoptic_reader_reads_it(tmp_path):
     """Panoptic's first frames written as per-frame folders (with its masks) and a COLMAP model: the same pixels
-    and masks, the cameras to 1e-9, and a quick training bit for bit the one the Panoptic reader gives once its
+    and masks, the cameras to 1e-9, and a short training bit for bit the one the Panoptic reader gives once its
     rotations are what COLMAP can hold (quaternions: Panoptic's matrices are orthonormal to 1.4e-10 only, and that
     difference alone moves a quick training's held-out PSNR by up to a dB either way: docs/CAPTURE.md)."""
     from safetensors.torch import load_file
@@ -263,7 +263,7 @@ def test_panoptic_written_as_a_colmap_capture_trains_as_the_panoptic_reader_read
     from stgs.evaluate import evaluate
     from stgs.train import budget, train
 
-    frames, held_out = 10, ["1", "14", "27"]
+    frames, held_out = 6, ["1", "14", "27"]
     panoptic = open_dataset(PANOPTIC)
     cap = tmp_path / "cap"
     for f in range(frames):
@@ -293,10 +293,10 @@ def test_panoptic_written_as_a_colmap_capture_trains_as_the_panoptic_reader_read
     results = {}
     for name, source in (("colmap", cap), ("panoptic", same)):
         out = tmp_path / f"m_{name}"
-        train(source, out, budget("quick", gop_size=frames, max_gops=1, holdout=held_out, scale=0.5),
-              progress=False)
+        train(source, out, budget("quick", gop_size=frames, max_gops=1, holdout=held_out, scale=0.25,
+                                  coarse_iterations=300, iterations=200), progress=False)
         psnr_held_out = evaluate(out, source, tmp_path / f"e_{name}", progress=False,
                                  lpips_net=None)["streams"]["uncompressed"]["psnr"]
         results[name] = (psnr_held_out, load_file(str(out / "gop_0000.safetensors")))
-    assert results["colmap"][0] == results["panoptic"][0] and results["colmap"][0] > 17
+    assert results["colmap"][0] == results["panoptic"][0] and results["colmap"][0] > 15
     assert all(torch.equal(results["colmap"][1][k], results["panoptic"][1][k]) for k in results["colmap"][1])
