@@ -119,7 +119,9 @@ class ColmapReader:
     # --- what the layout holds ---
 
     def _scan_frames(self) -> None:
-        dirs = frame_dirs(self.root)
+        dirs = frame_dirs(self.root) if self.root.is_dir() else []
+        if not dirs:
+            raise StgsError(f"{self.root}: no frame folders (frameNNNNNN/images/)")
         self.frame_labels = [d.name for d in dirs]
         per_frame = [{p.stem: p for p in image_files(d / "images")} for d in dirs]
         names = set(per_frame[0])
@@ -134,6 +136,8 @@ class ColmapReader:
         self.num_frames = len(dirs)
 
     def _scan_images(self) -> None:
+        if not (self.root / "images").is_dir():
+            raise StgsError(f"{self.root}: no images/ folder (images/<cam>/<frame>.<ext>)")
         folders = sorted((p for p in (self.root / "images").iterdir() if p.is_dir()), key=lambda p: natural_key(p.name))
         self._files = {f.name: image_files(f) for f in folders}
         self.num_frames = self._same_counts({k: len(v) for k, v in self._files.items()}, "images")
@@ -141,6 +145,8 @@ class ColmapReader:
         self.frame_labels = [p.stem for p in first]
 
     def _scan_videos(self) -> None:
+        if not (self.root / "videos").is_dir():
+            raise StgsError(f"{self.root}: no videos/ folder (videos/<cam>.<ext>)")
         videos = sorted((p for p in (self.root / "videos").iterdir() if p.is_file() and not p.name.startswith(".")),
                         key=lambda p: natural_key(p.name))
         if not videos:

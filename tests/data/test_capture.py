@@ -300,3 +300,10 @@ def test_panoptic_written_as_a_colmap_capture_trains_as_the_panoptic_reader_read
         results[name] = (psnr_held_out, load_file(str(out / "gop_0000.safetensors")))
     assert results["colmap"][0] == results["panoptic"][0] and results["colmap"][0] > 15
     assert all(torch.equal(results["colmap"][1][k], results["panoptic"][1][k]) for k in results["colmap"][1])
+
+
+@pytest.mark.parametrize("kind,message", [("colmap-frames", "no frame folders"), ("colmap-images", "no images/"),
+                                          ("colmap-videos", "no videos/"), ("nerfstudio", "not a readable")])
+def test_a_layout_named_on_the_command_line_that_is_not_there_is_one_line(tmp_path, kind, message):
+    run = run_stgs("inspect", str(tmp_path), "--kind", kind)
+    assert run.returncode == 2 and run.stderr.count("\n") == 1 and message in run.stderr, run.stderr
