@@ -29,6 +29,7 @@ from stgs.data.colmap import ColmapModel, find_model, read_model
 from stgs.data.distortion import Intrinsics
 from stgs.data.frames import (
     DEFAULT_CACHE,
+    DEFAULT_FPS,
     count_video_frames,
     extract_video,
     image_files,
@@ -44,8 +45,6 @@ from stgs.errors import StgsError
 
 LAYOUTS = ("frames", "images", "videos")
 FRAME_DIR = re.compile(r"frame(\d+)$")
-DEFAULT_FPS = 30.0
-"""The frame rate of a capture of image files, which do not say theirs (`fps` sets it)."""
 
 
 def frame_dirs(root: Path) -> list[Path]:
@@ -98,8 +97,6 @@ class ColmapReader:
         self.cache = Path(cache or DEFAULT_CACHE)
         self._files: dict[str, list[Path]] = {}
         self._videos: dict[str, Path] = {}
-        self.frame_labels: list[str] = []
-        """Each frame's name in the capture (its folder or file stem)."""
         {"frames": self._scan_frames, "images": self._scan_images, "videos": self._scan_videos}[self.layout]()
         self.camera_names = sorted(self._files or self._videos, key=natural_key)
         if fps is not None and not fps > 0:
@@ -122,7 +119,6 @@ class ColmapReader:
         dirs = frame_dirs(self.root) if self.root.is_dir() else []
         if not dirs:
             raise StgsError(f"{self.root}: no frame folders (frameNNNNNN/images/)")
-        self.frame_labels = [d.name for d in dirs]
         per_frame = [{p.stem: p for p in image_files(d / "images")} for d in dirs]
         names = set(per_frame[0])
         if not names:
@@ -141,8 +137,6 @@ class ColmapReader:
         folders = sorted((p for p in (self.root / "images").iterdir() if p.is_dir()), key=lambda p: natural_key(p.name))
         self._files = {f.name: image_files(f) for f in folders}
         self.num_frames = self._same_counts({k: len(v) for k, v in self._files.items()}, "images")
-        first = next(iter(self._files.values()))
-        self.frame_labels = [p.stem for p in first]
 
     def _scan_videos(self) -> None:
         if not (self.root / "videos").is_dir():
@@ -157,7 +151,6 @@ class ColmapReader:
             raise StgsError(f"{self.root / 'videos'}: two files for camera {dup}")
         self._videos = dict(zip(stems, videos, strict=True))
         self.num_frames = self._same_counts({k: count_video_frames(v) for k, v in self._videos.items()}, "videos")
-        self.frame_labels = [f"{i:05d}" for i in range(self.num_frames)]
 
     def _same_counts(self, counts: dict[str, int], what: str) -> int:
         if not counts:

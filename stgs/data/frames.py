@@ -28,6 +28,8 @@ from stgs.data.images import read_mask, read_rgb8
 from stgs.errors import StgsError
 
 DEFAULT_CACHE = Path(os.environ.get("STGS_DATA_CACHE", Path.home() / ".cache" / "stgs" / "frames"))
+DEFAULT_FPS = 30.0
+"""The frame rate of a capture of image files, which do not say theirs (the readers' `fps` sets it)."""
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".exr", ".webp")
 """Files a frame folder's images may be (by suffix, any case)."""
 
@@ -126,7 +128,7 @@ def video_rate(video: Path) -> float | None:
 
 
 def extract_video(video: Path, out: Path, size: tuple[int, int],
-                  fix: Callable[[np.ndarray], np.ndarray] | None = None, interpolation: str = "AREA") -> Path:
+                  fix: Callable[[np.ndarray], np.ndarray] | None = None) -> Path:
     """Folder `out` holding the video's frames as `00000.png`..., each scaled to `size` (width, height) and passed
     through `fix` (RGB uint8 in and out; an undistortion), decoded once a frame at a time: the folder is filled
     under a temporary name and renamed into place, so it exists only whole."""
@@ -137,7 +139,7 @@ def extract_video(video: Path, out: Path, size: tuple[int, int],
     try:
         with av.open(str(video)) as container:
             for i, frame in enumerate(container.decode(video=0)):
-                bgr = frame.to_ndarray(width=size[0], height=size[1], format="bgr24", interpolation=interpolation)
+                bgr = frame.to_ndarray(width=size[0], height=size[1], format="bgr24", interpolation="AREA")
                 if fix is not None:
                     bgr = np.ascontiguousarray(fix(np.ascontiguousarray(bgr[..., ::-1]))[..., ::-1])
                 if not cv2.imwrite(str(tmp / f"{i:05d}.png"), bgr):

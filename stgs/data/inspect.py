@@ -12,6 +12,7 @@ import torch
 
 from stgs.camera import Camera, rig_down, rig_focus
 from stgs.data import detect_kind, open_dataset, split
+from stgs.data.distortion import Intrinsics
 from stgs.errors import StgsError
 
 
@@ -21,8 +22,8 @@ def _intrinsics(ds, camera: Camera) -> dict:
     if get is not None:
         return get(camera.name).to_json()
     K = camera.K
-    return {"model": "PINHOLE", "width": camera.width, "height": camera.height, "fx": float(K[0, 0]),
-            "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]), "coefficients": []}
+    return Intrinsics.from_colmap("PINHOLE", camera.width, camera.height,
+                                  [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]).to_json()
 
 
 def inspect_dataset(path: Path, kind: str = "auto", holdout: list[str] | None = None,

@@ -20,7 +20,7 @@ import torch
 
 from stgs.camera import Camera
 from stgs.data.distortion import Intrinsics
-from stgs.data.frames import DEFAULT_CACHE, natural_key, read_undistorted, read_undistorted_mask
+from stgs.data.frames import DEFAULT_CACHE, DEFAULT_FPS, natural_key, read_undistorted, read_undistorted_mask
 from stgs.data.images import check_image_sizes, image_size
 from stgs.errors import StgsError
 
@@ -95,9 +95,11 @@ class NerfstudioReader:
         except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
             raise StgsError(f"{self.path}: not a readable transforms.json ({exc})") from None
         top = {k: doc[k] for k in INTRINSIC_KEYS if k in doc}
-        rate = doc.get("fps", fps or 30.0)
-        self.fps = float(fps or rate)
-        if not self.fps > 0:
+        try:
+            self.fps = float(fps or doc.get("fps", DEFAULT_FPS))
+        except (TypeError, ValueError):
+            raise StgsError(f"{self.path}: fps must be a number") from None
+        if not (math.isfinite(self.fps) and self.fps > 0):
             raise StgsError(f"{self.path}: fps must be positive, not {self.fps}")
         groups = self._group(entries)
         self.camera_names = sorted(groups, key=natural_key)

@@ -65,8 +65,7 @@ class Rescaled:
         return xyz * self.factor, rgb
 
 
-def in_model_units(ds: Dataset, factor: float | None = None, frame: int = 0) -> Dataset:
-    """`ds` in the trainer's unit: scaled by `factor` (a model's recorded world_scale), or by world_scale of its
-    cameras at `frame`; `ds` itself where the factor is 1."""
-    factor = world_scale(ds.cameras(frame)) if factor is None else float(factor)
+def in_model_units(ds: Dataset, factor: float) -> Dataset:
+    """`ds` in the model's unit of length (`factor`: world_scale, as the trainer found it or a model records it);
+    `ds` itself where the factor is 1."""
     return ds if factor == 1.0 else Rescaled(ds, factor)
