@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from stgs.cli.args import name_list, positive_float
+from stgs.cli.args import UsageError, name_list, positive_float, positive_int, positive_seconds, seconds
 
 
 def add_inspect(sub: argparse._SubParsersAction) -> None:
@@ -60,3 +60,72 @@ def run_inspect(args: argparse.Namespace) -> int:
     if args.plot is not None and not args.json:
         print(f"wrote {args.plot}")
     return 1 if report["problems"] else 0
+
+
+def add_prepare(sub: argparse._SubParsersAction) -> None:
+    from stgs.prepare.settings import CAMERA_MODELS, DEFAULT_CALIB_FRAMES, LAYOUTS, RIG_RADIUS, SYNC_METHODS
+
+    p = sub.add_parser("prepare", help="turn one video per camera into a synchronised, calibrated capture",
+                       description="Check the footage, synchronise it (audio, frame index or given offsets), "
+                       "calibrate the rig with COLMAP (pycolmap) on a few frames, and write every frame of the "
+                       "common span undistorted, with prepare_report.json (docs/CAPTURE.md, 'Preparing raw "
+                       "footage'). The output trains with `stgs train OUT`.")
+    p.add_argument("inputs", type=Path, nargs="+", metavar="VIDEO",
+                   help="one video per camera (named by the file's stem), or a folder of them; the last path is OUT")
+    p.add_argument("--layout", choices=LAYOUTS, default="frames",
+                   help="frames: frameNNNNNN/images/<cam>.png; videos: one lossless FFV1 video per camera, "
+                   "smaller on disk (default: frames)")
+    p.add_argument("--sync", choices=SYNC_METHODS, default="auto",
+                   help="auto: by audio where every video has an audio track, else by frame index (default)")
+    p.add_argument("--offsets", metavar="CAM=FRAMES,...",
+                   help="frames each named camera started after the first; these override the audio's")
+    p.add_argument("--calib-frames", type=positive_int, default=DEFAULT_CALIB_FRAMES,
+                   help=f"frames spread over the span that the rig is calibrated on (default {DEFAULT_CALIB_FRAMES})")
+    p.add_argument("--camera-model", choices=CAMERA_MODELS, default="OPENCV",
+                   help="COLMAP lens model fitted per camera (default OPENCV)")
+    p.add_argument("--start", type=seconds, default=0.0, help="seconds into the common span to begin at")
+    p.add_argument("--seconds", type=positive_seconds, help="length to keep (default: to the end of the span)")
+    p.add_argument("--rig-radius", type=positive_float, default=RIG_RADIUS,
+                   help=f"mean distance of the cameras from their centroid in the output (default {RIG_RADIUS})")
+    p.add_argument("--resume", action="store_true", help="continue a run that was killed")
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(run=run_prepare)
+
+
+def describe_prepare(report: dict, out: Path) -> str:
+    """The prepare report as a person reads it."""
+    cal, span = report["calibration"], report["span"]
+    offsets = ", ".join(f"{o['camera']} {o['frames']:+d}" + (f" (peak/side {o['confidence']:.1f})"
+                                                            if o["confidence"] is not None else "")
+                        for o in report["sync"]["offsets"])
+    lines = [f"{out}: {len(report['footage'])} cameras at {report['fps']:g} fps, layout {report['layout']}",
+             f"  sync ({', '.join(report['sync']['sources']) or 'reference only'}): {offsets}",
+             f"  span: {span['frames']} frames ({span['seconds']:.2f} s) from reference frame {span['start']}",
+             f"  calibration: {cal['registered']} of {cal['total']} cameras registered on frames {cal['frames']}, "
+             f"mean reprojection error {cal['mean_reprojection_error_px']:.3f} px, {cal['points']} points, "
+             f"{cal['seconds']:.1f} s",
+             "  tracks per camera: " + ", ".join(f"{k} {v}" for k, v in cal["tracks"].items()),
+             f"  wrote {report['capture_bytes'] / 1e6:.1f} MB in {report['timings']['frames_s']:.1f} s; "
+             f"train it with: stgs train {out} MODEL_DIR"]
+    return "\n".join(lines)
+
+
+def run_prepare(args: argparse.Namespace) -> int:
+    from stgs.prepare.run import PrepareConfig, prepare
+    from stgs.prepare.sync import parse_offsets
+
+    if len(args.inputs) < 2:
+        raise UsageError("give the videos (or a folder of them) and then OUT")
+    try:
+        offsets = parse_offsets(args.offsets or "")
+    except ValueError as exc:
+        raise UsageError(f"--offsets: {exc}") from None
+    *videos, out = args.inputs
+    config = PrepareConfig(videos=videos, out=out, layout=args.layout, sync=args.sync, offsets=offsets,
+                           calib_frames=args.calib_frames, camera_model=args.camera_model, start=args.start,
+                           seconds=args.seconds, rig_radius=args.rig_radius, resume=args.resume,
+                           progress=not args.quiet)
+    report = prepare(config)
+    print(json.dumps(report, indent=1) if args.json else describe_prepare(report, out))
+    return 0

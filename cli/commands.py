@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from stgs.cli.capture import add_inspect
+from stgs.cli.capture import add_inspect, add_prepare
 from stgs.cli.interop import add_export
 from stgs.cli.model import add_eval, add_synth, add_train
 from stgs.cli.stream import add_pack, add_play, add_serve
@@ -31,9 +31,9 @@ FLAGS = {"qps": "--qps", "preset": "--preset", "codec": "--codec", "codecs": "--
 """Config field -> the flag that sets it, for FieldError messages."""
 
 
-COMMANDS = {"inspect": add_inspect, "synth": add_synth, "train": add_train, "eval": add_eval, "pack": add_pack,
-            "serve": add_serve, "play": add_play, "sim": add_sim, "demo": add_demo, "bench": add_bench,
-            "export": add_export}
+COMMANDS = {"prepare": add_prepare, "inspect": add_inspect, "synth": add_synth, "train": add_train, "eval": add_eval,
+            "pack": add_pack, "serve": add_serve, "play": add_play, "sim": add_sim, "demo": add_demo,
+            "bench": add_bench, "export": add_export}
 
 
 def build_parser(commands: tuple[str, ...] | None = None) -> argparse.ArgumentParser:

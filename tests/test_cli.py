@@ -11,7 +11,8 @@ from stgs.cli import build_parser, main
 from stgs.model.store import load_model
 from tests.conftest import run_stgs as stgs
 
-SUBCOMMANDS = ["inspect", "synth", "train", "eval", "pack", "serve", "play", "sim", "demo", "bench", "export"]
+SUBCOMMANDS = ["prepare", "inspect", "synth", "train", "eval", "pack", "serve", "play", "sim", "demo", "bench",
+               "export"]
 
 
 def test_every_subcommand_has_help(capsys):

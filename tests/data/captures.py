@@ -17,7 +17,7 @@ from stgs.data.nerfstudio import viewmat_to_opengl
 from stgs.data.synth import SynthReader
 from stgs.synth import SynthConfig
 from stgs.synth.config import DEFAULT_EFFECTS
-from stgs.synth.generate import ProceduralScene, ground_truth_cameras, write_ground_truth
+from stgs.synth.generate import ProceduralScene, ground_truth_cameras, imported_backdrop, write_ground_truth
 
 SCENE = SynthConfig(grid_side=8, num_gops=1, gop_size=4, width=64, height=48, num_cameras=5,
                     effects=("rigid", "color"))
@@ -34,6 +34,8 @@ def ground_truth(out: Path, cfg: SynthConfig = SCENE) -> SynthReader:
     layered = "static_background" in cfg.effects
     scene = ProceduralScene(cfg.grid_side ** 2, tuple(cfg.effects), cfg.seed,
                             cfg.static_grid_side ** 2 if layered else 0)
+    if cfg.static_from is not None:
+        scene.static = imported_backdrop(cfg)
     write_ground_truth(out, scene, cfg, ground_truth_cameras(cfg), progress=False)
     return SynthReader(out)
 

@@ -1,0 +1,201 @@
+"""`stgs prepare` on real footage files: a synthetic rig's views as one MP4 per camera, started at different
+frames, with a shared click track (PyAV writes and reads them, pycolmap calibrates, OpenCV undistorts)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from stgs.cli import main
+from stgs.data import open_dataset
+from stgs.prepare import output
+from stgs.prepare.calibrate import calibration_frames, rig_errors
+from stgs.prepare.sync import audio_lag, parse_offsets
+from stgs.synth import SynthConfig
+from tests.prepare.footage import (
+    rig_cameras,
+    synthetic_rig,
+    textured_backdrop,
+    write_footage,
+    write_rig_footage,
+)
+
+LATE = {"cam01": 2, "cam03": 1, "cam05": 3}
+"""Frames some cameras started after the others."""
+CAMERAS = 10
+
+
+@pytest.fixture(scope="module")
+def rig(tmp_path_factory):
+    root = tmp_path_factory.mktemp("rig")
+    backdrop = textured_backdrop(root / "backdrop.ply")
+    cfg = SynthConfig(grid_side=16, num_gops=1, gop_size=8, width=480, height=360,
+                      effects=("rigid", "static_background"), static_grid_side=174, static_from=str(backdrop))
+    truth = synthetic_rig(root / "truth", cfg, rig_cameras(CAMERAS, 120.0, cfg.width, cfg.height))
+    videos = write_rig_footage(truth, root / "videos", LATE)
+    return root, truth, videos
+
+
+@pytest.fixture(scope="module")
+def prepared(rig):
+    root = rig[0]
+    out = root / "capture"
+    assert main(["prepare", str(root / "videos"), str(out), "--calib-frames", "2", "--camera-model", "PINHOLE",
+                 "--quiet"]) == 0
+    return out
+
+
+def test_audio_offsets_are_found_exactly_and_the_common_span_trimmed(rig, prepared):
+    _, truth, _ = rig
+    report = json.loads((prepared / "prepare_report.json").read_text())
+    offsets = {o["camera"]: o for o in report["sync"]["offsets"]}
+    assert {k: v["frames"] for k, v in offsets.items()} == {c: LATE.get(c, 0) for c in truth.camera_names}
+    assert all(o["source"] == "audio" and o["confidence"] >= 2 for k, o in offsets.items() if k != "cam00")
+    span = report["span"]
+    assert span["frames"] == truth.num_frames - max(LATE.values())
+    # Every camera's first kept frame shows the scene's frame 3 (the latest start).
+    assert {k: v + LATE.get(k, 0) for k, v in span["first_frame"].items()} == {c: 3 for c in truth.camera_names}
+
+
+def test_the_prepared_capture_reads_back_calibrated_and_upright(rig, prepared):
+    _, truth, _ = rig
+    ds = open_dataset(prepared)
+    assert ds.name.startswith("colmap-frames") and ds.camera_names == truth.camera_names
+    assert ds.num_frames == truth.num_frames - max(LATE.values())
+    report = json.loads((prepared / "prepare_report.json").read_text())
+    cal = report["calibration"]
+    assert cal["registered"] == cal["total"] == CAMERAS and cal["points"] > 100
+    assert set(cal["tracks"]) == set(truth.camera_names) and min(cal["tracks"].values()) > 20
+    # +Y up, the rig's radius as stated, the pixels those of the scene (H.264 at QP 0 in 4:4:4: rounding only).
+    cams = ds.cameras(0)
+    centres = torch.stack([c.center for c in cams])
+    assert float((centres - centres.mean(0)).norm(dim=1).mean()) == pytest.approx(3.2, rel=1e-9)
+    up = -torch.stack([c.viewmat[1, :3] for c in cams]).mean(0)
+    assert float(up[1] / up.norm()) == pytest.approx(1.0, abs=1e-9)
+    view = ds.pixels(0, "cam02").astype(np.int16)
+    assert np.abs(view - truth.pixels(3, "cam02").astype(np.int16)).mean() < 1.0
+    # Camera error after a similarity fit to the truth: docs/BENCHMARKS.md, "Captures", gives the figures, which
+    # miss the 0.2° and 0.5 % aimed at; these bounds only keep them from getting worse.
+    errors = rig_errors({c.name: c.viewmat.numpy() for c in cams},
+                        {c.name: c.viewmat.double().numpy() for c in truth.cameras(0)})
+    rotations = sorted(e[0] for e in errors.values())
+    centres_pct = sorted(e[1] for e in errors.values())
+    assert rotations[len(rotations) // 2] < 7.0 and centres_pct[len(centres_pct) // 2] < 6.0
+
+
+def test_the_videos_layout_holds_the_same_frames(rig, prepared, tmp_path):
+    root, _, _ = rig
+    out = tmp_path / "as_videos"
+    assert main(["prepare", str(root / "videos"), str(out), "--layout", "videos", "--sync", "index", "--offsets",
+                 ",".join(f"{k}={v}" for k, v in LATE.items()), "--calib-frames", "2", "--camera-model", "PINHOLE",
+                 "--quiet"]) == 0
+    frames, videos = open_dataset(prepared), open_dataset(out, cache=tmp_path / "cache")
+    assert videos.name.startswith("colmap-videos") and videos.num_frames == frames.num_frames
+    for f in (0, frames.num_frames - 1):
+        for cam in ("cam00", "cam05"):
+            assert np.array_equal(videos.pixels(f, cam), frames.pixels(f, cam))
+
+
+def test_audio_lag_is_found_to_the_sample():
+    rng = np.random.default_rng(1)
+    reference = rng.normal(0, 1, 20000)
+    assert audio_lag(reference, reference[137:], 40)[0] == 137
+    assert audio_lag(reference[137:], reference, 40)[0] == -137
+
+
+def test_offsets_and_calibration_frames_parse_and_spread():
+    assert parse_offsets("cam01=2, cam3=-1") == {"cam01": 2, "cam3": -1}
+    with pytest.raises(ValueError, match="'cam01' is not camera=frames"):
+        parse_offsets("cam01")
+    assert calibration_frames(90, 3) == [15, 45, 75]
+    assert calibration_frames(2, 5) == [0, 1]
+
+
+def _one_line(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("stgs: ") and "\n" not in err and "Traceback" not in err, err
+    return err
+
+
+def _still(rgb_seed: int, count: int = 3, size: tuple[int, int] = (64, 48)) -> list[np.ndarray]:
+    rng = np.random.default_rng(rgb_seed)
+    return [rng.integers(0, 256, (size[1], size[0], 3), dtype=np.uint8) for _ in range(count)]
+
+
+@pytest.mark.parametrize("case", ["not_a_video", "rates_differ", "audio_missing", "no_overlap", "short",
+                                  "offset_unknown"])
+def test_unusable_footage_is_one_line_and_writes_nothing(tmp_path, capsys, case):
+    videos = tmp_path / "videos"
+    args = ["--quiet"]
+    for i in range(3):
+        audio = None if case == "audio_missing" and i == 2 else np.zeros(48000, np.float32)
+        write_footage(videos / f"cam{i}.mkv", _still(i), 25 if case == "rates_differ" and i == 1 else 30, audio,
+                      codec="ffv1")
+    expected = {"rates_differ": "frame rates differ: cam1 (25.000 fps)",
+                "audio_missing": "camera cam2 has no audio track",
+                "no_overlap": "COLMAP registered 0 of 3 cameras",
+                "short": "10.0 s asked from 0.0 s, but the common span holds 0.10 s",
+                "offset_unknown": "offset given for 'cam9'",
+                "not_a_video": "not a readable video"}[case]
+    if case == "not_a_video":
+        (videos / "cam1.mkv").write_text("this is not a video\n")
+    args += {"audio_missing": ["--sync", "audio"], "short": ["--sync", "index", "--seconds", "10"],
+             "no_overlap": ["--sync", "index"],
+             "offset_unknown": ["--offsets", "cam9=3"]}.get(case, [])
+    out = tmp_path / "out"
+    assert main(["prepare", str(videos), str(out), *args]) == 2
+    assert expected in _one_line(capsys)
+    assert not out.exists() and not output.staging_dir(out).exists()
+
+
+def test_a_killed_run_resumes_and_finishes_whole(rig, prepared, tmp_path, monkeypatch, capsys):
+    root, _, _ = rig
+    out = tmp_path / "capture"
+    base = ["prepare", str(root / "videos"), str(out), "--calib-frames", "2", "--camera-model", "PINHOLE", "--quiet"]
+    written = []
+    real = output.write_png
+
+    def dies_after_twelve(path, rgb):
+        if len(written) == 12:
+            raise KeyboardInterrupt
+        written.append(path)
+        real(path, rgb)
+
+    monkeypatch.setattr(output, "write_png", dies_after_twelve)
+    assert main(base) == 130
+    assert _one_line(capsys) == "stgs: interrupted"
+    stage = output.staging_dir(out)
+    assert not out.exists() and stage.is_dir() and (stage / output.STATE).is_file()
+    assert main(base) == 2 and "--resume" in _one_line(capsys)
+    monkeypatch.setattr(output, "write_png", real)
+    assert main([*base, "--resume"]) == 0
+    assert out.is_dir() and not stage.exists() and not (out / output.STATE).exists()
+    again, first = open_dataset(out), open_dataset(prepared)
+    assert again.num_frames == first.num_frames and again.camera_names == first.camera_names
+    for f in range(again.num_frames):
+        assert np.array_equal(again.pixels(f, "cam00"), first.pixels(f, "cam00"))
+    hidden = [p for p in out.rglob(".*")]
+    assert hidden == [], hidden
+
+
+def test_rotated_footage_is_turned_upright(tmp_path):
+    from stgs.prepare.footage import probe, read_frames
+
+    frames = _still(5, count=2)
+    path = write_footage(tmp_path / "cam0.mkv", frames, 30, rotation=90, codec="ffv1")
+    footage = probe(path)
+    assert (footage.rotation, footage.width, footage.height) == (90, 48, 64)
+    got = dict(read_frames(footage, 0, 2))
+    assert np.array_equal(got[1], np.rot90(frames[1]))
+
+
+def test_json_report_names_every_stage(prepared):
+    report = json.loads((prepared / "prepare_report.json").read_text())
+    assert {"footage", "fps", "sync", "span", "calibration", "layout", "frames_bytes", "capture_bytes",
+            "timings"} <= set(report)
+    assert report["calibration"]["mean_reprojection_error_px"] < 2.0
+    assert Path(report["footage"][0]["path"]).name == "cam00.mp4"
