@@ -73,6 +73,12 @@ class Intrinsics:
         return {"model": self.model, "width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy,
                 "cx": self.cx, "cy": self.cy, "coefficients": list(self.coefficients)}
 
+    @classmethod
+    def from_json(cls, d: dict) -> Intrinsics:
+        """The inverse of to_json."""
+        return cls(d["model"], int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]), float(d["cx"]),
+                   float(d["cy"]), tuple(float(c) for c in d["coefficients"]))
+
     def undistort(self, rgb: np.ndarray, nearest: bool = False) -> np.ndarray:
         """(H, W, 3) uint8 view (or (H, W) mask, `nearest`: no new values) undistorted to the pinhole intrinsics
         (matrix()) at the same size (unchanged where the camera has no distortion)."""

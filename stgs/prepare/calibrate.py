@@ -18,10 +18,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from stgs.data.distortion import MODELS, Intrinsics
+from stgs.data.distortion import Intrinsics
+from stgs.data.frames import write_png
 from stgs.errors import StgsError
 from stgs.prepare.settings import CAMERA_MODELS, RIG_RADIUS
 
@@ -134,11 +134,9 @@ def calibrate(views: dict[str, dict[int, np.ndarray]], camera_model: str = "OPEN
         images = root / "images"
         names: dict[str, list[str]] = {}
         for cam, frames in views.items():
-            (images / cam).mkdir(parents=True, exist_ok=True)
             for index, rgb in frames.items():
                 name = f"{cam}/{index:06d}.png"
-                if not cv2.imwrite(str(images / name), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
-                    raise CalibrationError(f"{images / name}: cannot be written")
+                write_png(images / name, rgb)
                 names.setdefault(cam, []).append(name)
         database = root / "database.db"
         database.unlink(missing_ok=True)
@@ -194,8 +192,8 @@ def _read_back(rec, views: dict[str, dict[int, np.ndarray]], names: dict[str, li
             poses.setdefault(cam, []).append(np.asarray(im.cam_from_world().matrix(), dtype=np.float64))
             tracks[cam] = tracks.get(cam, 0) + int(im.num_points3D)
             c = rec.cameras[im.camera_id]
-            lenses[cam] = Intrinsics.from_colmap(c.model.name if c.model.name in MODELS else camera_model,
-                                                 int(c.width), int(c.height), [float(p) for p in c.params])
+            lenses[cam] = Intrinsics.from_colmap(c.model.name, int(c.width), int(c.height),
+                                                 [float(p) for p in c.params])
     missing = [cam for cam in views if cam not in poses]
     hint = ("try more calibration frames (--calib-frames), more overlap between neighbouring cameras, or lock "
             "exposure and white balance")

@@ -74,23 +74,31 @@ def write_model(folder: Path, lenses: dict[str, Intrinsics], viewmats: dict[str,
     rec.write_binary(str(folder))
 
 
+def _in_order(camera: str, frames: Iterator[tuple[int, np.ndarray]], first: int, count: int,
+              tick: Callable[[], None]) -> Iterator[tuple[int, np.ndarray]]:
+    """The frames `first`..`first + count - 1` as (position in the span, RGB), `tick` called once each is
+    handled; StgsError where the video skips a frame or ends early."""
+    expected = first
+    for index, rgb in frames:
+        if index != expected:
+            raise StgsError(f"camera {camera}: frame {expected} is missing from its video (got {index} next)")
+        yield index - first, rgb
+        tick()
+        expected += 1
+    if expected != first + count:
+        raise StgsError(f"camera {camera}: its video ends at frame {expected}, before {first + count}")
+
+
 def write_frames(root: Path, camera: str, frames: Iterator[tuple[int, np.ndarray]], first: int, count: int,
                  fix: Callable[[np.ndarray], np.ndarray], tick: Callable[[], None]) -> int:
     """The camera's frames `first`.. as `frameNNNNNN/images/<camera>.png` (N counted from the span's start),
     each through `fix`; frames already written (a resumed run) are skipped. Returns the bytes written."""
     written = 0
-    expected = first
-    for index, rgb in frames:
-        if index != expected:
-            raise StgsError(f"camera {camera}: frame {expected} is missing from its video (got {index} next)")
-        expected += 1
-        path = root / f"frame{index - first:06d}" / "images" / f"{camera}.png"
+    for position, rgb in _in_order(camera, frames, first, count, tick):
+        path = root / f"frame{position:06d}" / "images" / f"{camera}.png"
         if not path.is_file():
             write_png(path, fix(rgb))
         written += path.stat().st_size
-        tick()
-    if expected != first + count:
-        raise StgsError(f"camera {camera}: its video ends at frame {expected}, before {first + count}")
     return written
 
 
@@ -103,23 +111,16 @@ def write_video(root: Path, camera: str, frames: Iterator[tuple[int, np.ndarray]
         return path.stat().st_size
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.tmp.mkv")
-    expected = first
     try:
         with av.open(str(tmp), "w") as container:
             stream = container.add_stream("ffv1", rate=rate)
             stream.pix_fmt = "bgr0"
-            for index, rgb in frames:
-                if index != expected:
-                    raise StgsError(f"camera {camera}: frame {expected} is missing from its video (got {index})")
-                expected += 1
+            for position, rgb in _in_order(camera, frames, first, count, tick):
                 view = fix(rgb)
-                if expected == first + 1:
+                if position == 0:
                     stream.width, stream.height = view.shape[1], view.shape[0]
                 container.mux(stream.encode(av.VideoFrame.from_ndarray(view, format="rgb24")))
-                tick()
             container.mux(stream.encode())
-        if expected != first + count:
-            raise StgsError(f"camera {camera}: its video ends at frame {expected}, before {first + count}")
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)

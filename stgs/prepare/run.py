@@ -83,9 +83,8 @@ def _calibration_json(cal: Calibration) -> dict:
 
 
 def _calibration_from_json(d: dict) -> Calibration:
-    lenses = {k: Intrinsics(v["model"], v["width"], v["height"], v["fx"], v["fy"], v["cx"], v["cy"],
-                            tuple(v["coefficients"])) for k, v in d["intrinsics"].items()}
-    return Calibration(lenses, {k: np.array(v, dtype=np.float64) for k, v in d["viewmats"].items()},
+    return Calibration({k: Intrinsics.from_json(v) for k, v in d["intrinsics"].items()},
+                       {k: np.array(v, dtype=np.float64) for k, v in d["viewmats"].items()},
                        np.array(d["points"], dtype=np.float64).reshape(-1, 3),
                        np.array(d["colours"], dtype=np.uint8).reshape(-1, 3), d["report"])
 
@@ -171,12 +170,11 @@ def prepare(config: PrepareConfig) -> dict:
                         "undistorted_to": "PINHOLE (the same fx, fy, cx, cy)"},
         "layout": config.layout,
         "frames_bytes": int(sum(state["done"].values())),
-        "capture_bytes": 0,
         "timings": {k: round(v, 3) for k, v in timings.items()},
     }
     (stage / STATE).unlink()
     cal_path.unlink()
-    report["capture_bytes"] = _tree_bytes(stage)
+    report["capture_bytes"] = _tree_bytes(stage)  # the capture as it stays: the model and the frames
     write_json(stage / REPORT, report)
     os.replace(stage, out)
     return report
