@@ -63,7 +63,14 @@ def run_inspect(args: argparse.Namespace) -> int:
 
 
 def add_prepare(sub: argparse._SubParsersAction) -> None:
-    from stgs.prepare.settings import CAMERA_MODELS, DEFAULT_CALIB_FRAMES, LAYOUTS, RIG_RADIUS, SYNC_METHODS
+    from stgs.prepare.settings import (
+        CAMERA_MODELS,
+        DEFAULT_CALIB_FRAMES,
+        DEFAULT_CAMERA_MODEL,
+        LAYOUTS,
+        RIG_RADIUS,
+        SYNC_METHODS,
+    )
 
     p = sub.add_parser("prepare", help="turn one video per camera into a synchronised, calibrated capture",
                        description="Check the footage, synchronise it (audio, frame index or given offsets), "
@@ -81,8 +88,11 @@ def add_prepare(sub: argparse._SubParsersAction) -> None:
                    help="frames each named camera started after the first; these override the audio's")
     p.add_argument("--calib-frames", type=positive_int, default=DEFAULT_CALIB_FRAMES,
                    help=f"frames spread over the span that the rig is calibrated on (default {DEFAULT_CALIB_FRAMES})")
-    p.add_argument("--camera-model", choices=CAMERA_MODELS, default="OPENCV",
-                   help="COLMAP lens model fitted per camera (default OPENCV)")
+    p.add_argument("--camera-model", choices=CAMERA_MODELS, default=DEFAULT_CAMERA_MODEL,
+                   help=f"COLMAP lens model fitted per camera (default {DEFAULT_CAMERA_MODEL})")
+    p.add_argument("--intrinsics", type=Path, metavar="FILE",
+                   help='known lenses, kept as they are: {"lens": {...}} for every camera, {"cameras": {name: '
+                   '{...}}} for some, or an earlier prepare_report.json (docs/CAPTURE.md, "Known lenses")')
     p.add_argument("--start", type=seconds, default=0.0, help="seconds into the common span to begin at")
     p.add_argument("--seconds", type=positive_seconds, help="length to keep (default: to the end of the span)")
     p.add_argument("--rig-radius", type=positive_float, default=RIG_RADIUS,
@@ -106,6 +116,8 @@ def describe_prepare(report: dict, out: Path) -> str:
              f"mean reprojection error {cal['mean_reprojection_error_px']:.3f} px, {cal['points']} points, "
              f"{cal['seconds']:.1f} s",
              "  tracks per camera: " + ", ".join(f"{k} {v}" for k, v in cal["tracks"].items()),
+             f"  lenses: {sum(v == 'given' for v in cal['lenses'].values())} given, "
+             f"{sum(v == 'fitted' for v in cal['lenses'].values())} fitted ({cal['camera_model']})",
              f"  wrote {report['capture_bytes'] / 1e6:.1f} MB in {report['timings']['frames_s']:.1f} s; "
              f"train it with: stgs train {out} MODEL_DIR"]
     return "\n".join(lines)
@@ -123,7 +135,8 @@ def run_prepare(args: argparse.Namespace) -> int:
         raise UsageError(f"--offsets: {exc}") from None
     *videos, out = args.inputs
     config = PrepareConfig(videos=videos, out=out, layout=args.layout, sync=args.sync, offsets=offsets,
-                           calib_frames=args.calib_frames, camera_model=args.camera_model, start=args.start,
+                           calib_frames=args.calib_frames, camera_model=args.camera_model,
+                           intrinsics=args.intrinsics, start=args.start,
                            seconds=args.seconds, rig_radius=args.rig_radius, resume=args.resume,
                            progress=not args.quiet)
     report = prepare(config)

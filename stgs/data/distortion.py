@@ -16,6 +16,11 @@ import torch
 PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
 MODELS = (*PINHOLE_MODELS, "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE")
 """The camera models captures may use (COLMAP's names); the distorted ones are undistorted once into a cache."""
+_COEFFICIENTS = {"SIMPLE_PINHOLE": 0, "PINHOLE": 0, "SIMPLE_RADIAL": 4, "RADIAL": 4, "OPENCV": 4, "FULL_OPENCV": 8,
+                 "OPENCV_FISHEYE": 4}
+"""Length of Intrinsics.coefficients per model (OpenCV's order; the radial models' unused terms zero)."""
+_GIVEN = {"SIMPLE_RADIAL": 1, "RADIAL": 2}
+"""Coefficients a radial model carries: the rest of its stored ones are zero."""
 
 
 @dataclass
@@ -75,9 +80,50 @@ class Intrinsics:
 
     @classmethod
     def from_json(cls, d: dict) -> Intrinsics:
-        """The inverse of to_json."""
-        return cls(d["model"], int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]), float(d["cx"]),
-                   float(d["cy"]), tuple(float(c) for c in d["coefficients"]))
+        """The inverse of to_json, checked as from_colmap checks (ValueError naming the field at fault). A
+        radial model's coefficients may be given without their trailing zeros."""
+        if not isinstance(d, dict):
+            raise ValueError("a lens must be an object with model, width, height, fx, fy, cx, cy, coefficients")
+        try:
+            model, width, height = str(d["model"]), int(d["width"]), int(d["height"])
+            fx, fy, cx, cy = (float(d[k]) for k in ("fx", "fy", "cx", "cy"))
+            coefficients = [float(c) for c in d.get("coefficients", [])]
+        except KeyError as exc:
+            raise ValueError(f"a lens needs the field {exc.args[0]!r}") from None
+        except (TypeError, ValueError):
+            raise ValueError("a lens's width and height must be integers, its fx, fy, cx, cy and coefficients "
+                             "numbers") from None
+        if model not in MODELS:
+            raise ValueError(f"the {model} model is not supported (supported: {', '.join(MODELS)})")
+        if not (width > 0 and height > 0):
+            raise ValueError(f"a lens's width and height must be positive, not {width}x{height}")
+        stored, given = _COEFFICIENTS[model], _GIVEN.get(model, _COEFFICIENTS[model])
+        if len(coefficients) not in (0, given, stored) or any(coefficients[given:]):
+            raise ValueError(f"the {model} model takes {given} coefficients, not {coefficients}")
+        if (model.startswith("SIMPLE_") or model == "RADIAL") and fx != fy:
+            raise ValueError(f"the {model} model has one focal length: fx {fx} and fy {fy} differ")
+        out = cls(model, width, height, fx, fy, cx, cy, tuple(coefficients + [0.0] * (stored - len(coefficients))))
+        return cls.from_colmap(model, width, height, out.colmap_params())
+
+    def colmap_params(self) -> list[float]:
+        """COLMAP's parameter list for this model (the inverse of from_colmap)."""
+        k = list(self.coefficients)
+        if self.model == "SIMPLE_PINHOLE":
+            return [self.fx, self.cx, self.cy]
+        if self.model == "SIMPLE_RADIAL":
+            return [self.fx, self.cx, self.cy, k[0]]
+        if self.model == "RADIAL":
+            return [self.fx, self.cx, self.cy, k[0], k[1]]
+        return [self.fx, self.fy, self.cx, self.cy, *k]
+
+    def resized(self, width: int, height: int) -> Intrinsics:
+        """The same lens on frames scaled to width x height (the same aspect; ValueError otherwise)."""
+        sx, sy = width / self.width, height / self.height
+        if abs(sx / sy - 1) > 2e-3:
+            raise ValueError(f"a lens calibrated at {self.width}x{self.height} does not fit {width}x{height} "
+                             "frames (another aspect ratio)")
+        return Intrinsics(self.model, width, height, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy,
+                          self.coefficients)
 
     def undistort(self, rgb: np.ndarray, nearest: bool = False) -> np.ndarray:
         """(H, W, 3) uint8 view (or (H, W) mask, `nearest`: no new values) undistorted to the pinhole intrinsics

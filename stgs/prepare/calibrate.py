@@ -12,6 +12,7 @@ at a mean distance of RIG_RADIUS from their centroid.
 from __future__ import annotations
 
 import itertools
+import json
 import math
 import tempfile
 from collections.abc import Callable
@@ -23,16 +24,58 @@ import numpy as np
 from stgs.data.distortion import Intrinsics
 from stgs.data.frames import write_png
 from stgs.errors import StgsError
-from stgs.prepare.settings import CAMERA_MODELS, RIG_RADIUS
+from stgs.prepare.settings import CAMERA_MODELS, DEFAULT_CAMERA_MODEL, RIG_RADIUS
 
 SIFT_PEAK_THRESHOLD = 0.002
 """SIFT's contrast threshold: a third of COLMAP's default, so that dim, low-resolution rigs yield enough
 features (docs/BENCHMARKS.md, "Captures")."""
 MIN_CAMERAS = 3
+ROBUST_SCALE_PX = 0.25
+"""Scale of the Cauchy loss in the final bundle adjustments: residuals beyond a few times this weigh little."""
+OUTLIER_PX = 1.0
+"""Observations that reproject farther than this after a robust adjustment are dropped before the next."""
+MIN_TRIANGULATION_DEG = 1.0
+"""Points seen under a smaller angle are dropped with the outliers (their depth is unknown)."""
+REFINE_ROUNDS = 4
 
 
 class CalibrationError(StgsError):
     """The rig could not be calibrated: too few cameras registered, or a camera that did not."""
+
+
+class LensFileError(StgsError):
+    """A file of known lenses that cannot be used: not JSON, a lens with bad fields, a camera the footage lacks,
+    a lens of another aspect ratio than its camera's frames."""
+
+
+def read_lenses(path: Path, sizes: dict[str, tuple[int, int]]) -> dict[str, Intrinsics]:
+    """Known lenses from `path`, per camera of `sizes` (name -> (width, height) of its upright frames), each
+    resized to its camera's frames: {"lens": {...}} for every camera, {"cameras": {name: {...}}} for some or all
+    (the others are fitted), or a prepare_report.json, whose fitted lenses are reused. A lens is
+    Intrinsics.to_json's object."""
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise LensFileError(f"{path}: cannot be read as JSON ({exc})") from None
+    if isinstance(doc, dict) and isinstance(doc.get("calibration"), dict):
+        doc = {"cameras": doc["calibration"].get("intrinsics")}
+    if isinstance(doc, dict) and "lens" in doc:
+        given = dict.fromkeys(sizes, doc["lens"])
+    elif isinstance(doc, dict) and isinstance(doc.get("cameras"), dict):
+        given = doc["cameras"]
+        unknown = sorted(set(given) - set(sizes))
+        if unknown:
+            raise LensFileError(f"{path}: camera {unknown[0]!r} is not in the footage (its cameras: "
+                                f"{', '.join(sizes)})")
+    else:
+        raise LensFileError(f'{path}: expected {{"lens": {{...}}}} or {{"cameras": {{name: {{...}}}}}}')
+    lenses = {}
+    for cam, d in given.items():
+        try:
+            lenses[cam] = Intrinsics.from_json(d).resized(*sizes[cam])
+        except ValueError as exc:
+            raise LensFileError(f"{path}: camera {cam}: {exc}") from None
+    return lenses
 
 
 @dataclass
@@ -119,10 +162,13 @@ def normalise(viewmats: dict[str, np.ndarray], points: np.ndarray,
     return out, (scale * (turn @ (points - origin).T).T if len(points) else points.reshape(0, 3))
 
 
-def calibrate(views: dict[str, dict[int, np.ndarray]], camera_model: str = "OPENCV",
-              radius: float = RIG_RADIUS, work: Path | None = None) -> Calibration:
+def calibrate(views: dict[str, dict[int, np.ndarray]], camera_model: str = DEFAULT_CAMERA_MODEL,
+              radius: float = RIG_RADIUS, work: Path | None = None,
+              lenses: dict[str, Intrinsics] | None = None) -> Calibration:
     """Calibrate the rig from `views` (camera -> frame index -> (H, W, 3) uint8 RGB, the same frames for every
-    camera) with pycolmap; `work` keeps COLMAP's database and images (a temporary folder otherwise)."""
+    camera) with pycolmap; `work` keeps COLMAP's database and images (a temporary folder otherwise). A camera in
+    `lenses` keeps that lens (at its frames' size): only its pose is solved for; the others' are fitted as
+    `camera_model`."""
     import pycolmap
 
     if camera_model not in CAMERA_MODELS:
@@ -149,6 +195,7 @@ def calibrate(views: dict[str, dict[int, np.ndarray]], camera_model: str = "OPEN
             extraction.num_threads = 1  # one thread throughout: the same footage gives the same calibration
             pycolmap.extract_features(database, images, camera_mode=pycolmap.CameraMode.PER_FOLDER,
                                       reader_options=reader, extraction_options=extraction)
+            known = _give_lenses(pycolmap, database, lenses or {})
             frames = sorted({i for f in views.values() for i in f})
             pairs = root / "pairs.txt"
             # Across cameras only at one instant (people move); across instants only within a camera, whose
@@ -161,6 +208,7 @@ def calibrate(views: dict[str, dict[int, np.ndarray]], camera_model: str = "OPEN
             matching.num_threads = 1
             pycolmap.match_image_pairs(database, matching_options=matching,
                                        pairing_options=pycolmap.ImportedPairingOptions(match_list_path=str(pairs)))
+            dropped_pairs = _drop_pairs_the_lenses_deny(pycolmap, database, known)
             options = pycolmap.IncrementalPipelineOptions()
             options.mapper.init_min_num_inliers = 30
             options.num_threads = 1
@@ -169,21 +217,99 @@ def calibrate(views: dict[str, dict[int, np.ndarray]], camera_model: str = "OPEN
             options.min_model_size = MIN_CAMERAS
             options.random_seed = 0
             options.mapper.random_seed = 0
+            options.constant_cameras = known
+            if known and len(known) == len(views):  # nothing to fit: registration must not refine them either
+                options.ba_refine_focal_length = options.ba_refine_extra_params = False
+                options.mapper.abs_pose_refine_focal_length = options.mapper.abs_pose_refine_extra_params = False
             (root / "sparse").mkdir(exist_ok=True)
             models = pycolmap.incremental_mapping(database, images, root / "sparse", options=options)
+            best = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
+            refined = _refine(pycolmap, best, known) if best is not None else {}
         finally:
             restore()
-        best = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
-        return _read_back(best, views, names, camera_model, radius)
+        cal = _read_back(best, views, names, camera_model, radius, lenses or {})
+        cal.report.update(refined, pairs_denied_by_lenses=dropped_pairs)
+        return cal
+
+
+def _drop_pairs_the_lenses_deny(pycolmap, database: Path, known: set[int]) -> int:
+    """Forget the verified matches between two cameras of known lenses that only a fundamental matrix explains
+    (COLMAP's UNCALIBRATED pairs): with the lenses right, true matches fit an essential matrix. On repeated
+    structure (a dome's panels) such pairs are chance alignments that place cameras at a symmetric pose. Their
+    number."""
+    if len(known) < 2:
+        return 0
+    db = pycolmap.Database.open(database)
+    try:
+        camera_of = {im.image_id: im.camera_id for im in db.read_all_images()}
+        dropped = 0
+        for pair, geometry in zip(*db.read_two_view_geometries(), strict=True):
+            a, b = pycolmap.pair_id_to_image_pair(pair)
+            ca, cb = camera_of[a], camera_of[b]
+            if (ca != cb and ca in known and cb in known
+                    and geometry.config == pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED):
+                db.delete_two_view_geometry(a, b)
+                dropped += 1
+    finally:
+        db.close()
+    return dropped
+
+
+def _refine(pycolmap, rec, constant: set[int]) -> dict:
+    """Robust bundle adjustment of the mapper's reconstruction: Cauchy-weighted rounds, each followed by dropping
+    the observations that still reproject farther than OUTLIER_PX, until none is dropped. The mapper's own
+    adjustments are least squares, which the few bad tracks a scene always has (moving people, occlusion
+    corners) pull away from the rig (docs/BENCHMARKS.md, "Captures"). Cameras in `constant` keep their lens."""
+    options = pycolmap.BundleAdjustmentOptions()
+    options.print_summary = False
+    options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    options.ceres.loss_function_scale = ROBUST_SCALE_PX
+    options.ceres.solver_options.max_num_iterations = 200
+    options.ceres.solver_options.num_threads = 1
+    dropped, rounds = 0, 0
+    while rounds < REFINE_ROUNDS:
+        rounds += 1
+        config = pycolmap.BundleAdjustmentConfig()
+        for image_id in rec.reg_image_ids():
+            config.add_image(image_id)
+        for camera_id in constant:
+            if camera_id in rec.cameras:
+                config.set_constant_cam_intrinsics(camera_id)
+        config.fix_gauge(pycolmap.BundleAdjustmentGauge.THREE_POINTS)
+        pycolmap.create_default_bundle_adjuster(options, config, rec).solve()
+        now = pycolmap.ObservationManager(rec).filter_all_points3D(OUTLIER_PX, MIN_TRIANGULATION_DEG)
+        dropped += now
+        if now == 0:
+            break
+    return {"refine_rounds": rounds, "observations_dropped": dropped}
+
+
+def _give_lenses(pycolmap, database: Path, lenses: dict[str, Intrinsics]) -> set[int]:
+    """Replace the database's cameras of the cameras in `lenses` (one folder each) by those lenses; their
+    COLMAP camera ids."""
+    if not lenses:
+        return set()
+    db = pycolmap.Database.open(database)
+    try:
+        ids = {im.name.split("/")[0]: im.camera_id for im in db.read_all_images()}
+        for cam, lens in lenses.items():
+            colmap = pycolmap.Camera(model=lens.model, width=lens.width, height=lens.height,
+                                     params=lens.colmap_params())
+            colmap.camera_id = ids[cam]
+            colmap.has_prior_focal_length = True
+            db.update_camera(colmap)
+    finally:
+        db.close()
+    return {ids[cam] for cam in lenses}
 
 
 def _read_back(rec, views: dict[str, dict[int, np.ndarray]], names: dict[str, list[str]], camera_model: str,
-               radius: float) -> Calibration:
+               radius: float, lenses: dict[str, Intrinsics]) -> Calibration:
     total = len(views)
     by_name = {im.name: im for im in rec.images.values()} if rec is not None else {}
     poses: dict[str, list[np.ndarray]] = {}
     tracks: dict[str, int] = {}
-    lenses: dict[str, Intrinsics] = {}
+    fitted: dict[str, Intrinsics] = {}
     for cam, files in names.items():
         for name in files:
             im = by_name.get(name)
@@ -192,7 +318,7 @@ def _read_back(rec, views: dict[str, dict[int, np.ndarray]], names: dict[str, li
             poses.setdefault(cam, []).append(np.asarray(im.cam_from_world().matrix(), dtype=np.float64))
             tracks[cam] = tracks.get(cam, 0) + int(im.num_points3D)
             c = rec.cameras[im.camera_id]
-            lenses[cam] = Intrinsics.from_colmap(c.model.name, int(c.width), int(c.height),
+            fitted[cam] = Intrinsics.from_colmap(c.model.name, int(c.width), int(c.height),
                                                  [float(p) for p in c.params])
     missing = [cam for cam in views if cam not in poses]
     hint = ("try more calibration frames (--calib-frames), more overlap between neighbouring cameras, or lock "
@@ -216,10 +342,11 @@ def _read_back(rec, views: dict[str, dict[int, np.ndarray]], names: dict[str, li
                                         default=0.0))) for cam in views}
     viewmats, points = normalise(viewmats, points, radius)
     report = {"registered": len(poses), "total": total, "camera_model": camera_model,
+              "lenses": {cam: "given" if cam in lenses else "fitted" for cam in views},
               "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
               "points": len(points), "tracks": tracks, "pose_spread_deg": spread,
               "rig_radius": radius}
-    return Calibration(lenses, viewmats, points, colours, report)
+    return Calibration(fitted, viewmats, points, colours, report)
 
 
 def _angle(a: np.ndarray, b: np.ndarray) -> float:

@@ -15,7 +15,7 @@ from tqdm import tqdm
 
 from stgs.data.distortion import Intrinsics
 from stgs.errors import StgsError
-from stgs.prepare.calibrate import Calibration, calibrate, calibration_frames
+from stgs.prepare.calibrate import Calibration, calibrate, calibration_frames, read_lenses
 from stgs.prepare.footage import Footage, check_rates, find_videos, probe, read_frames, read_frames_at
 from stgs.prepare.output import (
     REPORT,
@@ -28,7 +28,7 @@ from stgs.prepare.output import (
     write_model,
     write_video,
 )
-from stgs.prepare.settings import DEFAULT_CALIB_FRAMES, LAYOUTS, RIG_RADIUS
+from stgs.prepare.settings import DEFAULT_CALIB_FRAMES, DEFAULT_CAMERA_MODEL, LAYOUTS, RIG_RADIUS
 from stgs.prepare.sync import common_span, find_offsets
 
 
@@ -48,8 +48,10 @@ class PrepareConfig:
     """Offsets in frames given by hand, by camera; they override the audio's."""
     calib_frames: int = DEFAULT_CALIB_FRAMES
     """Frames spread over the span that the rig is calibrated on."""
-    camera_model: str = "OPENCV"
+    camera_model: str = DEFAULT_CAMERA_MODEL
     """COLMAP's lens model fitted per camera."""
+    intrinsics: Path | None = None
+    """A JSON file of known lenses (stgs.prepare.calibrate.read_lenses): those cameras keep them."""
     start: float = 0.0
     """Seconds from the start of the common span where the capture begins."""
     seconds: float | None = None
@@ -69,11 +71,12 @@ class PrepareConfig:
             raise StgsError(f"rig_radius must be a positive number, not {self.rig_radius}")
 
 
-def _fingerprint(config: PrepareConfig, footage: list[Footage], span: dict) -> dict:
+def _fingerprint(config: PrepareConfig, footage: list[Footage], span: dict, lenses: dict[str, Intrinsics]) -> dict:
     files = [{"path": str(f.path.resolve()), "bytes": f.path.stat().st_size,
               "mtime_ns": f.path.stat().st_mtime_ns} for f in footage]
     return {"videos": files, "span": span, "layout": config.layout, "calib_frames": config.calib_frames,
-            "camera_model": config.camera_model, "rig_radius": config.rig_radius}
+            "camera_model": config.camera_model, "rig_radius": config.rig_radius,
+            "lenses": {k: v.to_json() for k, v in lenses.items()}}
 
 
 def _calibration_json(cal: Calibration) -> dict:
@@ -108,8 +111,11 @@ def prepare(config: PrepareConfig) -> dict:
     rate = check_rates(footage)
     offsets = find_offsets(footage, rate, config.sync, config.offsets)
     span = common_span(footage, offsets, rate, config.start, config.seconds)
+    lenses = {}
+    if config.intrinsics is not None:
+        lenses = read_lenses(config.intrinsics, {f.camera: (f.width, f.height) for f in footage})
     timings["check_and_sync_s"] = time.perf_counter() - t0
-    fingerprint = _fingerprint(config, footage, span.to_json())
+    fingerprint = _fingerprint(config, footage, span.to_json(), lenses)
     state = read_state(stage) if config.resume else None
     if config.resume and state is None and stage.exists():
         shutil.rmtree(stage)  # killed before its first record: nothing in it can be trusted
@@ -127,7 +133,7 @@ def prepare(config: PrepareConfig) -> dict:
             views[f.camera] = {i: got[span.first_frame[f.camera] + i] for i in picks}
         if config.progress:
             print(f"calibrating {len(footage)} cameras on {len(picks)} frame(s) with COLMAP", flush=True)
-        cal = calibrate(views, config.camera_model, config.rig_radius)
+        cal = calibrate(views, config.camera_model, config.rig_radius, lenses=lenses)
         cal.report["frames"] = picks
         cal.report["seconds"] = round(time.perf_counter() - t1, 3)
     stage.mkdir(parents=True, exist_ok=True)

@@ -149,6 +149,50 @@ def test_a_distorted_capture_reads_back_undistorted(tmp_path, model, coefficient
     assert np.array_equal(open_dataset(root, cache=tmp_path / "cache").pixels(0, name), ds.pixels(0, name))
 
 
+@pytest.mark.parametrize("model,coefficients", [
+    ("SIMPLE_PINHOLE", ()), ("PINHOLE", ()), ("SIMPLE_RADIAL", (-0.08,)), ("RADIAL", (-0.08, 0.02)),
+    ("OPENCV", (-0.08, 0.02, 1e-3, -5e-4)), ("FULL_OPENCV", (-0.08, 0.02, 1e-3, -5e-4, 0.01, 0.0, 0.0, 0.0)),
+    ("OPENCV_FISHEYE", (0.05, -0.01, 0.002, -0.001)),
+])
+def test_a_lens_given_as_json_projects_as_colmap_projects_it_at_any_frame_size(model, coefficients):
+    from stgs.data.distortion import Intrinsics
+
+    fy = 380.0 if model in ("PINHOLE", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE") else 400.0
+    lens = Intrinsics.from_json({"model": model, "width": 640, "height": 360, "fx": 400.0, "fy": fy, "cx": 321.5,
+                                 "cy": 178.25, "coefficients": list(coefficients)})
+    assert Intrinsics.from_json(lens.to_json()) == lens
+    point = np.array([[0.3, -0.2, 1.0], [-0.5, 0.25, 2.0]])
+    full = pycolmap.Camera(model=model, width=640, height=360, params=lens.colmap_params())
+    assert full.verify_params() and full.params_info.count(",") + 1 == len(lens.colmap_params())
+    # Half the resolution (COLMAP's convention: the image's edges at 0 and W) projects every point to half the
+    # pixel coordinates, distortion included.
+    half = lens.resized(320, 180)
+    small = pycolmap.Camera(model=model, width=320, height=180, params=half.colmap_params())
+    assert np.allclose(small.img_from_cam(point), full.img_from_cam(point) / 2, atol=1e-9)
+    with pytest.raises(ValueError, match="another aspect ratio"):
+        lens.resized(320, 320)
+
+
+@pytest.mark.parametrize("change,message", [
+    ({"model": "THIN_PRISM_FISHEYE"}, "model is not supported"),
+    ({"fx": -1.0, "fy": -1.0}, "focal lengths must be positive"),
+    ({"fy": 401.0}, "one focal length"),
+    ({"coefficients": [0.1, 0.2]}, "takes 1 coefficients"),
+    ({"coefficients": [float("nan")]}, "must be finite"),
+    ({"width": "wide"}, "must be integers"),
+    ({"cx": None}, "numbers"),
+])
+def test_a_bad_lens_is_an_error_naming_what_is_wrong(change, message):
+    from stgs.data.distortion import Intrinsics
+
+    good = {"model": "SIMPLE_RADIAL", "width": 640, "height": 360, "fx": 400.0, "fy": 400.0, "cx": 320.0,
+            "cy": 180.0, "coefficients": [0.01]}
+    with pytest.raises(ValueError, match=message):
+        Intrinsics.from_json({**good, **change})
+    with pytest.raises(ValueError, match="needs the field 'cy'"):
+        Intrinsics.from_json({k: v for k, v in good.items() if k != "cy"})
+
+
 def test_inspect_reports_the_capture_and_draws_the_rig(truth, tmp_path):
     root = write_capture(truth, tmp_path / "cap", "frames", model="OPENCV", coefficients=(-0.05, 0.0, 0.0, 0.0))
     run = run_stgs("inspect", str(root), "--json")
