@@ -1,12 +1,13 @@
 """Calibrating a still rig with COLMAP, through pycolmap (docs/CAPTURE.md, "Preparing raw footage").
 
 The views of a few frames spread over the span are reconstructed together: one camera model per video, its
-intrinsics shared by all of that video's frames; features matched between the cameras' views of one instant (the
-people in a scene move) and between one camera's views of different instants (a rig does not), which ties them
-into one reconstruction. Each camera's pose is the mean of its registered views' poses. The
-reconstruction's similarity is then fixed: +Y up (against the cameras' mean image-down axis), the origin at the
-point nearest every camera's optical axis (the rig's centre where the axes do not meet), and the camera centres
-at a mean distance of RIG_RADIUS from their centroid.
+intrinsics shared by all of that video's frames (or a known lens, held fixed); features matched between the
+cameras' views of one instant (the people in a scene move) and between one camera's views of different instants (a
+rig does not), which ties them into one reconstruction. Incremental mapping is followed by robust bundle adjustment
+(Cauchy loss, outlier observations dropped between rounds). Each camera's pose is the mean of its registered
+views' poses. The reconstruction's similarity is then fixed: +Y up (against the cameras' mean image-down axis),
+the origin at the point nearest every camera's optical axis (the rig's centre where the axes do not meet), and the
+camera centres at a mean distance of RIG_RADIUS from their centroid.
 """
 
 from __future__ import annotations
