@@ -209,7 +209,7 @@ def calibrate(views: dict[str, dict[int, np.ndarray]], camera_model: str = DEFAU
             matching.num_threads = 1
             pycolmap.match_image_pairs(database, matching_options=matching,
                                        pairing_options=pycolmap.ImportedPairingOptions(match_list_path=str(pairs)))
-            dropped_pairs = _drop_pairs_the_lenses_deny(pycolmap, database, known)
+            dropped_pairs = _drop_pairs_the_lenses_rule_out(pycolmap, database, known)
             options = pycolmap.IncrementalPipelineOptions()
             options.mapper.init_min_num_inliers = 30
             options.num_threads = 1
@@ -229,11 +229,11 @@ def calibrate(views: dict[str, dict[int, np.ndarray]], camera_model: str = DEFAU
         finally:
             restore()
         cal = _read_back(best, views, names, camera_model, radius, lenses or {})
-        cal.report.update(refined, pairs_denied_by_lenses=dropped_pairs)
+        cal.report.update(refined, pairs_ruled_out_by_lenses=dropped_pairs)
         return cal
 
 
-def _drop_pairs_the_lenses_deny(pycolmap, database: Path, known: set[int]) -> int:
+def _drop_pairs_the_lenses_rule_out(pycolmap, database: Path, known: set[int]) -> int:
     """Forget the verified matches between two cameras of known lenses that only a fundamental matrix explains
     (COLMAP's UNCALIBRATED pairs): with the lenses right, true matches fit an essential matrix. On repeated
     structure (a dome's panels) such pairs are chance alignments that place cameras at a symmetric pose. Their
@@ -310,7 +310,7 @@ def _read_back(rec, views: dict[str, dict[int, np.ndarray]], names: dict[str, li
     by_name = {im.name: im for im in rec.images.values()} if rec is not None else {}
     poses: dict[str, list[np.ndarray]] = {}
     tracks: dict[str, int] = {}
-    fitted: dict[str, Intrinsics] = {}
+    read: dict[str, Intrinsics] = {}
     for cam, files in names.items():
         for name in files:
             im = by_name.get(name)
@@ -319,7 +319,7 @@ def _read_back(rec, views: dict[str, dict[int, np.ndarray]], names: dict[str, li
             poses.setdefault(cam, []).append(np.asarray(im.cam_from_world().matrix(), dtype=np.float64))
             tracks[cam] = tracks.get(cam, 0) + int(im.num_points3D)
             c = rec.cameras[im.camera_id]
-            fitted[cam] = Intrinsics.from_colmap(c.model.name, int(c.width), int(c.height),
+            read[cam] = Intrinsics.from_colmap(c.model.name, int(c.width), int(c.height),
                                                  [float(p) for p in c.params])
     missing = [cam for cam in views if cam not in poses]
     hint = ("try more calibration frames (--calib-frames), more overlap between neighbouring cameras, or lock "
@@ -347,7 +347,7 @@ def _read_back(rec, views: dict[str, dict[int, np.ndarray]], names: dict[str, li
               "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
               "points": len(points), "tracks": tracks, "pose_spread_deg": spread,
               "rig_radius": radius}
-    return Calibration(fitted, viewmats, points, colours, report)
+    return Calibration(read, viewmats, points, colours, report)
 
 
 def _angle(a: np.ndarray, b: np.ndarray) -> float:

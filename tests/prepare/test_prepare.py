@@ -261,5 +261,9 @@ def test_json_report_names_every_stage(prepared):
     report = json.loads((prepared / "prepare_report.json").read_text())
     assert {"footage", "fps", "sync", "span", "calibration", "layout", "frames_bytes", "capture_bytes",
             "timings"} <= set(report)
-    assert report["calibration"]["mean_reprojection_error_px"] < 2.0
+    calibration = report["calibration"]
+    assert calibration["mean_reprojection_error_px"] < 2.0
+    assert set(calibration["lenses"].values()) == {"fitted"} and calibration["camera_model"] == "SIMPLE_RADIAL"
+    assert 1 <= calibration["refine_rounds"] <= 4 and calibration["observations_dropped"] > 0
+    assert calibration["pairs_ruled_out_by_lenses"] == 0  # none given
     assert Path(report["footage"][0]["path"]).name == "cam00.mp4"
