@@ -268,7 +268,7 @@ def _refine(pycolmap, rec, constant: set[int]) -> dict:
     options.ceres.solver_options.max_num_iterations = 200
     options.ceres.solver_options.num_threads = 1
     dropped, rounds = 0, 0
-    while rounds < REFINE_ROUNDS:
+    while rounds < REFINE_ROUNDS and rec.num_points3D() >= 3:  # three points fix the gauge
         rounds += 1
         config = pycolmap.BundleAdjustmentConfig()
         for image_id in rec.reg_image_ids():
