@@ -57,8 +57,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     cameras = open_dataset(PANOPTIC).cameras(0)
     truth = {c.name: c.viewmat.double().numpy() for c in cameras}
-    given = {c.name: Intrinsics("PINHOLE", c.width, c.height, float(c.K[0, 0]), float(c.K[1, 1]), float(c.K[0, 2]),
-                                float(c.K[1, 2])) for c in cameras}
+    given = {c.name: Intrinsics.pinhole_of(c) for c in cameras}
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         footage = [probe(p) for p in write_videos(Path(tmp), args.frames)]

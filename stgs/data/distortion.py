@@ -105,6 +105,13 @@ class Intrinsics:
         out = cls(model, width, height, fx, fy, cx, cy, tuple(coefficients + [0.0] * (stored - len(coefficients))))
         return cls.from_colmap(model, width, height, out.colmap_params())
 
+    @classmethod
+    def pinhole_of(cls, camera) -> Intrinsics:
+        """The PINHOLE lens of a stgs.camera.Camera (its K at its size)."""
+        K = camera.K
+        return cls.from_colmap("PINHOLE", camera.width, camera.height,
+                               [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])])
+
     def colmap_params(self) -> list[float]:
         """COLMAP's parameter list for this model (the inverse of from_colmap)."""
         k = list(self.coefficients)

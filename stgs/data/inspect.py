@@ -21,9 +21,7 @@ def _intrinsics(ds, camera: Camera) -> dict:
     get = getattr(ds, "intrinsics", None)
     if get is not None:
         return get(camera.name).to_json()
-    K = camera.K
-    return Intrinsics.from_colmap("PINHOLE", camera.width, camera.height,
-                                  [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]).to_json()
+    return Intrinsics.pinhole_of(camera).to_json()
 
 
 def inspect_dataset(path: Path, kind: str = "auto", holdout: list[str] | None = None,

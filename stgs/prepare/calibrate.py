@@ -172,6 +172,7 @@ def calibrate(views: dict[str, dict[int, np.ndarray]], camera_model: str = DEFAU
     `camera_model`."""
     import pycolmap
 
+    lenses = lenses or {}
     if camera_model not in CAMERA_MODELS:
         raise CalibrationError(f"camera model must be one of {', '.join(CAMERA_MODELS)}, not {camera_model!r}")
     if len(views) < MIN_CAMERAS:
@@ -196,7 +197,7 @@ def calibrate(views: dict[str, dict[int, np.ndarray]], camera_model: str = DEFAU
             extraction.num_threads = 1  # one thread throughout: the same footage gives the same calibration
             pycolmap.extract_features(database, images, camera_mode=pycolmap.CameraMode.PER_FOLDER,
                                       reader_options=reader, extraction_options=extraction)
-            known = _give_lenses(pycolmap, database, lenses or {})
+            known = _give_lenses(pycolmap, database, lenses)
             frames = sorted({i for f in views.values() for i in f})
             pairs = root / "pairs.txt"
             # Across cameras only at one instant (people move); across instants only within a camera, whose
@@ -228,7 +229,7 @@ def calibrate(views: dict[str, dict[int, np.ndarray]], camera_model: str = DEFAU
             refined = _refine(pycolmap, best, known) if best is not None else {}
         finally:
             restore()
-        cal = _read_back(best, views, names, camera_model, radius, lenses or {})
+        cal = _read_back(best, views, names, camera_model, radius, lenses)
         cal.report.update(refined, pairs_ruled_out_by_lenses=dropped_pairs)
         return cal
 
@@ -267,16 +268,16 @@ def _refine(pycolmap, rec, constant: set[int]) -> dict:
     options.ceres.loss_function_scale = ROBUST_SCALE_PX
     options.ceres.solver_options.max_num_iterations = 200
     options.ceres.solver_options.num_threads = 1
+    config = pycolmap.BundleAdjustmentConfig()  # the registered views do not change between rounds
+    for image_id in rec.reg_image_ids():
+        config.add_image(image_id)
+    for camera_id in constant:
+        if camera_id in rec.cameras:
+            config.set_constant_cam_intrinsics(camera_id)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.THREE_POINTS)
     dropped, rounds = 0, 0
     while rounds < REFINE_ROUNDS and rec.num_points3D() >= 3:  # three points fix the gauge
         rounds += 1
-        config = pycolmap.BundleAdjustmentConfig()
-        for image_id in rec.reg_image_ids():
-            config.add_image(image_id)
-        for camera_id in constant:
-            if camera_id in rec.cameras:
-                config.set_constant_cam_intrinsics(camera_id)
-        config.fix_gauge(pycolmap.BundleAdjustmentGauge.THREE_POINTS)
         pycolmap.create_default_bundle_adjuster(options, config, rec).solve()
         now = pycolmap.ObservationManager(rec).filter_all_points3D(OUTLIER_PX, MIN_TRIANGULATION_DEG)
         dropped += now

@@ -119,7 +119,7 @@ def test_known_lenses_are_kept_and_only_the_poses_solved(rig, tmp_path):
 
 
 def test_a_prepared_capture_trains_as_the_scene_read_directly(rig, tmp_path):
-    """The issue's bar: within 0.5 dB of held-out PSNR. Training is chaotic (one seed moves a run by about half a
+    """Within 0.5 dB of held-out PSNR. Training is chaotic (one seed moves a run by about half a
     dB here), so each side is the mean of seeds 0-2."""
     from stgs.evaluate import evaluate
     from stgs.train import budget, train
