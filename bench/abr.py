@@ -79,11 +79,12 @@ CLASSIC = ("throughput", "bola", "bola-e", "dynamic")
 """The classic rules the targets are set against (the best of them per cell)."""
 RULES = {"throughput": ("throughput", None), "bola": ("bola", None), "bola-e": ("bola-e", None),
          "dynamic": ("dynamic", None), "mpc": ("mpc", AbrSettings()),
-         "mpc (PSNR utility)": ("mpc", AbrSettings(mpc_utility="psnr")),
+         "mpc (bit-rate utility)": ("mpc", AbrSettings(mpc_utility="bitrate")),
          "RobustMPC (PSNR, harmonic)": ("mpc", AbrSettings(mpc_predictor="harmonic", mpc_buffer_constraint=False,
                                                            mpc_utility="psnr"))}
-"""Every rule at its defaults; mpc also with rendered PSNR as its utility, and as RobustMPC was before its
-predictor and buffer constraint (the default until they were measured)."""
+"""Every rule at its defaults (mpc: the quality utility); mpc also with the bit-rate utility (the default until the
+auto ladder was measured), and as RobustMPC was before its predictor and buffer constraint (the default until they
+were measured)."""
 
 
 def generate(ts: TraceSet, seed: int) -> list[float]:
@@ -196,7 +197,7 @@ def paired_ci(a: list[float], b: list[float], confidence: float = 0.95) -> tuple
 def packed_scene(tmp: Path) -> Path:
     print(f"synthesising the demo scene and packing it at QPs {', '.join(map(str, FLOOR_QPS))} ...", flush=True)
     synthesize(PRESETS["demo"], tmp / "model", progress=False)
-    pack(tmp / "model", tmp / "dash", PackConfig(qps=FLOOR_QPS), progress=False)
+    pack(tmp / "model", tmp / "dash", PackConfig(ladder="fixed", qps=FLOOR_QPS), progress=False)
     return tmp / "dash"
 
 
@@ -259,6 +260,51 @@ def cell_table(ladder: Ladder, cs: CellSet, buffer_s: float) -> None:
               f"{m['rebuffer_pct']:.2f} | {m['bitrate']:.0f} | {m['psnr']:.2f} | {m['switches']:.1f} | "
               f"{m['startup']:.2f} | {dq[0]:+.3f} ± {dq[1]:.3f} | {ds[0]:+.2f} ± {ds[1]:.2f} | {rates[name]:.1f} |",
               flush=True)
+
+
+LADDER_RULES = ("mpc", "mpc (bit-rate utility)")
+"""The rules `--against` plays on both ladders: the default (quality utility) and its bit-rate utility."""
+
+
+def compare_ladders(dash: Path, against: Path) -> int:
+    """Two packagings of one model (e.g. its fixed ladder and its auto ladder) on the same generated traces, scaled
+    to `dash`'s top rung: per trace set, buffer and rule of LADDER_RULES, the mean rendered PSNR, bit rate and
+    rebuffering of each, and their pooled means over every cell."""
+    with tempfile.TemporaryDirectory(prefix="stgs-bench-abr-") as tmp:
+        ladders = {}
+        for tree in (dash, against):
+            ladders[tree] = long_ladder(load_ladder(str(tree)), (tree / MANIFEST).read_text(), SECONDS)
+        first = ladders[dash]
+        top = first.pres.ladder[-1].rep_id
+        top_kbps = (statistics.mean(first.keyframe_bytes) + statistics.mean(first.media_bytes[top])) * 8 \
+            / first.pres.segment_seconds / 1e3
+        print(f"\nMachine: {platform.machine()} {platform.processor() or ''}; A = {dash}, B = {against}, each repeated "
+              f"to {SECONDS} s; traces scaled to A's top rung, {top_kbps:.0f} kbit/s\n")
+        for tree, ladder in ladders.items():
+            print(f"{tree}: rungs {', '.join(r.rep_id for r in ladder.pres.ladder)}")
+        print("\n| trace set | buffer s | rule | PSNR A dB | PSNR B dB | ΔPSNR dB | kbit/s A | kbit/s B | B/A bytes "
+              "| rebuffer % A | rebuffer % B |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|")
+        pooled: dict[str, list[tuple[dict, dict]]] = {rule: [] for rule in LADDER_RULES}
+        for ts in SETS:
+            traces = trace_set(ts, top_kbps, Path(tmp))
+            for buffer_s in BUFFERS:
+                for rule in LADDER_RULES:
+                    a, b = (run(ladders[t], traces, ts, buffer_s, *RULES[rule]) for t in (dash, against))
+                    pooled[rule].append((a, b))
+                    print(f"| {ts.name} | {buffer_s:g} | {rule} | {a['psnr']:.2f} | {b['psnr']:.2f} "
+                          f"| {b['psnr'] - a['psnr']:+.2f} | {a['bitrate']:.0f} | {b['bitrate']:.0f} "
+                          f"| {b['bitrate'] / a['bitrate']:.2f} | {a['rebuffer_pct']:.2f} | {b['rebuffer_pct']:.2f} |",
+                          flush=True)
+        print("\n| ladder | rule | cells | mean PSNR dB | mean kbit/s | rebuffer % | QoE (PSNR) |")
+        print("|---|---|---|---|---|---|---|")
+        for side, tree in enumerate((dash, against)):
+            for rule, cells in pooled.items():
+                def mean(key: str, cells: list = cells, side: int = side) -> float:
+                    return statistics.mean(c[side][key] for c in cells)
+                print(f"| {'AB'[side]}: {tree.name} | {rule} | {len(cells)} | {mean('psnr'):.2f} "
+                      f"| {mean('bitrate'):.0f} | {mean('rebuffer_pct'):.2f} | {mean('qoe_psnr'):.2f} |")
+    return 0
 
 
 def main(dash: Path | None, trace_dirs: list[Path] | None = None, latency_ms: float = 40.0,

@@ -26,7 +26,7 @@ from pathlib import Path
 import torch
 
 from bench import ms_cell
-from stgs.client.view import read_scene_cameras
+from stgs.camera import read_scene_cameras
 from stgs.model.store import load_gop, load_static, read_meta
 from stgs.model.view import guarded_opacities, splat_over, static_backdrops, static_view
 from stgs.render.native import bin_native, f32

@@ -87,7 +87,7 @@ def pack_times(model: Path, tmp: Path) -> tuple[float, float]:
     times = []
     for codecs in (("hevc",), ("hevc", "av1")):
         start = time.perf_counter()
-        pack(model, tmp / "-".join(codecs), PackConfig(codecs=codecs, jobs=2), progress=False)
+        pack(model, tmp / "-".join(codecs), PackConfig(ladder="fixed", codecs=codecs, jobs=2), progress=False)
         times.append(time.perf_counter() - start)
     return times[0], times[1]
 
@@ -95,7 +95,7 @@ def pack_times(model: Path, tmp: Path) -> tuple[float, float]:
 def report(model: Path, gops: int, vp9: bool) -> None:
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
-        packer = Packer(model, tmp / "work", PackConfig(codecs=("hevc", "av1"), jobs=1), progress=False)
+        packer = Packer(model, tmp / "work", PackConfig(ladder="fixed", codecs=("hevc", "av1"), jobs=1), progress=False)
         g, side = packer.meta.shape.gop_size, packer.side
         rows: list[dict] = []
         steps = []

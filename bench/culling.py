@@ -18,8 +18,7 @@ from pathlib import Path
 
 import torch
 
-from stgs.camera import resize
-from stgs.client.view import read_scene_cameras
+from stgs.camera import read_scene_cameras, resize
 from stgs.model.native_deform import PackedWeights, deform_native
 from stgs.model.store import load_gop, read_meta
 from stgs.model.view import guard_limits, splat

@@ -23,8 +23,7 @@ import torch
 
 from bench.playlog_stats import frame_stats
 from bench.realtime import loop_model, play_process
-from stgs.camera import Camera, resize
-from stgs.client.view import read_scene_cameras
+from stgs.camera import Camera, read_scene_cameras, resize
 from stgs.evaluate import packaged_gops
 from stgs.metrics import psnr
 from stgs.model.native_deform import runnable_precisions
@@ -69,7 +68,7 @@ async def measure(model: Path, work: Path, seconds: float) -> list[str]:
     looped = loop_model(model, work / f"{name}-looped", seconds)
     dash = work / f"{name}-dash"
     qps = sorted({v.get("qp", BASE["qp"]) for v in VARIANTS})
-    pack(looped, dash, PackConfig(qps=tuple(qps), resume=True), progress=False)
+    pack(looped, dash, PackConfig(ladder="fixed", qps=tuple(qps), resume=True), progress=False)
     cameras = read_scene_cameras(dash)
     n = read_meta(looped).shape.capacity
     rows = []

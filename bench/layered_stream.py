@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.realtime import play_process
-from stgs.client.view import read_scene_cameras
+from stgs.camera import read_scene_cameras
 from stgs.packager.manifest import kb_per_frame
 from stgs.server.app import loopback
 from stgs.tree import CAMERAS, MANIFEST, STATS

@@ -30,7 +30,8 @@ SETTINGS = (True, False)
 
 def rows_for(model_dir: Path, qps: list[int], gops: int, repeats: int) -> list[dict]:
     with tempfile.TemporaryDirectory() as tmp:
-        packer = Packer(model_dir, Path(tmp) / "dash", PackConfig(qps=tuple(qps), codecs=("hevc",), jobs=1),
+        packer = Packer(model_dir, Path(tmp) / "dash", PackConfig(ladder="fixed",
+                                                                  qps=tuple(qps), codecs=("hevc",), jobs=1),
                         progress=False)
         shape, side = packer.meta.shape, packer.side
         encoders = {on: FeatureEncoder(packer.timing, shape.num_features, packer.cfg.preset_of, on) for on in SETTINGS}

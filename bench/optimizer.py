@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 
 from bench import capacity_parser, ms_cell, print_capacity_table, torch_table_header
-from stgs.client.view import read_scene_cameras
+from stgs.camera import read_scene_cameras
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.store import load_gop, read_meta
 from stgs.model.view import splat

@@ -34,7 +34,7 @@ def codec_rows(model_dir: Path, out: Path, qps: list[int], presets: list[str], s
     """One row per (preset, QP): sizes, PSNRs and codec times, averaged over GOPs."""
     rows = []
     for preset in presets:
-        cfg = PackConfig(qps=tuple(qps), preset=preset, sort=sort, codecs=("hevc",), jobs=1)
+        cfg = PackConfig(ladder="fixed", qps=tuple(qps), preset=preset, sort=sort, codecs=("hevc",), jobs=1)
         packer = Packer(model_dir, out / f"{preset}-{sort}", cfg, progress=False)
         shape = packer.meta.shape
         per_qp: dict[int, list[dict]] = {qp: [] for qp in qps}
@@ -68,7 +68,8 @@ def codec_rows(model_dir: Path, out: Path, qps: list[int], presets: list[str], s
 
 def qp_vs_crf_rows(model_dir: Path, out: Path, values: list[int]) -> list[dict]:
     """GOP 0 at preset medium: constant QP vs CRF of the same value, sizes and feature PSNR."""
-    packer = Packer(model_dir, out / "crf", PackConfig(qps=tuple(values), codecs=("hevc",), jobs=1), progress=False)
+    packer = Packer(model_dir, out / "crf", PackConfig(ladder="fixed",
+                                                       qps=tuple(values), codecs=("hevc",), jobs=1), progress=False)
     frames = packer.prepare_gop(0).frames[HEVC.bits]
     shape = packer.meta.shape
     rows = []

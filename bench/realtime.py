@@ -31,8 +31,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bench.playlog_stats import cpu_times, frame_stats, held_realtime, latency_cell, steal_share
+from stgs.camera import read_scene_cameras
 from stgs.client.manifest import Presentation
-from stgs.client.view import read_scene_cameras
 from stgs.model.native_deform import runnable_precisions
 from stgs.model.store import read_meta
 from stgs.packager import PackConfig, pack
@@ -123,7 +123,7 @@ def prepare(source: Path, work: Path, seconds: float, qps: list[int]) -> tuple[s
         return name.removesuffix("-dash"), source
     looped = loop_model(source, work / f"{name}-looped", seconds)
     print(f"{name}: {read_meta(looped).num_gops} GOPs; packing at QPs {qps} ...", flush=True)
-    pack(looped, work / f"{name}-dash", PackConfig(qps=tuple(qps), resume=True), progress=False)
+    pack(looped, work / f"{name}-dash", PackConfig(ladder="fixed", qps=tuple(qps), resume=True), progress=False)
     return name, work / f"{name}-dash"
 
 

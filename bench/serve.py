@@ -154,7 +154,7 @@ def main(scene_dir: Path | None, clients: list[int], seconds: int) -> int:
             # Serving does not care how well the scene is fitted: a short fit is enough.
             synthesize(dataclasses.replace(PRESETS["demo"], fit_steps=20), tmp / "model", progress=False)
             scene_dir = tmp / "dash"
-            pack(tmp / "model", scene_dir, PackConfig(), progress=False)
+            pack(tmp / "model", scene_dir, PackConfig(ladder="fixed"), progress=False)
         scene_dir = Path(scene_dir).resolve()
         paths = sorted(str(p.relative_to(scene_dir)) for p in scene_dir.rglob("*")
                        if p.suffix in SEGMENT_SUFFIXES)

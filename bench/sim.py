@@ -50,7 +50,7 @@ def main(dash: Path | None, rule: str = "dynamic") -> int:
         if dash is None:
             print("synthesising and packing a 6-GOP scene ...", flush=True)
             synthesize(SCENE, Path(tmp) / "model", progress=False)
-            pack(Path(tmp) / "model", Path(tmp) / "dash", PackConfig(), progress=False)
+            pack(Path(tmp) / "model", Path(tmp) / "dash", PackConfig(ladder="fixed"), progress=False)
             dash = Path(tmp) / "dash"
         ladder = load_ladder(str(dash))
         rows = []

@@ -247,7 +247,7 @@ def main(argv: list[str] | None = None) -> int:
             from stgs.synth import PRESETS, synthesize
 
             synthesize(dataclasses.replace(PRESETS["demo"], fit_steps=20), Path(tmp) / "model", progress=False)
-            pack(Path(tmp) / "model", root / "scene", PackConfig(), progress=False)
+            pack(Path(tmp) / "model", root / "scene", PackConfig(ladder="fixed"), progress=False)
         else:
             shutil.copytree(args.scene, root / "scene")
         os.mkfifo(root / "scene" / "evil.m4s")

@@ -67,7 +67,7 @@ def smoothness_table(base: SynthConfig, weights: list[float], qps: list[int]) ->
         with tempfile.TemporaryDirectory() as tmp:
             scene, tree = Path(tmp) / "scene", Path(tmp) / "dash"
             report = synthesize(cfg, scene, progress=False)
-            stats = pack(scene, tree, PackConfig(qps=tuple(qps)), progress=False)
+            stats = pack(scene, tree, PackConfig(ladder="fixed", qps=tuple(qps)), progress=False)
             shape = read_meta(scene).shape
             cells = []
             for q in qps:

@@ -27,7 +27,7 @@ FLAGS = {"qps": "--qps", "preset": "--preset", "codec": "--codec", "codecs": "--
          "camera": "--camera", "eye": "--eye/--target", "holdout": "--holdout", "qp": "--qp", "speed": "--speed",
          "max_transfers": "--max-transfers", "max_transfers_per_client": "--max-transfers-per-client",
          "max_waiting_transfers": "--max-waiting-transfers", "trusted_proxies": "--trusted-proxy",
-         "seconds": "--seconds"}
+         "seconds": "--seconds", "ladder": "--ladder"}
 """Config field -> the flag that sets it, for FieldError messages."""
 
 

@@ -111,6 +111,7 @@ def format_rows(stats: dict) -> dict[str, dict]:
 def run(out: Path, progress: bool = True, fit_steps: int | None = None) -> int:
     from stgs.client.view import ViewSpec
     from stgs.packager import PackConfig, pack
+    from stgs.tree import parse_rep_id
 
     out = Path(out)
     cfg = dataclasses.replace(PRESETS["demo"], effects=(*PRESETS["demo"].effects, "static_background"))
@@ -125,7 +126,11 @@ def run(out: Path, progress: bool = True, fit_steps: int | None = None) -> int:
     stats = pack(out / "model", out / "dash", PackConfig(), progress=progress)
     pack_s = time.perf_counter() - clock
     single_report = synthesize(dataclasses.replace(cfg, fold=True), out / "model_format1", progress=progress)
-    single_stats = pack(out / "model_format1", out / "dash_format1", PackConfig(), progress=progress)
+    # the folded twin at the rungs the layered scene's auto ladder kept, so that each rung compares with itself
+    kept = {codec: tuple(parse_rep_id(c["representation"])[1] for c in ladder["candidates"] if c["kept"])
+            for codec, ladder in stats["ladders"].items()}
+    single_stats = pack(out / "model_format1", out / "dash_format1",
+                        PackConfig(ladder="fixed", qps=kept["hevc"], av1_qps=kept["av1"]), progress=progress)
     frames = cfg.num_gops * cfg.gop_size
     orbit = out / "orbit.mp4"
     probe = TruthProbe(out / "model", cfg.gop_size)

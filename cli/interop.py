@@ -35,7 +35,7 @@ def add_export(sub: argparse._SubParsersAction) -> None:
 
 def scene_cameras(source: Path):
     """The scene's cameras: cameras.json beside the model dir or tree, or a synth model dir's ground truth."""
-    from stgs.client.view import read_scene_cameras
+    from stgs.camera import read_scene_cameras
     from stgs.data import open_dataset
     from stgs.errors import StgsError
 

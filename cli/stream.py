@@ -20,7 +20,8 @@ from stgs.cli.args import (
 
 
 def add_pack(sub: argparse._SubParsersAction) -> None:
-    from stgs.codec.video import AV1, CODECS, DEFAULT_QPS, PRESETS
+    from stgs.codec.video import AV1, CODECS, HEVC, PRESETS
+    from stgs.packager.packer import LADDERS
 
     p = sub.add_parser("pack", help="package a model dir as an MPEG-DASH tree",
                        description="PLAS-sort each GOP, write its keyframe segment (lossless JPEG XL "
@@ -28,15 +29,21 @@ def add_pack(sub: argparse._SubParsersAction) -> None:
                        "(12-bit HEVC, 10-bit AV1 for browsers), then the MPD.")
     p.add_argument("model_dir", type=Path, help="model dir (stgs synth / stgs train output)")
     p.add_argument("out_dir", type=Path, help="output folder (a DASH tree any static server can serve)")
-    p.add_argument("--qps", type=qp_list, default=DEFAULT_QPS,
-                   help=f"comma-separated HEVC feature-video QPs (default: {','.join(map(str, DEFAULT_QPS))})")
+    p.add_argument("--ladder", choices=LADDERS,
+                   help="auto: pick each codec's rungs by measured rendered quality from its candidate QPs; fixed: "
+                   "every QP given is a rung (default: auto, or fixed when --qps or --av1-qps is given; "
+                   "docs/PACKAGING.md, 'The auto ladder')")
+    p.add_argument("--qps", type=qp_list,
+                   help=f"comma-separated HEVC feature-video QPs: the rungs of a fixed ladder, the candidates of an "
+                   f"auto one (default: {','.join(map(str, HEVC.ladder))} fixed, "
+                   f"{','.join(map(str, HEVC.candidates))} auto)")
     p.add_argument("--preset", choices=PRESETS, default="medium", help="x265 preset (default: medium)")
     p.add_argument("--codecs", type=codec_list, default=tuple(CODECS),
                    help=f"comma-separated feature-video codecs, one AdaptationSet each (default: "
                    f"{','.join(CODECS)}; either alone allowed)")
-    p.add_argument("--av1-qps", type=qp_list, default=AV1.ladder,
-                   help=f"comma-separated AV1 QPs, 1..63 (default: {','.join(map(str, AV1.ladder))}: about the "
-                   "bytes of the default HEVC QPs; docs/PACKAGING.md)")
+    p.add_argument("--av1-qps", type=qp_list,
+                   help=f"comma-separated AV1 QPs, 1..63, as --qps (default: {','.join(map(str, AV1.ladder))} "
+                   f"fixed: about the bytes of the fixed HEVC QPs; {','.join(map(str, AV1.candidates))} auto)")
     p.add_argument("--av1-preset", choices=AV1.presets, default=AV1.default_preset,
                    help=f"SVT-AV1 preset, 0 slowest .. 13 fastest (default: {AV1.default_preset})")
     p.add_argument("--no-loop-filters", action="store_true",
@@ -54,8 +61,11 @@ def add_pack(sub: argparse._SubParsersAction) -> None:
 def run_pack(args: argparse.Namespace) -> int:
     from stgs.packager import MANIFEST, PackConfig, pack
 
-    cfg = PackConfig(qps=args.qps, preset=args.preset, loop_filters=not args.no_loop_filters, codecs=args.codecs,
-                     av1_qps=args.av1_qps, av1_preset=args.av1_preset, sort=not args.no_sort, resume=args.resume)
+    given = args.qps is not None or args.av1_qps is not None
+    ladder = args.ladder or ("fixed" if given else "auto")
+    cfg = PackConfig(ladder=ladder, qps=args.qps, preset=args.preset, loop_filters=not args.no_loop_filters,
+                     codecs=args.codecs, av1_qps=args.av1_qps, av1_preset=args.av1_preset, sort=not args.no_sort,
+                     resume=args.resume)
     if args.jobs:
         cfg.jobs = args.jobs
     stats = pack(args.model_dir, args.out_dir, cfg, progress=not args.quiet, ray=args.ray,
@@ -64,9 +74,19 @@ def run_pack(args: argparse.Namespace) -> int:
           f"{stats['keyframe_bandwidth'] / 1e3:.0f} kbit/s")
     if static := stats.get("static"):
         print(f"  static layer: {static['capacity']} Gaussians, {static['bytes'] / 1e3:.1f} kB once")
-    for rid, rep in stats["representations"].items():
-        print(f"  {rid}: {rep['bandwidth'] / 1e3:8.0f} kbit/s  features {rep['mean_feature_psnr']:.2f} dB  "
-              f"rendered {rep['mean_render_psnr']:.2f} dB")
+    views = stats["quality_views"]
+    print(f"  rendered PSNR against the uncompressed model at {len(views['cameras'])} {views['source']} camera(s) x "
+          f"{len(views['frames'])} frame(s) per GOP")
+    for codec, ladder in stats["ladders"].items():
+        print(f"  {codec} ({ladder['mode']} ladder):")
+        for cand in ladder["candidates"]:
+            rid = cand["representation"]
+            if not cand["kept"]:
+                print(f"    {rid:>7}  dropped: {cand['reason']}")
+                continue
+            rep = stats["representations"][rid]
+            print(f"    {rid:>7}  {rep['bandwidth'] / 1e3:8.0f} kbit/s  features {rep['mean_feature_psnr']:.2f} dB  "
+                  f"rendered {rep['mean_render_psnr']:.2f} dB  ({cand['reason']})")
     return 0
 
 

@@ -111,6 +111,9 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
                    help="serve, play, sim, abr: a packaged scene (default: synthesise and pack one)")
     p.add_argument("--traces", help="abr: comma-separated folders of recorded traces (Mahimahi, Pensieve or Sabre "
                    "JSON files, the format sniffed per file), one trace set each, instead of the generated sets")
+    p.add_argument("--against", type=Path,
+                   help="abr: a second packaging of --dash's model (e.g. its auto ladder) played on the same "
+                   "generated traces: rendered PSNR, bytes and rebuffering of both")
     p.add_argument("--latency-ms", type=float, default=40.0,
                    help="abr: round-trip time of the recorded sets of --traces (default: 40)")
     p.add_argument("--no-trace-scale", action="store_true",
@@ -154,6 +157,12 @@ def run_bench(args: argparse.Namespace) -> int:
                 raise UsageError(f"--traces {folder}: not a folder")
         if not math.isfinite(args.latency_ms) or args.latency_ms < 0:
             raise UsageError("--latency-ms must be a non-negative number")
+        if args.against is not None:
+            if args.dash is None or folders:
+                raise UsageError("--against compares with --dash, on the generated traces (not --traces)")
+            if not (args.against / MANIFEST).is_file():
+                raise UsageError(f"--against {args.against}: no {MANIFEST} there")
+            return bench_suite(name).compare_ladders(args.dash, args.against)
         return bench_suite(name).main(args.dash, folders or None, args.latency_ms, not args.no_trace_scale)
     if args.suite == "sim":
         return bench_suite(name).main(args.dash)

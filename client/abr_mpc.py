@@ -10,9 +10,10 @@ client/abr_predict.py's lower bounds, `mpc_predictor`), scores
 
     Σ_j q_j − μ · (stall + start-up + ρ · shortfall) − w · Σ_j |q_j − q_{j−1}|
 
-with q = whole-GOP bit rate (Mbit/s, Pensieve's linear QoE) or, with
-`mpc_utility = "psnr"`, rendered PSNR (dB; bit rate where the scene gives no
-PSNR), where the shortfall is how far the plan ends below a reservoir of half
+with q = the GOP's quality (`mpc_utility = "psnr"`, the default: dB as
+stats.json gives it, stgs.tree.rung_quality; bit rate where the scene gives
+none) or its whole-GOP bit rate (`"bitrate"`: Mbit/s, Pensieve's linear
+QoE), where the shortfall is how far the plan ends below a reservoir of half
 the buffer capacity (ρ = 0.2): a five-GOP horizon is shorter than a 25-s
 buffer, and without it a plan spends the buffer down and stalls at the next
 fade. With `mpc_buffer_constraint` the plans that end below the reservoir

@@ -8,6 +8,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from stgs.errors import FieldError
+from stgs.tree import rung_quality
 
 MPC_PREDICTORS = ("harmonic", "error-bound", "quantile", "ewma-lower")
 """The look-ahead rule's throughput predictors (client/abr_predict.py)."""
@@ -58,10 +59,12 @@ class AbrSettings:
     mpc_buffer_constraint: bool = True
     """Plans that end below the reservoir (or, while the buffer is under it, below where it stands) are out, as
     long as any plan is left; the reservoir's charge applies as well."""
-    mpc_utility: str = "bitrate"
-    """What the look-ahead rule maximises per GOP: `bitrate` (Pensieve's linear QoE, the published one) or rendered
-    `psnr` (stats.json; bit rate where unknown), which renders 1.0 dB better on the mean over the bench's trace sets
-    at 1.3 points more rebuffering and 9 more switches."""
+    mpc_utility: str = "psnr"
+    """What the look-ahead rule maximises per GOP: the rung's quality (dB; stats.json, against the capture where the
+    packager knew the model's own error, stgs.tree.rung_quality; bit rate where the scene gives none), or `bitrate`
+    (Pensieve's linear QoE, the published one). docs/BENCHMARKS.md ("Packaging: the auto ladder") measures both on
+    the fixed and the auto ladder: the quality utility buys the same quality for fewer bytes where the top rungs
+    render alike."""
     mpc_rebuffer_psnr: float = 10.0
     """dB a second of stall costs the PSNR utility (about the dB span of a QP 16-40 ladder)."""
     mpc_rebuffer_bitrate: float = 4.3
@@ -162,7 +165,7 @@ class UpcomingGOP:
         if not all(math.isfinite(s) and s > 0 for s in [keyframe, *sizes]):
             return None
         try:
-            psnr = [float(gop["representations"][r]["render_psnr"]) for r in rep_ids]
+            psnr = rung_quality(gop["representations"], rep_ids)
         except (KeyError, TypeError, ValueError):
             psnr = None
         return cls(keyframe, sizes, psnr if psnr and all(math.isfinite(p) for p in psnr) else None)

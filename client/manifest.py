@@ -27,6 +27,7 @@ from stgs.mpd_profile import (
     KEYFRAME_SCHEME,
     STATIC_SCHEME,
     KeyframeDescriptor,
+    QualityDescriptor,
     StaticLayerDescriptor,
     choose_feature_set,
     gop_count,
@@ -58,6 +59,9 @@ class Rung:
     """@bandwidth, bit/s."""
     qp: int | None
     """QP parsed from the id (`qp<N>`), if it has that form."""
+    quality: QualityDescriptor | None = None
+    """Its quality descriptor (mean PSNR against the uncompressed model and, where given, the capture; None in
+    trees that carry none)."""
 
 
 @dataclass(frozen=True)
@@ -116,8 +120,8 @@ class Presentation:
         self.num_gops = gop_count(mpd.duration, self.segment_seconds)
         if self.num_gops > MAX_GOPS:
             raise MPDError(f"{self.num_gops} GOPs is over the client limit of {MAX_GOPS}")
-        self.ladder = sorted((Rung(r.id, r.bandwidth, qp_of(r.id)) for r in self.features.representations),
-                             key=lambda r: (r.bandwidth, r.rep_id))
+        self.ladder = sorted((Rung(r.id, r.bandwidth, qp_of(r.id), QualityDescriptor.parse(r))
+                              for r in self.features.representations), key=lambda r: (r.bandwidth, r.rep_id))
         self.keyframe_rep = self.keyframes.representations[0]
         found = mpd.find_adaptation_set(STATIC_SCHEME)
         self.static: StaticLayerInfo | None = None if found is None else _static_layer(found)

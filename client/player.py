@@ -31,6 +31,7 @@ import asyncio
 import json
 import time
 
+from stgs.camera import parse_scene_cameras
 from stgs.client.abr import Decision, UpcomingGOP, make_rule
 from stgs.client.clock import PlaybackClock
 from stgs.client.config import PlaybackError, PlayConfig
@@ -56,7 +57,6 @@ from stgs.client.resources import check_decode_memory, frozen_heap, process_peak
 from stgs.client.schedule import FetchSchedule
 from stgs.client.threads import ThreadBudget, render_threads, usable_cores
 from stgs.client.urlpolicy import UrlPolicy
-from stgs.client.view import parse_scene_cameras
 from stgs.fsio import atomic_write_bytes
 from stgs.limits import MAX_DOC_BYTES, MAX_MPD_BYTES
 from stgs.mpd_values import MPDError

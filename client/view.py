@@ -6,12 +6,11 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from stgs.camera import Camera, intrinsics, look_at, resize, rig_orbit, surrounds
+from stgs.camera import Camera, checked_cameras, intrinsics, look_at, resize, rig_orbit, surrounds
 from stgs.errors import FieldError, StgsError
-from stgs.limits import MAX_IMAGE_SIDE, MAX_PATH_CAMERAS
+from stgs.limits import MAX_IMAGE_SIDE
 from stgs.model.gop import GOPModel
 from stgs.model.view import framing_orbit
-from stgs.tree import CAMERAS, CAMERAS_FORMAT
 
 
 @dataclass
@@ -55,38 +54,6 @@ class Trajectory:
         return self.cameras[j % len(self.cameras)]
 
 
-def parse_scene_cameras(doc: object) -> list[Camera]:
-    """Cameras of a cameras.json document (from the network: checked, never trusted)."""
-    if not isinstance(doc, dict) or doc.get("format") != CAMERAS_FORMAT or not isinstance(doc.get("cameras"), list):
-        raise StgsError(f"cameras.json is not a {CAMERAS_FORMAT} document")
-    return _cameras(doc["cameras"], CAMERAS)
-
-
-def read_scene_cameras(folder: Path) -> list[Camera]:
-    """The cameras of the cameras.json in a model dir or packaged tree."""
-    path = Path(folder) / CAMERAS
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise StgsError(f"{path}: cannot read the scene's cameras ({exc})") from None
-    return parse_scene_cameras(doc)
-
-
-def _cameras(items: list, where: str) -> list[Camera]:
-    if len(items) > MAX_PATH_CAMERAS:
-        raise StgsError(f"{where}: more than {MAX_PATH_CAMERAS} cameras")
-    cameras = []
-    for i, item in enumerate(items):
-        try:
-            cam = Camera.from_json(item)
-        except (KeyError, TypeError, ValueError) as exc:
-            raise StgsError(f"{where}: camera {i} is malformed ({exc})") from None
-        if not (1 <= cam.width <= MAX_IMAGE_SIDE and 1 <= cam.height <= MAX_IMAGE_SIDE):
-            raise StgsError(f"{where}: camera {cam.name!r} has image size {cam.width}x{cam.height}")
-        cameras.append(cam)
-    return cameras
-
-
 def load_path_file(path: Path) -> list[Camera]:
     try:
         doc = json.loads(Path(path).read_text())
@@ -95,7 +62,7 @@ def load_path_file(path: Path) -> list[Camera]:
     items = doc.get("cameras") if isinstance(doc, dict) else doc
     if not isinstance(items, list):
         raise StgsError(f"{path}: a camera path is a JSON list of cameras or {{\"cameras\": [...]}}")
-    return _cameras(items, str(path))
+    return checked_cameras(items, str(path))
 
 
 def build_trajectory(spec: ViewSpec, scene_cameras: list[Camera] | None, first_gop: GOPModel,

@@ -16,7 +16,7 @@ from stgs.client.urlpolicy import UrlPolicy
 from stgs.errors import StgsError
 from stgs.limits import MAX_INIT_BYTES, MAX_MPD_BYTES
 from stgs.mpd_values import MPDError
-from stgs.tree import MANIFEST, STATS
+from stgs.tree import MANIFEST, STATS, rung_quality
 
 
 @dataclass
@@ -83,15 +83,16 @@ def load_ladder(scene: str, codec: str = "auto") -> Ladder:
 
 
 def _psnr(stats: dict | None, pres: Presentation) -> dict[str, list[float | None]]:
-    out = {}
-    for r in pres.ladder:
-        values = []
-        for k in range(pres.num_gops):
-            try:
-                values.append(float(stats["gops"][k]["representations"][r.rep_id]["render_psnr"]))
-            except (KeyError, IndexError, TypeError, ValueError):
-                values.append(None)
-        out[r.rep_id] = values
+    """Per rung and GOP, its quality as stats.json gives it (stgs.tree.rung_quality), None where it does not."""
+    ids = [r.rep_id for r in pres.ladder]
+    out: dict[str, list[float | None]] = {r: [] for r in ids}
+    for k in range(pres.num_gops):
+        try:
+            values: list[float | None] = list(rung_quality(stats["gops"][k]["representations"], ids))
+        except (KeyError, IndexError, TypeError, ValueError):
+            values = [None] * len(ids)
+        for r, v in zip(ids, values, strict=True):
+            out[r].append(v)
     return out
 
 

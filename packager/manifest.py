@@ -20,9 +20,11 @@ from stgs.mpd import MPD, AdaptationSet, Descriptor, Period, Representation, Seg
 from stgs.mpd_profile import (
     FEATURE_SCHEME,
     KEYFRAME_SCHEME,
+    QUALITY_SCHEME,
     STATIC_SCHEME,
     FeatureDescriptor,
     KeyframeDescriptor,
+    QualityDescriptor,
     StaticLayerDescriptor,
 )
 from stgs.tree import (
@@ -53,7 +55,7 @@ class SegmentRecord:
     duration_s: float
     bytes: int
     quality: dict = field(default_factory=dict)
-    """Measures of a feature segment (feature_psnr, render_psnr); empty for keyframes."""
+    """Measures of a feature segment (feature_psnr, render_psnr and, where known, truth_psnr); empty for keyframes."""
 
 
 @dataclass
@@ -72,6 +74,26 @@ class RepresentationRecords:
 
     def ordered(self) -> list[SegmentRecord]:
         return [self.segments[k] for k in sorted(self.segments)]
+
+    def mean(self, measure: str) -> float:
+        """The mean of a feature segment measure (feature_psnr, render_psnr, truth_psnr) over the GOPs."""
+        return sum(s.quality[measure] for s in self.segments.values()) / len(self.segments)
+
+    def has(self, measure: str) -> bool:
+        return all(measure in s.quality for s in self.segments.values())
+
+    @property
+    def quality_measure(self) -> str:
+        """What the rung's quality is judged by: truth_psnr (against the capture) where every GOP has it, else
+        render_psnr (against the uncompressed model)."""
+        return "truth_psnr" if self.has("truth_psnr") else "render_psnr"
+
+    def quality(self) -> float:
+        return self.mean(self.quality_measure)
+
+    def descriptor(self) -> QualityDescriptor:
+        return QualityDescriptor(self.mean("render_psnr"),
+                                 self.mean("truth_psnr") if self.has("truth_psnr") else None)
 
 
 @dataclass(frozen=True)
@@ -141,8 +163,12 @@ class ManifestBuilder:
         features = []
         for codec in codecs:
             set_id, bits = FEATURE_SETS[codec], CODECS[codec].bits
+            ladder = self.ladder(codec)
+            best_first = sorted(ladder, key=lambda r: (-r.quality(), -r.mean("render_psnr")))
             reps = [Representation(r.rep_id, r.bandwidth(), self.codecs[r.rep_id], 4 * side, 4 * side, frame_rate,
-                                   [KEYFRAME_REP], ["cdsc"]) for r in self.ladder(codec)]
+                                   [KEYFRAME_REP], ["cdsc"], best_first.index(r) + 1,
+                                   [Descriptor(QUALITY_SCHEME, r.descriptor().value)])
+                    for r in ladder]
             features.append(AdaptationSet(
                 set_id, "video", "video/mp4",
                 SegmentTemplate(feature_media_template(self.version), self.timescale, self.segment_ticks, 0,
@@ -170,8 +196,9 @@ class ManifestBuilder:
             reps[r.rep_id] = {
                 "codec": codec, "bits": CODECS[codec].bits, "qp": point, "bandwidth": r.bandwidth(),
                 "mean_bytes": sum(s.bytes for s in rows) / len(rows),
-                "mean_feature_psnr": sum(s.quality["feature_psnr"] for s in rows) / len(rows),
-                "mean_render_psnr": sum(s.quality["render_psnr"] for s in rows) / len(rows)}
+                "mean_feature_psnr": r.mean("feature_psnr"), "mean_render_psnr": r.mean("render_psnr")}
+            if r.has("truth_psnr"):
+                reps[r.rep_id]["mean_truth_psnr"] = r.mean("truth_psnr")
         doc = {"format": STATS_FORMAT, "version": 1, "pack_id": pack_id,
                "segment_seconds": self.segment_seconds, "frames_per_gop": self.shape.gop_size,
                "keyframe_bandwidth": self.keyframes.bandwidth(),

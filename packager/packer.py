@@ -5,7 +5,9 @@ images, weights, ranges), tile the features into frames of 12-bit (HEVC) and
 10-bit (AV1) codes; per GOP and ladder point of each codec: encode the feature
 video, cut it into init + media segment and place the segment on the
 Representation's timeline; then measure every segment (bytes, decoded-feature
-PSNR, rendered-view PSNR against the uncompressed model) and write stats.json
+PSNR, rendered-view PSNR against the uncompressed model at the scene's cameras),
+keep the rungs of each codec (all of a fixed ladder; for an auto ladder, those
+stgs.packager.ladder picks from the candidates measured) and write stats.json
 and, last, manifest.mpd.
 
 All segment files live under a folder named after a digest of the inputs and
@@ -19,6 +21,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from functools import cached_property
@@ -28,14 +31,15 @@ from tqdm import tqdm
 
 from stgs.codec.plas import PLASConfig
 from stgs.codec.static import decode_static, pack_static
-from stgs.codec.video import AV1, AV1_LADDER, CODECS, DEFAULT_QPS, HEVC, FeatureCodec, VideoTiming
+from stgs.codec.video import AV1, CODECS, HEVC, FeatureCodec, VideoTiming
 from stgs.errors import FieldError, StgsError
 from stgs.fsio import atomic_write_bytes
 from stgs.model.static import StaticLayer
-from stgs.model.store import SceneMeta, load_static, read_meta
+from stgs.model.store import SceneMeta, load_gop, load_static, read_meta
 from stgs.mpd_profile import StaticLayerDescriptor
+from stgs.packager.ladder import Candidate, LadderRules, Verdict, allocation_saving, choose_rungs
 from stgs.packager.manifest import ManifestBuilder, SegmentRecord, StaticRecord
-from stgs.packager.segments import FeatureEncoder, PreparedGOP, measure, prepare_gop
+from stgs.packager.segments import FeatureEncoder, PreparedGOP, measure, prepare_gop, quality_views
 from stgs.packager.state import PackState, check_output_dir, pack_id
 from stgs.synth import load_ground_truth
 from stgs.tree import (
@@ -50,21 +54,32 @@ from stgs.tree import (
     version_dir,
 )
 
+QUALITY_MEASURES = ("feature_psnr", "render_psnr", "truth_psnr")
+"""What a feature segment's measurement records beside its bytes (stgs.packager.segments.quality)."""
+LADDERS = ("auto", "fixed")
+"""How a pack places its rungs (PackConfig.ladder)."""
+
 
 @dataclass
 class PackConfig:
     """Settings of one pack run."""
 
-    qps: tuple[int, ...] = DEFAULT_QPS
-    """HEVC feature-video QPs, one Representation each."""
+    ladder: str = "auto"
+    """auto: each codec's rungs are picked by measurement from its candidate points (docs/PACKAGING.md, "The auto
+    ladder"); fixed: every point given is a rung."""
+    qps: tuple[int, ...] | None = None
+    """HEVC feature-video QPs: the rungs of a fixed ladder, the candidates of an auto one (None: the codec's
+    default ladder, or its default candidates)."""
     preset: str = "medium"
     """x265 preset."""
     loop_filters: bool = True
     """Keep x265's in-loop deblocking and SAO filters (False: off, in the stream, so decoders skip them)."""
     codecs: tuple[str, ...] = ("hevc", "av1")
     """Feature-video AdaptationSets to write: 12-bit HEVC, 10-bit AV1 (what browsers decode), or both."""
-    av1_qps: tuple[int, ...] = AV1_LADDER
-    """AV1 feature-video QPs (SVT-AV1's 1..63 scale), one Representation each."""
+    av1_qps: tuple[int, ...] | None = None
+    """AV1 feature-video QPs (SVT-AV1's 1..63 scale), as `qps` is for HEVC."""
+    rules: LadderRules = field(default_factory=LadderRules)
+    """How the auto ladder picks its rungs."""
     av1_preset: str = AV1.default_preset
     """SVT-AV1 preset (0 slowest .. 13 fastest)."""
     jobs: int = field(default_factory=lambda: os.cpu_count() or 1)
@@ -74,18 +89,26 @@ class PackConfig:
     sort: bool = True
     """PLAS-sort the Gaussians (False: keep the model's order, for comparisons)."""
     stats_views: int = 4
-    """Cameras per GOP for the rendered-view PSNR."""
-    stats_frames: int = 3
-    """Frames per GOP for the rendered-view PSNR."""
+    """Cameras for the rendered-view PSNR where the model dir names no held-out cameras (spread over the scene's)."""
+    stats_frames: int | None = None
+    """Frames per GOP for the rendered-view PSNR, spread evenly; None: every frame (docs/PACKAGING.md, "Quality per
+    rung", measures what fewer cost)."""
     resume: bool = False
     """Skip (GOP, ladder point) tasks whose outputs a previous interrupted run left complete."""
 
     def validate(self) -> None:
+        if self.ladder not in LADDERS:
+            raise FieldError("ladder", f"must be one of {', '.join(LADDERS)}, got {self.ladder!r}")
+        self.rules.validate()
+        if self.stats_views < 1:
+            raise FieldError("stats_views", f"must be >= 1, got {self.stats_views}")
+        if self.stats_frames is not None and self.stats_frames < 1:
+            raise FieldError("stats_frames", f"must be >= 1 or None (every frame), got {self.stats_frames}")
         if not self.codecs or len(set(self.codecs)) != len(self.codecs) or set(self.codecs) - set(CODECS):
             raise FieldError("codecs", f"must list distinct codecs of {', '.join(CODECS)}, got {self.codecs}")
-        for name, points, preset in (("qps", self.qps, "preset"), ("av1_qps", self.av1_qps, "av1_preset")):
+        for name, preset in (("qps", "preset"), ("av1_qps", "av1_preset")):
             codec = CODECS["hevc" if name == "qps" else "av1"]
-            q = codec.quantizers
+            q, points = codec.quantizers, self.points(codec)
             if not points or any(p not in q for p in points) or len(set(points)) != len(points):
                 raise FieldError(name, f"must list distinct values in {q.start}..{q.stop - 1}, got {points}")
             if getattr(self, preset) not in codec.presets:
@@ -95,15 +118,21 @@ class PackConfig:
 
     def digest_fields(self) -> dict:
         """What determines the output bytes (not jobs or resume)."""
-        return {"qps": list(self.qps), "preset": self.preset, "loop_filters": self.loop_filters,
-                "codecs": list(self.codecs), "av1_qps": list(self.av1_qps), "av1_preset": self.av1_preset,
-                "plas": asdict(self.plas), "sort": self.sort, "stats_views": self.stats_views,
-                "stats_frames": self.stats_frames, "format": 1}
+        return {"ladder": self.ladder, "qps": list(self.points(HEVC)), "preset": self.preset,
+                "loop_filters": self.loop_filters, "codecs": list(self.codecs), "av1_qps": list(self.points(AV1)),
+                "av1_preset": self.av1_preset, "rules": asdict(self.rules), "plas": asdict(self.plas),
+                "sort": self.sort, "stats_views": self.stats_views, "stats_frames": self.stats_frames, "format": 2}
 
-    def ladder(self) -> list[tuple[FeatureCodec, int]]:
+    def points(self, codec: FeatureCodec) -> tuple[int, ...]:
+        """The ladder points of `codec` to encode: the rungs of a fixed ladder, the candidates of an auto one."""
+        given = self.qps if codec.name == "hevc" else self.av1_qps
+        if given is not None:
+            return tuple(given)
+        return codec.candidates if self.ladder == "auto" else codec.ladder
+
+    def encodes(self) -> list[tuple[FeatureCodec, int]]:
         """Every (codec, ladder point) to encode per GOP, HEVC first."""
-        points = {"hevc": self.qps, "av1": self.av1_qps}
-        return [(CODECS[name], q) for name in CODECS if name in self.codecs for q in points[name]]
+        return [(CODECS[name], q) for name in CODECS if name in self.codecs for q in self.points(CODECS[name])]
 
     def preset_of(self, codec: FeatureCodec) -> str:
         return self.preset if codec.name == "hevc" else self.av1_preset
@@ -192,12 +221,12 @@ class Packer:
         return digests, measure(gop, codec, init, media, self.meta, self.decoded_static)
 
     def segment_record(self, k: int, done: dict) -> SegmentRecord:
-        return SegmentRecord(k, self.seconds_per_gop, done["bytes"],
-                             {"feature_psnr": done["feature_psnr"], "render_psnr": done["render_psnr"]})
+        return SegmentRecord(k, self.seconds_per_gop, done["bytes"], {key: value for key, value in done.items()
+                                                                      if key in QUALITY_MEASURES})
 
     def run(self) -> dict:
         cfg = self.cfg
-        ladder = cfg.ladder()
+        ladder = cfg.encodes()
         bar = tqdm(total=self.meta.num_gops * len(ladder), desc="pack GOPs x ladder points", unit="seg",
                    disable=not self.progress)
 
@@ -223,15 +252,60 @@ class Packer:
         return self.finish()
 
     def finish(self) -> dict:
-        """stats.json, cameras.json and, last, the MPD, from the segments the builder was told of."""
-        for codec, q in self.cfg.ladder():
+        """The rungs chosen (choose_ladder), stats.json, cameras.json and, last, the MPD, from the segments the
+        builder was told of."""
+        for codec, q in self.cfg.encodes():
             init = (self.out / feature_path(self.version_dir, codec.rep_id(q), None)).read_bytes()
             self.builder.codecs[codec.rep_id(q)] = codec.codecs(init)
-        stats = self.builder.stats(self.id)
+        ladders = self.choose_ladder()
+        views = quality_views(self.model_dir, self.meta, lambda: load_gop(self.model_dir, self.meta, 0),
+                              self.cfg.stats_views, self.cfg.stats_frames)
+        stats = self.builder.stats(self.id) | {"quality_views": views.describe(), "ladders": ladders}
         atomic_write_bytes(self.out / STATS, (json.dumps(stats, indent=2) + "\n").encode())
         self.write_cameras()
         atomic_write_bytes(self.out / MANIFEST, self.builder.mpd().to_xml())
         return stats
+
+    def choose_ladder(self) -> dict:
+        """Each codec's rungs: every point of a fixed ladder; for an auto one, the candidates ladder.choose_rungs
+        keeps, the others' segments removed from the tree and the builder. Returns stats.json's `ladders`."""
+        out: dict = {}
+        keyframes = self.builder.keyframes.segments
+        for name in self.cfg.codecs:
+            reps = self.builder.ladder(name)
+            measure = "truth_psnr" if reps and all(r.quality_measure == "truth_psnr" for r in reps) else "render_psnr"
+            scene = [Candidate(r.rep_id, sum(s.bytes for s in r.segments.values()), r.mean(measure)) for r in reps]
+            doc: dict = {"mode": self.cfg.ladder, "measure": measure}
+            if self.cfg.ladder == "auto":
+                verdicts = choose_rungs(scene, self.cfg.rules)
+                kept = [c for c in scene if any(v.kept and v.rep_id == c.rep_id for v in verdicts)]
+                per_gop = [[Candidate(r.rep_id, r.segments[k].bytes, r.segments[k].quality[measure]) for r in reps]
+                           for k in sorted(keyframes)]
+                doc |= {"rules": asdict(self.cfg.rules), "per_gop_saving": round(allocation_saving(per_gop, kept), 4)}
+            else:
+                verdicts = [Verdict(c.rep_id, True, "a fixed rung") for c in sorted(scene, key=lambda c: c.bytes)]
+            by_id = {c.rep_id: c for c in scene}
+            records = {r.rep_id: r for r in reps}
+            key_bytes = sum(kf.bytes for kf in keyframes.values())
+            doc["candidates"] = [{"representation": v.rep_id, "bytes": by_id[v.rep_id].bytes,
+                                  "total_bytes": by_id[v.rep_id].bytes + key_bytes,
+                                  **{m: round(records[v.rep_id].mean(m), 4) for m in ("render_psnr", "truth_psnr")
+                                     if records[v.rep_id].has(m)}, "kept": v.kept, "reason": v.reason}
+                                 for v in verdicts]
+            for v in verdicts:
+                if not v.kept:
+                    self.drop_rung(v.rep_id)
+            out[name] = doc
+        return out
+
+    def drop_rung(self, rep: str) -> None:
+        """A candidate that is not a rung: its segments leave the tree, the resume state and the builder."""
+        self.builder.features.pop(rep, None)
+        self.builder.codecs.pop(rep, None)
+        folder = (self.out / feature_path(self.version_dir, rep, None)).parent
+        shutil.rmtree(folder, ignore_errors=True)
+        if self.state is not None:
+            self.state.forget(lambda task: task.endswith(f"-{rep}"))
 
     def write_cameras(self) -> None:
         """The scene's cameras beside the MPD (players offer them as viewpoints), when the model dir has them:

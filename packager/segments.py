@@ -15,7 +15,7 @@ import torch
 from safetensors import safe_open
 from safetensors.numpy import save_file as save_numpy
 
-from stgs.camera import Camera
+from stgs.camera import Camera, read_scene_cameras
 from stgs.codec.features import (
     VIDEO_BITS,
     VIDEO_MAX,
@@ -29,13 +29,14 @@ from stgs.codec.keyframe import Keyframe, decode_keyframe, encode_keyframe
 from stgs.codec.mp4 import set_timeline, split_fragmented
 from stgs.codec.plas import PLASConfig, permute_gop, plas_order, sort_key
 from stgs.codec.video import FeatureCodec, VideoTiming, decode_segment, encode_gop
-from stgs.metrics import psnr
+from stgs.fsio import load_png
+from stgs.metrics import mse_psnr, psnr
 from stgs.model.gop import GOPModel
 from stgs.model.static import StaticLayer
 from stgs.model.store import SceneMeta, load_gop
 from stgs.model.view import FrameRenderer, framing_orbit
 from stgs.synth import load_ground_truth
-from stgs.tree import CAMERAS, GROUND_TRUTH_DIR
+from stgs.tree import CAMERAS, GROUND_TRUTH_DIR, TRAIN_REPORT
 
 
 @dataclass
@@ -55,20 +56,67 @@ class PreparedGOP:
     """(frame, camera) pairs the rendered-view PSNR uses."""
     reference: list[torch.Tensor]
     """Those views rendered from the uncompressed GOP."""
+    model_mse: float | None = None
+    """The uncompressed GOP's own mean squared error against the capture at the quality views (model_error), or
+    None where the model dir does not tell."""
 
 
-def stats_cameras(model_dir: Path, model: GOPModel, count: int) -> list[Camera]:
-    """Ground-truth cameras of a synthetic scene, else an orbit around the Gaussians."""
-    if (Path(model_dir) / GROUND_TRUTH_DIR / CAMERAS).is_file():
-        return load_ground_truth(model_dir)[1][:count]
-    return framing_orbit(model, count, 320, 240)
+@dataclass(frozen=True)
+class QualityViews:
+    """Where a pack measures each rung's rendered quality: cameras of the scene at their own resolution, and frames of
+    each GOP."""
+
+    cameras: list[Camera]
+    source: str
+    """held-out: the validation cameras the model dir names (stgs train); sample: the scene's cameras (its
+    cameras.json, or a synthetic scene's ground truth) spread evenly; orbit: a framing orbit at 320x240, for a model
+    with no cameras."""
+    frames: list[int]
+    """Frame indices within a GOP."""
+
+    def pairs(self) -> list[tuple[int, Camera]]:
+        return [(f, cam) for f in self.frames for cam in self.cameras]
+
+    def describe(self) -> dict:
+        """stats.json's `quality_views`."""
+        return {"source": self.source, "cameras": [c.name for c in self.cameras],
+                "sizes": [[c.width, c.height] for c in self.cameras], "frames": self.frames}
 
 
-def prepare_gop(model_dir: Path, meta: SceneMeta, k: int, plas: PLASConfig | None, views: int,
-                frames: int, static: StaticLayer | None = None, bits: tuple[int, ...] = (VIDEO_BITS,)) -> PreparedGOP:
+def spread(items: list, count: int) -> list:
+    """`count` items of `items` spread evenly, first and last included (all of them when count >= len(items))."""
+    if count >= len(items):
+        return list(items)
+    if count == 1:
+        return [items[0]]
+    return [items[round(i * (len(items) - 1) / (count - 1))] for i in range(count)]
+
+
+def quality_views(model_dir: Path, meta: SceneMeta, model: Callable[[], GOPModel], cameras: int,
+                  frames: int | None) -> QualityViews:
+    """The views rung quality is measured at (QualityViews): the model dir's held-out cameras where it names them,
+    else `cameras` of the scene's cameras spread evenly, else (no cameras) an orbit framing `model()`; `frames`
+    frames of each GOP spread evenly (None: every frame)."""
+    model_dir = Path(model_dir)
+    every = list(range(meta.shape.gop_size))
+    picked = every if frames is None else spread(every, frames)
+    if (model_dir / CAMERAS).is_file():
+        scene = read_scene_cameras(model_dir)
+        by_name = {c.name: c for c in scene}
+        held = (meta.extra or {}).get("validation_cameras") or []
+        if held and all(name in by_name for name in held):
+            return QualityViews([by_name[name] for name in held], "held-out", picked)
+        return QualityViews(spread(scene, cameras), "sample", picked)
+    if (model_dir / GROUND_TRUTH_DIR / CAMERAS).is_file():
+        return QualityViews(spread(load_ground_truth(model_dir)[1], cameras), "sample", picked)
+    return QualityViews(framing_orbit(model(), cameras, 320, 240), "orbit", picked)
+
+
+def prepare_gop(model_dir: Path, meta: SceneMeta, k: int, plas: PLASConfig | None, views: int, frames: int | None,
+                static: StaticLayer | None = None, bits: tuple[int, ...] = (VIDEO_BITS,)) -> PreparedGOP:
     """GOP k sorted (PLAS unless `plas` is None), tiled at each code depth of `bits` (each quantised from the float
-    features), its keyframe written and read back, and `views` x `frames` reference views rendered from the
-    uncompressed GOP (with the uncompressed static layer, if any)."""
+    features), its keyframe written and read back, and the reference views (quality_views: `views` cameras at
+    `frames` frames) rendered from the uncompressed GOP (with the uncompressed static layer, if any)."""
     side = meta.shape.grid_side
     original = load_gop(model_dir, meta, k)
     if plas is not None:
@@ -80,13 +128,40 @@ def prepare_gop(model_dir: Path, meta: SceneMeta, k: int, plas: PLASConfig | Non
     ranges = feature_ranges(feats)
     tiled = {b: tile_frames(quantize_features(feats, ranges, b), side).numpy().astype(np.uint16) for b in bits}
     keyframe = encode_keyframe(k, model, ranges)
-    cams = stats_cameras(model_dir, original, views)
-    g = meta.shape.gop_size
-    pairs = [(f, cam) for f in sorted({0, g // 2, g - 1})[:frames] for cam in cams]
+    pairs = quality_views(model_dir, meta, lambda: original, views, frames).pairs()
     renderer = FrameRenderer(original, static=static)
     reference = [renderer.render(f, cam).clamp(0, 1) for f, cam in pairs]
     decoded = decode_keyframe(keyframe, meta.shape, k, max_bytes=len(keyframe))
-    return PreparedGOP(k, tiled, ranges, keyframe, decoded, pairs, reference)
+    return PreparedGOP(k, tiled, ranges, keyframe, decoded, pairs, reference,
+                       model_error(model_dir, meta, k, pairs, reference))
+
+
+def model_error(model_dir: Path, meta: SceneMeta, k: int, pairs: list[tuple[int, Camera]],
+                reference: list[torch.Tensor]) -> float | None:
+    """GOP k's own mean squared error against the capture, which every rung adds its own to: for a trained model
+    the held-out PSNR its training report gives (stgs train), for a synthetic scene its renders `reference` of the
+    views `pairs` against the ground-truth images; None where the model dir has neither."""
+    model_dir = Path(model_dir)
+    report = model_dir / TRAIN_REPORT
+    if report.is_file():
+        try:
+            value = float(json.loads(report.read_text())["gops"][k]["val_psnr"])
+        except (OSError, ValueError, KeyError, IndexError, TypeError):
+            return None
+        return 10 ** (-value / 10) if math.isfinite(value) else None
+    if not (model_dir / GROUND_TRUTH_DIR / CAMERAS).is_file():
+        return None
+    doc = load_ground_truth(model_dir)[0]
+    pattern = doc.get("pattern")
+    if not isinstance(pattern, str):
+        return None
+    errors = []
+    for (i, cam), image in zip(pairs, reference, strict=True):
+        path = model_dir / GROUND_TRUTH_DIR / pattern.format(camera=cam.name, frame=k * meta.shape.gop_size + i)
+        if not path.is_file():
+            return None
+        errors.append((image.double() - load_png(path).double()).square().mean().item())
+    return sum(errors) / len(errors)
 
 
 def save_prepared(gop: PreparedGOP, path: Path) -> None:
@@ -97,7 +172,8 @@ def save_prepared(gop: PreparedGOP, path: Path) -> None:
     views = [{"frame": f, "camera": cam.to_json()} for f, cam in gop.views]
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp")
-    save_numpy(tensors, str(tmp), metadata={"index": str(gop.index), "views": json.dumps(views)})
+    save_numpy(tensors, str(tmp), metadata={"index": str(gop.index), "views": json.dumps(views),
+                                            "model_mse": json.dumps(gop.model_mse)})
     tmp.replace(path)
 
 
@@ -111,7 +187,8 @@ def load_prepared(path: Path, keyframe: bytes, meta: SceneMeta) -> PreparedGOP:
     reference = [torch.from_numpy(tensors[f"reference.{i}"]) for i in range(len(views))]
     decoded = decode_keyframe(keyframe, meta.shape, k, max_bytes=len(keyframe))
     frames = {int(name.split(".")[1]): t for name, t in tensors.items() if name.startswith("frames.")}
-    return PreparedGOP(k, frames, torch.from_numpy(tensors["ranges"]), keyframe, decoded, views, reference)
+    return PreparedGOP(k, frames, torch.from_numpy(tensors["ranges"]), keyframe, decoded, views, reference,
+                       json.loads(info["model_mse"]))
 
 
 class FeatureEncoder:
@@ -137,12 +214,6 @@ class FeatureEncoder:
         return init, media
 
 
-def mse_psnr(mse: list[float]) -> float:
-    """PSNR of the mean of squared errors (99 dB when identical)."""
-    m = sum(mse) / len(mse)
-    return 99.0 if m == 0 else 10 * math.log10(1.0 / m)
-
-
 def measure(gop: PreparedGOP, codec: FeatureCodec, init: bytes, media: bytes, meta: SceneMeta,
             static: StaticLayer | None = None) -> dict:
     """Bytes, decoded-feature PSNR and rendered-view PSNR (see quality) of one media segment of `codec`; `static`:
@@ -154,12 +225,23 @@ def measure(gop: PreparedGOP, codec: FeatureCodec, init: bytes, media: bytes, me
 
 def quality(gop: PreparedGOP, frames: np.ndarray, bits: int, static: StaticLayer | None = None) -> dict:
     """Decoded-feature PSNR (the `bits`-bit codes of `frames` against the GOP's 12-bit codes, so a 10-bit set's
-    figure includes its 10-bit step) and rendered-view PSNR (against the uncompressed GOP's reference views)."""
-    side = frames.shape[-1] // 4
+    figure includes its 10-bit step), rendered-view PSNR (of the mean squared error over the GOP's reference
+    views, view_errors) and, where the GOP's own error is known, the PSNR a viewer gets against the capture,
+    estimated as the sum of the two errors (`truth_psnr`; docs/PACKAGING.md, "Quality per rung")."""
     feature_psnr = psnr(torch.from_numpy(frames.astype(np.float32)) / code_max(bits),
                         torch.from_numpy(gop.frames[VIDEO_BITS].astype(np.float32)) / VIDEO_MAX)
+    errors = view_errors(gop, frames, bits, static)
+    out = {"feature_psnr": round(min(feature_psnr, 99.0), 4), "render_psnr": round(mse_psnr(errors), 4)}
+    if gop.model_mse is not None:
+        out["truth_psnr"] = round(mse_psnr([gop.model_mse + sum(errors) / len(errors)]), 4)
+    return out
+
+
+def view_errors(gop: PreparedGOP, frames: np.ndarray, bits: int, static: StaticLayer | None = None) -> list[float]:
+    """Mean squared error of each reference view (gop.views) rendered from the decoded GOP (its decoded keyframe and
+    the `bits`-bit feature `frames`) against the uncompressed GOP's render."""
+    side = frames.shape[-1] // 4
     features = features_from_frames(frames, side, gop.ranges, bits)
     renderer = FrameRenderer(gop.decoded_keyframe.to_model(features), static=static)
-    mse = [(renderer.render(f, cam).clamp(0, 1).double() - ref.double()).square().mean().item()
-           for (f, cam), ref in zip(gop.views, gop.reference, strict=True)]
-    return {"feature_psnr": round(min(feature_psnr, 99.0), 4), "render_psnr": round(mse_psnr(mse), 4)}
+    return [(renderer.render(f, cam).clamp(0, 1).double() - ref.double()).square().mean().item()
+            for (f, cam), ref in zip(gop.views, gop.reference, strict=True)]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 from stgs.errors import StgsError
@@ -79,6 +80,16 @@ class PackState:
             if not path.is_file() or hashlib.sha256(path.read_bytes()).hexdigest() != self.doc["files"].get(rel):
                 return None
         return entry["result"]
+
+    def forget(self, which: Callable[[str], bool]) -> None:
+        """Drop the tasks `which(name)` selects, and the files only they wrote."""
+        with self.lock:
+            tasks = self.doc["tasks"]
+            for name in [t for t in tasks if which(t)]:
+                del tasks[name]
+            kept = {rel for entry in tasks.values() for rel in entry["files"]}
+            self.doc["files"] = {rel: d for rel, d in self.doc["files"].items() if rel in kept}
+            self.save()
 
     def record(self, task: str, files: dict[str, str], result: dict) -> None:
         """`task` finished: the SHA-256 of each file it wrote (by path) and its result."""

@@ -19,6 +19,7 @@ from pathlib import Path
 from stgs.codec.plas import PLASConfig
 from stgs.codec.video import CODECS
 from stgs.errors import StgsError
+from stgs.packager.ladder import LadderRules
 from stgs.packager.manifest import SegmentRecord
 from stgs.packager.packer import PackConfig, Packer, point_task_name
 from stgs.packager.segments import load_prepared, save_prepared
@@ -37,8 +38,9 @@ class PackJob:
 
 def _packer(job: PackJob) -> Packer:
     doc = job.cfg
-    cfg = PackConfig(**{**doc, "qps": tuple(doc["qps"]), "codecs": tuple(doc["codecs"]),
-                        "av1_qps": tuple(doc["av1_qps"]), "plas": PLASConfig(**doc["plas"]), "resume": False})
+    points = {name: tuple(doc[name]) if doc[name] is not None else None for name in ("qps", "av1_qps")}
+    cfg = PackConfig(**{**doc, **points, "codecs": tuple(doc["codecs"]), "rules": LadderRules(**doc["rules"]),
+                        "plas": PLASConfig(**doc["plas"]), "resume": False})
     return Packer(Path(job.model_dir), Path(job.out), cfg, progress=False)
 
 
@@ -68,7 +70,7 @@ def run_tasks(packer: Packer, runner: Runner) -> dict:
     job = PackJob(str(packer.model_dir.resolve()), str(out.resolve()), dataclasses.asdict(cfg))
     packer.write_static()
     tasks = []
-    ladder = cfg.ladder()
+    ladder = cfg.encodes()
     for k in range(packer.meta.num_gops):
         pending = [(c, q) for c, q in ladder if state.done(out, point_task_name(k, c, q)) is None]
         prepare = f"gop{k}-prepare"

@@ -2,10 +2,16 @@
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
+
+from stgs.errors import StgsError
+from stgs.limits import MAX_IMAGE_SIDE, MAX_PATH_CAMERAS
+from stgs.tree import CAMERAS, CAMERAS_FORMAT
 
 
 @dataclass
@@ -158,3 +164,36 @@ def rig_orbit(cameras: list[Camera], count: int, width: int, height: int, fov_x_
         out.append(Camera(f"orbit{i:02d}", K.clone(), look_at(eye.tolist(), focus.tolist(), up.tolist()),
                           width, height))
     return out
+
+
+def parse_scene_cameras(doc: object) -> list[Camera]:
+    """Cameras of a cameras.json document (from the network: checked, never trusted)."""
+    if not isinstance(doc, dict) or doc.get("format") != CAMERAS_FORMAT or not isinstance(doc.get("cameras"), list):
+        raise StgsError(f"cameras.json is not a {CAMERAS_FORMAT} document")
+    return checked_cameras(doc["cameras"], CAMERAS)
+
+
+def read_scene_cameras(folder: Path) -> list[Camera]:
+    """The cameras of the cameras.json in a model dir or packaged tree."""
+    path = Path(folder) / CAMERAS
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise StgsError(f"{path}: cannot read the scene's cameras ({exc})") from None
+    return parse_scene_cameras(doc)
+
+
+def checked_cameras(items: list, where: str) -> list[Camera]:
+    """Cameras (Camera.to_json items) from outside: each well-formed and of an image size within the limits."""
+    if len(items) > MAX_PATH_CAMERAS:
+        raise StgsError(f"{where}: more than {MAX_PATH_CAMERAS} cameras")
+    cameras = []
+    for i, item in enumerate(items):
+        try:
+            cam = Camera.from_json(item)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise StgsError(f"{where}: camera {i} is malformed ({exc})") from None
+        if not (1 <= cam.width <= MAX_IMAGE_SIDE and 1 <= cam.height <= MAX_IMAGE_SIDE):
+            raise StgsError(f"{where}: camera {cam.name!r} has image size {cam.width}x{cam.height}")
+        cameras.append(cam)
+    return cameras

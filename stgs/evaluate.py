@@ -28,7 +28,7 @@ from stgs.data import open_dataset
 from stgs.data.units import in_model_units
 from stgs.errors import FieldError, StgsError
 from stgs.fsio import atomic_write_bytes, image_grid, save_png
-from stgs.metrics import LPIPS, lpips_backbone_file, psnr, ssim
+from stgs.metrics import LPIPS, lpips_backbone_file, mse_psnr, psnr, ssim
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.static import StaticLayer
 from stgs.model.store import load_gop, load_static, read_meta
@@ -129,33 +129,48 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
                     "gaussians": {"static": static.capacity if static is not None else 0,
                                   "dynamic": meta.shape.capacity}, "streams": {}}
     grid_rows: list[torch.Tensor] = []
-    # Every stream is scored on the same views: decoded ahead, in the order they are drawn, and kept for the next
-    # stream as far as the budget allows.
+    # View-major: every stream draws a view in turn, so each view's truth is decoded once and a packaged stream is
+    # also scored against the uncompressed model's render of the same view (`render_psnr`, as stgs pack measures).
     frames = [start + k * g + i for k in range(meta.num_gops) for i in range(0, g, stride)]
     _, truths = open_views(ds, [], frames, scale, default_memory() if max_memory is None else max_memory, cams_val)
-    truths.plan([(p, c, 0) for _ in sources for p in range(len(frames)) for c in range(len(cams_val))])
+    truths.plan([(p, c, 0) for p in range(len(frames)) for c in range(len(cams_val))])
+    per_gop: dict[str, list[dict]] = {name: [] for name in sources}
+    reference_mse: dict[str, list[float]] = {name: [] for name in sources if name != "uncompressed"}
     try:
-        for name, load in sources.items():
-            per_gop = []
-            views = iter(range(len(frames)))
-            for k in tqdm(range(meta.num_gops), desc=f"eval {name}", unit="gop", disable=not progress):
-                renderer = FrameRenderer(load(k), static=statics[name])
-                rows = []
-                for i in range(0, g, stride):
-                    f, p = start + k * g + i, next(views)
-                    by_name = {c.name: c for c in ds.cameras(f)}
-                    for c, cam_name in enumerate(cams_val):
-                        cam, truth = scale_camera(by_name[cam_name], scale), truths.target(p, c)
+        views = iter(range(len(frames)))
+        for k in tqdm(range(meta.num_gops), desc="eval", unit="gop", disable=not progress):
+            renderers = {name: FrameRenderer(load(k), static=statics[name]) for name, load in sources.items()}
+            rows: dict[str, list[dict]] = {name: [] for name in sources}
+            gop_mse: dict[str, list[float]] = {name: [] for name in reference_mse}
+            for i in range(0, g, stride):
+                f, p = start + k * g + i, next(views)
+                by_name = {c.name: c for c in ds.cameras(f)}
+                for c, cam_name in enumerate(cams_val):
+                    cam, truth = scale_camera(by_name[cam_name], scale), truths.target(p, c)
+                    reference = None
+                    for name, renderer in renderers.items():
                         image = renderer.render(i, cam).clamp(0, 1)
                         row = {"frame": f, "camera": cam_name, "psnr": _finite(psnr(image, truth)),
                                "ssim": float(ssim(image, truth))} | region_psnr(image, truth, ds.mask(f, cam_name))
                         if lpips is not None:
                             row["lpips"] = lpips(image, truth)
-                        rows.append(row)
-                        if name == "uncompressed" and len(grid_rows) < 3 * GRID_ROWS and i % max(1, g // 2) == 0:
-                            grid_rows += [image, truth, ((image - truth).abs() * 10).clamp(0, 1)]
-                per_gop.append({"gop": k} | _means(rows) | {"frames": rows})
-            result["streams"][name] = _means(per_gop) | {"gops": per_gop}
+                        if name == "uncompressed":
+                            reference = image
+                            if len(grid_rows) < 3 * GRID_ROWS and i % max(1, g // 2) == 0:
+                                grid_rows += [image, truth, ((image - truth).abs() * 10).clamp(0, 1)]
+                        else:
+                            gop_mse[name].append((image.double() - reference.double()).square().mean().item())
+                        rows[name].append(row)
+            for name in sources:
+                scored = {"gop": k} | _means(rows[name])
+                if name in gop_mse:
+                    scored["render_psnr"] = mse_psnr(gop_mse[name])
+                    reference_mse[name] += gop_mse[name]
+                per_gop[name].append(scored | {"frames": rows[name]})
+        for name in sources:
+            result["streams"][name] = _means(per_gop[name]) | {"gops": per_gop[name]}
+            if name in reference_mse:
+                result["streams"][name]["render_psnr"] = _mean(g["render_psnr"] for g in per_gop[name])
     finally:
         truths.close()
     report = Path(model_dir) / TRAIN_REPORT

@@ -117,23 +117,35 @@ class Representation:
     """@associationId: Representations this one is tied to."""
     association_type: list[str] = field(default_factory=list)
     """@associationType: one 4CC per associationId entry."""
+    quality_ranking: int | None = None
+    """@qualityRanking: lower is better, among the AdaptationSet's Representations."""
+    supplemental: list[Descriptor] = field(default_factory=list)
+    """SupplementalProperty descriptors."""
 
     def to_element(self) -> etree._Element:
         el = etree.Element(_q("Representation"), id=self.id, bandwidth=str(self.bandwidth))
-        for attr, value in (("codecs", self.codecs), ("width", self.width), ("height", self.height),
-                            ("frameRate", self.frame_rate)):
+        for attr, value in (("qualityRanking", self.quality_ranking), ("codecs", self.codecs),
+                            ("width", self.width), ("height", self.height), ("frameRate", self.frame_rate)):
             if value is not None:
                 el.set(attr, str(value))
         if self.association_id:
             el.set("associationId", " ".join(self.association_id))
             el.set("associationType", " ".join(self.association_type))
+        for d in self.supplemental:
+            el.append(d.to_element("SupplementalProperty"))
         return el
 
     @classmethod
     def from_element(cls, el: etree._Element) -> Representation:
         return cls(required_attr(el, "id"), int_attr(el, "bandwidth"), el.get("codecs"),
                    optional_int_attr(el, "width"), optional_int_attr(el, "height"), el.get("frameRate"),
-                   (el.get("associationId") or "").split(), (el.get("associationType") or "").split())
+                   (el.get("associationId") or "").split(), (el.get("associationType") or "").split(),
+                   optional_int_attr(el, "qualityRanking"),
+                   [Descriptor.from_element(d) for d in el.findall(_q("SupplementalProperty"))])
+
+    def find_descriptor(self, scheme: str) -> Descriptor | None:
+        """The first SupplementalProperty with `scheme`, or None."""
+        return next((d for d in self.supplemental if d.scheme_id_uri == scheme), None)
 
 
 @dataclass

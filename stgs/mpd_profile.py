@@ -4,10 +4,11 @@ AdaptationSets and the keyframe and static-layer SupplementalProperty values, wr
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 
 from stgs.limits import MAX_CAPACITY, MAX_FPS, MAX_GOP_SIZE, MAX_PE_FREQS, MAX_WINDOW, MIN_FPS
-from stgs.mpd import MPD, AdaptationSet
+from stgs.mpd import MPD, AdaptationSet, Representation
 from stgs.mpd_values import MPDError
 
 KEYFRAME_SCHEME = "urn:streamstgs:keyframe:2026"
@@ -16,6 +17,8 @@ FEATURE_SCHEME = "urn:streamstgs:features:2026"
 """SupplementalProperty scheme marking the feature-video AdaptationSet."""
 STATIC_SCHEME = "urn:streamstgs:static:2026"
 """SupplementalProperty scheme marking the static-layer AdaptationSet (format-2 trees only)."""
+QUALITY_SCHEME = "urn:streamstgs:quality:2026"
+"""SupplementalProperty scheme of a feature Representation's measured quality."""
 FEATURE_CODECS = {"hevc": (("hvc1", "hev1"), 12), "av1": (("av01",), 10)}
 """The feature-video codecs a tree may carry, one AdaptationSet each, reference first: the @codecs sample entries
 that name each and the code depth of its frames."""
@@ -118,6 +121,49 @@ class FeatureDescriptor:
                            f"{' or '.join(str(b) for _, b in FEATURE_CODECS.values())}-bit codes")
         return cls(bits)
 
+
+
+@dataclass(frozen=True)
+class QualityDescriptor:
+    """A feature Representation's SupplementalProperty (manifests/PROFILE.md): the mean PSNR of views rendered from
+    the decoded stream against the uncompressed model at the scene's cameras and, where the packager knew the
+    model's own error, the PSNR a viewer gets against the capture (stats.json has both per GOP). `value` writes
+    it, `parse` reads and checks it."""
+
+    render_psnr: float
+    """dB against the uncompressed model."""
+    truth_psnr: float | None = None
+    """dB against the capture (estimated), or None."""
+
+    @property
+    def value(self) -> str:
+        truth = "" if self.truth_psnr is None else f";truth_psnr={self.truth_psnr:.2f}"
+        return f"render_psnr={self.render_psnr:.2f}{truth}"
+
+    @classmethod
+    def parse(cls, representation: Representation) -> QualityDescriptor | None:
+        """The Representation's quality descriptor (None where it has none, as in older trees), refused
+        (MPDError) unless each PSNR it gives is a number in 0..99 dB (render_psnr always)."""
+        found = representation.find_descriptor(QUALITY_SCHEME)
+        if found is None:
+            return None
+        fields = found.fields()
+        values: dict[str, float | None] = {}
+        for key in ("render_psnr", "truth_psnr"):
+            raw = fields.get(key)
+            if raw is None and key == "truth_psnr":
+                values[key] = None
+            elif raw is None or not re.fullmatch(r"\d{1,2}(\.\d{1,6})?", raw):
+                raise MPDError(f"quality descriptor of Representation {representation.id}: {key}={raw!r:.40} is "
+                               "not a number in 0..99 dB")
+            else:
+                values[key] = float(raw)
+        return cls(**values)
+
+    @property
+    def quality(self) -> float:
+        """The figure a viewer's choice rests on: against the capture where known, else against the model."""
+        return self.render_psnr if self.truth_psnr is None else self.truth_psnr
 
 DURATION_PRECISION_S = 1e-3
 """@mediaPresentationDuration is written to the millisecond: a GOP that starts within this of its end is rounding."""

@@ -50,6 +50,17 @@ PACK_WORK = ".pack-work"
 """A distributed pack's prepared GOPs, handed from each GOP's prepare task to its QP tasks; removed at the end."""
 PACK_LOGS = ".pack-logs"
 """A distributed pack's per-task logs (stgs.tasks); hidden, so never served."""
+QUALITY_MEASURES = ("truth_psnr", "render_psnr")
+"""What a stats.json rung's quality per GOP is judged by, in order: its PSNR against the capture (estimated by the
+packager where it knew the model's own error), else against the uncompressed model."""
+
+
+def rung_quality(representations: dict, rep_ids: list[str]) -> list[float]:
+    """Per rung of `rep_ids`, a stats.json GOP's quality (`representations`: its entry per Representation), judged
+    by the first of QUALITY_MEASURES every rung has (KeyError, TypeError or ValueError where none is there)."""
+    entries = [representations[r] for r in rep_ids]
+    measure = next((m for m in QUALITY_MEASURES if all(m in e for e in entries)), QUALITY_MEASURES[-1])
+    return [float(e[measure]) for e in entries]
 
 # --- packaged tree: segments ---
 KEYFRAME_EXTENSION = ".stgk"

@@ -45,6 +45,10 @@ CODEC_TAG = "hvc1"
 """Parameter sets in the init segment's sample description only (what MSE and the DASH profile expect)."""
 AV1_LADDER = (12, 19, 27, 35, 43)
 """The AV1 set's QP ladder: one point beside each default HEVC QP, at about its bytes (docs/PACKAGING.md)."""
+HEVC_CANDIDATES = (12, 16, 20, 24, 28, 32, 36, 40)
+"""The HEVC QPs the auto ladder measures and picks its rungs from (docs/PACKAGING.md, "The auto ladder")."""
+AV1_CANDIDATES = (10, 16, 22, 28, 34, 40, 46, 52)
+"""The AV1 QPs the auto ladder measures and picks its rungs from: about the span of the HEVC candidates' bytes."""
 
 
 @dataclass(frozen=True)
@@ -66,7 +70,9 @@ class FeatureCodec:
     quantizers: range
     """Valid ladder points (the QP of x265 or of SVT-AV1)."""
     ladder: tuple[int, ...]
-    """The ladder points `stgs pack` encodes unless told otherwise."""
+    """The ladder points of a fixed ladder unless told otherwise."""
+    candidates: tuple[int, ...]
+    """The ladder points the auto ladder measures unless told otherwise."""
 
     def rep_id(self, q: int) -> str:
         """The Representation id of ladder point `q` (stgs.tree.rep_id)."""
@@ -88,9 +94,9 @@ class FeatureCodec:
 
 
 HEVC = FeatureCodec("hevc", FEATURE_CODECS["hevc"][1], "libx265", PIXEL_FORMAT, CODEC_TAG, PRESETS, "medium",
-                    range(0, 52), DEFAULT_QPS)
+                    range(0, 52), DEFAULT_QPS, HEVC_CANDIDATES)
 AV1 = FeatureCodec("av1", FEATURE_CODECS["av1"][1], "libsvtav1", av1.PIXEL_FORMAT, av1.CODEC_TAG, av1.PRESETS, "8",
-                   av1.QUANTIZERS, AV1_LADDER)
+                   av1.QUANTIZERS, AV1_LADDER, AV1_CANDIDATES)
 CODECS = {c.name: c for c in (HEVC, AV1)}
 """Every feature codec by name, the reference (HEVC) first (stgs.mpd_profile.FEATURE_CODECS names them)."""
 

@@ -23,7 +23,8 @@ QUICK = DownloadSettings(retries=1, backoff_s=0.05, read_timeout_s=5.0)
 def scene(tmp_path_factory) -> Path:
     base = tmp_path_factory.mktemp("play")
     synthesize(SCENE, base / "model", progress=False)
-    pack(base / "model", base / "dash", PackConfig(qps=(16, 24, 32), av1_qps=(16, 32, 41), jobs=2), progress=False)
+    pack(base / "model", base / "dash", PackConfig(ladder="fixed",
+                                                   qps=(16, 24, 32), av1_qps=(16, 32, 41), jobs=2), progress=False)
     return base
 
 

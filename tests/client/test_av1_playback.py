@@ -64,7 +64,7 @@ async def test_adaptive_play_stays_on_the_chosen_set(scene):
 
 def test_a_codec_the_tree_lacks_is_a_clear_error(scene, tmp_path):
     alone = tmp_path / "hevc"
-    pack(scene / "model", alone, PackConfig(qps=(24,), codecs=("hevc",), jobs=2), progress=False)
+    pack(scene / "model", alone, PackConfig(ladder="fixed", qps=(24,), codecs=("hevc",), jobs=2), progress=False)
     with pytest.raises(MPDError, match="no av1 feature set \\(it offers hevc\\)"):
         Presentation.parse((alone / MANIFEST).read_bytes(), "http://h/manifest.mpd", "av1")
     pres = Presentation.parse((alone / MANIFEST).read_bytes(), "http://h/manifest.mpd", "auto")
@@ -131,7 +131,7 @@ async def test_a_bad_av1_segment_falls_back_to_the_lowest_rung(scene, tmp_path, 
 
 def test_a_tree_with_av1_alone_plays_and_simulates(scene, tmp_path):
     alone = tmp_path / "av1"
-    pack(scene / "model", alone, PackConfig(codecs=("av1",), av1_qps=(16, 41), jobs=2), progress=False)
+    pack(scene / "model", alone, PackConfig(ladder="fixed", codecs=("av1",), av1_qps=(16, 41), jobs=2), progress=False)
     ladder = load_ladder(str(alone))
     assert ladder.pres.feature_codec.name == "av1" and [r.rep_id for r in ladder.pres.ladder] == ["av1q41", "av1q16"]
     sc = scenario_from_dict({"scene": str(alone), "abr": ["throughput"], "effects": {"bandwidth": {"kbps": 1e5}},
@@ -147,7 +147,7 @@ async def test_stgs_play_plays_a_tree_with_av1_alone(scene, tmp_path):
     import asyncio
 
     alone = tmp_path / "av1"
-    pack(scene / "model", alone, PackConfig(codecs=("av1",), av1_qps=(24,), jobs=2), progress=False)
+    pack(scene / "model", alone, PackConfig(ladder="fixed", codecs=("av1",), av1_qps=(24,), jobs=2), progress=False)
     async with serving(alone) as url:
         result = await asyncio.to_thread(stgs, "play", url, "--size", "32x24", "--log", str(tmp_path / "log.json"))
     assert result.returncode == 0, result.stderr

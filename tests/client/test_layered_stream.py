@@ -38,7 +38,8 @@ XSD = SHARED / "dash" / "DASH-MPD.xsd"
 def layered(tmp_path_factory):
     base = tmp_path_factory.mktemp("layered")
     synthesize(LAYERED, base / "model", progress=False)
-    stats = pack(base / "model", base / "dash", PackConfig(qps=(16, 32), av1_qps=(16, 41), jobs=2), progress=False)
+    stats = pack(base / "model", base / "dash", PackConfig(ladder="fixed",
+                                                           qps=(16, 32), av1_qps=(16, 41), jobs=2), progress=False)
     return base, stats
 
 

@@ -12,8 +12,9 @@ import cv2
 import numpy as np
 import pytest
 
+from stgs.camera import read_scene_cameras
 from stgs.client import PlayConfig, framepath, play
-from stgs.client.view import ViewSpec, read_scene_cameras
+from stgs.client.view import ViewSpec
 from stgs.codec import stream
 from stgs.codec.keyframe import KeyframeError, KeyframeSegment
 from stgs.codec.mp4 import set_timeline, split_fragmented

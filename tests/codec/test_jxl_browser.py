@@ -57,7 +57,7 @@ def images(tmp_path_factory) -> dict[str, bytes]:
     """Every JPEG XL image of a packed layered scene, plus a view-dependent static layer's."""
     tmp = tmp_path_factory.mktemp("jxl")
     synthesize(SCENE, tmp / "model", progress=False)
-    pack(tmp / "model", tmp / "dash", PackConfig(qps=(24,), codecs=("hevc",), jobs=2), progress=False)
+    pack(tmp / "model", tmp / "dash", PackConfig(ladder="fixed", qps=(24,), codecs=("hevc",), jobs=2), progress=False)
     found = {}
     for seg in sorted((tmp / "dash").rglob("*.stg[kl]")):
         found |= {f"{seg.name}:{k}": v for k, v in jxl_images(seg.read_bytes()).items()}

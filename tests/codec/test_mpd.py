@@ -99,3 +99,24 @@ def test_template_number_width_is_capped():
     for width in ("033", "0999999999", "099999999999999999999"):
         with pytest.raises(MPDError, match="over the limit"):
             expand_template(f"seg_$Number%{width}d$.m4s", "r", 7)
+
+
+def test_the_quality_descriptor_round_trips_and_refuses_what_is_not_a_db_figure():
+    from stgs.mpd_profile import QUALITY_SCHEME, QualityDescriptor
+
+    def rep(value: str | None) -> Representation:
+        extra = [] if value is None else [Descriptor(QUALITY_SCHEME, value)]
+        return Representation("qp20", 1000, quality_ranking=2, supplemental=extra)
+
+    written = rep(QualityDescriptor(44.8434, 26.7054).value)
+    parsed = parse_mpd(MPD(1.0, 1.0, [Period("0", [AdaptationSet(
+        2, "video", "video/mp4", SegmentTemplate("$RepresentationID$/$Number$.m4s", 1, 1), [written])])])
+        .to_xml()).periods[0].adaptation_sets[0].representations[0]
+    assert parsed.quality_ranking == 2
+    assert QualityDescriptor.parse(parsed) == QualityDescriptor(44.84, 26.71)
+    assert QualityDescriptor.parse(rep("render_psnr=31.5")) == QualityDescriptor(31.5, None)
+    assert QualityDescriptor.parse(rep(None)) is None  # a tree written before the descriptor
+    for bad in ("render_psnr=nan", "render_psnr=1e3", "render_psnr=-1", "render_psnr=100", "truth_psnr=30",
+                "render_psnr=30;truth_psnr=inf"):
+        with pytest.raises(MPDError, match="quality descriptor of Representation qp20"):
+            QualityDescriptor.parse(rep(bad))

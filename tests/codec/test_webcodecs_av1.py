@@ -50,7 +50,8 @@ def tree(tmp_path_factory) -> Path:
     base = tmp_path_factory.mktemp("webcodecs")
     synthesize(SynthConfig(grid_side=16, num_gops=2, gop_size=6, width=64, height=48, num_cameras=2, fit_steps=30),
                base / "model", progress=False)
-    pack(base / "model", base / "dash", PackConfig(codecs=("av1",), av1_qps=(12, 43), jobs=2), progress=False)
+    pack(base / "model", base / "dash", PackConfig(ladder="fixed",
+                                                   codecs=("av1",), av1_qps=(12, 43), jobs=2), progress=False)
     return base / "dash"
 
 

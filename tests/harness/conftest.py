@@ -18,5 +18,6 @@ SCENE = SynthConfig(grid_side=16, num_gops=3, gop_size=6, fps=6.0, width=48, hei
 def packed(tmp_path_factory) -> Path:
     base = tmp_path_factory.mktemp("harness")
     synthesize(SCENE, base / "model", progress=False)
-    pack(base / "model", base / "dash", PackConfig(qps=(16, 24, 32), codecs=("hevc",), jobs=2), progress=False)
+    pack(base / "model", base / "dash", PackConfig(ladder="fixed",
+                                                   qps=(16, 24, 32), codecs=("hevc",), jobs=2), progress=False)
     return base / "dash"

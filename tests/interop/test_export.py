@@ -81,7 +81,7 @@ def test_the_cli_exports_a_frame_a_sequence_and_from_a_packaged_tree(scene, tmp_
     assert [r["frame"] for r in index["files"]] == [4, 5, 6, 7, 8] and index["fps"] == 30.0
     assert all((tmp_path / "seq" / r["file"]).stat().st_size == r["bytes"] for r in index["files"])
     tree = tmp_path / "tree"
-    pack(scene, tree, PackConfig(qps=(16, 30), codecs=("hevc",), jobs=2), progress=False)
+    pack(scene, tree, PackConfig(ladder="fixed", qps=(16, 30), codecs=("hevc",), jobs=2), progress=False)
     run = run_stgs("export", str(tree / "manifest.mpd"), str(tmp_path / "t.glb"), "--frame", str(FRAME),
                    "--rep", "qp16", "--eye", "0,0,-4")
     assert run.returncode == 0, run.stderr

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import itertools
 import json
 import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from safetensors.torch import load_file, save_file
 
 from stgs.mpd import parse_mpd
@@ -36,7 +38,7 @@ def scene(tmp_path_factory):
 @pytest.fixture(scope="module")
 def packed(scene, tmp_path_factory):
     out = tmp_path_factory.mktemp("pack") / "dash"
-    stats = pack(scene, out, PackConfig(qps=QPS, av1_qps=AV1_QPS, jobs=2), progress=False)
+    stats = pack(scene, out, PackConfig(ladder="fixed", qps=QPS, av1_qps=AV1_QPS, jobs=2), progress=False)
     return out, stats
 
 
@@ -145,18 +147,18 @@ def test_rendered_views_at_qp20_and_av1q19_are_faithful(packed):
 def test_repack_is_byte_identical_and_resume_completes(scene, packed, tmp_path):
     out, _ = packed
     again = tmp_path / "again"
-    pack(scene, again, PackConfig(qps=QPS, av1_qps=AV1_QPS, jobs=1), progress=False)
+    pack(scene, again, PackConfig(ladder="fixed", qps=QPS, av1_qps=AV1_QPS, jobs=1), progress=False)
     assert tree_digest(again) == tree_digest(out)
     for seg in (next(again.rglob("qp*/seg_00001.m4s")), next(again.rglob("av1q*/seg_00001.m4s"))):
         seg.unlink()
-    pack(scene, again, PackConfig(qps=QPS, av1_qps=AV1_QPS, resume=True), progress=False)
+    pack(scene, again, PackConfig(ladder="fixed", qps=QPS, av1_qps=AV1_QPS, resume=True), progress=False)
     assert tree_digest(again) == tree_digest(out)
 
 
 def test_an_av1_only_tree_has_one_feature_set_and_the_same_av1_bytes(scene, packed, tmp_path):
     out, _ = packed
     alone = tmp_path / "av1"
-    stats = pack(scene, alone, PackConfig(codecs=("av1",), av1_qps=AV1_QPS, jobs=2), progress=False)
+    stats = pack(scene, alone, PackConfig(ladder="fixed", codecs=("av1",), av1_qps=AV1_QPS, jobs=2), progress=False)
     mpd = parse_mpd((alone / MANIFEST).read_bytes())
     sets = feature_sets(mpd)
     assert list(sets) == ["av1"] and sets["av1"].group is None
@@ -180,7 +182,7 @@ def test_interrupted_pack_leaves_no_manifest(scene, tmp_path, monkeypatch):
     monkeypatch.setattr(pack_module, "encode_gop", failing)
     out = tmp_path / "dash"
     with pytest.raises(KeyboardInterrupt):
-        pack(scene, out, PackConfig(qps=QPS, jobs=1), progress=False)
+        pack(scene, out, PackConfig(ladder="fixed", qps=QPS, jobs=1), progress=False)
     assert not (out / MANIFEST).exists() and not (out / STATS).exists()
     assert not [p for p in out.rglob(".*") if p.name != ".pack-state.json"], "temp files left behind"
 
@@ -195,10 +197,10 @@ def test_a_pack_killed_at_its_first_segment_resumes(scene, packed, tmp_path, mon
     monkeypatch.setattr(pack_module, "encode_gop", killed)
     out = tmp_path / "dash"
     with pytest.raises(KeyboardInterrupt):
-        pack(scene, out, PackConfig(qps=QPS, jobs=1), progress=False)
+        pack(scene, out, PackConfig(ladder="fixed", qps=QPS, jobs=1), progress=False)
     assert list(out.rglob("*.stgk")) and (out / ".pack-state.json").is_file()
     monkeypatch.undo()
-    pack(scene, out, PackConfig(qps=QPS, jobs=2, resume=True), progress=False)
+    pack(scene, out, PackConfig(ladder="fixed", qps=QPS, jobs=2, resume=True), progress=False)
     assert tree_digest(out) == tree_digest(packed[0])
 
 
@@ -210,7 +212,7 @@ def test_a_gop_file_changed_in_place_changes_the_pack_id(scene, packed, tmp_path
 
     model = corrupt_copy(scene, tmp_path, nudge)  # model.json untouched
     out = tmp_path / "dash"
-    stats = pack(model, out, PackConfig(qps=QPS, jobs=2), progress=False)
+    stats = pack(model, out, PackConfig(ladder="fixed", qps=QPS, jobs=2), progress=False)
     assert stats["pack_id"] != packed[1]["pack_id"]
     assert {p.name for p in out.glob("v-*")} == {f"v-{stats['pack_id']}"}
 
@@ -230,7 +232,7 @@ def test_a_folder_with_someone_elses_manifest_is_not_overwritten(scene, tmp_path
 def test_different_input_gets_new_segment_names(scene, packed, tmp_path):
     out, _ = packed
     other = tmp_path / "other"
-    pack(scene, other, PackConfig(qps=(20,), jobs=2), progress=False)
+    pack(scene, other, PackConfig(ladder="fixed", qps=(20,), jobs=2), progress=False)
     names = {p.relative_to(other).parts[0] for p in other.iterdir()}
     assert not names & {p.relative_to(out).parts[0] for p in out.iterdir() if p.name.startswith("v-")}
 
@@ -239,6 +241,9 @@ def test_no_loop_filters_reaches_every_segment(scene, tmp_path):
     out = tmp_path / "dash"
     result = stgs("pack", str(scene), str(out), "--qps", "20", "--no-loop-filters", "--quiet")
     assert result.returncode == 0, result.stderr
+    ladders = json.loads((out / STATS).read_text())["ladders"]  # --qps alone: a fixed ladder
+    assert {c: (d["mode"], [x["representation"] for x in d["candidates"]]) for c, d in ladders.items()} == \
+        {"hevc": ("fixed", ["qp20"]), "av1": ("fixed", [f"av1q{c}" for c in reversed(AV1_QPS)])}
     video = parse_mpd((out / MANIFEST).read_bytes()).adaptation_set(FEATURE_SCHEME)
     init = (out / video.segment_template.initialization.replace("$RepresentationID$", "qp20")).read_bytes()
     for k in range(SCENE.num_gops):
@@ -303,13 +308,24 @@ def test_pack_cli_rejects_bad_options(scene, tmp_path):
     assert result.returncode == 2 and "--codecs" in result.stderr and "hevc, av1" in result.stderr
     result = stgs("pack", str(scene), str(tmp_path / "o"), "--av1-qps", "0")
     assert result.returncode == 2 and "--av1-qps" in result.stderr and "1..63" in result.stderr
+    result = stgs("pack", str(scene), str(tmp_path / "o"), "--ladder", "best")
+    assert result.returncode == 2 and "--ladder" in result.stderr and "auto" in result.stderr
     assert not (tmp_path / "o").exists()
 
 
 def test_defaults_and_what_names_the_output():
+    from stgs.codec.video import AV1, HEVC
+
     cfg = PackConfig()
-    assert cfg.qps == QPS and cfg.preset == "medium" and cfg.sort and cfg.codecs == ("hevc", "av1") and cfg.loop_filters
-    assert cfg.av1_qps == AV1_QPS and cfg.av1_preset == "8"
+    assert cfg.ladder == "auto" and cfg.preset == "medium" and cfg.sort and cfg.codecs == ("hevc", "av1")
+    assert cfg.loop_filters and cfg.av1_preset == "8"
+    assert cfg.points(HEVC) == HEVC.candidates and cfg.points(AV1) == AV1.candidates
+    fixed = dataclasses.replace(cfg, ladder="fixed")
+    assert fixed.points(HEVC) == QPS and fixed.points(AV1) == AV1_QPS
+    assert dataclasses.replace(fixed, qps=(20,)).encodes() == [(HEVC, 20), *((AV1, q) for q in AV1_QPS)]
+    assert fixed.digest_fields() != cfg.digest_fields()
+    assert dataclasses.replace(cfg, rules=dataclasses.replace(cfg.rules, min_ratio=2.0)).digest_fields() \
+        != cfg.digest_fields()
     assert dataclasses.replace(cfg, codecs=("hevc",)).digest_fields() != cfg.digest_fields()
     assert dataclasses.replace(cfg, av1_qps=(20,)).digest_fields() != cfg.digest_fields()
     assert dataclasses.replace(cfg, sort=False).digest_fields() != cfg.digest_fields()
@@ -336,3 +352,92 @@ def test_scene_cameras_are_published_beside_the_mpd(scene, packed):
     truth = load_ground_truth(scene)[1]
     assert [c.name for c in published] == [c.name for c in truth]
     assert all((a.viewmat == b.viewmat).all() and (a.K == b.K).all() for a, b in zip(published, truth, strict=True))
+
+
+@pytest.fixture(scope="module")
+def auto_packed(scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("pack") / "auto"
+    result = stgs("pack", str(scene), str(out), "--quiet", "--jobs", "2")
+    assert result.returncode == 0, result.stderr
+    return out, json.loads((out / STATS).read_text()), result.stdout
+
+
+def test_the_auto_ladder_keeps_rungs_on_the_hull_and_says_why(auto_packed):
+    from stgs.codec.video import AV1, HEVC
+    from stgs.mpd_profile import QualityDescriptor
+
+    out, stats, summary = auto_packed
+    mpd = parse_mpd((out / MANIFEST).read_bytes())
+    for codec in (HEVC, AV1):
+        ladder = stats["ladders"][codec.name]
+        assert ladder["mode"] == "auto" and set(ladder["rules"]) == {"min_gain_db", "top_gain_db", "min_ratio"}
+        assert [c["representation"] for c in sorted(ladder["candidates"], key=lambda c: c["representation"])] == \
+            sorted(codec.rep_id(q) for q in codec.candidates)
+        kept = [c for c in ladder["candidates"] if c["kept"]]
+        assert kept and all(c["reason"] for c in ladder["candidates"])
+        for below, above in itertools.pairwise(kept):  # ascending bytes, rising quality, spaced
+            assert above["bytes"] >= 1.5 * below["bytes"] and above["render_psnr"] - below["render_psnr"] >= 0.1
+        reps = feature_sets(mpd)[codec.name].representations
+        assert sorted(r.id for r in reps) == sorted(c["representation"] for c in kept) == \
+            sorted(r for r in stats["representations"] if r.startswith(codec.rep_id(0)[:-1]))
+        for rep in reps:
+            assert QualityDescriptor.parse(rep).render_psnr == pytest.approx(
+                stats["representations"][rep.id]["mean_render_psnr"], abs=0.005)
+        assert sorted(r.quality_ranking for r in reps) == list(range(1, len(reps) + 1))
+        best = min(reps, key=lambda r: r.quality_ranking)
+        assert stats["representations"][best.id]["mean_render_psnr"] == max(
+            stats["representations"][r.id]["mean_render_psnr"] for r in reps)
+        dropped = [c["representation"] for c in ladder["candidates"] if not c["kept"]]
+        for rep in dropped:  # no segments of a candidate that is not a rung
+            assert not list(out.rglob(f"features/{rep}"))
+            assert f"{rep}  dropped: " in summary
+    assert "rendered PSNR against the uncompressed model at 2 sample camera(s)" in summary
+    assert stats["quality_views"]["source"] == "sample" and stats["quality_views"]["sizes"] == [[64, 48]] * 2
+
+
+def test_the_auto_ladder_mpd_is_schema_valid_and_repacks_byte_identically(scene, auto_packed, tmp_path):
+    out, _, _ = auto_packed
+    if XSD.is_file():
+        from stgs.mpd_schema import schema_errors
+
+        assert schema_errors((out / MANIFEST).read_bytes(), XSD) == []
+    again = tmp_path / "again"
+    pack(scene, again, PackConfig(jobs=1), progress=False)
+    assert tree_digest(again) == tree_digest(out)
+
+
+def test_a_scene_every_rung_renders_the_same_gets_one_rung_per_codec(tmp_path):
+    """A GOP that is pure static layer: its dynamic Gaussians are invisible, so every rung draws the same image."""
+    from stgs.model.store import load_gop, read_meta, save_gop
+
+    scene = tmp_path / "layered"
+    synthesize(dataclasses.replace(SCENE, num_gops=1, fit_steps=20, effects=("rigid", "static_background"),
+                                   static_grid_side=12), scene, progress=False)
+    meta = read_meta(scene)
+    gop = load_gop(scene, meta, 0)
+    with torch.no_grad():
+        gop.opacity_logit.fill_(-40.0)
+    save_gop(gop, scene / meta.gop_files[0], meta.version)
+    out = tmp_path / "dash"
+    stats = pack(scene, out, PackConfig(jobs=2), progress=False)
+    for codec in ("hevc", "av1"):
+        candidates = stats["ladders"][codec]["candidates"]
+        psnrs = [c["render_psnr"] for c in candidates]
+        assert max(psnrs) - min(psnrs) < 0.05  # under the top rule: the static layer's quantisation is in all alike
+        kept = [c for c in candidates if c["kept"]]
+        assert len(kept) == 1 and kept[0]["bytes"] == min(c["bytes"] for c in candidates)
+    assert len(stats["representations"]) == 2 and "static" in stats
+    if XSD.is_file():
+        from stgs.mpd_schema import schema_errors
+
+        assert schema_errors((out / MANIFEST).read_bytes(), XSD) == []
+
+
+def test_a_ladder_of_one_point_is_a_valid_tree(scene, tmp_path):
+    out = tmp_path / "one"
+    stats = pack(scene, out, PackConfig(qps=(24,), codecs=("hevc",), jobs=2), progress=False)  # auto, one candidate
+    assert list(stats["representations"]) == ["qp24"] and stats["ladders"]["hevc"]["candidates"][0]["kept"]
+    if XSD.is_file():
+        from stgs.mpd_schema import schema_errors
+
+        assert schema_errors((out / MANIFEST).read_bytes(), XSD) == []

@@ -38,7 +38,8 @@ def root(tmp_path_factory):
     base = tmp_path_factory.mktemp("serve")
     synthesize(SCENE, base / "model", progress=False)
     root = base / "root"
-    pack(base / "model", root / "scene1", PackConfig(qps=(20, 32), av1_qps=(16, 41), jobs=2), progress=False)
+    pack(base / "model", root / "scene1", PackConfig(ladder="fixed",
+                                                     qps=(20, 32), av1_qps=(16, 41), jobs=2), progress=False)
     (base / "secret.mpd").write_text("secret")
     (root / "scene1" / "escape.mpd").symlink_to(base / "secret.mpd")
     (base / "outside").mkdir()

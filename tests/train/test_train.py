@@ -135,7 +135,8 @@ def test_eval_uncompressed_and_packaged(scene, trained, tmp_path, monkeypatch):
 
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "empty-cache"))  # no LPIPS weights here
     model, _ = trained
-    pack(model, tmp_path / "dash", PackConfig(qps=(16, 32), av1_qps=(19,), jobs=2), progress=False)
+    stats = pack(model, tmp_path / "dash", PackConfig(ladder="fixed", qps=(16, 32), av1_qps=(19,), jobs=2),
+                 progress=False)
     result = stgs("eval", str(model), str(scene), "--dash", str(tmp_path / "dash"), "--out", str(tmp_path / "ev"),
                   "--quiet")
     assert result.returncode == 0, result.stderr
@@ -146,6 +147,19 @@ def test_eval_uncompressed_and_packaged(scene, trained, tmp_path, monkeypatch):
     assert streams["uncompressed"]["psnr"] >= streams["qp16"]["psnr"] - 0.5 >= streams["qp32"]["psnr"] - 1.0
     assert streams["av1q19"]["psnr"] >= streams["qp32"]["psnr"] - 1.0
     assert 0 < streams["qp32"]["ssim"] <= 1
+    # the packer's quality per rung is eval's against the uncompressed model, at the held-out cameras, on a sample
+    # of the frames
+    assert stats["quality_views"]["source"] == "held-out"
+    assert stats["quality_views"]["cameras"] == doc["validation_cameras"]
+    for rep in ("qp16", "qp32", "av1q19"):
+        assert abs(stats["representations"][rep]["mean_render_psnr"] - streams[rep]["render_psnr"]) <= 0.1, rep
+    assert streams["qp16"]["render_psnr"] > streams["qp32"]["render_psnr"]
+    assert "render_psnr" not in streams["uncompressed"]
+    # against the capture, a rung's error adds to the model's own held-out error (the training report's)
+    held_out = json.loads((model / "train_report.json").read_text())["gops"][0]["val_psnr"]
+    truth = {rep: stats["representations"][rep]["mean_truth_psnr"] for rep in ("qp16", "qp32", "av1q19")}
+    assert held_out > truth["qp16"] > held_out - 0.5 and truth["qp16"] > truth["qp32"]
+    assert stats["ladders"]["hevc"]["measure"] == "truth_psnr"
     assert doc["lpips"]["computed"] is False and "lpips" not in streams["qp32"]
     assert str(tmp_path / "empty-cache") in doc["lpips"]["reason"] and "LPIPS not computed" in result.stdout
     assert (tmp_path / "ev" / "eval_grid.png").stat().st_size > 1000

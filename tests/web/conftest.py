@@ -46,7 +46,8 @@ def web_root(tmp_path_factory) -> Path:
     base = tmp_path_factory.mktemp("web")
     synthesize(WEB_SCENE, base / "model", progress=False)
     root = base / "root"
-    pack(base / "model", root / "small", PackConfig(codecs=("av1",), av1_qps=AV1_QPS, jobs=2), progress=False)
+    pack(base / "model", root / "small", PackConfig(ladder="fixed",
+                                                    codecs=("av1",), av1_qps=AV1_QPS, jobs=2), progress=False)
     shutil.copytree(root / "small", root / "broken")
     (root / "broken" / "manifest.mpd").write_text("<MPD this is not xml")
     shutil.copytree(root / "small", root / "foreign")

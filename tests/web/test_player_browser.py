@@ -19,6 +19,7 @@ import torch
 
 from stgs.codec.video import AV1, decode_segment
 from stgs.metrics import psnr
+from stgs.tree import MANIFEST
 from tests.web.conftest import ERROR_TEXT, LOADED, WEB_SCENE, browse, need_browser, run_plan
 
 FRAMES = WEB_SCENE.num_gops * WEB_SCENE.gop_size
@@ -188,7 +189,7 @@ def test_a_mid_playback_screenshot_holds_its_thresholds(served, tmp_path):
     assert (image.max(axis=2) > 0.05).mean() >= SCREENSHOT_MIN_LIT
 
 
-def test_the_keyboard_drives_the_player(served):
+def test_the_keyboard_drives_the_player(served, web_root):
     out = browse({"viewport": [360, 300], "steps": [
         {"goto": player(served, autoplay="0", size="64x48")},
         {"wait": LOADED},
@@ -205,11 +206,24 @@ def test_the_keyboard_drives_the_player(served):
         {"eval": "[stgsPlayer.paused, document.getElementById('play').getAttribute('aria-label')]", "as": "play"},
         {"press": "Tab"},
         {"eval": "document.activeElement.id", "as": "focus"},
+        {"eval": "[...document.getElementById('quality').options].map((o) => o.text)", "as": "menu"},
     ]})
     r = out["results"]
     assert r["stats_hidden"] is False and r["camera"] == "1" and r["moved"] == ""
     assert r["play"] == [False, "Pause"]
     assert r["focus"] == "play"  # from the canvas, Tab reaches the controls in order
+    # the quality menu names each rung's rendered quality, as the manifest's quality descriptor gives it
+    from decimal import ROUND_HALF_UP, Decimal
+
+    from stgs.client.manifest import Presentation
+
+    def js_fixed(value: float, places: str) -> str:  # Number.prototype.toFixed and Math.round: halves go up
+        return str(Decimal(value).quantize(Decimal(places), ROUND_HALF_UP))
+
+    pres = Presentation.parse((web_root / "small" / MANIFEST).read_bytes(), "http://x/manifest.mpd", "av1")
+    assert [m for m in r["menu"] if m != "auto"] == [
+        f"{rung.rep_id} ({js_fixed(rung.bandwidth / 1e3, '1')} kbit/s, {js_fixed(rung.quality.quality, '0.1')} dB)"
+        for rung in pres.ladder]
 
 
 def _browser_processes() -> set[int]:

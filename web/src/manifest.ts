@@ -11,6 +11,7 @@ export const PROFILE = "urn:streamstgs:profile:2026";
 export const KEYFRAME_SCHEME = "urn:streamstgs:keyframe:2026";
 export const STATIC_SCHEME = "urn:streamstgs:static:2026";
 export const FEATURE_SCHEME = "urn:streamstgs:features:2026";
+export const QUALITY_SCHEME = "urn:streamstgs:quality:2026";
 export const AV1_BITS = 10;
 export const FEATURE_TILES = 4;
 
@@ -28,6 +29,10 @@ export interface Rung {
   id: string;
   bandwidth: number;
   codecs: string;
+  /** Mean rendered PSNR (dB) against the uncompressed model, from its quality descriptor; null in trees without one. */
+  renderPsnr: number | null;
+  /** Mean PSNR (dB) against the capture as the packager estimated it; null where the descriptor does not give it. */
+  truthPsnr: number | null;
 }
 
 export interface StaticLayerInfo {
@@ -119,6 +124,23 @@ export function expandTemplate(template: string, repId: string, num?: number): s
     }
     fail(`unsupported identifier $${name}$ in ${template}`);
   });
+}
+
+/** A feature Representation's quality descriptor (manifests/PROFILE.md): render_psnr (and truth_psnr, where given) in
+ * 0..99 dB; both null without one. */
+function quality(rep: Element, id: string): { renderPsnr: number | null; truthPsnr: number | null } {
+  const prop = children(rep, "SupplementalProperty").find((p) => p.getAttribute("schemeIdUri") === QUALITY_SCHEME);
+  if (!prop) return { renderPsnr: null, truthPsnr: null };
+  const fields = descriptorFields(prop.getAttribute("value") ?? "", "quality");
+  const db = (key: string, optional: boolean): number | null => {
+    const raw = fields.get(key);
+    if (raw === undefined && optional) return null;
+    if (raw === undefined || !/^\d{1,2}(\.\d{1,6})?$/.test(raw)) {
+      fail(`quality descriptor of Representation ${id}: ${key}=${String(raw).slice(0, 40)} is not a number in 0..99 dB`);
+    }
+    return Number(raw);
+  };
+  return { renderPsnr: db("render_psnr", false), truthPsnr: db("truth_psnr", true) };
 }
 
 function children(el: Element, name: string): Element[] {
@@ -244,7 +266,8 @@ export function parseManifest(text: string, url: string): Manifest {
     const w = intAttr(r, "width", 1, L.MAX_IMAGE_SIDE, intAttr(fset, "width", 1, L.MAX_IMAGE_SIDE, frameSide));
     const h = intAttr(r, "height", 1, L.MAX_IMAGE_SIDE, intAttr(fset, "height", 1, L.MAX_IMAGE_SIDE, frameSide));
     if (w !== frameSide || h !== frameSide) fail(`Representation ${id} is ${w}x${h}, not the ${frameSide}x${frameSide} of grid_side ${side}`);
-    return { id, bandwidth: intAttr(r, "bandwidth", 1, 1e12), codecs: r.getAttribute("codecs") ?? fset.getAttribute("codecs") ?? "" };
+    return { id, bandwidth: intAttr(r, "bandwidth", 1, 1e12), codecs: r.getAttribute("codecs") ?? fset.getAttribute("codecs") ?? "",
+             ...quality(r, id) };
   }).sort((a, b) => a.bandwidth - b.bandwidth);
   if (new Set(rungs.map((r) => r.id)).size !== rungs.length) fail("two feature Representations share an id");
   const fbase = baseOf(fset, base, policy);

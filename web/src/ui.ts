@@ -1,5 +1,6 @@
 // The viewer's controls: orbit and fly with mouse, touch and keys; play/pause, seek bar, quality menu, scene
 // cameras, stats overlay, full screen, and the error panel. Every control is a native, focusable element.
+import type { Rung } from "./manifest";
 import type { Player } from "./player";
 
 const $ = <T extends HTMLElement>(id: string) => document.getElementById(id) as T;
@@ -23,7 +24,7 @@ export function bindControls(player: Player): void {
   const m = player.manifest;
 
   seek.max = String(m.gops - 1);
-  m.rungs.forEach((r, i) => quality.add(new Option(`${r.id} (${Math.round(r.bandwidth / 1e3)} kbit/s)`, String(i))));
+  m.rungs.forEach((r, i) => quality.add(new Option(rungLabel(r), String(i))));
   if (player.options.rung !== null) quality.value = String(player.options.rung);
   player.cameras.forEach((c, i) => camera.add(new Option(c.name, String(i))));
   if (player.cameras.length) camera.value = "0";
@@ -135,4 +136,12 @@ export function bindControls(player: Player): void {
     setTimeout(refresh, 250);
   };
   refresh();
+}
+
+/** A quality-menu entry: the rung's id, its rate and, where the manifest says it, its PSNR (against the capture
+ * where the packager knew it, else against the uncompressed model). */
+export function rungLabel(r: Rung): string {
+  const value = r.truthPsnr ?? r.renderPsnr;
+  const db = value === null ? "" : `, ${value.toFixed(1)} dB`;
+  return `${r.id} (${Math.round(r.bandwidth / 1e3)} kbit/s${db})`;
 }

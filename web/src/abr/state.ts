@@ -48,7 +48,7 @@ export const DEFAULT_SETTINGS: AbrSettings = {
   mpcEwmaHalfLife: 4.0,
   mpcEwmaDeviations: 1.0,
   mpcBufferConstraint: true,
-  mpcUtility: "bitrate",
+  mpcUtility: "psnr",
   mpcRebufferPsnr: 10.0,
   mpcRebufferBitrate: 4.3,
   mpcSwitchWeight: 1.0,

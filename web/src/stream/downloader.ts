@@ -39,12 +39,15 @@ export interface DownloaderHooks {
 export function upcomingFromStats(stats: unknown, k: number, repIds: string[]): UpcomingGOP | null {
   try {
     const gop = (stats as { gops: Record<string, unknown>[] }).gops[k] as { index: number; keyframe_bytes: number;
-      representations: Record<string, { bytes: number; render_psnr?: number }> };
+      representations: Record<string, { bytes: number; render_psnr?: number; truth_psnr?: number }> };
     if (gop.index !== k) return null;
     const keyframeBits = Number(gop.keyframe_bytes) * 8;
     const segmentBits = repIds.map((r) => Number(gop.representations[r].bytes) * 8);
     if (![keyframeBits, ...segmentBits].every((v) => Number.isFinite(v) && v > 0)) return null;
-    let psnr: number[] | null = repIds.map((r) => Number(gop.representations[r].render_psnr));
+    // against the capture where every rung has it, else against the uncompressed model (stgs.tree.rung_quality)
+    const entries = repIds.map((r) => gop.representations[r]);
+    const truth = entries.every((e) => "truth_psnr" in e);
+    let psnr: number[] | null = entries.map((e) => Number(truth ? e.truth_psnr : e.render_psnr));
     if (!psnr.every(Number.isFinite)) psnr = null;
     return { keyframeBits, segmentBits, psnr };
   } catch {
