@@ -20,8 +20,7 @@ from stgs.cli.args import (
 
 
 def add_pack(sub: argparse._SubParsersAction) -> None:
-    from stgs.codec.video import AV1, CODECS, HEVC, PRESETS
-    from stgs.packager.packer import LADDERS
+    from stgs.codec.video import AV1, CODECS, HEVC, LADDERS, PRESETS
 
     p = sub.add_parser("pack", help="package a model dir as an MPEG-DASH tree",
                        description="PLAS-sort each GOP, write its keyframe segment (lossless JPEG XL "

@@ -31,7 +31,7 @@ from tqdm import tqdm
 
 from stgs.codec.plas import PLASConfig
 from stgs.codec.static import decode_static, pack_static
-from stgs.codec.video import AV1, CODECS, HEVC, FeatureCodec, VideoTiming
+from stgs.codec.video import AV1, CODECS, HEVC, LADDERS, FeatureCodec, VideoTiming
 from stgs.errors import FieldError, StgsError
 from stgs.fsio import atomic_write_bytes
 from stgs.model.static import StaticLayer
@@ -56,8 +56,6 @@ from stgs.tree import (
 
 QUALITY_MEASURES = ("feature_psnr", "render_psnr", "truth_psnr")
 """What a feature segment's measurement records beside its bytes (stgs.packager.segments.quality)."""
-LADDERS = ("auto", "fixed")
-"""How a pack places its rungs (PackConfig.ladder)."""
 
 
 @dataclass

@@ -135,13 +135,13 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
     _, truths = open_views(ds, [], frames, scale, default_memory() if max_memory is None else max_memory, cams_val)
     truths.plan([(p, c, 0) for p in range(len(frames)) for c in range(len(cams_val))])
     per_gop: dict[str, list[dict]] = {name: [] for name in sources}
-    reference_mse: dict[str, list[float]] = {name: [] for name in sources if name != "uncompressed"}
+    streamed = [name for name in sources if name != "uncompressed"]
     try:
         views = iter(range(len(frames)))
         for k in tqdm(range(meta.num_gops), desc="eval", unit="gop", disable=not progress):
             renderers = {name: FrameRenderer(load(k), static=statics[name]) for name, load in sources.items()}
             rows: dict[str, list[dict]] = {name: [] for name in sources}
-            gop_mse: dict[str, list[float]] = {name: [] for name in reference_mse}
+            gop_mse: dict[str, list[float]] = {name: [] for name in streamed}
             for i in range(0, g, stride):
                 f, p = start + k * g + i, next(views)
                 by_name = {c.name: c for c in ds.cameras(f)}
@@ -165,11 +165,10 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
                 scored = {"gop": k} | _means(rows[name])
                 if name in gop_mse:
                     scored["render_psnr"] = mse_psnr(gop_mse[name])
-                    reference_mse[name] += gop_mse[name]
                 per_gop[name].append(scored | {"frames": rows[name]})
         for name in sources:
             result["streams"][name] = _means(per_gop[name]) | {"gops": per_gop[name]}
-            if name in reference_mse:
+            if name in streamed:
                 result["streams"][name]["render_psnr"] = _mean(g["render_psnr"] for g in per_gop[name])
     finally:
         truths.close()

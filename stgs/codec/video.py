@@ -45,6 +45,9 @@ CODEC_TAG = "hvc1"
 """Parameter sets in the init segment's sample description only (what MSE and the DASH profile expect)."""
 AV1_LADDER = (12, 19, 27, 35, 43)
 """The AV1 set's QP ladder: one point beside each default HEVC QP, at about its bytes (docs/PACKAGING.md)."""
+LADDERS = ("auto", "fixed")
+"""How a pack uses a codec's points (stgs pack --ladder): auto picks the rungs from its candidates by measured quality;
+fixed keeps every point of its ladder."""
 HEVC_CANDIDATES = (12, 16, 20, 24, 28, 32, 36, 40)
 """The HEVC QPs the auto ladder measures and picks its rungs from (docs/PACKAGING.md, "The auto ladder")."""
 AV1_CANDIDATES = (10, 16, 22, 28, 34, 40, 46, 52)
