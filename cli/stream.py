@@ -84,8 +84,9 @@ def run_pack(args: argparse.Namespace) -> int:
                 print(f"    {rid:>7}  dropped: {cand['reason']}")
                 continue
             rep = stats["representations"][rid]
+            truth = f"  vs capture {rep['mean_truth_psnr']:.2f} dB" if "mean_truth_psnr" in rep else ""
             print(f"    {rid:>7}  {rep['bandwidth'] / 1e3:8.0f} kbit/s  features {rep['mean_feature_psnr']:.2f} dB  "
-                  f"rendered {rep['mean_render_psnr']:.2f} dB  ({cand['reason']})")
+                  f"rendered {rep['mean_render_psnr']:.2f} dB{truth}  ({cand['reason']})")
     return 0
 
 

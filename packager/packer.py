@@ -54,7 +54,7 @@ from stgs.tree import (
     version_dir,
 )
 
-QUALITY_MEASURES = ("feature_psnr", "render_psnr", "truth_psnr")
+SEGMENT_MEASURES = ("feature_psnr", "render_psnr", "truth_psnr")
 """What a feature segment's measurement records beside its bytes (stgs.packager.segments.quality)."""
 
 
@@ -220,7 +220,7 @@ class Packer:
 
     def segment_record(self, k: int, done: dict) -> SegmentRecord:
         return SegmentRecord(k, self.seconds_per_gop, done["bytes"], {key: value for key, value in done.items()
-                                                                      if key in QUALITY_MEASURES})
+                                                                      if key in SEGMENT_MEASURES})
 
     def run(self) -> dict:
         cfg = self.cfg
