@@ -36,7 +36,8 @@ from stgs.train.layers import moving_pixels
 from stgs.train.objective import canonical_regularisers, drop_gaussians
 from stgs.train.ops import Optimizer
 from stgs.train.run import base_stage, stage_views
-from stgs.train.seeding import init_canonical, init_frames, initial_points
+from stgs.picks import spread
+from stgs.train.seeding import init_canonical, initial_points
 from stgs.train.trainer import Trainer
 
 dataset, layers, steps = Path(sys.argv[1]), sys.argv[2], int(sys.argv[3])
@@ -71,7 +72,7 @@ if layers == "layered":
     static = GOPModel(trainer.static_shape)
     colour = CameraColour(len(views.cameras))
     opt = Optimizer(static, cfg, trainer.extent, None, canonical_only=True, colour=colour)
-    init = initial_points(trainer.ds, trainer.train_names, init_frames(views.frames, cfg.init_frames),
+    init = initial_points(trainer.ds, trainer.train_names, spread(views.frames, cfg.init_frames),
                           static.shape.capacity, trainer.gen, cfg.init_points, cfg.background_share,
                           region="background")
     init_canonical(static, init)

@@ -25,7 +25,8 @@ import torch
 from stgs.codec.video import decode_segment
 from stgs.metrics import mse_psnr
 from stgs.packager.packer import PackConfig, Packer, pack
-from stgs.packager.segments import spread, view_errors
+from stgs.packager.segments import view_errors
+from stgs.picks import spread
 
 SAMPLES = (3, 5, 8, 12, 20, 30)
 """Frames per GOP the --frames check tries (those above the GOP's size are skipped)."""

@@ -36,6 +36,7 @@ from stgs.tree import (
     feature_media_template,
     keyframe_template,
     parse_rep_id,
+    quality_measure,
     static_template,
 )
 
@@ -82,14 +83,9 @@ class RepresentationRecords:
     def has(self, measure: str) -> bool:
         return all(measure in s.quality for s in self.segments.values())
 
-    @property
-    def quality_measure(self) -> str:
-        """What the rung's quality is judged by: truth_psnr (against the capture) where every GOP has it, else
-        render_psnr (against the uncompressed model)."""
-        return "truth_psnr" if self.has("truth_psnr") else "render_psnr"
-
     def quality(self) -> float:
-        return self.mean(self.quality_measure)
+        """The mean of what the rung's quality is judged by (stgs.tree.quality_measure over its GOPs)."""
+        return self.mean(quality_measure([s.quality for s in self.segments.values()]))
 
     def descriptor(self) -> QualityDescriptor:
         return QualityDescriptor(self.mean("render_psnr"),

@@ -50,6 +50,7 @@ from stgs.tree import (
     STATS,
     feature_path,
     keyframe_path,
+    quality_measure,
     static_path,
     version_dir,
 )
@@ -271,12 +272,13 @@ class Packer:
         keyframes = self.builder.keyframes.segments
         for name in self.cfg.codecs:
             reps = self.builder.ladder(name)
-            measure = "truth_psnr" if reps and all(r.quality_measure == "truth_psnr" for r in reps) else "render_psnr"
+            measure = quality_measure([s.quality for r in reps for s in r.segments.values()])
             scene = [Candidate(r.rep_id, sum(s.bytes for s in r.segments.values()), r.mean(measure)) for r in reps]
             doc: dict = {"mode": self.cfg.ladder, "measure": measure}
             if self.cfg.ladder == "auto":
                 verdicts = choose_rungs(scene, self.cfg.rules)
-                kept = [c for c in scene if any(v.kept and v.rep_id == c.rep_id for v in verdicts)]
+                kept_ids = {v.rep_id for v in verdicts if v.kept}
+                kept = [c for c in scene if c.rep_id in kept_ids]
                 per_gop = [[Candidate(r.rep_id, r.segments[k].bytes, r.segments[k].quality[measure]) for r in reps]
                            for k in sorted(keyframes)]
                 doc |= {"rules": asdict(self.cfg.rules), "per_gop_saving": round(allocation_saving(per_gop, kept), 4)}

@@ -35,6 +35,7 @@ from stgs.model.gop import GOPModel
 from stgs.model.static import StaticLayer
 from stgs.model.store import SceneMeta, load_gop
 from stgs.model.view import FrameRenderer, framing_orbit
+from stgs.picks import spread
 from stgs.synth import load_ground_truth
 from stgs.tree import CAMERAS, GROUND_TRUTH_DIR, TRAIN_REPORT
 
@@ -81,15 +82,6 @@ class QualityViews:
         """stats.json's `quality_views`."""
         return {"source": self.source, "cameras": [c.name for c in self.cameras],
                 "sizes": [[c.width, c.height] for c in self.cameras], "frames": self.frames}
-
-
-def spread(items: list, count: int) -> list:
-    """`count` items of `items` spread evenly, first and last included (all of them when count >= len(items))."""
-    if count >= len(items):
-        return list(items)
-    if count == 1:
-        return [items[0]]
-    return [items[round(i * (len(items) - 1) / (count - 1))] for i in range(count)]
 
 
 def quality_views(model_dir: Path, meta: SceneMeta, model: Callable[[], GOPModel], cameras: int,

@@ -55,11 +55,16 @@ QUALITY_MEASURES = ("truth_psnr", "render_psnr")
 packager where it knew the model's own error), else against the uncompressed model."""
 
 
+def quality_measure(entries: list[dict]) -> str:
+    """The first of QUALITY_MEASURES every one of `entries` (measures by name) has; the last where none has one."""
+    return next((m for m in QUALITY_MEASURES if all(m in e for e in entries)), QUALITY_MEASURES[-1])
+
+
 def rung_quality(representations: dict, rep_ids: list[str]) -> list[float]:
     """Per rung of `rep_ids`, a stats.json GOP's quality (`representations`: its entry per Representation), judged
-    by the first of QUALITY_MEASURES every rung has (KeyError, TypeError or ValueError where none is there)."""
+    by quality_measure (KeyError, TypeError or ValueError where it is not there)."""
     entries = [representations[r] for r in rep_ids]
-    measure = next((m for m in QUALITY_MEASURES if all(m in e for e in entries)), QUALITY_MEASURES[-1])
+    measure = quality_measure(entries)
     return [float(e[measure]) for e in entries]
 
 # --- packaged tree: segments ---

@@ -13,11 +13,12 @@ from tqdm import tqdm
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.static import STATIC_TENSORS
 from stgs.model.view import splat
+from stgs.picks import spread
 from stgs.train import losses
 from stgs.train.camera_colour import CameraColour, as_recorded
 from stgs.train.objective import canonical_regularisers, drop_gaussians
 from stgs.train.ops import Optimizer, relocate, sort
-from stgs.train.seeding import init_canonical, init_frames, initial_points
+from stgs.train.seeding import init_canonical, initial_points
 from stgs.train.views import Views, view_draws
 
 if TYPE_CHECKING:
@@ -43,7 +44,7 @@ def fit_canonical(trainer: Trainer, views: Views, shape: GOPShape, stage: str = 
         trainer.triangulated, trainer.background_points = resumed[0].get("triangulated"), resumed[0].get("background")
     elif start_model is None:
         region = "background" if views.masked and cfg.static_triangulation else "foreground"
-        init = initial_points(trainer.ds, trainer.train_names, init_frames(views.frames, cfg.init_frames),
+        init = initial_points(trainer.ds, trainer.train_names, spread(views.frames, cfg.init_frames),
                               shape.capacity, trainer.gen, cfg.init_points, cfg.background_share, region=region)
         trainer.triangulated, trainer.background_points = init.triangulated, init.background
         init_canonical(model, init)

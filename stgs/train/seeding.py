@@ -121,15 +121,6 @@ def _training_views(ds: Dataset, names: list[str], frame: int) -> tuple[list[Cam
     return cams, [ds.image(frame, c.name) for c in cams]
 
 
-def init_frames(frames: list[int], count: int) -> list[int]:
-    """`count` of `frames` spread evenly from the first (all of them when there are fewer)."""
-    if count >= len(frames):
-        return list(frames)
-    if count == 1:
-        return [frames[0]]
-    return [frames[round(i * (len(frames) - 1) / (count - 1))] for i in range(count)]
-
-
 def mean_neighbour_distance(points: torch.Tensor, k: int = 3) -> torch.Tensor:
     """(N,) float32: each point's mean distance to its k nearest other points (fewer where N <= k; 1 for a lone
     point). A k-d tree, so memory grows with N, not N² (a full distance matrix of 150,000 points is 90 GB)."""

@@ -53,6 +53,7 @@ from stgs.metrics import psnr
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.static import StaticLayer
 from stgs.model.view import Backdrop, static_backdrops
+from stgs.picks import spread
 from stgs.train.aux import AuxTransformer
 from stgs.train.base import BaseStage
 from stgs.train.camera_colour import CameraColour
@@ -64,7 +65,7 @@ from stgs.train.hull import HullConfig
 from stgs.train.layers import Migrated, fit_view_dependent, init_dynamic, migrate, motion_scores, moving_pixels
 from stgs.train.objective import GOPLoss, gop_loss
 from stgs.train.ops import Optimizer, opacity_level, prune, relocate, sort, track_opacities
-from stgs.train.seeding import init_frames, initial_points
+from stgs.train.seeding import initial_points
 from stgs.train.validation import mean_scores
 from stgs.train.views import Sample, Views, view_draws
 from stgs.tree import CAMERAS, MODEL_META, TRAIN_REPORT, gop_stem
@@ -172,7 +173,7 @@ class Trainer:
         if coarse is not None:
             model.load_state_dict(coarse.state_dict())
         else:
-            frames = init_frames(self.gop_frames(k), self.cfg.init_frames)
+            frames = spread(self.gop_frames(k), self.cfg.init_frames)
             init = initial_points(self.ds, self.train_names, frames, self.shape.capacity, self.gen,
                                   self.cfg.init_points, 0.0, HullConfig() if self.cfg.hull_seeds else None)
             init_dynamic(model, init, self.migrated)

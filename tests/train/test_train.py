@@ -360,11 +360,11 @@ def test_region_psnr_scales_the_mask_to_the_render():
 
 
 def test_init_frames_spread_over_the_span():
-    from stgs.train.seeding import init_frames
+    from stgs.picks import spread
 
-    assert init_frames(list(range(60)), 6) == [0, 12, 24, 35, 47, 59]
-    assert init_frames(list(range(10, 70)), 1) == [10]
-    assert init_frames([3, 4], 6) == [3, 4]
+    assert spread(list(range(60)), 6) == [0, 12, 24, 35, 47, 59]
+    assert spread(list(range(10, 70)), 1) == [10]
+    assert spread([3, 4], 6) == [3, 4]
     with pytest.raises(StgsError, match="init_frames"):
         budget("quick", init_frames=0)
 
