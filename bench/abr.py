@@ -150,7 +150,7 @@ def long_ladder(ladder: Ladder, mpd: str, seconds: int, qps: tuple[int, ...] | N
     ids = [r.rep_id for r in keep]
     return Ladder(long, rep(ladder.keyframe_bytes), {r: rep(ladder.media_bytes[r]) for r in ids},
                   {r: ladder.init_bytes[r] for r in ids}, {r: rep(ladder.psnr[r]) for r in ids}, ladder.stats,
-                  ladder.static_bytes)
+                  ladder.static_bytes, {r: rep(sizes) for r, sizes in ladder.lossy_keyframe_bytes.items()})
 
 
 def playbacks(ladder: Ladder, traces: list[Trace], latency_ms: float, buffer_s: float, rule: str,

@@ -8,8 +8,9 @@ of n frames spread evenly (first and last included, as the packer picks them) is
 the largest and the mean |difference| over the candidates.
 
 `--compare`: per model, `stgs pack` with the fixed ladder and with the auto ladder, each timed alone (one after
-the other, `--jobs` encoders); the auto pack's candidates, bytes and rendered PSNR with the rungs it kept, as a
-table and, with `--plot`, a rate-quality plot.
+the other, `--jobs` encoders); the auto pack's candidates (pairs of a feature point and a keyframe rung), bytes and
+rendered PSNR with the rungs it kept, as a table and, with `--plot`, a rate-quality plot (a curve per codec and
+keyframe rung).
 """
 
 from __future__ import annotations
@@ -87,9 +88,11 @@ def plot(results: dict[str, dict], path: Path) -> None:
         measure = "render_psnr"
         for codec, ladder in stats["ladders"].items():
             cands, measure = ladder["candidates"], ladder["measure"]
-            rate = [c["total_bytes"] * 8 / seconds / 1e3 for c in cands]
-            ax.plot(rate, [c[measure] for c in cands], "o-", alpha=0.4, label=f"{codec} candidates")
-            kept = [(r, c[measure]) for r, c in zip(rate, cands, strict=True) if c["kept"]]
+            for kf in sorted({c.get("keyframes", "keyframes") for c in cands}):  # one curve per keyframe rung
+                curve = [c for c in cands if c.get("keyframes", "keyframes") == kf]
+                ax.plot([c["total_bytes"] * 8 / seconds / 1e3 for c in curve], [c[measure] for c in curve], "o-",
+                        alpha=0.4, markersize=4, label=f"{codec}, {kf}")
+            kept = [(c["total_bytes"] * 8 / seconds / 1e3, c[measure]) for c in cands if c["kept"]]
             ax.plot(*zip(*kept, strict=True), "s", markersize=9, label=f"{codec} rungs kept")
         for codec, ladder in result["fixed"]["stats"]["ladders"].items():
             cands = ladder["candidates"]

@@ -71,6 +71,19 @@ def codec_list(text: str) -> tuple[str, ...]:
     return names
 
 
+def keyframe_rung_list(text: str) -> tuple[str, ...]:
+    """Comma-separated lossy keyframe rungs (stgs.codec.quant.KEYFRAME_RUNGS but the lossless one), or `none`."""
+    from stgs.codec.quant import KEYFRAME_RUNGS
+
+    if text.strip() == "none":
+        return ()
+    lossy = [name for name in KEYFRAME_RUNGS if name != "lossless"]
+    names = tuple(c.strip() for c in text.split(",") if c.strip())
+    if not names or set(names) - set(lossy) or len(set(names)) != len(names):
+        raise argparse.ArgumentTypeError(f"expected distinct rungs of {', '.join(lossy)}, or none, got {text!r}")
+    return names
+
+
 def vector3(text: str) -> tuple[float, float, float]:
     try:
         values = tuple(float(v) for v in text.split(","))

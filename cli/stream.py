@@ -10,6 +10,7 @@ from stgs.cli.args import (
     add_ray,
     codec_list,
     image_size,
+    keyframe_rung_list,
     non_negative_int,
     positive_int,
     positive_seconds,
@@ -20,12 +21,14 @@ from stgs.cli.args import (
 
 
 def add_pack(sub: argparse._SubParsersAction) -> None:
+    from stgs.codec.quant import KEYFRAME_RUNGS
     from stgs.codec.video import AV1, CODECS, HEVC, LADDERS, PRESETS
 
     p = sub.add_parser("pack", help="package a model dir as an MPEG-DASH tree",
-                       description="PLAS-sort each GOP, write its keyframe segment (lossless JPEG XL "
-                       "attribute images + weights) and its feature video at every ladder point of each codec "
-                       "(12-bit HEVC, 10-bit AV1 for browsers), then the MPD.")
+                       description="PLAS-sort each GOP, write its keyframe segments (JPEG XL attribute images + "
+                       "weights: lossless, and on an auto ladder the lossy keyframe rungs) and its feature video at "
+                       "every ladder point of each codec (12-bit HEVC, 10-bit AV1 for browsers), measure every "
+                       "rung, then write the MPD.")
     p.add_argument("model_dir", type=Path, help="model dir (stgs synth / stgs train output)")
     p.add_argument("out_dir", type=Path, help="output folder (a DASH tree any static server can serve)")
     p.add_argument("--ladder", choices=LADDERS,
@@ -43,6 +46,11 @@ def add_pack(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--av1-qps", type=qp_list,
                    help=f"comma-separated AV1 QPs, 1..63, as --qps (default: {','.join(map(str, AV1.ladder))} "
                    f"fixed: about the bytes of the fixed HEVC QPs; {','.join(map(str, AV1.candidates))} auto)")
+    lossy = [name for name in KEYFRAME_RUNGS if name != "lossless"]
+    p.add_argument("--keyframe-rungs", type=keyframe_rung_list, default=tuple(lossy), metavar="RUNGS",
+                   help=f"comma-separated lossy keyframe rungs ({', '.join(lossy)}) an auto ladder may pair a feature "
+                   f"rung with, or 'none' (default: {','.join(lossy)}; docs/PACKAGING.md, 'Keyframe rungs', says "
+                   "what they save and what measuring them costs)")
     p.add_argument("--av1-preset", choices=AV1.presets, default=AV1.default_preset,
                    help=f"SVT-AV1 preset, 0 slowest .. 13 fastest (default: {AV1.default_preset})")
     p.add_argument("--no-loop-filters", action="store_true",
@@ -64,13 +72,15 @@ def run_pack(args: argparse.Namespace) -> int:
     ladder = args.ladder or ("fixed" if given else "auto")
     cfg = PackConfig(ladder=ladder, qps=args.qps, preset=args.preset, loop_filters=not args.no_loop_filters,
                      codecs=args.codecs, av1_qps=args.av1_qps, av1_preset=args.av1_preset, sort=not args.no_sort,
-                     resume=args.resume)
+                     resume=args.resume, keyframe_rungs=args.keyframe_rungs)
     if args.jobs:
         cfg.jobs = args.jobs
     stats = pack(args.model_dir, args.out_dir, cfg, progress=not args.quiet, ray=args.ray,
                  retries=args.ray_retries)
     print(f"wrote {args.out_dir / MANIFEST}: {len(stats['gops'])} GOPs, keyframes "
           f"{stats['keyframe_bandwidth'] / 1e3:.0f} kbit/s")
+    for rep, info in stats.get("keyframe_representations", {}).items():
+        print(f"  keyframe rung {rep}: {info['bandwidth'] / 1e3:.0f} kbit/s ({info['quant']})")
     if static := stats.get("static"):
         print(f"  static layer: {static['capacity']} Gaussians, {static['bytes'] / 1e3:.1f} kB once")
     views = stats["quality_views"]
@@ -81,11 +91,12 @@ def run_pack(args: argparse.Namespace) -> int:
         for cand in ladder["candidates"]:
             rid = cand["representation"]
             if not cand["kept"]:
-                print(f"    {rid:>7}  dropped: {cand['reason']}")
+                print(f"    {rid:>24}  dropped: {cand['reason']}")
                 continue
-            rep = stats["representations"][rid]
+            rep = stats["representations"][cand.get("features", rid)]
             truth = f"  vs capture {rep['mean_truth_psnr']:.2f} dB" if "mean_truth_psnr" in rep else ""
-            print(f"    {rid:>7}  {rep['bandwidth'] / 1e3:8.0f} kbit/s  features {rep['mean_feature_psnr']:.2f} dB  "
+            kbps = cand["total_bytes"] * 8 / (len(stats["gops"]) * stats["segment_seconds"]) / 1e3
+            print(f"    {rid:>24}  {kbps:6.0f} kbit/s with keyframes  features {rep['mean_feature_psnr']:.2f} dB  "
                   f"rendered {rep['mean_render_psnr']:.2f} dB{truth}  ({cand['reason']})")
     return 0
 

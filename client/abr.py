@@ -4,9 +4,11 @@ A rule gets an `AbrState` (ladder, throughput history, buffer level, the
 next GOP's keyframe and per-Representation segment sizes, the GOPs after it
 as far as stats.json says) and returns a `Decision`: the ladder rung, the
 rule that decided and the reason with the numbers it used (dash.js's
-SwitchRequest). The playback log keeps every decision. The keyframe part of
-every GOP is not adaptive: each rule counts its bits before it spends
-anything on features. Throughput is measured on bodies (the round trip is
+SwitchRequest). The playback log keeps every decision. Each rung plays with
+its own keyframes (manifests/PROFILE.md, "Keyframe rungs"): the cheapest
+rung's are the state's keyframe bits, which each rule counts before it
+spends anything on features, and what a rung's keyframes cost beyond them
+counts to its own size and @bandwidth (Presentation.abr_bandwidths). Throughput is measured on bodies (the round trip is
 latency, estimated apart and budgeted per request).
 
 - `ThroughputRule`: EWMA throughput with a fast and a slow half-life (the

@@ -8,7 +8,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from stgs.errors import FieldError
-from stgs.tree import rung_quality
+from stgs.tree import KEYFRAME_REP, paired_keyframe_bytes, rung_quality
 
 MPC_PREDICTORS = ("harmonic", "error-bound", "quantile", "ewma-lower")
 """The look-ahead rule's throughput predictors (client/abr_predict.py)."""
@@ -151,24 +151,36 @@ class UpcomingGOP:
     """Rendered PSNR per rung (None: unknown)."""
 
     @classmethod
-    def from_stats(cls, stats: object, k: int, rep_ids: list[str]) -> UpcomingGOP | None:
+    def paired(cls, keyframe_bits: Sequence[float], feature_bits: Sequence[float],
+               psnr: Sequence[float] | None = None) -> UpcomingGOP:
+        """A GOP whose rungs each play with their own keyframes (`keyframe_bits` per rung): the cheapest keyframes
+        are its keyframe_bits, what a rung's keyframes cost beyond them counts to its segment_bits (as
+        stgs.client.manifest.Presentation.abr_bandwidths does for @bandwidth)."""
+        base = min(keyframe_bits)
+        return cls(base, [f + kf - base for f, kf in zip(feature_bits, keyframe_bits, strict=True)], psnr)
+
+    @classmethod
+    def from_stats(cls, stats: object, k: int, rep_ids: list[str],
+                   keyframe_reps: list[str] | None = None) -> UpcomingGOP | None:
         """GOP k's keyframe and per-rung media bits and rendered PSNR, from stats.json, or None where it does not
-        say (PSNR None unless every rung has a finite one)."""
+        say (PSNR None unless every rung has a finite one); `keyframe_reps`: the keyframe Representation each rung
+        plays with (None: the lossless one for all)."""
         try:
             gop = stats["gops"][k]
             if gop["index"] != k:
                 return None
-            keyframe = float(gop["keyframe_bytes"]) * 8
+            keyframes = [float(paired_keyframe_bytes(gop, kf)) * 8 for kf in keyframe_reps or [KEYFRAME_REP]]
             sizes = [float(gop["representations"][r]["bytes"]) * 8 for r in rep_ids]
         except (KeyError, IndexError, TypeError, ValueError):
             return None
-        if not all(math.isfinite(s) and s > 0 for s in [keyframe, *sizes]):
+        if not all(math.isfinite(s) and s > 0 for s in [*keyframes, *sizes]):
             return None
         try:
             psnr = rung_quality(gop["representations"], rep_ids)
         except (KeyError, TypeError, ValueError):
             psnr = None
-        return cls(keyframe, sizes, psnr if psnr and all(math.isfinite(p) for p in psnr) else None)
+        psnr = psnr if psnr and all(math.isfinite(p) for p in psnr) else None
+        return cls.paired(keyframes * len(sizes) if keyframe_reps is None else keyframes, sizes, psnr)
 
 
 @dataclass

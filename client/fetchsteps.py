@@ -7,6 +7,7 @@ from collections.abc import Callable, Generator
 from dataclasses import dataclass
 
 from stgs.client.abr import Decision, ThroughputSample
+from stgs.tree import KEYFRAME_REP
 
 
 class ScheduleError(Exception):
@@ -91,6 +92,8 @@ class Fetched:
     keyframe: bytes | None = None
     init: bytes | None = None
     media: bytes | None = None
+    keyframe_rep: str = KEYFRAME_REP
+    """The keyframe Representation `keyframe` is of."""
 
 
 def throughput_sample(*parts: Done, joint: bool = False) -> ThroughputSample:

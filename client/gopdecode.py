@@ -101,7 +101,9 @@ class GOPDecoder:
             stream.close()
 
     def parse_keyframe(self, item: Fetched) -> KeyframeSegment:
-        return parse_keyframe(item.keyframe, self.pres.shape, item.index, self.pres.max_keyframe_bytes())
+        rep = item.keyframe_rep
+        return parse_keyframe(item.keyframe, self.pres.shape, item.index, self.pres.max_keyframe_bytes(rep),
+                              self.pres.keyframe_quants[rep])
 
     def decode_keyframe(self, segment: KeyframeSegment) -> Keyframe:
         start = time.perf_counter()
@@ -140,7 +142,8 @@ class GOPDecoder:
         try:
             return await self.keyframe_and_stream(item)
         except KeyframeError as exc:
-            item.keyframe = (await self.drive(self.schedule.refetch_keyframe(k, rec, str(exc)))).keyframe
+            again = self.schedule.refetch_keyframe(k, rec, str(exc), item.keyframe_rep)
+            item.keyframe = (await self.drive(again)).keyframe
         try:
             return await self.keyframe_and_stream(item)
         except KeyframeError as again:

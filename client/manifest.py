@@ -22,7 +22,7 @@ from stgs.limits import (
     SEGMENT_SLACK,
 )
 from stgs.model.gop import GOPShape
-from stgs.mpd import MPD, PROFILE_STGS, AdaptationSet, parse_mpd
+from stgs.mpd import MPD, PROFILE_STGS, AdaptationSet, Representation, parse_mpd
 from stgs.mpd_profile import (
     KEYFRAME_SCHEME,
     STATIC_SCHEME,
@@ -31,9 +31,10 @@ from stgs.mpd_profile import (
     StaticLayerDescriptor,
     choose_feature_set,
     gop_count,
+    keyframe_quant,
 )
 from stgs.mpd_values import MPDError, expand_template
-from stgs.tree import qp_of
+from stgs.tree import KEYFRAME_REP, qp_of
 
 
 @dataclass(frozen=True)
@@ -62,6 +63,24 @@ class Rung:
     quality: QualityDescriptor | None = None
     """Its quality descriptor (mean PSNR against the uncompressed model and, where given, the capture; None in
     trees that carry none)."""
+    keyframe_rep: str = KEYFRAME_REP
+    """The keyframe Representation it plays with (its @associationId)."""
+    keyframe_bandwidth: int = 0
+    """That keyframe Representation's @bandwidth, bit/s."""
+
+    @property
+    def total_bandwidth(self) -> int:
+        """Features and keyframes, bit/s: what the ladder is ordered by."""
+        return self.bandwidth + self.keyframe_bandwidth
+
+
+def _paired_keyframe(rep: Representation, keyframes: dict[str, Representation]) -> Representation:
+    """The keyframe Representation a feature Representation names in @associationId (exactly one)."""
+    named = [a for a in rep.association_id if a in keyframes]
+    if len(named) != 1:
+        raise MPDError(f"feature Representation {rep.id} must name one keyframe Representation in @associationId "
+                       f"(of {', '.join(keyframes)}), it names {' '.join(rep.association_id) or 'none'}")
+    return keyframes[named[0]]
 
 
 @dataclass(frozen=True)
@@ -105,8 +124,11 @@ class Presentation:
         self.feature_codec: FeatureCodec
         self.features, name = choose_feature_set(mpd, codec)
         self.feature_codec = CODECS[name]
-        if len(self.keyframes.representations) != 1:
-            raise MPDError("the keyframe AdaptationSet must have exactly one Representation")
+        if not self.keyframes.representations:
+            raise MPDError("the keyframe AdaptationSet has no Representation")
+        self.keyframe_reps: dict[str, Representation] = {r.id: r for r in self.keyframes.representations}
+        self.keyframe_quants = {r.id: keyframe_quant(r) for r in self.keyframes.representations}
+        """Each keyframe Representation's quantisation (LOSSLESS for the top one)."""
         if not self.features.representations:
             raise MPDError("the feature AdaptationSet has no Representation")
         if self.features.segment_template.initialization is None:
@@ -120,9 +142,12 @@ class Presentation:
         self.num_gops = gop_count(mpd.duration, self.segment_seconds)
         if self.num_gops > MAX_GOPS:
             raise MPDError(f"{self.num_gops} GOPs is over the client limit of {MAX_GOPS}")
-        self.ladder = sorted((Rung(r.id, r.bandwidth, qp_of(r.id), QualityDescriptor.parse(r))
-                              for r in self.features.representations), key=lambda r: (r.bandwidth, r.rep_id))
-        self.keyframe_rep = self.keyframes.representations[0]
+        rungs = []
+        for r in self.features.representations:
+            kf = _paired_keyframe(r, self.keyframe_reps)
+            rungs.append(Rung(r.id, r.bandwidth, qp_of(r.id), QualityDescriptor.parse(r), kf.id, kf.bandwidth))
+        self.ladder = sorted(rungs, key=lambda r: (r.total_bandwidth, r.rep_id))
+        """Feature Representations, each with its keyframe Representation, by rising total bandwidth."""
         found = mpd.find_adaptation_set(STATIC_SCHEME)
         self.static: StaticLayerInfo | None = None if found is None else _static_layer(found)
         """The static layer of a format-2 presentation (fetched once, before the first GOP), or None."""
@@ -160,9 +185,22 @@ class Presentation:
             raise MPDError(f"GOP {gop} is outside 0..{self.num_gops - 1}")
         return template_start + gop
 
-    def keyframe_url(self, gop: int) -> str:
+    def keyframe_url(self, gop: int, rep: str = KEYFRAME_REP) -> str:
+        """URL of GOP `gop`'s segment of keyframe Representation `rep`."""
         t = self.keyframes.segment_template
-        return urljoin(self.base, expand_template(t.media, self.keyframe_rep.id, self._number(gop, t.start_number)))
+        return urljoin(self.base, expand_template(t.media, self._keyframe_rep(rep).id,
+                                                  self._number(gop, t.start_number)))
+
+    def _keyframe_rep(self, rep: str) -> Representation:
+        if rep not in self.keyframe_reps:
+            raise MPDError(f"no keyframe Representation {rep!r}; the set has {', '.join(self.keyframe_reps)}")
+        return self.keyframe_reps[rep]
+
+    def abr_bandwidths(self) -> list[int]:
+        """Per rung, the bit/s an ABR rule weighs: its features plus what its keyframes cost over the cheapest
+        keyframes of the ladder (whose bits the rules budget apart, as AbrState.keyframe_bits)."""
+        base = min(r.keyframe_bandwidth for r in self.ladder)
+        return [r.bandwidth + r.keyframe_bandwidth - base for r in self.ladder]
 
     def static_url(self) -> str:
         """URL of the static-layer segment (format 2 only)."""
@@ -213,8 +251,8 @@ class Presentation:
             return 0
         return 3 * self.static.capacity * (14 + 9 * self.static.sh_degree) * 4
 
-    def max_keyframe_bytes(self) -> int:
-        return self._cap(self.keyframe_rep.bandwidth, self.segment_seconds)
+    def max_keyframe_bytes(self, rep: str = KEYFRAME_REP) -> int:
+        return self._cap(self._keyframe_rep(rep).bandwidth, self.segment_seconds)
 
     def max_media_bytes(self, rep_id: str) -> int:
         return self._cap(self.rung(rep_id).bandwidth, self.segment_seconds)

@@ -82,10 +82,11 @@ class Session:
         self.t_start = self.now()
         self.requested = self.t_start / self.speed if requested is None else requested
         self.clock = PlaybackClock(self.T, self.capacity_s, self.k0)
-        rep_ids = [r.rep_id for r in pres.ladder]
+        rep_ids, keyframe_reps = [r.rep_id for r in pres.ladder], [r.keyframe_rep for r in pres.ladder]
         self.schedule = FetchSchedule(
             pres, make_rule(cfg.abr, [r.qp for r in pres.ladder], cfg.qp, cfg.abr_settings), self.buffer_level,
-            self.capacity_s, lambda k: UpcomingGOP.from_stats(stats, k, rep_ids) if stats is not None else None,
+            self.capacity_s, lambda k: UpcomingGOP.from_stats(stats, k, rep_ids, keyframe_reps) if stats is not None
+            else None,
             cfg.abr_settings, dl.settings, clock=lambda: self.now(), playing=lambda: self.clock.t0 is not None)
         self.budget = ThreadBudget.for_cores(usable_cores(), cfg.render_threads, cfg.decode_threads)
         self.decoder = GOPDecoder(cfg, pres, self.schedule, self.records, self.budget, self.drive,

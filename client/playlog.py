@@ -6,6 +6,7 @@ import itertools
 from dataclasses import dataclass, field
 
 from stgs.client.clock import PlaybackClock
+from stgs.tree import KEYFRAME_REP
 
 LOG_FORMAT = "streamstgs-playback"
 
@@ -28,6 +29,8 @@ class GOPRecord:
     estimate_kbps: float | None = None
     """Throughput estimate when the choice was made."""
     keyframe_bytes: int = 0
+    keyframe_rep: str = KEYFRAME_REP
+    """The keyframe Representation played (manifests/PROFILE.md, "Keyframe rungs")."""
     feature_bytes: int = 0
     init_bytes: int = 0
     static_bytes: int = 0
@@ -85,7 +88,8 @@ def gop_row(r: GOPRecord) -> dict:
         return sum(xs) / len(xs) if xs else None
 
     return {"index": r.index, "rep": r.rep, "qp": r.qp, "rule": r.rule, "buffer_s": r.buffer_s,
-            "estimate_kbps": r.estimate_kbps, "keyframe_bytes": r.keyframe_bytes, "feature_bytes": r.feature_bytes,
+            "estimate_kbps": r.estimate_kbps, "keyframe_bytes": r.keyframe_bytes, "keyframe_rep": r.keyframe_rep,
+            "feature_bytes": r.feature_bytes,
             "init_bytes": r.init_bytes, "static_bytes": r.static_bytes, "static_decode_s": r.static_decode_s,
             "download_s": r.download_s, "ttfb_s": r.ttfb_s,
             "keyframe_decode_s": r.keyframe_decode_s, "feature_decode_s": r.feature_decode_s,

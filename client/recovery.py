@@ -35,11 +35,11 @@ class ScheduleRecovery:
     adaptive: bool
     buffer_level: Callable[[], float]
 
-    def refetch_keyframe(self, k: int, rec: GOPRecord, reason: str) -> Step:
-        """GOP k's keyframe once more, after the decoder rejected it (damaged in transit?)."""
+    def refetch_keyframe(self, k: int, rec: GOPRecord, reason: str, rep: str) -> Step:
+        """GOP k's keyframe of Representation `rep` once more, after the decoder rejected it (damaged in transit?)."""
         rec.events.append(f"keyframe rejected, downloaded again: {reason}")
-        keyframe = yield from self._keyframe(k, rec)
-        return Fetched(k, -1, keyframe=keyframe.data)
+        keyframe = yield from self._keyframe(k, rec, rep)
+        return Fetched(k, -1, keyframe=keyframe.data, keyframe_rep=rep)
 
     def fallback(self, k: int, rec: GOPRecord, rung: int, reason: str) -> Step:
         """GOP k's features at the lowest rung, after those of `rung` did not decode."""

@@ -71,7 +71,7 @@ from stgs.client.playlog import GOPRecord
 from stgs.client.recovery import ScheduleRecovery
 from stgs.client.retry import first_attempt, record, with_retries
 from stgs.limits import MAX_INIT_BYTES
-from stgs.tree import KEYFRAME_REP, STATIC_REP
+from stgs.tree import STATIC_REP
 
 
 @dataclass
@@ -121,7 +121,9 @@ class FetchSchedule(ScheduleRecovery):
     # --- one GOP ---
 
     def fetch_gop(self, k: int, rec: GOPRecord) -> Step:
-        """GOP k: the ABR decision, init (once per Representation), keyframe and media, with fallbacks."""
+        """GOP k: the ABR decision, init (once per Representation), keyframe and media, with fallbacks. The keyframe
+        is the chosen rung's (its @associationId); one fetched before the decision, as the first GOP's throughput
+        probe, is the floor rung's and plays with whichever features the rule then picks."""
         now = self.clock()
         waited = 0.0 if self._arrived is None else max(0.0, now - self._arrived)
         info = self.gop_info(k)
@@ -129,19 +131,30 @@ class FetchSchedule(ScheduleRecovery):
         if self.download.concurrent and (not self.adaptive or (self.samples and kf_bits is not None)):
             state = self._state(k, kf_bits or 0.0, waited, round_trips=1)
             decision = self._decide(rec, state)
+            kf_rep = self.pres.ladder[decision.index].keyframe_rep
             keyframe, fetched = yield from self._together(k, decision.index, state, rec)
         else:
-            keyframe = yield from self._keyframe(k, rec)
+            kf_rep = self.pres.ladder[0].keyframe_rep
+            keyframe = yield from self._keyframe(k, rec, kf_rep)
             alone = throughput_sample(keyframe)
-            state = self._state(k, keyframe.nbytes * 8, waited, round_trips=2, keyframe_fetched=True, extra=[alone])
+            state = self._state(k, self._base_keyframe_bits(keyframe.nbytes * 8, kf_rep), waited, round_trips=2,
+                                keyframe_fetched=True, extra=[alone])
             decision = self._decide(rec, state)
             fetched = yield from self._features(k, decision.index, state, rec, keyframe)
         rec.keyframe_bytes = keyframe.nbytes
-        self._last_keyframe_bits = keyframe.nbytes * 8
-        fetched.keyframe = keyframe.data
+        rec.keyframe_rep = kf_rep
+        self._last_keyframe_bits = self._base_keyframe_bits(keyframe.nbytes * 8, kf_rep)
+        fetched.keyframe, fetched.keyframe_rep = keyframe.data, kf_rep
         self.current = fetched.rung
         self._arrived = self.clock()
         return fetched
+
+    def _base_keyframe_bits(self, bits: float, rep: str) -> float:
+        """Bits of a keyframe of Representation `rep` as the cheapest keyframes of the ladder would have it (the
+        share AbrState.keyframe_bits stands for; Presentation.abr_bandwidths), scaled by their @bandwidth."""
+        base = min(r.keyframe_bandwidth for r in self.pres.ladder)
+        own = self.pres.keyframe_reps[rep].bandwidth
+        return bits * base / own if own > 0 else bits
 
     # --- parts ---
 
@@ -152,20 +165,20 @@ class FetchSchedule(ScheduleRecovery):
         rec.estimate_kbps = throughput_kbps(state.samples, self.settings)
         return decision
 
-    def _keyframe(self, k: int, rec: GOPRecord) -> Generator[Request | Wait, Outcome | None, Done]:
-        keyframe = yield from self._get(self._request("keyframe", k, KEYFRAME_REP), rec)
+    def _keyframe(self, k: int, rec: GOPRecord, rep: str) -> Generator[Request | Wait, Outcome | None, Done]:
+        keyframe = yield from self._get(self._request("keyframe", k, rep), rec)
         if not isinstance(keyframe, Done):
             raise ScheduleError(f"GOP {k}: {keyframe.reason}")
         return keyframe
 
     def _together(self, k: int, rung: int, state: AbrState, rec: GOPRecord) -> Step:
         """Keyframe and media of GOP k in one joint request (after the rung's init segment, if new)."""
-        rep = self.pres.ladder[rung].rep_id
+        rep, kf_rep = self.pres.ladder[rung].rep_id, self.pres.ladder[rung].keyframe_rep
         init = yield from self._init(rep, rec)
         if isinstance(init, Failed):
-            keyframe = yield from self._keyframe(k, rec)
+            keyframe = yield from self._keyframe(k, rec, kf_rep)
             return keyframe, (yield from self._recover(k, rung, init, rec))
-        kf_req = first_attempt(self._request("keyframe", k, KEYFRAME_REP), self.download)
+        kf_req = first_attempt(self._request("keyframe", k, kf_rep), self.download)
         media_req = first_attempt(self._request("media", k, rep, self._judge(rung, state)), self.download)
         keyframe, media = yield Parallel((kf_req, media_req))
         for req, outcome in ((kf_req, keyframe), (media_req, media)):
@@ -219,7 +232,7 @@ class FetchSchedule(ScheduleRecovery):
         """The request for a part of GOP k: its URL and its size cap from the manifest."""
         pres = self.pres
         if kind == "keyframe":
-            return Request(kind, k, rep, pres.keyframe_url(k), pres.max_keyframe_bytes(), judge)
+            return Request(kind, k, rep, pres.keyframe_url(k, rep), pres.max_keyframe_bytes(rep), judge)
         if kind == "init":
             return Request(kind, k, rep, pres.init_url(rep), MAX_INIT_BYTES, judge)
         return Request(kind, k, rep, pres.media_url(rep, k), pres.max_media_bytes(rep), judge)
@@ -231,14 +244,13 @@ class FetchSchedule(ScheduleRecovery):
 
     def _state(self, k: int, keyframe_bits: float, waited_s: float, round_trips: int, keyframe_fetched: bool = False,
                extra: list[ThroughputSample] | None = None) -> AbrState:
-        ladder = self.pres.ladder
         upcoming = []
         for j in range(k, min(k + self.settings.mpc_horizon, self.pres.num_gops)):
             info = self.gop_info(j)
             if info is None:
                 break
             upcoming.append(info)
-        return AbrState([r.bandwidth for r in ladder], self.pres.segment_seconds, self.buffer_level(),
+        return AbrState(self.pres.abr_bandwidths(), self.pres.segment_seconds, self.buffer_level(),
                         self.capacity_s, [*self.samples, *(extra or [])], keyframe_bits,
                         upcoming[0].segment_bits if upcoming else None, self.current, round_trips=round_trips,
                         keyframe_fetched=keyframe_fetched, waited_s=waited_s, upcoming=upcoming,

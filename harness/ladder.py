@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import urlparse
 
@@ -16,7 +16,7 @@ from stgs.client.urlpolicy import UrlPolicy
 from stgs.errors import StgsError
 from stgs.limits import MAX_INIT_BYTES, MAX_MPD_BYTES
 from stgs.mpd_values import MPDError
-from stgs.tree import MANIFEST, STATS, rung_quality
+from stgs.tree import KEYFRAME_REP, MANIFEST, STATS, paired_keyframe_bytes, rung_quality
 
 
 @dataclass
@@ -32,6 +32,8 @@ class Ladder:
     stats: dict | None
     static_bytes: int = 0
     """A layered scene's static-layer segment (fetched once per playback), 0 in format 1."""
+    lossy_keyframe_bytes: dict[str, list[int]] = field(default_factory=dict)
+    """Lossy keyframe Representation id -> per GOP (`keyframe_bytes` are the lossless ones')."""
 
     def __post_init__(self) -> None:
         # The static layer is the first transfer a player makes and its first throughput sample: a format-2
@@ -44,12 +46,16 @@ class Ladder:
     def url(self) -> str:
         return self.pres.url
 
+    def keyframe_size(self, rep: str, k: int) -> int:
+        """Bytes of GOP k's segment of keyframe Representation `rep`."""
+        return self.keyframe_bytes[k] if rep == KEYFRAME_REP else self.lossy_keyframe_bytes[rep][k]
+
     def gop_info(self, k: int) -> UpcomingGOP:
         """GOP k's sizes (bits) and per-rung PSNR (None unless every rung has one), as the ABR rules see them."""
-        reps = [r.rep_id for r in self.pres.ladder]
-        psnr = [self.psnr[r][k] for r in reps]
-        return UpcomingGOP(self.keyframe_bytes[k] * 8, [self.media_bytes[r][k] * 8 for r in reps],
-                           None if None in psnr else psnr)
+        ladder = self.pres.ladder
+        psnr = [self.psnr[r.rep_id][k] for r in ladder]
+        return UpcomingGOP.paired([self.keyframe_size(r.keyframe_rep, k) * 8 for r in ladder],
+                                  [self.media_bytes[r.rep_id][k] * 8 for r in ladder], None if None in psnr else psnr)
 
 
 def _local_path(base: Path, url: str) -> Path:
@@ -72,14 +78,21 @@ def load_ladder(scene: str, codec: str = "auto") -> Ladder:
         raise StgsError(f"{mpd}: {exc}") from None
     stats = json.loads((folder / STATS).read_text()) if (folder / STATS).is_file() else None
     try:
-        kf = [_local_path(folder, pres.keyframe_url(k)).stat().st_size for k in range(pres.num_gops)]
+        kfs = {rep: [_local_path(folder, pres.keyframe_url(k, rep)).stat().st_size for k in range(pres.num_gops)]
+               for rep in pres.keyframe_reps}
         media = {r.rep_id: [_local_path(folder, pres.media_url(r.rep_id, k)).stat().st_size
                             for k in range(pres.num_gops)] for r in pres.ladder}
         init = {r.rep_id: _local_path(folder, pres.init_url(r.rep_id)).stat().st_size for r in pres.ladder}
         static = 0 if pres.static is None else _local_path(folder, pres.static_url()).stat().st_size
     except OSError as exc:
         raise StgsError(f"{scene}: segment missing ({exc.filename})") from None
-    return Ladder(pres, kf, media, init, _psnr(stats, pres), stats, static)
+    return _ladder(pres, kfs, media, init, stats, static)
+
+
+def _ladder(pres: Presentation, keyframes: dict[str, list[int]], media: dict[str, list[int]], init: dict[str, int],
+            stats: dict | None, static: int) -> Ladder:
+    lossy = {rep: sizes for rep, sizes in keyframes.items() if rep != KEYFRAME_REP}
+    return Ladder(pres, keyframes.get(KEYFRAME_REP, []), media, init, _psnr(stats, pres), stats, static, lossy)
 
 
 def _psnr(stats: dict | None, pres: Presentation) -> dict[str, list[float | None]]:
@@ -108,11 +121,11 @@ async def _remote(url: str, codec: str) -> Ladder:
         except (FetchError, MPDError, json.JSONDecodeError) as exc:
             raise StgsError(f"{url}: cannot read the scene's manifest, stats.json or init segments ({exc})") from None
     try:
-        kf = [int(g["keyframe_bytes"]) for g in stats["gops"]]
+        kfs = {rep: [paired_keyframe_bytes(g, rep) for g in stats["gops"]] for rep in pres.keyframe_reps}
         media = {r.rep_id: [int(g["representations"][r.rep_id]["bytes"]) for g in stats["gops"]] for r in pres.ladder}
         static = 0 if pres.static is None else int(stats["static"]["bytes"])
     except (KeyError, TypeError, ValueError) as exc:
         raise StgsError(f"{url}: stats.json lacks per-GOP sizes ({exc})") from None
-    if len(kf) != pres.num_gops:
-        raise StgsError(f"{url}: stats.json lists {len(kf)} GOPs, the MPD {pres.num_gops}")
-    return Ladder(pres, kf, media, init, _psnr(stats, pres), stats, static)
+    if len(stats["gops"]) != pres.num_gops:
+        raise StgsError(f"{url}: stats.json lists {len(stats['gops'])} GOPs, the MPD {pres.num_gops}")
+    return _ladder(pres, kfs, media, init, stats, static)

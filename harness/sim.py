@@ -155,7 +155,7 @@ class Simulation:
         """One request sent at `start`: a round trip, then the body paced by the network once the link is free
         (judged per chunk when abandonable)."""
         ladder = self.ladder
-        nbytes = (ladder.keyframe_bytes[req.gop] if req.kind == "keyframe" else
+        nbytes = (ladder.keyframe_size(req.rep, req.gop) if req.kind == "keyframe" else
                   ladder.init_bytes[req.rep] if req.kind == "init" else
                   ladder.static_bytes if req.kind == "static" else ladder.media_bytes[req.rep][req.gop])
         ready = start + rtt

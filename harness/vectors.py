@@ -93,7 +93,7 @@ def decision_vectors(scene: Path, traces: dict[str, list[list[float]]] = FIXED_T
     """Every rule over every trace on a packaged scene's AV1 set (the browsers' feature set), and mpc under
     MPC_VARIANTS."""
     ladder = load_ladder(str(scene), "av1")
-    full_kbps = (ladder.pres.keyframe_rep.bandwidth + max(r.bandwidth for r in ladder.pres.ladder)) / 1e3
+    full_kbps = ladder.pres.ladder[-1].total_bandwidth / 1e3
     vectors = []
     for name, shape in traces.items():
         steps = [[t, rate * full_kbps] for t, rate in shape]

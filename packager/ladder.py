@@ -1,8 +1,8 @@
 """The auto ladder: which of a codec's measured candidate rungs a pack keeps (docs/PACKAGING.md, "The auto ladder").
 
-Each candidate is one ladder point of one codec, encoded for every GOP and measured: its feature bytes over the scene
-(the keyframes are the same in every rung of a set: they move no point of the hull, and the spacing compares what
-the rungs differ by) and its quality (stgs.tree.QUALITY_MEASURES). The rungs kept are those on the upper
+Each candidate is one ladder point of one codec paired with one keyframe rung, encoded for every GOP and measured: its
+bytes over the scene above those of the cheapest keyframe rung (what the rungs differ by: with the lossless keyframe
+alone, the feature bytes) and its quality (stgs.tree.QUALITY_MEASURES). The rungs kept are those on the upper
 convex hull of (bytes, PSNR), cut at the top where the next step up gains less than `top_gain_db`, then picked from
 the top down so that each rung costs at least `min_ratio` times the bytes of the rung below and adds at least
 `min_gain_db` over it, the cheapest hull point being the floor. Every candidate's fate and its reason are reported,
@@ -44,7 +44,7 @@ class Candidate:
 
     rep_id: str
     bytes: int
-    """Feature bytes of every GOP."""
+    """Bytes of every GOP: its features, and its keyframes beyond the cheapest keyframe rung's."""
     psnr: float
     """Quality (dB): against the capture where known, else against the uncompressed model."""
 

@@ -19,6 +19,7 @@ from stgs.model.gop import GOPShape
 from stgs.mpd import MPD, AdaptationSet, Descriptor, Period, Representation, SegmentTemplate
 from stgs.mpd_profile import (
     FEATURE_SCHEME,
+    KEYFRAME_QUANT_SCHEME,
     KEYFRAME_SCHEME,
     QUALITY_SCHEME,
     STATIC_SCHEME,
@@ -35,6 +36,7 @@ from stgs.tree import (
     feature_init_template,
     feature_media_template,
     keyframe_template,
+    paired_keyframe_bytes,
     parse_rep_id,
     quality_measure,
     static_template,
@@ -113,7 +115,13 @@ class ManifestBuilder:
     segment_ticks: int
     frame_rate: Fraction
     """The feature video's frame rate."""
-    keyframes: RepresentationRecords = field(default_factory=lambda: RepresentationRecords(KEYFRAME_REP))
+    keyframe_reps: dict[str, RepresentationRecords] = field(
+        default_factory=lambda: {KEYFRAME_REP: RepresentationRecords(KEYFRAME_REP)})
+    """Keyframe Representations: the lossless one, then any lossy keyframe rungs."""
+    keyframe_quants: dict[str, str] = field(default_factory=dict)
+    """A lossy keyframe Representation's quantisation (stgs.codec.keyframe.KeyframeQuant.value)."""
+    pairing: dict[str, str] = field(default_factory=dict)
+    """Feature Representation -> the keyframe Representation it plays with (absent: the lossless one)."""
     features: dict[str, RepresentationRecords] = field(default_factory=dict)
     codecs: dict[str, str] = field(default_factory=dict)
     """@codecs per feature Representation."""
@@ -124,8 +132,22 @@ class ManifestBuilder:
     def segment_seconds(self) -> float:
         return self.shape.gop_size / self.fps
 
-    def on_keyframe(self, record: SegmentRecord) -> None:
-        self.keyframes.add(record)
+    @property
+    def keyframes(self) -> RepresentationRecords:
+        """The lossless keyframe Representation's segments."""
+        return self.keyframe_reps[KEYFRAME_REP]
+
+    def on_keyframe(self, record: SegmentRecord, rep: str = KEYFRAME_REP, quant: str | None = None) -> None:
+        """A keyframe segment of Representation `rep` (a lossy rung's with its `quant`)."""
+        self.keyframe_reps.setdefault(rep, RepresentationRecords(rep)).add(record)
+        if quant is not None:
+            self.keyframe_quants[rep] = quant
+
+    def keyframe_order(self) -> list[str]:
+        """Keyframe Representation ids, lossless first, then the lossy ones by falling bandwidth."""
+        lossy = sorted((r for r in self.keyframe_reps if r != KEYFRAME_REP),
+                       key=lambda r: (-self.keyframe_reps[r].bandwidth(), r))
+        return [KEYFRAME_REP, *lossy]
 
     def on_static(self, record: StaticRecord) -> None:
         self.static = record
@@ -151,7 +173,10 @@ class ManifestBuilder:
         keyframes = AdaptationSet(
             1, "application", KEYFRAME_MIME_TYPE,
             SegmentTemplate(keyframe_template(self.version), self.timescale, self.segment_ticks, 0),
-            [Representation(KEYFRAME_REP, self.keyframes.bandwidth())],
+            [Representation(r, self.keyframe_reps[r].bandwidth(),
+                             supplemental=[Descriptor(KEYFRAME_QUANT_SCHEME, self.keyframe_quants[r])]
+                             if r in self.keyframe_quants else [])
+             for r in self.keyframe_order()],
             [Descriptor(KEYFRAME_SCHEME, descriptor.value)])
         rate = self.frame_rate
         frame_rate = str(rate.numerator) if rate.denominator == 1 else f"{rate.numerator}/{rate.denominator}"
@@ -162,7 +187,7 @@ class ManifestBuilder:
             ladder = self.ladder(codec)
             best_first = sorted(ladder, key=lambda r: (-r.quality(), -r.mean("render_psnr")))
             reps = [Representation(r.rep_id, r.bandwidth(), self.codecs[r.rep_id], 4 * side, 4 * side, frame_rate,
-                                   [KEYFRAME_REP], ["cdsc"], best_first.index(r) + 1,
+                                   [self.pairing.get(r.rep_id, KEYFRAME_REP)], ["cdsc"], best_first.index(r) + 1,
                                    [Descriptor(QUALITY_SCHEME, r.descriptor().value)])
                     for r in ladder]
             features.append(AdaptationSet(
@@ -186,6 +211,7 @@ class ManifestBuilder:
     def stats(self, pack_id: str) -> dict:
         """stats.json: per Representation and per GOP, bytes and quality (manifests/PROFILE.md)."""
         reps = {}
+        lossy = [r for r in self.keyframe_order() if r != KEYFRAME_REP]
         for r in self.ladder():
             rows = r.ordered()
             codec, point = parse_rep_id(r.rep_id)
@@ -195,6 +221,8 @@ class ManifestBuilder:
                 "mean_feature_psnr": r.mean("feature_psnr"), "mean_render_psnr": r.mean("render_psnr")}
             if r.has("truth_psnr"):
                 reps[r.rep_id]["mean_truth_psnr"] = r.mean("truth_psnr")
+            if lossy:
+                reps[r.rep_id]["keyframes"] = self.pairing.get(r.rep_id, KEYFRAME_REP)
         doc = {"format": STATS_FORMAT, "version": 1, "pack_id": pack_id,
                "segment_seconds": self.segment_seconds, "frames_per_gop": self.shape.gop_size,
                "keyframe_bandwidth": self.keyframes.bandwidth(),
@@ -202,7 +230,13 @@ class ManifestBuilder:
                "gops": [{"index": kf.number, "keyframe_bytes": kf.bytes,
                          "representations": {r.rep_id: {"bytes": r.segments[kf.number].bytes,
                                                         **r.segments[kf.number].quality} for r in self.ladder()}}
+                        | ({"keyframes": {rep: self.keyframe_reps[rep].segments[kf.number].bytes for rep in lossy}}
+                           if lossy else {})
                         for kf in self.keyframes.ordered()]}
+        if lossy:
+            doc["keyframe_representations"] = {
+                rep: {"quant": self.keyframe_quants[rep], "bandwidth": self.keyframe_reps[rep].bandwidth()}
+                for rep in lossy}
         if self.static is not None:  # format 2 only: a format-1 tree's stats.json is unchanged
             d = self.static.descriptor
             doc["static"] = {"bytes": self.static.bytes, "capacity": d.capacity, "grid_side": d.grid_side,
@@ -215,6 +249,7 @@ def kb_per_frame(stats: dict, rep_id: str, static_frames: int | None = None) -> 
     frames, plus a format-2 tree's static layer amortised over `static_frames` (default: the scene's frames)."""
     gops = stats["gops"]
     frames = len(gops) * stats["frames_per_gop"]
-    content = sum(g["keyframe_bytes"] + g["representations"][rep_id]["bytes"] for g in gops)
+    paired = stats["representations"][rep_id].get("keyframes", KEYFRAME_REP)
+    content = sum(paired_keyframe_bytes(g, paired) + g["representations"][rep_id]["bytes"] for g in gops)
     static = stats["static"]["bytes"] if "static" in stats else 0
     return (content / frames + static / (static_frames or frames)) / 1e3

@@ -23,13 +23,14 @@ import json
 import os
 import shutil
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
 
 from tqdm import tqdm
 
 from stgs.codec.plas import PLASConfig
+from stgs.codec.quant import KEYFRAME_RUNGS
 from stgs.codec.static import decode_static, pack_static
 from stgs.codec.video import AV1, CODECS, HEVC, LADDERS, FeatureCodec, VideoTiming
 from stgs.errors import FieldError, StgsError
@@ -38,7 +39,7 @@ from stgs.model.static import StaticLayer
 from stgs.model.store import SceneMeta, load_gop, load_static, read_meta
 from stgs.mpd_profile import StaticLayerDescriptor
 from stgs.packager.ladder import Candidate, LadderRules, Verdict, allocation_saving, choose_rungs
-from stgs.packager.manifest import ManifestBuilder, SegmentRecord, StaticRecord
+from stgs.packager.manifest import ManifestBuilder, RepresentationRecords, SegmentRecord, StaticRecord
 from stgs.packager.segments import FeatureEncoder, PreparedGOP, measure, prepare_gop, quality_views
 from stgs.packager.state import PackState, check_output_dir, pack_id
 from stgs.synth import load_ground_truth
@@ -46,10 +47,12 @@ from stgs.tree import (
     CAMERAS,
     CAMERAS_FORMAT,
     GROUND_TRUTH_DIR,
+    KEYFRAME_REP,
     MANIFEST,
     STATS,
     feature_path,
     keyframe_path,
+    keyframe_rep_id,
     quality_measure,
     static_path,
     version_dir,
@@ -79,6 +82,9 @@ class PackConfig:
     """AV1 feature-video QPs (SVT-AV1's 1..63 scale), as `qps` is for HEVC."""
     rules: LadderRules = field(default_factory=LadderRules)
     """How the auto ladder picks its rungs."""
+    keyframe_rungs: tuple[str, ...] = ("fine", "coarse")
+    """Lossy keyframe rungs (stgs.codec.keyframe.KEYFRAME_RUNGS) an auto ladder may pair a feature rung with
+    (docs/PACKAGING.md, "Keyframe rungs"); a fixed ladder pairs every rung with the lossless keyframe."""
     av1_preset: str = AV1.default_preset
     """SVT-AV1 preset (0 slowest .. 13 fastest)."""
     jobs: int = field(default_factory=lambda: os.cpu_count() or 1)
@@ -99,6 +105,10 @@ class PackConfig:
         if self.ladder not in LADDERS:
             raise FieldError("ladder", f"must be one of {', '.join(LADDERS)}, got {self.ladder!r}")
         self.rules.validate()
+        lossy = [name for name in KEYFRAME_RUNGS if name != "lossless"]
+        if len(set(self.keyframe_rungs)) != len(self.keyframe_rungs) or set(self.keyframe_rungs) - set(lossy):
+            raise FieldError("keyframe_rungs", f"must list distinct rungs of {', '.join(lossy)}, "
+                             f"got {self.keyframe_rungs}")
         if self.stats_views < 1:
             raise FieldError("stats_views", f"must be >= 1, got {self.stats_views}")
         if self.stats_frames is not None and self.stats_frames < 1:
@@ -120,7 +130,12 @@ class PackConfig:
         return {"ladder": self.ladder, "qps": list(self.points(HEVC)), "preset": self.preset,
                 "loop_filters": self.loop_filters, "codecs": list(self.codecs), "av1_qps": list(self.points(AV1)),
                 "av1_preset": self.av1_preset, "rules": asdict(self.rules), "plas": asdict(self.plas),
-                "sort": self.sort, "stats_views": self.stats_views, "stats_frames": self.stats_frames, "format": 2}
+                "sort": self.sort, "stats_views": self.stats_views, "stats_frames": self.stats_frames, "format": 2,
+                **({"keyframe_rungs": list(self.lossy_keyframes())} if self.lossy_keyframes() else {})}
+
+    def lossy_keyframes(self) -> tuple[str, ...]:
+        """The lossy keyframe rungs this pack writes and measures: an auto ladder's, none for a fixed one."""
+        return self.keyframe_rungs if self.ladder == "auto" else ()
 
     def points(self, codec: FeatureCodec) -> tuple[int, ...]:
         """The ladder points of `codec` to encode: the rungs of a fixed ladder, the candidates of an auto one."""
@@ -176,7 +191,20 @@ class Packer:
         composite with the static layer, in a layered scene)."""
         bits = sorted({CODECS[c].bits for c in self.cfg.codecs} | {HEVC.bits})  # HEVC's: feature_psnr's reference
         return prepare_gop(self.model_dir, self.meta, k, self.cfg.plas if self.cfg.sort else None,
-                           self.cfg.stats_views, self.cfg.stats_frames, self.static, tuple(bits))
+                           self.cfg.stats_views, self.cfg.stats_frames, self.static, tuple(bits),
+                           self.cfg.lossy_keyframes())
+
+    def write_keyframes(self, gop: PreparedGOP) -> None:
+        """GOP k's keyframe segments (lossless and lossy) into the tree."""
+        self.write(keyframe_path(self.version_dir, gop.index), gop.keyframe)
+        for rep, (data, _) in gop.lossy.items():
+            self.write(keyframe_path(self.version_dir, gop.index, rep), data)
+
+    def report_keyframes(self, k: int, sizes: dict[str, int]) -> None:
+        """Tell the builder of GOP k's keyframe segments (Representation id -> bytes)."""
+        quants = {keyframe_rep_id(name): quant.value for name, quant in KEYFRAME_RUNGS.items() if name != "lossless"}
+        for rep, size in sizes.items():
+            self.builder.on_keyframe(SegmentRecord(k, self.seconds_per_gop, size), rep, quants.get(rep))
 
     def write_static(self) -> None:
         """A layered scene's static layer, sorted and encoded, into the tree (before any GOP: the QP tasks
@@ -221,7 +249,7 @@ class Packer:
 
     def segment_record(self, k: int, done: dict) -> SegmentRecord:
         return SegmentRecord(k, self.seconds_per_gop, done["bytes"], {key: value for key, value in done.items()
-                                                                      if key in SEGMENT_MEASURES})
+                                                                      if key in (*SEGMENT_MEASURES, "keyframes")})
 
     def run(self) -> dict:
         cfg = self.cfg
@@ -239,8 +267,9 @@ class Packer:
             previous: list = []
             for k in range(self.meta.num_gops):
                 gop = self.prepare_gop(k)
-                self.write(keyframe_path(self.version_dir, k), gop.keyframe)
-                self.builder.on_keyframe(SegmentRecord(k, self.seconds_per_gop, len(gop.keyframe)))
+                self.write_keyframes(gop)
+                self.report_keyframes(k, {KEYFRAME_REP: len(gop.keyframe)}
+                                      | {rep: len(data) for rep, (data, _) in gop.lossy.items()})
                 current = [pool.submit(point_job, gop, codec, q) for codec, q in ladder]
                 for future in previous:
                     future.result()
@@ -266,36 +295,55 @@ class Packer:
         return stats
 
     def choose_ladder(self) -> dict:
-        """Each codec's rungs: every point of a fixed ladder; for an auto one, the candidates ladder.choose_rungs
-        keeps, the others' segments removed from the tree and the builder. Returns stats.json's `ladders`."""
+        """Each codec's rungs, each a feature Representation paired with a keyframe Representation: every point of a
+        fixed ladder with the lossless keyframe; for an auto one, the (feature point, keyframe rung) pairs
+        ladder.choose_rungs keeps, at most one pair per feature point and the lossless keyframe at the top (pair_rungs).
+        The other candidates' segments leave the tree and the builder, and the kept rungs carry their pair's quality.
+        Returns stats.json's `ladders`."""
         out: dict = {}
-        keyframes = self.builder.keyframes.segments
+        builder = self.builder
+        key_bytes = {rep: sum(s.bytes for s in r.segments.values()) for rep, r in builder.keyframe_reps.items()}
+        cheapest = min(key_bytes.values())
         for name in self.cfg.codecs:
-            reps = self.builder.ladder(name)
+            reps = builder.ladder(name)
             measure = quality_measure([s.quality for r in reps for s in r.segments.values()])
-            scene = [Candidate(r.rep_id, sum(s.bytes for s in r.segments.values()), r.mean(measure)) for r in reps]
+            pairs = {pair_id(r.rep_id, kf): (r, kf) for r in reps for kf in key_bytes}
+            scene = [Candidate(pid, sum(s.bytes for s in r.segments.values()) + key_bytes[kf] - cheapest,
+                               pair_mean(r, kf, measure)) for pid, (r, kf) in pairs.items()]
             doc: dict = {"mode": self.cfg.ladder, "measure": measure}
             if self.cfg.ladder == "auto":
-                verdicts = choose_rungs(scene, self.cfg.rules)
-                kept_ids = {v.rep_id for v in verdicts if v.kept}
-                kept = [c for c in scene if c.rep_id in kept_ids]
-                per_gop = [[Candidate(r.rep_id, r.segments[k].bytes, r.segments[k].quality[measure]) for r in reps]
-                           for k in sorted(keyframes)]
+                verdicts = pair_rungs(choose_rungs(scene, self.cfg.rules), pairs, {c.rep_id: c.psnr for c in scene})
+                kept = [c for c in scene if c.rep_id in {v.rep_id for v in verdicts if v.kept}]
+                per_gop = [[Candidate(pid, r.segments[k].bytes + builder.keyframe_reps[kf].segments[k].bytes,
+                                      pair_quality(r.segments[k].quality, kf)[measure])
+                            for pid, (r, kf) in pairs.items()] for k in sorted(builder.keyframes.segments)]
                 doc |= {"rules": asdict(self.cfg.rules), "per_gop_saving": round(allocation_saving(per_gop, kept), 4)}
             else:
                 verdicts = [Verdict(c.rep_id, True, "a fixed rung") for c in sorted(scene, key=lambda c: c.bytes)]
-            by_id = {c.rep_id: c for c in scene}
-            records = {r.rep_id: r for r in reps}
-            key_bytes = sum(kf.bytes for kf in keyframes.values())
-            doc["candidates"] = [{"representation": v.rep_id, "bytes": by_id[v.rep_id].bytes,
-                                  "total_bytes": by_id[v.rep_id].bytes + key_bytes,
-                                  **{m: round(records[v.rep_id].mean(m), 4) for m in ("render_psnr", "truth_psnr")
-                                     if records[v.rep_id].has(m)}, "kept": v.kept, "reason": v.reason}
-                                 for v in verdicts]
+            doc["candidates"] = []
             for v in verdicts:
-                if not v.kept:
-                    self.drop_rung(v.rep_id)
+                r, kf = pairs[v.rep_id]
+                features = sum(s.bytes for s in r.segments.values())
+                entry = {"representation": v.rep_id, "bytes": features, "total_bytes": features + key_bytes[kf]}
+                if len(key_bytes) > 1:
+                    entry = {"representation": v.rep_id, "features": r.rep_id, "keyframes": kf} | entry
+                psnrs = {m: round(pair_mean(r, kf, m), 4) for m in ("render_psnr", "truth_psnr") if r.has(m)}
+                doc["candidates"].append(entry | psnrs | {"kept": v.kept, "reason": v.reason})
+                if v.kept:
+                    builder.pairing[r.rep_id] = kf
+            for r in reps:
+                if r.rep_id not in builder.pairing:
+                    self.drop_rung(r.rep_id)
+                else:
+                    kf = builder.pairing[r.rep_id]
+                    r.segments = {k: replace(s, quality=pair_quality(s.quality, kf)) for k, s in r.segments.items()}
             out[name] = doc
+        for rep in [r for r in builder.keyframe_reps if r != KEYFRAME_REP and r not in builder.pairing.values()]:
+            builder.keyframe_reps.pop(rep)
+            builder.keyframe_quants.pop(rep, None)
+            shutil.rmtree((self.out / keyframe_path(self.version_dir, 0, rep)).parent, ignore_errors=True)
+        for rep in [r for r, kf in builder.pairing.items() if kf == KEYFRAME_REP]:
+            builder.pairing.pop(rep)
         return out
 
     def drop_rung(self, rep: str) -> None:
@@ -319,6 +367,47 @@ class Packer:
         else:
             return
         atomic_write_bytes(self.out / CAMERAS, data)
+
+
+def pair_id(feature_rep: str, keyframe_rep: str) -> str:
+    """A ladder candidate's id: the feature Representation's, `+<keyframe Representation>` for a lossy keyframe."""
+    return feature_rep if keyframe_rep == KEYFRAME_REP else f"{feature_rep}+{keyframe_rep}"
+
+
+def pair_quality(quality: dict, keyframe_rep: str) -> dict:
+    """A feature segment's measures (stgs.packager.segments.quality) when it plays with keyframe Representation
+    `keyframe_rep`: its feature PSNR and that pair's rendered PSNRs."""
+    base = {k: v for k, v in quality.items() if k != "keyframes"}
+    return base if keyframe_rep == KEYFRAME_REP else base | quality["keyframes"][keyframe_rep]
+
+
+def pair_mean(records: RepresentationRecords, keyframe_rep: str, measure: str) -> float:
+    """The mean over the GOPs of a feature Representation's `measure` with keyframe Representation `keyframe_rep`."""
+    values = [pair_quality(s.quality, keyframe_rep)[measure] for s in records.segments.values()]
+    return sum(values) / len(values)
+
+
+def pair_rungs(verdicts: list[Verdict], pairs: dict, quality: dict[str, float]) -> list[Verdict]:
+    """choose_rungs' verdicts over (feature, keyframe) pairs (`quality`: each pair's), made a ladder a player can
+    fetch: the top rung plays with the lossless keyframe where that renders at least as well (its lossless pair takes
+    its place), and a feature Representation is one rung (a lower pair of features already kept is dropped)."""
+    out = {v.rep_id: v for v in verdicts}
+    kept = [v.rep_id for v in verdicts if v.kept]  # choose_rungs lists the kept ones cheapest first
+    if kept:
+        top_features, top_kf = pairs[kept[-1]]
+        lossless = pair_id(top_features.rep_id, KEYFRAME_REP)
+        if top_kf != KEYFRAME_REP and quality[lossless] >= quality[kept[-1]]:
+            out[kept[-1]] = Verdict(kept[-1], False, f"the top rung plays with the lossless keyframe: {lossless}")
+            out[lossless] = Verdict(lossless, True, "the top: features of the top pair, with the lossless keyframe")
+            kept[-1] = lossless
+    used: dict[str, str] = {}
+    for pid in reversed(kept):
+        features = pairs[pid][0].rep_id
+        if features in used:
+            out[pid] = Verdict(pid, False, f"its features are a rung already, as {used[features]}")
+        else:
+            used[features] = pid
+    return [out[v.rep_id] for v in verdicts]
 
 
 def point_task_name(k: int, codec: FeatureCodec, q: int) -> str:

@@ -7,7 +7,7 @@ import json
 import math
 import threading
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +28,7 @@ from stgs.codec.features import (
 from stgs.codec.keyframe import Keyframe, decode_keyframe, encode_keyframe
 from stgs.codec.mp4 import set_timeline, split_fragmented
 from stgs.codec.plas import PLASConfig, permute_gop, plas_order, sort_key
+from stgs.codec.quant import KEYFRAME_RUNGS
 from stgs.codec.video import FeatureCodec, VideoTiming, decode_segment, encode_gop
 from stgs.fsio import load_png
 from stgs.metrics import mse_psnr, psnr
@@ -37,7 +38,7 @@ from stgs.model.store import SceneMeta, load_gop
 from stgs.model.view import FrameRenderer, framing_orbit
 from stgs.picks import spread
 from stgs.synth import load_ground_truth
-from stgs.tree import CAMERAS, GROUND_TRUTH_DIR, TRAIN_REPORT
+from stgs.tree import CAMERAS, GROUND_TRUTH_DIR, TRAIN_REPORT, keyframe_rep_id
 
 
 @dataclass
@@ -60,6 +61,8 @@ class PreparedGOP:
     model_mse: float | None = None
     """The uncompressed GOP's own mean squared error against the capture at the quality views (model_error), or
     None where the model dir does not tell."""
+    lossy: dict[str, tuple[bytes, Keyframe]] = field(default_factory=dict)
+    """The lossy keyframe rungs' segments and their decodes, by Representation id (stgs.tree.keyframe_rep_id)."""
 
 
 @dataclass(frozen=True)
@@ -105,10 +108,12 @@ def quality_views(model_dir: Path, meta: SceneMeta, model: Callable[[], GOPModel
 
 
 def prepare_gop(model_dir: Path, meta: SceneMeta, k: int, plas: PLASConfig | None, views: int, frames: int | None,
-                static: StaticLayer | None = None, bits: tuple[int, ...] = (VIDEO_BITS,)) -> PreparedGOP:
+                static: StaticLayer | None = None, bits: tuple[int, ...] = (VIDEO_BITS,),
+                keyframe_rungs: tuple[str, ...] = ()) -> PreparedGOP:
     """GOP k sorted (PLAS unless `plas` is None), tiled at each code depth of `bits` (each quantised from the float
-    features), its keyframe written and read back, and the reference views (quality_views: `views` cameras at
-    `frames` frames) rendered from the uncompressed GOP (with the uncompressed static layer, if any)."""
+    features), its keyframe written and read back (and one per lossy rung named in `keyframe_rungs`: KEYFRAME_RUNGS),
+    and the reference views (quality_views: `views` cameras at `frames` frames) rendered from the uncompressed GOP
+    (with the uncompressed static layer, if any)."""
     side = meta.shape.grid_side
     original = load_gop(model_dir, meta, k)
     if plas is not None:
@@ -124,8 +129,12 @@ def prepare_gop(model_dir: Path, meta: SceneMeta, k: int, plas: PLASConfig | Non
     renderer = FrameRenderer(original, static=static)
     reference = [renderer.render(f, cam).clamp(0, 1) for f, cam in pairs]
     decoded = decode_keyframe(keyframe, meta.shape, k, max_bytes=len(keyframe))
+    lossy = {}
+    for rung in keyframe_rungs:
+        data = encode_keyframe(k, model, ranges, KEYFRAME_RUNGS[rung])
+        lossy[keyframe_rep_id(rung)] = (data, decode_keyframe(data, meta.shape, k, len(data), KEYFRAME_RUNGS[rung]))
     return PreparedGOP(k, tiled, ranges, keyframe, decoded, pairs, reference,
-                       model_error(model_dir, meta, k, pairs, reference))
+                       model_error(model_dir, meta, k, pairs, reference), lossy)
 
 
 def model_error(model_dir: Path, meta: SceneMeta, k: int, pairs: list[tuple[int, Camera]],
@@ -169,8 +178,9 @@ def save_prepared(gop: PreparedGOP, path: Path) -> None:
     tmp.replace(path)
 
 
-def load_prepared(path: Path, keyframe: bytes, meta: SceneMeta) -> PreparedGOP:
-    """The prepared GOP `save_prepared` wrote, with its keyframe segment (read from the tree)."""
+def load_prepared(path: Path, keyframe: bytes, meta: SceneMeta, lossy: dict[str, bytes] | None = None) -> PreparedGOP:
+    """The prepared GOP `save_prepared` wrote, with its keyframe segment and those of its lossy keyframe rungs by
+    Representation id (read from the tree)."""
     with safe_open(str(path), "np") as f:
         info = f.metadata()
         tensors = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118 - safe_open has no iterator
@@ -179,8 +189,11 @@ def load_prepared(path: Path, keyframe: bytes, meta: SceneMeta) -> PreparedGOP:
     reference = [torch.from_numpy(tensors[f"reference.{i}"]) for i in range(len(views))]
     decoded = decode_keyframe(keyframe, meta.shape, k, max_bytes=len(keyframe))
     frames = {int(name.split(".")[1]): t for name, t in tensors.items() if name.startswith("frames.")}
+    quants = {keyframe_rep_id(name): quant for name, quant in KEYFRAME_RUNGS.items()}
+    decoded_lossy = {rep: (data, decode_keyframe(data, meta.shape, k, len(data), quants[rep]))
+                     for rep, data in (lossy or {}).items()}
     return PreparedGOP(k, frames, torch.from_numpy(tensors["ranges"]), keyframe, decoded, views, reference,
-                       json.loads(info["model_mse"]))
+                       json.loads(info["model_mse"]), decoded_lossy)
 
 
 class FeatureEncoder:
@@ -219,21 +232,31 @@ def quality(gop: PreparedGOP, frames: np.ndarray, bits: int, static: StaticLayer
     """Decoded-feature PSNR (the `bits`-bit codes of `frames` against the GOP's 12-bit codes, so a 10-bit set's
     figure includes its 10-bit step), rendered-view PSNR (of the mean squared error over the GOP's reference
     views, view_errors) and, where the GOP's own error is known, the PSNR a viewer gets against the capture,
-    estimated as the sum of the two errors (`truth_psnr`; docs/PACKAGING.md, "Quality per rung")."""
+    estimated as the sum of the two errors (`truth_psnr`; docs/PACKAGING.md, "Quality per rung"); all with the
+    lossless keyframe, and under `keyframes` the two PSNRs with each lossy keyframe rung of the GOP instead."""
     feature_psnr = psnr(torch.from_numpy(frames.astype(np.float32)) / code_max(bits),
                         torch.from_numpy(gop.frames[VIDEO_BITS].astype(np.float32)) / VIDEO_MAX)
-    errors = view_errors(gop, frames, bits, static)
-    out = {"feature_psnr": round(min(feature_psnr, 99.0), 4), "render_psnr": round(mse_psnr(errors), 4)}
+    out = {"feature_psnr": round(min(feature_psnr, 99.0), 4),
+           **_view_psnrs(gop, view_errors(gop, frames, bits, static))}
+    if gop.lossy:
+        out["keyframes"] = {rep: _view_psnrs(gop, view_errors(gop, frames, bits, static, keyframe))
+                            for rep, (_, keyframe) in gop.lossy.items()}
+    return out
+
+
+def _view_psnrs(gop: PreparedGOP, errors: list[float]) -> dict:
+    out = {"render_psnr": round(mse_psnr(errors), 4)}
     if gop.model_mse is not None:
         out["truth_psnr"] = round(mse_psnr([gop.model_mse + sum(errors) / len(errors)]), 4)
     return out
 
 
-def view_errors(gop: PreparedGOP, frames: np.ndarray, bits: int, static: StaticLayer | None = None) -> list[float]:
-    """Mean squared error of each reference view (gop.views) rendered from the decoded GOP (its decoded keyframe and
-    the `bits`-bit feature `frames`) against the uncompressed GOP's render."""
+def view_errors(gop: PreparedGOP, frames: np.ndarray, bits: int, static: StaticLayer | None = None,
+                keyframe: Keyframe | None = None) -> list[float]:
+    """Mean squared error of each reference view (gop.views) rendered from the decoded GOP (its decoded keyframe, or
+    `keyframe`, and the `bits`-bit feature `frames`) against the uncompressed GOP's render."""
     side = frames.shape[-1] // 4
     features = features_from_frames(frames, side, gop.ranges, bits)
-    renderer = FrameRenderer(gop.decoded_keyframe.to_model(features), static=static)
+    renderer = FrameRenderer((keyframe or gop.decoded_keyframe).to_model(features), static=static)
     return [(renderer.render(f, cam).clamp(0, 1).double() - ref.double()).square().mean().item()
             for (f, cam), ref in zip(gop.views, gop.reference, strict=True)]

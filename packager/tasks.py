@@ -20,11 +20,10 @@ from stgs.codec.plas import PLASConfig
 from stgs.codec.video import CODECS
 from stgs.errors import StgsError
 from stgs.packager.ladder import LadderRules
-from stgs.packager.manifest import SegmentRecord
 from stgs.packager.packer import PackConfig, Packer, point_task_name
 from stgs.packager.segments import load_prepared, save_prepared
 from stgs.tasks import Runner, Task
-from stgs.tree import PACK_LOGS, PACK_WORK, feature_path, keyframe_path
+from stgs.tree import KEYFRAME_REP, PACK_LOGS, PACK_WORK, feature_path, keyframe_path, keyframe_rep_id
 
 
 @dataclass(frozen=True)
@@ -39,7 +38,8 @@ class PackJob:
 def _packer(job: PackJob) -> Packer:
     doc = job.cfg
     points = {name: tuple(doc[name]) if doc[name] is not None else None for name in ("qps", "av1_qps")}
-    cfg = PackConfig(**{**doc, **points, "codecs": tuple(doc["codecs"]), "rules": LadderRules(**doc["rules"]),
+    cfg = PackConfig(**{**doc, **points, "codecs": tuple(doc["codecs"]),
+                        "keyframe_rungs": tuple(doc["keyframe_rungs"]), "rules": LadderRules(**doc["rules"]),
                         "plas": PLASConfig(**doc["plas"]), "resume": False})
     return Packer(Path(job.model_dir), Path(job.out), cfg, progress=False)
 
@@ -51,15 +51,21 @@ def prepared_path(out: Path, k: int) -> Path:
 def prepare_task(job: PackJob, k: int) -> dict:
     packer = _packer(job)
     gop = packer.prepare_gop(k)
-    packer.write(keyframe_path(packer.version_dir, k), gop.keyframe)
+    packer.write_keyframes(gop)
     save_prepared(gop, prepared_path(packer.out, k))
     return {"keyframe_bytes": len(gop.keyframe)}
 
 
+def _keyframe_reps(packer: Packer) -> list[str]:
+    return [KEYFRAME_REP, *(keyframe_rep_id(name) for name in packer.cfg.lossy_keyframes())]
+
+
 def encode_task(job: PackJob, k: int, codec: str, q: int) -> dict:
     packer = _packer(job)
-    keyframe = (packer.out / keyframe_path(packer.version_dir, k)).read_bytes()
-    gop = load_prepared(prepared_path(packer.out, k), keyframe, packer.meta)
+    data = {rep: (packer.out / keyframe_path(packer.version_dir, k, rep)).read_bytes()
+            for rep in _keyframe_reps(packer)}
+    keyframe = data.pop(KEYFRAME_REP)
+    gop = load_prepared(prepared_path(packer.out, k), keyframe, packer.meta, data)
     files, result = packer.encode_segment(gop, CODECS[codec], q)
     return {"rep": CODECS[codec].rep_id(q), "files": files, "result": result}
 
@@ -74,7 +80,8 @@ def run_tasks(packer: Packer, runner: Runner) -> dict:
     for k in range(packer.meta.num_gops):
         pending = [(c, q) for c, q in ladder if state.done(out, point_task_name(k, c, q)) is None]
         prepare = f"gop{k}-prepare"
-        if pending or not (out / keyframe_path(packer.version_dir, k)).is_file():
+        if pending or not all((out / keyframe_path(packer.version_dir, k, rep)).is_file()
+                              for rep in _keyframe_reps(packer)):
             tasks.append(Task(prepare, prepare_task, (job, k)))
         tasks += [Task(point_task_name(k, c, q), encode_task, (job, k, c.name, q), after=(prepare,))
                   for c, q in pending]
@@ -92,8 +99,8 @@ def run_tasks(packer: Packer, runner: Runner) -> dict:
             raise StgsError(f"{rep}: the GOPs' encodes produced {len(digests)} different init segments; a "
                             "Representation needs one (are the workers running different ffmpeg builds?)")
     for k in range(packer.meta.num_gops):
-        size = (out / keyframe_path(packer.version_dir, k)).stat().st_size
-        packer.builder.on_keyframe(SegmentRecord(k, packer.seconds_per_gop, size))
+        packer.report_keyframes(k, {rep: (out / keyframe_path(packer.version_dir, k, rep)).stat().st_size
+                                    for rep in _keyframe_reps(packer)})
         for codec, q in ladder:
             done = state.done(out, point_task_name(k, codec, q))
             if done is None:

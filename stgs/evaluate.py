@@ -33,7 +33,7 @@ from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.static import StaticLayer
 from stgs.model.store import load_gop, load_static, read_meta
 from stgs.model.view import FrameRenderer
-from stgs.mpd import AdaptationSet, read_mpd
+from stgs.mpd import AdaptationSet, Representation, read_mpd
 from stgs.mpd_profile import (
     FEATURE_SCHEME,
     KEYFRAME_SCHEME,
@@ -41,6 +41,7 @@ from stgs.mpd_profile import (
     KeyframeDescriptor,
     StaticLayerDescriptor,
     feature_set_codec,
+    keyframe_quant,
 )
 from stgs.mpd_values import MPDError, expand_template
 from stgs.train.views import default_memory, open_views, scale_camera
@@ -78,20 +79,28 @@ def packaged_gops(dash: Path) -> dict[str, Callable[[int], GOPModel]]:
     shape = GOPShape(d.capacity, d.gop_size, d.window, d.pe_freqs)
     side = shape.grid_side
 
-    def loader(video: AdaptationSet, codec: FeatureCodec, rep: str) -> Callable[[int], GOPModel]:
-        init = (dash / expand_template(video.segment_template.initialization, rep)).read_bytes()
+    keyframe_reps = {r.id: r for r in kf_set.representations}
+
+    def loader(video: AdaptationSet, codec: FeatureCodec, rep: Representation) -> Callable[[int], GOPModel]:
+        init = (dash / expand_template(video.segment_template.initialization, rep.id)).read_bytes()
+        paired = next((keyframe_reps[a] for a in rep.association_id if a in keyframe_reps),
+                      kf_set.representations[0])
+        try:
+            quant = keyframe_quant(paired)
+        except MPDError as exc:
+            raise StgsError(f"{dash}: {exc}") from None
 
         def load(k: int) -> GOPModel:
             n = kf_set.segment_template.start_number + k
-            data = (dash / expand_template(kf_set.segment_template.media, kf_set.representations[0].id, n)).read_bytes()
-            kf = decode_keyframe(data, shape, k, max_bytes=len(data))
-            media = (dash / expand_template(video.segment_template.media, rep, n)).read_bytes()
+            data = (dash / expand_template(kf_set.segment_template.media, paired.id, n)).read_bytes()
+            kf = decode_keyframe(data, shape, k, len(data), quant)
+            media = (dash / expand_template(video.segment_template.media, rep.id, n)).read_bytes()
             frames = decode_segment(init, media, shape.num_features, 4 * side, 4 * side, codec=codec)
             return kf.to_model(features_from_frames(frames, side, kf.feature_ranges, codec.bits))
 
         return load
 
-    return {r.id: loader(video, codec, r.id) for video, codec in videos for r in video.representations}
+    return {r.id: loader(video, codec, r) for video, codec in videos for r in video.representations}
 
 
 def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None, holdout: list[str] | None = None,

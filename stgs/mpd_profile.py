@@ -7,6 +7,8 @@ import math
 import re
 from dataclasses import dataclass
 
+from stgs.codec.quant import LOSSLESS, KeyframeQuant
+from stgs.errors import FieldError
 from stgs.limits import MAX_CAPACITY, MAX_FPS, MAX_GOP_SIZE, MAX_PE_FREQS, MAX_WINDOW, MIN_FPS
 from stgs.mpd import MPD, AdaptationSet, Representation
 from stgs.mpd_values import MPDError
@@ -19,6 +21,9 @@ STATIC_SCHEME = "urn:streamstgs:static:2026"
 """SupplementalProperty scheme marking the static-layer AdaptationSet (format-2 trees only)."""
 QUALITY_SCHEME = "urn:streamstgs:quality:2026"
 """SupplementalProperty scheme of a feature Representation's measured quality."""
+KEYFRAME_QUANT_SCHEME = "urn:streamstgs:keyframe-quant:2026"
+"""SupplementalProperty scheme of a lossy keyframe Representation: the bits of each image
+(stgs.codec.keyframe.KeyframeQuant.value). The lossless Representation has none."""
 FEATURE_CODECS = {"hevc": (("hvc1", "hev1"), 12), "av1": (("av01",), 10)}
 """The feature-video codecs a tree may carry, one AdaptationSet each, reference first: the @codecs sample entries
 that name each and the code depth of its frames."""
@@ -164,6 +169,19 @@ class QualityDescriptor:
     def quality(self) -> float:
         """The figure a viewer's choice rests on: against the capture where known, else against the model."""
         return self.render_psnr if self.truth_psnr is None else self.truth_psnr
+
+
+def keyframe_quant(representation: Representation) -> KeyframeQuant:
+    """A keyframe Representation's quantisation: its KEYFRAME_QUANT_SCHEME descriptor's, LOSSLESS without one
+    (MPDError for a bad value)."""
+    found = representation.find_descriptor(KEYFRAME_QUANT_SCHEME)
+    if found is None:
+        return LOSSLESS
+    try:
+        return KeyframeQuant.parse(found.value or "")
+    except FieldError as exc:
+        raise MPDError(f"keyframe Representation {representation.id}: {exc}") from None
+
 
 DURATION_PRECISION_S = 1e-3
 """@mediaPresentationDuration is written to the millisecond: a GOP that starts within this of its end is rounding."""

@@ -73,7 +73,7 @@ KEYFRAME_EXTENSION = ".stgk"
 KEYFRAME_MIME_TYPE = "application/vnd.streamstgs.keyframe"
 """@mimeType of the keyframe AdaptationSet (container: stgs.codec.keyframe)."""
 KEYFRAME_REP = "keyframes"
-"""The keyframe AdaptationSet's one Representation."""
+"""The keyframe AdaptationSet's lossless Representation (the top keyframe rung; the only one in a fixed ladder)."""
 STATIC_EXTENSION = ".stgl"
 """File extension of the static-layer segment (a format-2 tree's one segment per Period)."""
 STATIC_MIME_TYPE = "application/vnd.streamstgs.static"
@@ -90,7 +90,21 @@ def version_dir(pack_id: str) -> str:
 
 
 def keyframe_template(version: str) -> str:
-    return f"{version}/keyframes/gop_$Number%05d${KEYFRAME_EXTENSION}"
+    """Keyframe segments by Representation: the lossless ones under `keyframes/`, a lossy rung's under
+    `keyframes-<name>/`."""
+    return f"{version}/$RepresentationID$/gop_$Number%05d${KEYFRAME_EXTENSION}"
+
+
+def paired_keyframe_bytes(gop: dict, keyframe_rep: str) -> int:
+    """A stats.json GOP's bytes of keyframe Representation `keyframe_rep` (the lossless one's are `keyframe_bytes`,
+    a lossy rung's under `keyframes`; KeyError, TypeError or ValueError where it is not there)."""
+    raw = gop["keyframe_bytes"] if keyframe_rep == KEYFRAME_REP else gop["keyframes"][keyframe_rep]
+    return int(raw)
+
+
+def keyframe_rep_id(rung: str) -> str:
+    """The keyframe Representation id of a keyframe rung (stgs.codec.keyframe.KEYFRAME_RUNGS)."""
+    return KEYFRAME_REP if rung == "lossless" else f"{KEYFRAME_REP}-{rung}"
 
 
 def static_template(version: str) -> str:
@@ -110,9 +124,9 @@ def feature_init_template(version: str) -> str:
     return f"{version}/features/$RepresentationID$/init.mp4"
 
 
-def keyframe_path(version: str, k: int) -> str:
-    """Path (relative to the MPD) of GOP k's keyframe segment."""
-    return expand_template(keyframe_template(version), KEYFRAME_REP, k)
+def keyframe_path(version: str, k: int, rep: str = KEYFRAME_REP) -> str:
+    """Path (relative to the MPD) of GOP k's keyframe segment of Representation `rep`."""
+    return expand_template(keyframe_template(version), rep, k)
 
 
 def feature_path(version: str, rep: str, k: int | None) -> str:

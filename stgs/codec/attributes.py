@@ -84,10 +84,12 @@ def dequantize(spec: AttributeSpec, codes: np.ndarray, rng: torch.Tensor) -> tor
     return unit * (rng[1] - rng[0]) + rng[0]
 
 
-def encode_attributes(model: GOPModel | StaticLayer, side: int) -> dict[str, tuple[np.ndarray, torch.Tensor]]:
-    """name -> (codes (S, S, C), range (2, C)) for every attribute image."""
+def encode_attributes(model: GOPModel | StaticLayer, side: int,
+                      specs: tuple[AttributeSpec, ...] = SPECS) -> dict[str, tuple[np.ndarray, torch.Tensor]]:
+    """name -> (codes (S, S, C), range (2, C)) for every attribute image, at the levels of `specs` (SPECS, or a
+    lossy keyframe's: stgs.codec.keyframe.KeyframeQuant)."""
     out = {}
-    for spec in SPECS:
+    for spec in specs:
         values = _values(model, spec)
         rng = attribute_range(spec, values)
         out[spec.name] = (quantize(spec, values, rng, side), rng)

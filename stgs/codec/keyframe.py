@@ -16,13 +16,24 @@ object (sorted keys) with format, version, gop, grid_side, capacity,
 gop_size, window, pe_freqs, feature_bits (all strings). A decoder checks the byte size, the
 header, every tensor name and shape and every image's dimensions against what
 the manifest announced before decoding anything.
+
+A lossy keyframe (a keyframe rung below the lossless one, KeyframeQuant) has
+the same layout with fewer levels in some images, and a metadata key `quant`
+naming the bits of each (KeyframeQuant.value). With `field` bits under 32 its
+weights are not float32 tensors but, per Linear layer, codes quantised per
+output row:
+
+| name                | dtype   | shape    | content |
+|---------------------|---------|----------|---------|
+| image.field.<name>  | uint8   | (bytes,) | lossless JPEG XL, out x in, one channel, 2^field levels |
+| range.field.<name>  | float32 | (2, out) | [lo, hi] of each row |
 """
 
 from __future__ import annotations
 
 import json
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -32,6 +43,7 @@ from safetensors.torch import load, save
 from stgs.codec.attributes import SPECS, AttributeSpec, apply_attributes, dequantize, encode_attributes
 from stgs.codec.features import VIDEO_BITS
 from stgs.codec.jxl import ImageDecodeError, decode_jxl, encode_jxl
+from stgs.codec.quant import FLOAT_FIELD_BITS, LOSSLESS, KeyframeQuant
 from stgs.limits import MAX_KEYFRAME_HEADER_BYTES
 from stgs.model.gop import FEATURE_DIM, DeformationField, GOPModel, GOPShape
 
@@ -75,23 +87,55 @@ class Keyframe:
         return model
 
 
-def keyframe_metadata(gop: int, shape: GOPShape) -> dict[str, str]:
+def quant_specs(quant: KeyframeQuant) -> tuple[AttributeSpec, ...]:
+    """attributes.SPECS at the levels of `quant`."""
+    return tuple(replace(spec, levels=1 << getattr(quant, spec.name)) for spec in SPECS)
+
+
+def keyframe_metadata(gop: int, shape: GOPShape, quant: KeyframeQuant = LOSSLESS) -> dict[str, str]:
     """The metadata a keyframe segment of GOP `gop` carries (and a decoder expects)."""
-    return {"format": FORMAT, "version": str(VERSION), "gop": str(gop), "grid_side": str(shape.grid_side),
+    meta = {"format": FORMAT, "version": str(VERSION), "gop": str(gop), "grid_side": str(shape.grid_side),
             "capacity": str(shape.capacity), "gop_size": str(shape.gop_size), "window": str(shape.window),
             "pe_freqs": str(shape.pe_freqs), "feature_bits": str(VIDEO_BITS)}
+    if not quant.lossless:
+        meta["quant"] = quant.value
+    return meta
 
 
-def encode_keyframe(gop: int, model: GOPModel, feature_ranges: torch.Tensor) -> bytes:
-    """Keyframe segment bytes of a PLAS-sorted GOP model."""
+def quantize_weight(weight: torch.Tensor, bits: int) -> tuple[np.ndarray, torch.Tensor]:
+    """(out, in) weights -> (out, in, 1) uint8 codes at 2^bits levels over each row's [lo, hi], and that (2, out)
+    range."""
+    w = weight.detach().float()
+    lo, hi = w.amin(1), w.amax(1)
+    hi = torch.where(hi - lo > 1e-12, hi, lo + 1e-6)
+    levels = (1 << bits) - 1
+    codes = torch.round((w - lo[:, None]) / (hi - lo)[:, None] * levels).clamp(0, levels)
+    return codes.to(torch.uint8).numpy()[:, :, None], torch.stack([lo, hi]).contiguous()
+
+
+def dequantize_weight(codes: np.ndarray, rng: torch.Tensor, bits: int) -> torch.Tensor:
+    """quantize_weight's codes back to (out, in) float32 weights."""
+    levels = (1 << bits) - 1
+    if int(codes.max(initial=0)) > levels:
+        raise ValueError(f"code {int(codes.max())} exceeds {levels}")
+    unit = torch.from_numpy(codes[:, :, 0].astype(np.float32)) / levels
+    return unit * (rng[1] - rng[0])[:, None] + rng[0][:, None]
+
+
+def encode_keyframe(gop: int, model: GOPModel, feature_ranges: torch.Tensor, quant: KeyframeQuant = LOSSLESS) -> bytes:
+    """Keyframe segment bytes of a PLAS-sorted GOP model, its images and weights at `quant`."""
     side = model.shape.grid_side
     if side == 0:
         raise ValueError("the capacity must be a square S² to form attribute images")
-    tensors = image_tensors(encode_attributes(model, side))
+    tensors = image_tensors(encode_attributes(model, side, quant_specs(quant)))
     tensors["range.features"] = feature_ranges.float().contiguous()
     for name, weight in model.field.state_dict().items():
-        tensors[f"field.{name}"] = weight.detach().float().contiguous()
-    meta = keyframe_metadata(gop, model.shape)
+        if quant.field == FLOAT_FIELD_BITS:
+            tensors[f"field.{name}"] = weight.detach().float().contiguous()
+        else:
+            codes, rng = quantize_weight(weight, quant.field)
+            tensors |= image_tensors({f"field.{name}": (codes, rng)})
+    meta = keyframe_metadata(gop, model.shape, quant)
     # One metadata key: safetensors writes several in hash order, which would break byte-identical re-packs.
     return save(tensors, metadata={META_KEY: json.dumps(meta, sort_keys=True)})
 
@@ -128,6 +172,8 @@ def read_container(data: bytes, metadata: dict[str, str], want: dict[str, tuple[
     for key, value in metadata.items():
         if meta.get(key) != value:
             raise error(f"{what} {key} is {meta.get(key)!r}, expected {value!r}")
+    if set(meta) - set(metadata):
+        raise error(f"{what} metadata has unexpected keys {sorted(set(meta) - set(metadata))}")
     names = set(header) - {"__metadata__"}
     if names != set(want):
         raise error(f"{what} tensors differ from the format (missing {sorted(set(want) - names)}, "
@@ -181,12 +227,22 @@ def image_shapes(specs: tuple[AttributeSpec, ...]) -> dict[str, tuple[int, ...] 
     return want
 
 
-def expected_tensors(shape: GOPShape) -> dict[str, tuple[int, ...] | None]:
+def field_shapes(shape: GOPShape) -> dict[str, tuple[int, ...]]:
+    """Deformation-field weight name -> (out, in)."""
+    field = DeformationField(shape.window, shape.pe_freqs)
+    return {k: tuple(v.shape) for k, v in field.state_dict().items()}
+
+
+def expected_tensors(shape: GOPShape, quant: KeyframeQuant = LOSSLESS) -> dict[str, tuple[int, ...] | None]:
     """name -> shape (None for the variable-length JPEG XL byte strings)."""
     want = image_shapes(SPECS)
     want["range.features"] = (2, FEATURE_DIM)
-    field = DeformationField(shape.window, shape.pe_freqs)
-    want |= {f"field.{k}": tuple(v.shape) for k, v in field.state_dict().items()}
+    for name, weight in field_shapes(shape).items():
+        if quant.field == FLOAT_FIELD_BITS:
+            want[f"field.{name}"] = weight
+        else:
+            want[f"image.field.{name}"] = None
+            want[f"range.field.{name}"] = (2, weight[0])
     return want
 
 
@@ -198,6 +254,7 @@ class KeyframeSegment:
     gop: int
     shape: GOPShape
     tensors: dict[str, torch.Tensor]
+    quant: KeyframeQuant = LOSSLESS
 
     @property
     def feature_ranges(self) -> torch.Tensor:
@@ -206,18 +263,32 @@ class KeyframeSegment:
 
     def decode(self) -> Keyframe:
         """Decode the JPEG XL images (KeyframeError when one does not decode or is not the announced size)."""
-        attributes = decode_images(self.tensors, SPECS, self.shape.grid_side, "keyframe", KeyframeError)
-        field = {k[len("field."):]: v for k, v in self.tensors.items() if k.startswith("field.")}
+        attributes = decode_images(self.tensors, quant_specs(self.quant), self.shape.grid_side, "keyframe",
+                                   KeyframeError)
+        if self.quant.field == FLOAT_FIELD_BITS:
+            field = {k[len("field."):]: v for k, v in self.tensors.items() if k.startswith("field.")}
+        else:
+            field = {}
+            for name, (out, inp) in field_shapes(self.shape).items():
+                try:
+                    codes = decode_jxl(self.tensors[f"image.field.{name}"].numpy().tobytes(), (out, inp, 1),
+                                       np.dtype(np.uint8))
+                    field[name] = dequantize_weight(np.asarray(codes), self.tensors[f"range.field.{name}"],
+                                                    self.quant.field)
+                except (ImageDecodeError, ValueError) as exc:
+                    raise KeyframeError(f"keyframe image field.{name}: {exc}") from exc
         return Keyframe(self.gop, self.shape, attributes, field, self.feature_ranges)
 
 
-def parse_keyframe(data: bytes, shape: GOPShape, gop: int, max_bytes: int) -> KeyframeSegment:
-    """Parse and check a keyframe segment against the shape and GOP index the manifest announced."""
-    tensors = read_container(data, keyframe_metadata(gop, shape), expected_tensors(shape), max_bytes, "keyframe",
-                             KeyframeError)
-    return KeyframeSegment(gop, shape, tensors)
+def parse_keyframe(data: bytes, shape: GOPShape, gop: int, max_bytes: int,
+                   quant: KeyframeQuant = LOSSLESS) -> KeyframeSegment:
+    """Parse and check a keyframe segment against the shape, GOP index and quantisation the manifest announced."""
+    tensors = read_container(data, keyframe_metadata(gop, shape, quant), expected_tensors(shape, quant), max_bytes,
+                             "keyframe", KeyframeError)
+    return KeyframeSegment(gop, shape, tensors, quant)
 
 
-def decode_keyframe(data: bytes, shape: GOPShape, gop: int, max_bytes: int) -> Keyframe:
+def decode_keyframe(data: bytes, shape: GOPShape, gop: int, max_bytes: int,
+                    quant: KeyframeQuant = LOSSLESS) -> Keyframe:
     """parse_keyframe, then its images decoded."""
-    return parse_keyframe(data, shape, gop, max_bytes).decode()
+    return parse_keyframe(data, shape, gop, max_bytes, quant).decode()

@@ -105,3 +105,51 @@ def test_two_feature_sets_of_one_codec_are_refused():
     mpd = EXAMPLE.replace(b'codecs="av01.0.00M.10"', b'codecs="hvc1.4.10.L30.99.C8"').replace(b"bits=10", b"bits=12")
     with pytest.raises(MPDError, match=r"two feature AdaptationSets \(2, 3\) of one codec, hevc"):
         Presentation.parse(mpd, "http://h/m.mpd")
+
+
+COARSE = "position=8;scale=4;rotation=4;opacity=3;color=6;field=4"
+
+
+def paired_example(quant: str = COARSE, names: str = "keyframes-coarse") -> bytes:
+    """example.mpd with a lossy keyframe Representation that the two lowest HEVC rungs play with."""
+    lossy = (f'<Representation id="keyframes-coarse" bandwidth="200000"><SupplementalProperty '
+             f'schemeIdUri="urn:streamstgs:keyframe-quant:2026" value="{quant}"/></Representation>')
+    mpd = EXAMPLE.replace(b"v-e849cc0b184d/keyframes/gop_", b"v-e849cc0b184d/$RepresentationID$/gop_")
+    mpd = mpd.replace(b'<Representation id="keyframes" bandwidth="780016"/>',
+                          b'<Representation id="keyframes" bandwidth="780016"/>' + lossy.encode())
+    mpd = mpd.replace(b'"qp28" bandwidth="186776" codecs="hvc1.4.10.L30.99.C8" width="128" height="128" '
+                      b'frameRate="32" associationId="keyframes"',
+                      b'"qp28" bandwidth="186776" codecs="hvc1.4.10.L30.99.C8" width="128" height="128" '
+                      b'frameRate="32" associationId="' + names.encode() + b'"')
+    return mpd.replace(b'"qp32" bandwidth="102872" codecs="hvc1.4.10.L30.99.C8" width="128" height="128" '
+                       b'frameRate="32" associationId="keyframes"',
+                       b'"qp32" bandwidth="102872" codecs="hvc1.4.10.L30.99.C8" width="128" height="128" '
+                       b'frameRate="32" associationId="keyframes-coarse"')
+
+
+def test_a_rung_plays_with_the_keyframe_representation_it_names():
+    from stgs.codec.quant import KEYFRAME_RUNGS, LOSSLESS
+
+    p = Presentation.parse(paired_example(), "http://h/s/manifest.mpd")
+    assert [(r.rep_id, r.keyframe_rep) for r in p.ladder] == [
+        ("qp32", "keyframes-coarse"), ("qp28", "keyframes-coarse"), ("qp24", "keyframes"), ("qp20", "keyframes"),
+        ("qp16", "keyframes")]
+    assert p.keyframe_quants == {"keyframes": LOSSLESS, "keyframes-coarse": KEYFRAME_RUNGS["coarse"]}
+    assert p.keyframe_url(1, "keyframes-coarse") == "http://h/s/v-e849cc0b184d/keyframes-coarse/gop_00001.stgk"
+    assert p.keyframe_url(1) == "http://h/s/v-e849cc0b184d/keyframes/gop_00001.stgk"
+    assert p.max_keyframe_bytes("keyframes-coarse") < p.max_keyframe_bytes()
+    # a rule weighs each rung's features plus its keyframes beyond the cheapest
+    assert p.abr_bandwidths() == [102872, 186776, 314432 + 580016, 502592 + 580016, 751936 + 580016]
+    with pytest.raises(MPDError, match="no keyframe Representation"):
+        p.keyframe_url(0, "keyframes-fine")
+
+
+@pytest.mark.parametrize("quant,names,match", [
+    ("position=17;scale=4;rotation=4;opacity=3;color=6;field=4", "keyframes-coarse", "position"),
+    ("bits=8", "keyframes-coarse", "quant"),
+    (COARSE, "keyframes-fine", "must name one keyframe Representation"),
+    (COARSE, "keyframes keyframes-coarse", "must name one keyframe Representation"),
+])
+def test_a_bad_keyframe_pairing_is_refused(quant, names, match):
+    with pytest.raises(MPDError, match=match):
+        Presentation.parse(paired_example(quant, names), "http://h/m.mpd")

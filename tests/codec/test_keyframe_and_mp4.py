@@ -10,11 +10,56 @@ import torch
 
 from stgs.codec.attributes import SPECS
 from stgs.codec.features import feature_ranges
-from stgs.codec.keyframe import KeyframeError, decode_keyframe, encode_keyframe
+from stgs.codec.keyframe import KeyframeError, decode_keyframe, encode_keyframe, quant_specs
 from stgs.codec.mp4 import MP4Error, find_path, hevc_codecs, iter_boxes, set_timeline, split_fragmented
+from stgs.codec.quant import KEYFRAME_RUNGS, LOSSLESS, KeyframeQuant
 from stgs.codec.video import VideoTiming, decode_segment, encode_gop
+from stgs.errors import FieldError
 from stgs.model.gop import GOPShape
 from tests.model.test_gop import random_model
+
+
+@pytest.mark.parametrize("rung", ["fine", "coarse"])
+def test_a_lossy_keyframe_round_trips_within_its_steps_and_says_its_quant(keyframe, rung):
+    model, ranges, lossless = keyframe
+    quant = KEYFRAME_RUNGS[rung]
+    data = encode_keyframe(3, model, ranges, quant)
+    assert len(data) < len(lossless)
+    kf = decode_keyframe(data, model.shape, 3, len(data), quant)
+    assert torch.equal(kf.feature_ranges, ranges)
+    decoded = kf.to_model(model.features.detach())
+    for spec in quant_specs(quant):
+        want = getattr(model, spec.param).detach()
+        want = want.clamp(*spec.clip) if spec.clip else want
+        lo, hi = spec.clip or (float(want.min()), float(want.max()))
+        step = (hi - lo) / (spec.levels - 1)
+        assert (getattr(decoded, spec.param) - want).abs().max() <= step, spec.name
+    for name, weight in model.field.state_dict().items():  # per-row codes: half a row's step off at most
+        row_step = (weight.amax(1) - weight.amin(1)) / ((1 << quant.field) - 1)
+        assert ((kf.field[name] - weight).abs() <= row_step[:, None] / 2 + 1e-6).all(), name
+    # a decoder told another quantisation refuses it, either way round
+    with pytest.raises(KeyframeError, match="quant"):
+        decode_keyframe(data, model.shape, 3, len(data))
+    with pytest.raises(KeyframeError, match="quant"):
+        decode_keyframe(lossless, model.shape, 3, len(lossless), quant)
+    other = KEYFRAME_RUNGS["coarse" if rung == "fine" else "fine"]
+    with pytest.raises(KeyframeError, match="quant"):
+        decode_keyframe(data, model.shape, 3, len(data), other)
+
+
+def test_keyframe_quant_spelling_and_bounds():
+    assert KeyframeQuant() == LOSSLESS and LOSSLESS.lossless and not KEYFRAME_RUNGS["coarse"].lossless
+    assert [getattr(LOSSLESS, spec.name) for spec in SPECS] == [spec.levels.bit_length() - 1 for spec in SPECS]
+    for quant in KEYFRAME_RUNGS.values():
+        assert KeyframeQuant.parse(quant.value) == quant
+    for bad, field in [("position=17;scale=4;rotation=4;opacity=3;color=6;field=4", "position"),
+                       ("position=8;scale=4;rotation=4;opacity=3;color=6;field=9", "field"),
+                       ("position=8;scale=4;rotation=4;opacity=3;color=6", "quant"),
+                       ("position=8;position=8;scale=4;rotation=4;opacity=3;color=6;field=4", "quant"),
+                       ("position=x;scale=4;rotation=4;opacity=3;color=6;field=4", "quant")]:
+        with pytest.raises(FieldError) as info:
+            KeyframeQuant.parse(bad)
+        assert info.value.field == field
 
 
 @pytest.fixture(scope="module")

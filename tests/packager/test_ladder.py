@@ -97,3 +97,36 @@ def test_allocation_saving_is_zero_for_identical_gops_and_positive_where_they_di
     hard = curve([(1000, 30.0), (2000, 34.0), (4000, 37.0)])  # and much here
     rungs = [Candidate(e.rep_id, e.bytes + h.bytes, (e.psnr + h.psnr) / 2) for e, h in zip(easy, hard, strict=True)]
     assert 0.0 < allocation_saving([easy, hard], rungs) < 0.5
+
+
+class _Features:
+    def __init__(self, rep_id: str):
+        self.rep_id = rep_id
+
+
+def _pairs(*ids: str) -> dict:
+    """pair id -> (feature records stand-in, keyframe Representation), as Packer.choose_ladder builds them."""
+    out = {}
+    for pid in ids:
+        features, _, keyframe = pid.partition("+")
+        out[pid] = (_Features(features), keyframe or "keyframes")
+    return out
+
+
+def test_pairs_put_the_lossless_keyframe_on_top_where_it_renders_as_well_and_keep_one_rung_per_feature_point():
+    from stgs.packager.ladder import Verdict
+    from stgs.packager.packer import pair_rungs
+
+    pairs = _pairs("qp40+keyframes-coarse", "qp36+keyframes-coarse", "qp36+keyframes-fine", "qp24+keyframes-fine",
+                   "qp24")
+    verdicts = [Verdict(pid, True, "kept") for pid in pairs]  # cheapest first, as choose_rungs lists them
+    quality = {"qp40+keyframes-coarse": 30.0, "qp36+keyframes-coarse": 31.0, "qp36+keyframes-fine": 32.0,
+               "qp24+keyframes-fine": 35.0, "qp24": 35.2}
+    verdicts[-1] = Verdict("qp24", False, "above the top")
+    out = {v.rep_id: v for v in pair_rungs(verdicts, pairs, quality)}
+    assert [pid for pid, v in out.items() if v.kept] == ["qp40+keyframes-coarse", "qp36+keyframes-fine", "qp24"]
+    assert "lossless keyframe" in out["qp24+keyframes-fine"].reason
+    assert "already" in out["qp36+keyframes-coarse"].reason
+    # a lossless pair that renders worse than the top pair (the demo scene's rotation grid) leaves the top as it is
+    out = {v.rep_id: v for v in pair_rungs(verdicts, pairs, quality | {"qp24": 34.0})}
+    assert out["qp24+keyframes-fine"].kept and not out["qp24"].kept

@@ -15,7 +15,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from stgs.mpd import parse_mpd
-from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_SCHEME
+from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_QUANT_SCHEME, KEYFRAME_SCHEME
 from stgs.mpd_values import expand_template
 from stgs.packager import MANIFEST, STATS, PackConfig, pack
 from stgs.synth import SynthConfig, synthesize
@@ -371,26 +371,47 @@ def test_the_auto_ladder_keeps_rungs_on_the_hull_and_says_why(auto_packed):
     for codec in (HEVC, AV1):
         ladder = stats["ladders"][codec.name]
         assert ladder["mode"] == "auto" and set(ladder["rules"]) == {"min_gain_db", "top_gain_db", "min_ratio"}
-        assert [c["representation"] for c in sorted(ladder["candidates"], key=lambda c: c["representation"])] == \
-            sorted(codec.rep_id(q) for q in codec.candidates)
+        keyframe_reps = ["keyframes", *(f"keyframes-{name}" for name in ("fine", "coarse"))]
+        assert sorted((c["features"], c["keyframes"]) for c in ladder["candidates"]) == \
+            sorted((codec.rep_id(q), kf) for q in codec.candidates for kf in keyframe_reps)
         kept = [c for c in ladder["candidates"] if c["kept"]]
         assert kept and all(c["reason"] for c in ladder["candidates"])
+        # the ladder compares what the rungs differ by: bytes above the cheapest keyframes
+        cheapest = min(c["total_bytes"] - c["bytes"] for c in ladder["candidates"])
         for below, above in itertools.pairwise(kept):  # ascending bytes, rising quality, spaced
-            assert above["bytes"] >= 1.5 * below["bytes"] and above["render_psnr"] - below["render_psnr"] >= 0.1
+            assert above["total_bytes"] - cheapest >= 1.5 * (below["total_bytes"] - cheapest)
+            assert above["render_psnr"] - below["render_psnr"] >= 0.1
         reps = feature_sets(mpd)[codec.name].representations
-        assert sorted(r.id for r in reps) == sorted(c["representation"] for c in kept) == \
+        assert sorted(r.id for r in reps) == sorted(c["features"] for c in kept) == \
             sorted(r for r in stats["representations"] if r.startswith(codec.rep_id(0)[:-1]))
+        paired = {c["features"]: c["keyframes"] for c in kept}
         for rep in reps:
+            assert rep.association_id == [paired[rep.id]]
+            assert stats["representations"][rep.id]["keyframes"] == paired[rep.id]
             assert QualityDescriptor.parse(rep).render_psnr == pytest.approx(
+                stats["representations"][rep.id]["mean_render_psnr"], abs=0.005)
+            kept_pair = next(c for c in kept if c["features"] == rep.id)
+            assert kept_pair["render_psnr"] == pytest.approx(
                 stats["representations"][rep.id]["mean_render_psnr"], abs=0.005)
         assert sorted(r.quality_ranking for r in reps) == list(range(1, len(reps) + 1))
         best = min(reps, key=lambda r: r.quality_ranking)
         assert stats["representations"][best.id]["mean_render_psnr"] == max(
             stats["representations"][r.id]["mean_render_psnr"] for r in reps)
-        dropped = [c["representation"] for c in ladder["candidates"] if not c["kept"]]
-        for rep in dropped:  # no segments of a candidate that is not a rung
+        for c in ladder["candidates"]:
+            if not c["kept"]:
+                assert f"{c['representation']}  dropped: " in summary
+        for rep in {c["features"] for c in ladder["candidates"]} - set(paired):  # no segments of a non-rung
             assert not list(out.rglob(f"features/{rep}"))
-            assert f"{rep}  dropped: " in summary
+    keyframe_set = mpd.adaptation_set(KEYFRAME_SCHEME)
+    used = {r.association_id[0] for a in feature_sets(mpd).values() for r in a.representations}
+    assert keyframe_set.representations[0].id == "keyframes"
+    for rep in keyframe_set.representations:  # a lossy keyframe Representation is there when a rung plays it
+        assert (rep.id == "keyframes") == (rep.find_descriptor(KEYFRAME_QUANT_SCHEME) is None)
+        assert rep.id == "keyframes" or rep.id in used
+        assert stats["keyframe_representations"].get(rep.id, {}).get("quant") == \
+            (None if rep.id == "keyframes" else rep.find_descriptor(KEYFRAME_QUANT_SCHEME).value)
+    folders = {p.parent.name for p in out.rglob("gop_*.stgk")}
+    assert folders == {r.id for r in keyframe_set.representations}
     assert "rendered PSNR against the uncompressed model at 2 sample camera(s)" in summary
     assert stats["quality_views"]["source"] == "sample" and stats["quality_views"]["sizes"] == [[64, 48]] * 2
 
@@ -419,7 +440,7 @@ def test_a_scene_every_rung_renders_the_same_gets_one_rung_per_codec(tmp_path):
         gop.opacity_logit.fill_(-40.0)
     save_gop(gop, scene / meta.gop_files[0], meta.version)
     out = tmp_path / "dash"
-    stats = pack(scene, out, PackConfig(jobs=2), progress=False)
+    stats = pack(scene, out, PackConfig(jobs=2, keyframe_rungs=()), progress=False)  # the lossless keyframe only
     for codec in ("hevc", "av1"):
         candidates = stats["ladders"][codec]["candidates"]
         psnrs = [c["render_psnr"] for c in candidates]
@@ -436,7 +457,8 @@ def test_a_scene_every_rung_renders_the_same_gets_one_rung_per_codec(tmp_path):
 def test_a_ladder_of_one_point_is_a_valid_tree(scene, tmp_path):
     out = tmp_path / "one"
     stats = pack(scene, out, PackConfig(qps=(24,), codecs=("hevc",), jobs=2), progress=False)  # auto, one candidate
-    assert list(stats["representations"]) == ["qp24"] and stats["ladders"]["hevc"]["candidates"][0]["kept"]
+    assert list(stats["representations"]) == ["qp24"]
+    assert [c["features"] for c in stats["ladders"]["hevc"]["candidates"] if c["kept"]] == ["qp24"]
     if XSD.is_file():
         from stgs.mpd_schema import schema_errors
 

@@ -42,17 +42,21 @@ def need_browser() -> None:
 
 @pytest.fixture(scope="session")
 def web_root(tmp_path_factory) -> Path:
-    """ROOT with `small` (the scene), `broken` (its manifest not XML) and `foreign` (segments on another host)."""
+    """ROOT with `small` (the scene), `paired` (the same scene on an auto ladder with a lossy keyframe rung),
+    `broken` (its manifest not XML) and `foreign` (segments on another host)."""
     base = tmp_path_factory.mktemp("web")
     synthesize(WEB_SCENE, base / "model", progress=False)
     root = base / "root"
     pack(base / "model", root / "small", PackConfig(ladder="fixed",
                                                     codecs=("av1",), av1_qps=AV1_QPS, jobs=2), progress=False)
+    pack(base / "model", root / "paired", PackConfig(codecs=("av1",), av1_qps=AV1_QPS, keyframe_rungs=("coarse",),
+                                                     jobs=2), progress=False)
     shutil.copytree(root / "small", root / "broken")
     (root / "broken" / "manifest.mpd").write_text("<MPD this is not xml")
     shutil.copytree(root / "small", root / "foreign")
     mpd = (root / "small" / "manifest.mpd").read_text()
-    foreign = re.sub(r'media="(v-[^"]*/keyframes/)', r'media="http://192.0.2.7/\1', mpd)
+    foreign = re.sub(r'media="(v-[^"]*/\$RepresentationID\$/gop_)', r'media="http://192.0.2.7/\1', mpd)
+    assert foreign != mpd
     (root / "foreign" / "manifest.mpd").write_text(foreign)
     return root
 

@@ -1,5 +1,6 @@
 """The web player in a real headless Chromium (Debian's, SwiftShader's WebGL2) against `stgs serve` on loopback:
-playback from the catalogue link, parity with `stgs play` at a scene camera, the decoded features against the
+playback from the catalogue link, parity with `stgs play` at a scene camera (also on a rung paired with a lossy
+keyframe), the decoded features against the
 Python decode, seeking, a throttled link, bad manifests, a browser without WebCodecs, a screenshot held to
 thresholds, and a plan past its timeout (it fails at once and leaves no browser behind)."""
 
@@ -83,6 +84,40 @@ def test_a_frame_at_a_scene_camera_matches_stgs_play(served, tmp_path, backend):
                        cv2.COLOR_BGR2RGB).astype(np.float32) / 255
     assert web.shape == ref.shape == (72, 96, 3)
     assert ref.std() > 0.05  # a real image, not a flat one that any renderer matches
+    assert psnr(torch.from_numpy(web), torch.from_numpy(ref)) >= 40.0
+
+
+def test_a_rung_paired_with_a_lossy_keyframe_plays_it_as_stgs_play_does(served, web_root, tmp_path):
+    """The auto ladder pairs a low rung with the coarse keyframe: the page fetches that keyframe Representation,
+    decodes its coarser images and quantised weights, and draws what the CPU player draws."""
+    import json
+
+    stats = json.loads((web_root / "paired" / "stats.json").read_text())
+    lossy = sorted(rep for rep, info in stats["representations"].items() if info["keyframes"] != "keyframes")
+    assert lossy, "the auto ladder paired no rung with the coarse keyframe"
+    rep, gop, frame = lossy[0], 3, 4
+    out = browse({"viewport": [360, 300], "steps": [
+        {"goto": player(served, scene="paired", camera="cam01", size="96x72", quality=rep, autoplay="0")},
+        {"wait": LOADED},
+        {"eval": f"stgsPlayer.showFrame({gop * WEB_SCENE.gop_size + frame})", "as": "shown"},
+        {"eval": "stgsPlayer.capture()", "as": "png"},
+        {"eval": "performance.getEntriesByType('resource').map(e => e.name)", "as": "fetched"},
+    ]})
+    assert out["results"]["shown"] == {"gop": gop, "frame": frame}
+    fetched = [n for n in out["results"]["fetched"] if n.endswith(".stgk")]
+    assert fetched and all("/keyframes-coarse/gop_" in n for n in fetched)
+    start = gop * WEB_SCENE.gop_size / WEB_SCENE.fps
+    result = subprocess.run([sys.executable, "-m", "stgs.cli", "play", served + "paired/manifest.mpd", "--codec",
+                             "av1", "--qp", rep[len("av1q"):], "--camera", "cam01", "--start", str(start),
+                             "--duration", str((frame + 1) / WEB_SCENE.fps), "--out", str(tmp_path / "ref"),
+                             "--log", str(tmp_path / "log.json")], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert {g["keyframe_rep"] for g in json.loads((tmp_path / "log.json").read_text())["gops"]} == \
+        {"keyframes-coarse"}
+    ref = cv2.cvtColor(cv2.imread(str(tmp_path / "ref" / f"{gop * WEB_SCENE.gop_size + frame:05d}.png")),
+                       cv2.COLOR_BGR2RGB).astype(np.float32) / 255
+    web = png(out["results"]["png"])
+    assert web.shape == ref.shape == (72, 96, 3) and ref.std() > 0.05
     assert psnr(torch.from_numpy(web), torch.from_numpy(ref)) >= 40.0
 
 

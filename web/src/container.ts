@@ -39,11 +39,68 @@ export function fieldShapes(window: number, peFreqs: number): Record<string, [nu
   };
 }
 
-/** name -> shape (null: a JPEG XL byte string) of a keyframe segment. */
-export function keyframeTensors(shape: SceneShape): Map<string, number[] | null> {
+/** How coarsely a keyframe Representation stores its images and weights (stgs/codec/quant.py KeyframeQuant): bits of
+ * each attribute image (at most LOSSLESS's) and of the deformation weights (FLOAT_FIELD_BITS: float32; else per-row
+ * codes in a one-channel JPEG XL image). */
+export interface KeyframeQuant {
+  position: number;
+  scale: number;
+  rotation: number;
+  opacity: number;
+  color: number;
+  field: number;
+}
+
+export const FLOAT_FIELD_BITS = 32;
+export const MAX_FIELD_BITS = 8;
+export const LOSSLESS: KeyframeQuant = { position: 16, scale: 6, rotation: 7, opacity: 6, color: 16, field: FLOAT_FIELD_BITS };
+const QUANT_KEYS = ["position", "scale", "rotation", "opacity", "color", "field"] as const;
+
+export function isLossless(q: KeyframeQuant): boolean {
+  return QUANT_KEYS.every((k) => q[k] === LOSSLESS[k]);
+}
+
+/** `position=12;scale=5;...;field=8`: the manifest's and the segment's spelling. */
+export function quantValue(q: KeyframeQuant): string {
+  return QUANT_KEYS.map((k) => `${k}=${q[k]}`).join(";");
+}
+
+/** The quantisation a descriptor value spells (every key once, bits in range), else an Error naming the field. */
+export function parseQuant(value: string): KeyframeQuant {
+  const items = value.split(";").map((part) => part.split("="));
+  const got = new Map(items.map(([k, v]) => [k, v]));
+  if (items.length !== QUANT_KEYS.length || got.size !== QUANT_KEYS.length || !QUANT_KEYS.every((k) => got.has(k))) {
+    throw new Error(`quant must name ${QUANT_KEYS.join(", ")} once each, got ${JSON.stringify(value.slice(0, 80))}`);
+  }
+  const q = { ...LOSSLESS };
+  for (const k of QUANT_KEYS) {
+    const raw = got.get(k) ?? "";
+    if (!/^\d{1,2}$/.test(raw)) throw new Error(`quant bits must be integers, got ${JSON.stringify(value.slice(0, 80))}`);
+    const bits = Number(raw);
+    const ok = k === "field" ? bits === FLOAT_FIELD_BITS || (bits >= 2 && bits <= MAX_FIELD_BITS) : bits >= 1 && bits <= LOSSLESS[k];
+    if (!ok) throw new Error(`quant ${k}=${bits} is out of range`);
+    q[k] = bits;
+  }
+  return q;
+}
+
+/** The attribute images at a keyframe Representation's levels. */
+export function quantSpecs(q: KeyframeQuant): AttributeSpec[] {
+  return SPECS.map((s) => ({ ...s, levels: 2 ** q[s.name as keyof KeyframeQuant] }));
+}
+
+/** name -> shape (null: a JPEG XL byte string) of a keyframe segment at quantisation `quant`. */
+export function keyframeTensors(shape: SceneShape, quant: KeyframeQuant = LOSSLESS): Map<string, number[] | null> {
   const want = imageTensors(SPECS);
   want.set("range.features", [2, FEATURE_DIM]);
-  for (const [name, s] of Object.entries(fieldShapes(shape.window, shape.peFreqs))) want.set(`field.${name}`, s);
+  for (const [name, s] of Object.entries(fieldShapes(shape.window, shape.peFreqs))) {
+    if (quant.field === FLOAT_FIELD_BITS) {
+      want.set(`field.${name}`, s);
+    } else {
+      want.set(`image.field.${name}`, null);
+      want.set(`range.field.${name}`, [2, s[0]]);
+    }
+  }
   return want;
 }
 
@@ -56,12 +113,14 @@ export function imageTensors(specs: AttributeSpec[]): Map<string, number[] | nul
   return want;
 }
 
-export function keyframeMetadata(gop: number, shape: SceneShape): Record<string, string> {
-  return {
+export function keyframeMetadata(gop: number, shape: SceneShape, quant: KeyframeQuant = LOSSLESS): Record<string, string> {
+  const meta: Record<string, string> = {
     format: "streamstgs-keyframe", version: "1", gop: String(gop), grid_side: String(shape.side),
     capacity: String(shape.capacity), gop_size: String(shape.gopSize), window: String(shape.window),
     pe_freqs: String(shape.peFreqs), feature_bits: "12",
   };
+  if (!isLossless(quant)) meta.quant = quantValue(quant);
+  return meta;
 }
 
 export function staticMetadata(capacity: number, side: number, shDegree: number): Record<string, string> {
@@ -98,6 +157,8 @@ export function readContainer(data: ArrayBuffer, metadata: Record<string, string
   for (const [key, value] of Object.entries(metadata)) {
     if (meta[key] !== value) fail(`${key} is ${JSON.stringify(meta[key])}, expected ${JSON.stringify(value)}`);
   }
+  const extra = Object.keys(meta).filter((k) => !(k in metadata)).sort();
+  if (extra.length) fail(`metadata has unexpected keys ${JSON.stringify(extra)}`);
   const names = Object.keys(header).filter((k) => k !== "__metadata__");
   const missing = [...want.keys()].filter((k) => !names.includes(k));
   const unknown = names.filter((k) => !want.has(k));
@@ -148,4 +209,23 @@ export function dequantize(spec: AttributeSpec, codes: Uint8Array | Uint16Array,
     out[i] = f(f(f(code / denom) * f(range[c + ch] - lo)) + lo);
   }
   return out;
+}
+
+/** Per-row weight codes (out x in, row-major) -> float32 weights: unit = code / (2^bits - 1); lo + unit * (hi - lo)
+ * with row r's [lo, hi] = range[r], range[out + r] (stgs/codec/keyframe.py dequantize_weight). */
+export function dequantizeWeight(codes: Uint8Array, range: Float32Array, bits: number, out: number, inp: number): Float32Array {
+  const f = Math.fround;
+  const levels = 2 ** bits - 1;
+  const denom = f(levels);
+  const w = new Float32Array(out * inp);
+  for (let r = 0; r < out; r++) {
+    const lo = range[r];
+    const span = f(range[out + r] - lo);
+    for (let c = 0; c < inp; c++) {
+      const code = codes[r * inp + c];
+      if (code > levels) throw new SegmentError(`weight code ${code} exceeds ${levels}`);
+      w[r * inp + c] = f(f(f(code / denom) * span) + lo);
+    }
+  }
+  return w;
 }

@@ -2,6 +2,7 @@
 // keyframe set, the optional static-layer set and the AV1 10-bit feature set found by their scheme URIs;
 // the scene's sizes read from the descriptors and checked against the caps before anything is fetched;
 // SegmentTemplates resolved against the MPD's URL and its BaseURLs, every URL checked by the URL policy.
+import { LOSSLESS, parseQuant, type KeyframeQuant } from "./container";
 import { ManifestError, UnsupportedError } from "./errors";
 import * as L from "./limits";
 import { UrlPolicy } from "./urlpolicy";
@@ -12,6 +13,7 @@ export const KEYFRAME_SCHEME = "urn:streamstgs:keyframe:2026";
 export const STATIC_SCHEME = "urn:streamstgs:static:2026";
 export const FEATURE_SCHEME = "urn:streamstgs:features:2026";
 export const QUALITY_SCHEME = "urn:streamstgs:quality:2026";
+export const KEYFRAME_QUANT_SCHEME = "urn:streamstgs:keyframe-quant:2026";
 export const AV1_BITS = 10;
 export const FEATURE_TILES = 4;
 
@@ -33,6 +35,16 @@ export interface Rung {
   renderPsnr: number | null;
   /** Mean PSNR (dB) against the capture as the packager estimated it; null where the descriptor does not give it. */
   truthPsnr: number | null;
+  /** The keyframe Representation it plays with (its @associationId). */
+  keyframeRep: string;
+  keyframeBandwidth: number;
+}
+
+/** One keyframe Representation: the lossless one, or a lossy keyframe rung. */
+export interface KeyframeRep {
+  id: string;
+  bandwidth: number;
+  quant: KeyframeQuant;
 }
 
 export interface StaticLayerInfo {
@@ -51,11 +63,14 @@ export interface Manifest {
   fps: number;
   shape: SceneShape;
   staticLayer: StaticLayerInfo | null;
-  keyframeBandwidth: number;
+  keyframeReps: Map<string, KeyframeRep>;
+  /** Feature rungs by rising total bandwidth (features and their keyframes; client/manifest.py's order). */
   rungs: Rung[];
   /** Codecs of the HEVC set when the tree also has one (the page cannot decode it). */
   otherCodecs: string[];
-  keyframeUrl(k: number): string;
+  keyframeUrl(k: number, rep: string): string;
+  /** Per rung, the bit/s an ABR rule weighs: its features plus its keyframes beyond the ladder's cheapest. */
+  abrBandwidths(): number[];
   initUrl(rung: number): string;
   mediaUrl(rung: number, k: number): string;
   /** Largest byte size a segment of this bandwidth may have (the packager's @bandwidth covers the largest). */
@@ -213,8 +228,23 @@ export function parseManifest(text: string, url: string): Manifest {
   const shape: SceneShape = { capacity, side, gopSize, window, peFreqs, numFeatures: gopSize + window - 1 };
   const kt = template(kset);
   const kbase = baseOf(kset, base, policy);
-  const [krep] = children(kset, "Representation");
-  if (!krep) fail("the keyframe AdaptationSet has no Representation");
+  const keyframeReps = new Map<string, KeyframeRep>();
+  for (const r of children(kset, "Representation")) {
+    const id = r.getAttribute("id") ?? fail("a keyframe Representation lacks @id");
+    if (!/^[A-Za-z0-9_.-]{1,64}$/.test(id)) fail(`keyframe Representation id ${JSON.stringify(id.slice(0, 70))} is not a plain name`);
+    if (keyframeReps.has(id)) fail(`two keyframe Representations share the id ${id}`);
+    const prop = children(r, "SupplementalProperty").find((p) => p.getAttribute("schemeIdUri") === KEYFRAME_QUANT_SCHEME);
+    let quant = LOSSLESS;
+    if (prop) {
+      try {
+        quant = parseQuant(prop.getAttribute("value") ?? "");
+      } catch (e) {
+        fail(`keyframe Representation ${id}: ${e instanceof Error ? e.message : e}`);
+      }
+    }
+    keyframeReps.set(id, { id, bandwidth: intAttr(r, "bandwidth", 1, 1e12), quant });
+  }
+  if (keyframeReps.size === 0) fail("the keyframe AdaptationSet has no Representation");
   const gopSeconds = kt.seconds;
   if (Math.abs(gopSeconds * fps - gopSize) > 1e-3 * gopSize) fail(`a GOP lasts ${gopSeconds} s, not ${gopSize} frames at ${fps} fps`);
   const gops = Math.round(durationS / gopSeconds);
@@ -266,9 +296,15 @@ export function parseManifest(text: string, url: string): Manifest {
     const w = intAttr(r, "width", 1, L.MAX_IMAGE_SIDE, intAttr(fset, "width", 1, L.MAX_IMAGE_SIDE, frameSide));
     const h = intAttr(r, "height", 1, L.MAX_IMAGE_SIDE, intAttr(fset, "height", 1, L.MAX_IMAGE_SIDE, frameSide));
     if (w !== frameSide || h !== frameSide) fail(`Representation ${id} is ${w}x${h}, not the ${frameSide}x${frameSide} of grid_side ${side}`);
+    const named = (r.getAttribute("associationId") ?? "").split(/\s+/).filter((a) => keyframeReps.has(a));
+    if (named.length !== 1) {
+      fail(`feature Representation ${id} must name one keyframe Representation in @associationId ` +
+        `(of ${[...keyframeReps.keys()].join(", ")}), it names ${r.getAttribute("associationId") || "none"}`);
+    }
+    const kf = keyframeReps.get(named[0])!;
     return { id, bandwidth: intAttr(r, "bandwidth", 1, 1e12), codecs: r.getAttribute("codecs") ?? fset.getAttribute("codecs") ?? "",
-             ...quality(r, id) };
-  }).sort((a, b) => a.bandwidth - b.bandwidth);
+             ...quality(r, id), keyframeRep: kf.id, keyframeBandwidth: kf.bandwidth };
+  }).sort((a, b) => a.bandwidth + a.keyframeBandwidth - (b.bandwidth + b.keyframeBandwidth) || (a.id < b.id ? -1 : a.id > b.id ? 1 : 0));
   if (new Set(rungs.map((r) => r.id)).size !== rungs.length) fail("two feature Representations share an id");
   const fbase = baseOf(fset, base, policy);
   const check = (u: string) => {
@@ -277,8 +313,15 @@ export function parseManifest(text: string, url: string): Manifest {
   };
   const manifest: Manifest = {
     url, durationS, gops, gopSeconds, fps, shape, staticLayer, rungs, otherCodecs,
-    keyframeBandwidth: intAttr(krep, "bandwidth", 1, 1e12),
-    keyframeUrl: (k) => check(new URL(expandTemplate(kt.media, krep.getAttribute("id") ?? "", kt.start + k), kbase).href),
+    keyframeReps,
+    keyframeUrl: (k, rep) => {
+      if (!keyframeReps.has(rep)) throw new ManifestError(`no keyframe Representation ${JSON.stringify(rep)}`);
+      return check(new URL(expandTemplate(kt.media, rep, kt.start + k), kbase).href);
+    },
+    abrBandwidths: () => {
+      const base = Math.min(...rungs.map((r) => r.keyframeBandwidth));
+      return rungs.map((r) => r.bandwidth + r.keyframeBandwidth - base);
+    },
     initUrl: (i) => check(new URL(expandTemplate(ft.init!, rungs[i].id), fbase).href),
     mediaUrl: (i, k) => check(new URL(expandTemplate(ft.media, rungs[i].id, ft.start + k), fbase).href),
     maxSegmentBytes: (bandwidth) => Math.min(L.MAX_SEGMENT_BYTES, Math.ceil(bandwidth / 8 * gopSeconds * L.SEGMENT_SLACK) + 4096),
@@ -287,7 +330,7 @@ export function parseManifest(text: string, url: string): Manifest {
     policy,
   };
   if (staticLayer) policy.check(staticLayer.url);
-  manifest.keyframeUrl(0);
+  for (const rep of keyframeReps.keys()) manifest.keyframeUrl(0, rep);
   manifest.mediaUrl(0, 0);
   return manifest;
 }

@@ -1,13 +1,14 @@
 // The download loop (client/schedule.py's order of work, in the page): for each GOP from the start GOP on, wait
-// for room in the buffer, let the ABR rule choose the feature rung (the keyframe part is not adaptive and is
-// budgeted), fetch the rung's init segment once, then the keyframe and the media segment together; the media
+// for room in the buffer, let the ABR rule choose the rung (its features and the keyframe Representation it pairs
+// with; the cheapest keyframes are budgeted apart), fetch the rung's init segment once, then its keyframe and media
+// segment together; the media
 // bytes stream into the feature decoder as they arrive, the keyframe goes to a decoder worker at once (the next
 // GOP's keyframe is pre-decoded while the current one plays). One throughput sample per GOP (both bodies).
 import type { AbrRule, AbrSettings, AbrState, Decision, ThroughputSample, UpcomingGOP } from "../abr/state";
 import { FixedRule } from "../abr/rules";
-import { keyframeMetadata, keyframeTensors } from "../container";
+import { FLOAT_FIELD_BITS, fieldShapes, keyframeMetadata, keyframeTensors } from "../container";
 import { MAX_INIT_BYTES } from "../limits";
-import type { Manifest } from "../manifest";
+import type { KeyframeRep, Manifest } from "../manifest";
 import type { DecodedSegment } from "../workers/keyframe.worker";
 import { fetchStream } from "./fetch";
 import type { FeatureDecoder, KeyframePool } from "./workers";
@@ -35,15 +36,20 @@ export interface DownloaderHooks {
   onError(err: Error): void;
 }
 
-/** GOP k's keyframe and per-rung feature bits and PSNR from stats.json (client/abr_state.py UpcomingGOP.from_stats). */
-export function upcomingFromStats(stats: unknown, k: number, repIds: string[]): UpcomingGOP | null {
+/** GOP k's keyframe and per-rung feature bits and PSNR from stats.json (client/abr_state.py UpcomingGOP.from_stats):
+ * each rung's keyframes are those of `keyframeReps` (its @associationId); the cheapest are the keyframe bits, what a
+ * rung's cost beyond them counts to its segment bits. */
+export function upcomingFromStats(stats: unknown, k: number, repIds: string[], keyframeReps: string[]): UpcomingGOP | null {
   try {
     const gop = (stats as { gops: Record<string, unknown>[] }).gops[k] as { index: number; keyframe_bytes: number;
+      keyframes?: Record<string, number>;
       representations: Record<string, { bytes: number; render_psnr?: number; truth_psnr?: number }> };
     if (gop.index !== k) return null;
-    const keyframeBits = Number(gop.keyframe_bytes) * 8;
-    const segmentBits = repIds.map((r) => Number(gop.representations[r].bytes) * 8);
-    if (![keyframeBits, ...segmentBits].every((v) => Number.isFinite(v) && v > 0)) return null;
+    const paired = keyframeReps.map((rep) => Number(rep === KEYFRAME_REP ? gop.keyframe_bytes : gop.keyframes![rep]) * 8);
+    const features = repIds.map((r) => Number(gop.representations[r].bytes) * 8);
+    if (![...paired, ...features].every((v) => Number.isFinite(v) && v > 0)) return null;
+    const keyframeBits = Math.min(...paired);
+    const segmentBits = features.map((f, i) => f + paired[i] - keyframeBits);
     // against the capture where every rung has it, else against the uncompressed model (stgs.tree.rung_quality)
     const entries = repIds.map((r) => gop.representations[r]);
     const truth = entries.every((e) => "truth_psnr" in e);
@@ -53,6 +59,14 @@ export function upcomingFromStats(stats: unknown, k: number, repIds: string[]): 
   } catch {
     return null;
   }
+}
+
+/** The lossless keyframe Representation's id (stgs/tree.py KEYFRAME_REP): its bytes are stats.json's keyframe_bytes. */
+export const KEYFRAME_REP = "keyframes";
+
+/** A keyframe Representation's quantised weight images, name -> [out, in] (none for float32 weights). */
+function quantisedFields(m: Manifest, rep: KeyframeRep): [string, [number, number]][] {
+  return rep.quant.field === FLOAT_FIELD_BITS ? [] : Object.entries(fieldShapes(m.shape.window, m.shape.peFreqs));
 }
 
 export class Downloader {
@@ -70,7 +84,8 @@ export class Downloader {
     private readonly stats: unknown, private readonly hooks: DownloaderHooks) {}
 
   private upcoming(k: number): UpcomingGOP | null {
-    return this.stats ? upcomingFromStats(this.stats, k, this.manifest.rungs.map((r) => r.id)) : null;
+    const rungs = this.manifest.rungs;
+    return this.stats ? upcomingFromStats(this.stats, k, rungs.map((r) => r.id), rungs.map((r) => r.keyframeRep)) : null;
   }
 
   state(k: number, waitedS: number): AbrState {
@@ -82,7 +97,7 @@ export class Downloader {
       ahead.push(u);
     }
     return {
-      bandwidths: this.manifest.rungs.map((r) => r.bandwidth),
+      bandwidths: this.manifest.abrBandwidths(),
       segmentS: this.manifest.gopSeconds,
       bufferS: Math.max(0, this.downloadedUntilS - this.hooks.playheadS()),
       bufferCapacityS: this.bufferCapacityS,
@@ -136,13 +151,15 @@ export class Downloader {
       }
       if (generation !== this.generation) return;
       this.features.open(k, rung, m.shape.side, m.shape.numFeatures, m.rungs[rung].codecs, init);
-      const kfMax = m.maxSegmentBytes(m.keyframeBandwidth);
+      const kfRep = m.keyframeReps.get(m.rungs[rung].keyframeRep)!;
+      const kfMax = m.maxSegmentBytes(kfRep.bandwidth);
       let keyframe: Promise<DecodedSegment> | null = null;
       const [kf, media] = await Promise.all([
-        fetchStream(m.keyframeUrl(k), m.policy, kfMax, `keyframe segment of GOP ${k}`, signal).then((got) => {
+        fetchStream(m.keyframeUrl(k, kfRep.id), m.policy, kfMax, `keyframe segment of GOP ${k}`, signal).then((got) => {
           // decoded in a worker as soon as it is here, while the media segment still streams
-          keyframe = this.keyframes.decode({ data: got.data.slice(0), what: "keyframe", metadata: keyframeMetadata(k, m.shape),
-            want: [...keyframeTensors(m.shape)], side: m.shape.side, shDegree: 0, maxBytes: kfMax });
+          keyframe = this.keyframes.decode({ data: got.data.slice(0), what: "keyframe",
+            metadata: keyframeMetadata(k, m.shape, kfRep.quant), want: [...keyframeTensors(m.shape, kfRep.quant)],
+            side: m.shape.side, shDegree: 0, maxBytes: kfMax, quant: kfRep.quant, fieldShapes: quantisedFields(m, kfRep) });
           keyframe.catch(() => undefined);
           return got;
         }),
@@ -154,7 +171,9 @@ export class Downloader {
       const seconds = (performance.now() - start) / 1e3;
       const sample = { bytes: kf.sample.bytes + media.sample.bytes, seconds, ttfb: Math.min(kf.sample.ttfb, media.sample.ttfb) };
       this.samples.push(sample);
-      this.lastKeyframeBits = kf.sample.bytes * 8;
+      // as the cheapest keyframes of the ladder would be (what AbrState.keyframeBits stands for)
+      const cheapest = Math.min(...m.rungs.map((r) => r.keyframeBandwidth));
+      this.lastKeyframeBits = kf.sample.bytes * 8 * cheapest / kfRep.bandwidth;
       this.current = rung;
       this.downloadedUntilS = (k + 1) * T;
       arrived = performance.now();

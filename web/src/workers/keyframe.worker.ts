@@ -3,7 +3,7 @@
 // do not give) and dequantise them, so the main thread gets float attributes ready for the GPU.
 import { decode as decodePng } from "fast-png";
 import initJxl, { JxlImage } from "jxl-oxide-wasm";
-import { SPECS, SH1_SPECS, dequantize, readContainer, type AttributeSpec } from "../container";
+import { LOSSLESS, SH1_SPECS, dequantize, dequantizeWeight, quantSpecs, readContainer, type KeyframeQuant } from "../container";
 import { SegmentError } from "../errors";
 
 export interface DecodeJob {
@@ -15,6 +15,10 @@ export interface DecodeJob {
   side: number;
   shDegree: number;
   maxBytes: number;
+  /** A keyframe's quantisation (absent: LOSSLESS, and for the static layer). */
+  quant?: KeyframeQuant;
+  /** Quantised deformation weights: name -> [out, in] of each weight image (empty for float32 weights). */
+  fieldShapes?: [string, [number, number]][];
 }
 
 export interface DecodedSegment {
@@ -26,20 +30,29 @@ export interface DecodedSegment {
 
 let ready: Promise<unknown> | null = null;
 
-function decodeImage(bytes: Uint8Array, spec: AttributeSpec, side: number, what: string): Uint8Array | Uint16Array {
+interface ImageShape {
+  name: string;
+  width: number;
+  height: number;
+  channels: number;
+  levels: number;
+}
+
+function decodeImage(bytes: Uint8Array, want: ImageShape, what: string): Uint8Array | Uint16Array {
+  const { name, width, height, channels } = want;
   const image = new JxlImage();
   try {
     image.feedBytes(bytes);
     // tryInit succeeds once the header is in; `loaded` only when every pass is (else a progressive partial image)
-    if (!image.tryInit() || !image.loaded) throw new SegmentError(`${what} image ${spec.name}: incomplete JPEG XL stream`);
-    if (image.width !== side || image.height !== side) {
-      throw new SegmentError(`${what} image ${spec.name} is ${image.width}x${image.height}, expected ${side}x${side}`);
+    if (!image.tryInit() || !image.loaded) throw new SegmentError(`${what} image ${name}: incomplete JPEG XL stream`);
+    if (image.width !== width || image.height !== height) {
+      throw new SegmentError(`${what} image ${name} is ${image.width}x${image.height}, expected ${width}x${height}`);
     }
     const png = decodePng(image.render().encodeToPng());
-    const depth = spec.levels <= 256 ? 8 : 16;
-    if (png.width !== side || png.height !== side || png.channels !== spec.channels || png.depth !== depth) {
-      throw new SegmentError(`${what} image ${spec.name} is ${png.width}x${png.height}x${png.channels} at ${png.depth} bits, ` +
-        `expected ${side}x${side}x${spec.channels} at ${depth}`);
+    const depth = want.levels <= 256 ? 8 : 16;
+    if (png.width !== width || png.height !== height || png.channels !== channels || png.depth !== depth) {
+      throw new SegmentError(`${what} image ${name} is ${png.width}x${png.height}x${png.channels} at ${png.depth} bits, ` +
+        `expected ${width}x${height}x${channels} at ${depth}`);
     }
     return png.data as Uint8Array | Uint16Array;
   } finally {
@@ -50,14 +63,23 @@ function decodeImage(bytes: Uint8Array, spec: AttributeSpec, side: number, what:
 function run(job: DecodeJob): DecodedSegment {
   const start = performance.now();
   const tensors = readContainer(job.data, job.metadata, new Map(job.want), job.maxBytes, job.what);
-  const specs = job.shDegree ? [...SPECS, ...SH1_SPECS] : SPECS;
+  const quant = job.quant ?? LOSSLESS;
+  const base = quantSpecs(quant);
+  const specs = job.shDegree ? [...base, ...SH1_SPECS] : base;
   const attributes: Record<string, Float32Array> = {};
   for (const spec of specs) {
-    const codes = decodeImage(tensors.get(`image.${spec.name}`) as Uint8Array, spec, job.side, job.what);
+    const codes = decodeImage(tensors.get(`image.${spec.name}`) as Uint8Array,
+      { ...spec, width: job.side, height: job.side }, job.what);
     attributes[spec.name] = dequantize(spec, codes, tensors.get(`range.${spec.name}`) as Float32Array);
   }
   const floats: Record<string, Float32Array> = {};
-  for (const [name, t] of tensors) if (t instanceof Float32Array) floats[name] = t;
+  for (const [name, t] of tensors) if (t instanceof Float32Array && !name.startsWith("range.field.")) floats[name] = t;
+  for (const [name, [out, inp]] of job.fieldShapes ?? []) {  // quantised weights: decoded to the float32 names
+    const codes = decodeImage(tensors.get(`image.field.${name}`) as Uint8Array,
+      { name: `field.${name}`, width: inp, height: out, channels: 1, levels: 2 ** quant.field }, job.what);
+    floats[`field.${name}`] = dequantizeWeight(codes as Uint8Array, tensors.get(`range.field.${name}`) as Float32Array,
+      quant.field, out, inp);
+  }
   return { attributes, floats, ms: performance.now() - start };
 }
 
