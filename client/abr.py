@@ -8,8 +8,9 @@ SwitchRequest). The playback log keeps every decision. Each rung plays with
 its own keyframes (manifests/PROFILE.md, "Keyframe rungs"): the cheapest
 rung's are the state's keyframe bits, which each rule counts before it
 spends anything on features, and what a rung's keyframes cost beyond them
-counts to its own size and @bandwidth (Presentation.abr_bandwidths). Throughput is measured on bodies (the round trip is
-latency, estimated apart and budgeted per request).
+counts to its own size and @bandwidth (Presentation.abr_bandwidths).
+Throughput is measured on bodies (the round trip is latency, estimated
+apart and budgeted per request).
 
 - `ThroughputRule`: EWMA throughput with a fast and a slow half-life (the
   lower of the two, as dash.js does), times a safety factor; the highest

@@ -119,7 +119,7 @@ class ManifestBuilder:
         default_factory=lambda: {KEYFRAME_REP: RepresentationRecords(KEYFRAME_REP)})
     """Keyframe Representations: the lossless one, then any lossy keyframe rungs."""
     keyframe_quants: dict[str, str] = field(default_factory=dict)
-    """A lossy keyframe Representation's quantisation (stgs.codec.keyframe.KeyframeQuant.value)."""
+    """A lossy keyframe Representation's quantisation (stgs.codec.quant.KeyframeQuant.value)."""
     pairing: dict[str, str] = field(default_factory=dict)
     """Feature Representation -> the keyframe Representation it plays with (absent: the lossless one)."""
     features: dict[str, RepresentationRecords] = field(default_factory=dict)

@@ -83,7 +83,7 @@ class PackConfig:
     rules: LadderRules = field(default_factory=LadderRules)
     """How the auto ladder picks its rungs."""
     keyframe_rungs: tuple[str, ...] = ("fine", "coarse")
-    """Lossy keyframe rungs (stgs.codec.keyframe.KEYFRAME_RUNGS) an auto ladder may pair a feature rung with
+    """Lossy keyframe rungs (stgs.codec.quant.KEYFRAME_RUNGS) an auto ladder may pair a feature rung with
     (docs/PACKAGING.md, "Keyframe rungs"); a fixed ladder pairs every rung with the lossless keyframe."""
     av1_preset: str = AV1.default_preset
     """SVT-AV1 preset (0 slowest .. 13 fastest)."""
@@ -314,9 +314,12 @@ class Packer:
             if self.cfg.ladder == "auto":
                 verdicts = pair_rungs(choose_rungs(scene, self.cfg.rules), pairs, {c.rep_id: c.psnr for c in scene})
                 kept = [c for c in scene if c.rep_id in {v.rep_id for v in verdicts if v.kept}]
-                per_gop = [[Candidate(pid, r.segments[k].bytes + builder.keyframe_reps[kf].segments[k].bytes,
-                                      pair_quality(r.segments[k].quality, kf)[measure])
-                            for pid, (r, kf) in pairs.items()] for k in sorted(builder.keyframes.segments)]
+                per_gop = []
+                for k in sorted(builder.keyframes.segments):  # bytes as the scene's: above the GOP's cheapest keyframe
+                    keys = {rep: kr.segments[k].bytes for rep, kr in builder.keyframe_reps.items()}
+                    per_gop.append([Candidate(pid, r.segments[k].bytes + keys[kf] - min(keys.values()),
+                                              pair_quality(r.segments[k].quality, kf)[measure])
+                                    for pid, (r, kf) in pairs.items()])
                 doc |= {"rules": asdict(self.cfg.rules), "per_gop_saving": round(allocation_saving(per_gop, kept), 4)}
             else:
                 verdicts = [Verdict(c.rep_id, True, "a fixed rung") for c in sorted(scene, key=lambda c: c.bytes)]

@@ -7,6 +7,7 @@ import math
 import re
 from dataclasses import dataclass
 
+from stgs.codec import FEATURE_CODECS
 from stgs.codec.quant import LOSSLESS, KeyframeQuant
 from stgs.errors import FieldError
 from stgs.limits import MAX_CAPACITY, MAX_FPS, MAX_GOP_SIZE, MAX_PE_FREQS, MAX_WINDOW, MIN_FPS
@@ -23,10 +24,7 @@ QUALITY_SCHEME = "urn:streamstgs:quality:2026"
 """SupplementalProperty scheme of a feature Representation's measured quality."""
 KEYFRAME_QUANT_SCHEME = "urn:streamstgs:keyframe-quant:2026"
 """SupplementalProperty scheme of a lossy keyframe Representation: the bits of each image
-(stgs.codec.keyframe.KeyframeQuant.value). The lossless Representation has none."""
-FEATURE_CODECS = {"hevc": (("hvc1", "hev1"), 12), "av1": (("av01",), 10)}
-"""The feature-video codecs a tree may carry, one AdaptationSet each, reference first: the @codecs sample entries
-that name each and the code depth of its frames."""
+(stgs.codec.quant.KeyframeQuant.value). The lossless Representation has none."""
 FEATURE_CODEC_CHOICES = ("auto", *FEATURE_CODECS)
 """What a player may ask for: a codec's feature set, or auto (HEVC where the tree has it, else AV1)."""
 

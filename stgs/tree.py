@@ -103,7 +103,7 @@ def paired_keyframe_bytes(gop: dict, keyframe_rep: str) -> int:
 
 
 def keyframe_rep_id(rung: str) -> str:
-    """The keyframe Representation id of a keyframe rung (stgs.codec.keyframe.KEYFRAME_RUNGS)."""
+    """The keyframe Representation id of a keyframe rung (stgs.codec.quant.KEYFRAME_RUNGS)."""
     return KEYFRAME_REP if rung == "lossless" else f"{KEYFRAME_REP}-{rung}"
 
 

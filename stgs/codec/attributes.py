@@ -87,7 +87,7 @@ def dequantize(spec: AttributeSpec, codes: np.ndarray, rng: torch.Tensor) -> tor
 def encode_attributes(model: GOPModel | StaticLayer, side: int,
                       specs: tuple[AttributeSpec, ...] = SPECS) -> dict[str, tuple[np.ndarray, torch.Tensor]]:
     """name -> (codes (S, S, C), range (2, C)) for every attribute image, at the levels of `specs` (SPECS, or a
-    lossy keyframe's: stgs.codec.keyframe.KeyframeQuant)."""
+    lossy keyframe's: stgs.codec.quant.KeyframeQuant)."""
     out = {}
     for spec in specs:
         values = _values(model, spec)

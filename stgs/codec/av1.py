@@ -22,8 +22,8 @@ import os
 import av
 import numpy as np
 
+from stgs.codec import FEATURE_CODECS
 from stgs.codec.mp4 import MP4Error, sample_entry_config
-from stgs.mpd_profile import FEATURE_CODECS
 
 BITS = FEATURE_CODECS["av1"][1]
 PIXEL_FORMAT = "yuv420p10le"

@@ -28,11 +28,10 @@ from fractions import Fraction
 import av
 import numpy as np
 
-from stgs.codec import av1
+from stgs.codec import FEATURE_CODECS, av1
 from stgs.codec.mp4 import hevc_codecs
 from stgs.errors import StgsError
 from stgs.memory import filled_heap
-from stgs.mpd_profile import FEATURE_CODECS
 from stgs.tree import rep_id
 
 PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow")
@@ -101,7 +100,7 @@ HEVC = FeatureCodec("hevc", FEATURE_CODECS["hevc"][1], "libx265", PIXEL_FORMAT, 
 AV1 = FeatureCodec("av1", FEATURE_CODECS["av1"][1], "libsvtav1", av1.PIXEL_FORMAT, av1.CODEC_TAG, av1.PRESETS, "8",
                    av1.QUANTIZERS, AV1_LADDER, AV1_CANDIDATES)
 CODECS = {c.name: c for c in (HEVC, AV1)}
-"""Every feature codec by name, the reference (HEVC) first (stgs.mpd_profile.FEATURE_CODECS names them)."""
+"""Every feature codec by name, the reference (HEVC) first (stgs.codec.FEATURE_CODECS names them)."""
 
 
 class VideoError(ValueError):

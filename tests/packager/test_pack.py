@@ -448,10 +448,15 @@ def test_a_scene_every_rung_renders_the_same_gets_one_rung_per_codec(tmp_path):
         kept = [c for c in candidates if c["kept"]]
         assert len(kept) == 1 and kept[0]["bytes"] == min(c["bytes"] for c in candidates)
     assert len(stats["representations"]) == 2 and "static" in stats
+    paired = tmp_path / "paired"  # with keyframe rungs (the default) the pure static GOP still packs a valid tree
+    paired_stats = pack(scene, paired, PackConfig(jobs=2, codecs=("av1",)), progress=False)
+    assert paired_stats["representations"] and set(paired_stats.get("keyframe_representations", {})) <= {
+        "keyframes-fine", "keyframes-coarse"}
     if XSD.is_file():
         from stgs.mpd_schema import schema_errors
 
-        assert schema_errors((out / MANIFEST).read_bytes(), XSD) == []
+        for tree in (out, paired):
+            assert schema_errors((tree / MANIFEST).read_bytes(), XSD) == []
 
 
 def test_a_ladder_of_one_point_is_a_valid_tree(scene, tmp_path):

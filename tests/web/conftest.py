@@ -43,7 +43,8 @@ def need_browser() -> None:
 @pytest.fixture(scope="session")
 def web_root(tmp_path_factory) -> Path:
     """ROOT with `small` (the scene), `paired` (the same scene on an auto ladder with a lossy keyframe rung),
-    `broken` (its manifest not XML) and `foreign` (segments on another host)."""
+    `broken` (its manifest not XML), `badquant` (a lossy keyframe's quantisation out of range) and `foreign`
+    (segments on another host)."""
     base = tmp_path_factory.mktemp("web")
     synthesize(WEB_SCENE, base / "model", progress=False)
     root = base / "root"
@@ -53,6 +54,11 @@ def web_root(tmp_path_factory) -> Path:
                                                      jobs=2), progress=False)
     shutil.copytree(root / "small", root / "broken")
     (root / "broken" / "manifest.mpd").write_text("<MPD this is not xml")
+    shutil.copytree(root / "paired", root / "badquant")
+    paired = (root / "paired" / "manifest.mpd").read_text()
+    badquant = paired.replace('value="position=8;', 'value="position=17;')
+    assert badquant != paired
+    (root / "badquant" / "manifest.mpd").write_text(badquant)
     shutil.copytree(root / "small", root / "foreign")
     mpd = (root / "small" / "manifest.mpd").read_text()
     foreign = re.sub(r'media="(v-[^"]*/\$RepresentationID\$/gop_)', r'media="http://192.0.2.7/\1', mpd)

@@ -188,8 +188,12 @@ def test_bad_manifests_show_the_error_panel(served):
         {"goto": player(served, scene="missing")},
         {"wait": ERROR_TEXT},
         {"eval": ERROR_TEXT, "as": "missing"},
+        {"goto": player(served, scene="badquant")},
+        {"wait": ERROR_TEXT},
+        {"eval": ERROR_TEXT, "as": "badquant"},
     ]})
     r = out["results"]
+    assert r["badquant"].startswith("ManifestError: keyframe Representation keyframes-coarse: quant position=17")
     assert r["broken"].startswith("ManifestError: the manifest is not XML")
     assert r["foreign"].startswith("RefusedUrlError: host 192.0.2.7 is neither the manifest's")
     assert r["missing"].startswith("FetchError: manifest:") and "404" in r["missing"]

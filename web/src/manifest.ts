@@ -14,6 +14,8 @@ export const STATIC_SCHEME = "urn:streamstgs:static:2026";
 export const FEATURE_SCHEME = "urn:streamstgs:features:2026";
 export const QUALITY_SCHEME = "urn:streamstgs:quality:2026";
 export const KEYFRAME_QUANT_SCHEME = "urn:streamstgs:keyframe-quant:2026";
+/** The lossless keyframe Representation's id (stgs/tree.py KEYFRAME_REP): its bytes are stats.json's keyframe_bytes. */
+export const KEYFRAME_REP = "keyframes";
 export const AV1_BITS = 10;
 export const FEATURE_TILES = 4;
 

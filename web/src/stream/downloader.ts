@@ -8,7 +8,7 @@ import type { AbrRule, AbrSettings, AbrState, Decision, ThroughputSample, Upcomi
 import { FixedRule } from "../abr/rules";
 import { FLOAT_FIELD_BITS, fieldShapes, keyframeMetadata, keyframeTensors } from "../container";
 import { MAX_INIT_BYTES } from "../limits";
-import type { KeyframeRep, Manifest } from "../manifest";
+import { KEYFRAME_REP, type KeyframeRep, type Manifest } from "../manifest";
 import type { DecodedSegment } from "../workers/keyframe.worker";
 import { fetchStream } from "./fetch";
 import type { FeatureDecoder, KeyframePool } from "./workers";
@@ -60,9 +60,6 @@ export function upcomingFromStats(stats: unknown, k: number, repIds: string[], k
     return null;
   }
 }
-
-/** The lossless keyframe Representation's id (stgs/tree.py KEYFRAME_REP): its bytes are stats.json's keyframe_bytes. */
-export const KEYFRAME_REP = "keyframes";
 
 /** A keyframe Representation's quantised weight images, name -> [out, in] (none for float32 weights). */
 function quantisedFields(m: Manifest, rep: KeyframeRep): [string, [number, number]][] {
