@@ -24,11 +24,11 @@ import torch
 from bench.playlog_stats import frame_stats
 from bench.realtime import loop_model, play_process
 from stgs.camera import Camera, read_scene_cameras, resize
-from stgs.evaluate import packaged_gops
 from stgs.metrics import psnr
 from stgs.model.native_deform import runnable_precisions
 from stgs.model.store import load_model, read_meta
 from stgs.model.view import FrameRenderer
+from stgs.packaged import packaged_gops
 from stgs.packager import PackConfig, pack
 from stgs.server.app import loopback
 from stgs.tree import MANIFEST, rep_id

@@ -20,87 +20,19 @@ import cv2
 import torch
 
 from stgs.camera import Camera
-from stgs.codec.features import features_from_frames
-from stgs.codec.keyframe import decode_keyframe
-from stgs.codec.static import decode_static
-from stgs.codec.video import CODECS, FeatureCodec, decode_segment
 from stgs.data import open_dataset
 from stgs.data.units import in_model_units
 from stgs.errors import FieldError, StgsError
 from stgs.fsio import atomic_write_bytes, image_grid, save_png
 from stgs.metrics import LPIPS, lpips_backbone_file, mse_psnr, psnr, ssim
-from stgs.model.gop import GOPModel, GOPShape
-from stgs.model.static import StaticLayer
+from stgs.model.gop import GOPModel
 from stgs.model.store import load_gop, load_static, read_meta
 from stgs.model.view import FrameRenderer
-from stgs.mpd import AdaptationSet, Representation, read_mpd
-from stgs.mpd_profile import (
-    FEATURE_SCHEME,
-    KEYFRAME_SCHEME,
-    STATIC_SCHEME,
-    KeyframeDescriptor,
-    StaticLayerDescriptor,
-    feature_set_codec,
-    keyframe_quant,
-)
-from stgs.mpd_values import MPDError, expand_template
+from stgs.packaged import packaged_gops, packaged_static
 from stgs.train.views import default_memory, open_views, scale_camera
-from stgs.tree import MANIFEST, TRAIN_REPORT
+from stgs.tree import TRAIN_REPORT
 
 GRID_ROWS = 4
-
-
-def packaged_static(dash: Path) -> StaticLayer | None:
-    """A local format-2 tree's static layer as a player decodes it (None for a format-1 tree)."""
-    try:
-        found = read_mpd(dash / MANIFEST).find_adaptation_set(STATIC_SCHEME)
-        if found is None:
-            return None
-        descriptor = StaticLayerDescriptor.parse(found)
-        data = (dash / expand_template(found.segment_template.media, found.representations[0].id, 0)).read_bytes()
-        return decode_static(data, descriptor.capacity, descriptor.sh_degree, len(data))
-    except (OSError, MPDError, IndexError, ValueError) as exc:
-        raise StgsError(f"{dash}: static layer unreadable ({exc})") from None
-
-
-def packaged_gops(dash: Path) -> dict[str, Callable[[int], GOPModel]]:
-    """Representation id -> (GOP index -> the GOP as a player decodes it) for a local DASH tree, over every feature
-    set (HEVC and AV1)."""
-    try:
-        mpd = read_mpd(dash / MANIFEST)
-        kf_set = mpd.adaptation_set(KEYFRAME_SCHEME)
-        videos = [(a, CODECS[feature_set_codec(a)]) for a in mpd.adaptation_sets(FEATURE_SCHEME)]
-    except (OSError, MPDError) as exc:
-        raise StgsError(f"{dash}: not a packaged scene ({exc})") from None
-    try:
-        d = KeyframeDescriptor.parse(kf_set)
-    except MPDError as exc:
-        raise StgsError(f"{dash}: {exc}") from None
-    shape = GOPShape(d.capacity, d.gop_size, d.window, d.pe_freqs)
-    side = shape.grid_side
-
-    keyframe_reps = {r.id: r for r in kf_set.representations}
-
-    def loader(video: AdaptationSet, codec: FeatureCodec, rep: Representation) -> Callable[[int], GOPModel]:
-        init = (dash / expand_template(video.segment_template.initialization, rep.id)).read_bytes()
-        paired = next((keyframe_reps[a] for a in rep.association_id if a in keyframe_reps),
-                      kf_set.representations[0])
-        try:
-            quant = keyframe_quant(paired)
-        except MPDError as exc:
-            raise StgsError(f"{dash}: {exc}") from None
-
-        def load(k: int) -> GOPModel:
-            n = kf_set.segment_template.start_number + k
-            data = (dash / expand_template(kf_set.segment_template.media, paired.id, n)).read_bytes()
-            kf = decode_keyframe(data, shape, k, len(data), quant)
-            media = (dash / expand_template(video.segment_template.media, rep.id, n)).read_bytes()
-            frames = decode_segment(init, media, shape.num_features, 4 * side, 4 * side, codec=codec)
-            return kf.to_model(features_from_frames(frames, side, kf.feature_ranges, codec.bits))
-
-        return load
-
-    return {r.id: loader(video, codec, r) for video, codec in videos for r in video.representations}
 
 
 def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None, holdout: list[str] | None = None,

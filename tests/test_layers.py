@@ -49,3 +49,44 @@ def test_stages_import_core_only(folder):
 def test_checker_sees_an_import_inside_a_function(tmp_path):
     (tmp_path / "x.py").write_text("def f():\n    from stgs.server.app import build_app\n")
     assert "stgs.server.app" in imported_modules(tmp_path, tmp_path)["x.py"]
+
+
+CORE_TIERS = (
+    {"errors", "limits", "lazy", "fsio", "memory", "picks", "loopback", "mpd_schema", "native"},
+    {"mpd_values", "tasks", "render", "metrics"},
+    {"tree", "mpd"},
+    {"camera"},
+    {"model"},
+    {"codec"},
+    {"mpd_profile"},
+    {"packaged"},
+    {"interop"},
+    {"synth"},
+    {"data"},
+    {"prepare", "train"},
+    {"evaluate"},
+)
+"""The core's own modules and subpackages (`stgs.<name>`), lowest first: each imports only from tiers below its own
+(docs/ARCHITECTURE.md once it exists; until then the order is this list)."""
+
+
+def core_imports() -> dict[str, set[str]]:
+    """`stgs.<name>` -> the other `stgs.<name>` it imports (any depth of either)."""
+    out: dict[str, set[str]] = {}
+    for path, mods in imported_modules(ROOT / "stgs").items():
+        parts = Path(path).with_suffix("").parts
+        if parts[1:] == ("__init__",):
+            continue
+        own = parts[1]
+        out.setdefault(own, set()).update(
+            m.split(".")[1] for m in mods if under(m, "stgs") and m.count(".") >= 1 and m.split(".")[1] != own
+            and not any(under(m, p) for p in [*STAGES.values(), *TOP.values()]))
+    return out
+
+
+def test_the_core_imports_downwards_only():
+    tier = {name: i for i, names in enumerate(CORE_TIERS) for name in names}
+    graph = core_imports()
+    assert sorted(set(graph) - set(tier)) == []  # a new module or subpackage takes a place in CORE_TIERS
+    upward = sorted(f"stgs.{a} -> stgs.{b}" for a, deps in graph.items() for b in deps if tier[b] >= tier[a])
+    assert upward == []

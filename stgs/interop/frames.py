@@ -18,7 +18,6 @@ import numpy as np
 import torch
 
 from stgs.errors import StgsError
-from stgs.evaluate import packaged_gops, packaged_static
 from stgs.interop import sh as harmonics
 from stgs.interop.splats import Splats, colour_to_dc, from_gaussians, from_static
 from stgs.model.gop import GOPModel, frame_time
@@ -27,6 +26,7 @@ from stgs.model.store import MODEL_META, load_gop, load_static, read_meta
 from stgs.mpd import read_mpd
 from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_SCHEME, KeyframeDescriptor, gop_count
 from stgs.mpd_values import MPDError
+from stgs.packaged import packaged_gops, packaged_static
 from stgs.tree import MANIFEST
 
 

@@ -149,13 +149,3 @@ class LocalRunner:
 
     def close(self) -> None:
         pass
-
-
-def open_runner(address: str | None, retries: int = 3, progress: bool = True) -> Runner:
-    """This process (address None) or a Ray cluster: "local" (started here, on this machine's cores), "auto" (the
-    cluster `ray start` made on this machine, or RAY_ADDRESS) or HOST:PORT / ray://HOST:PORT."""
-    if address is None:
-        return LocalRunner()
-    from stgs.tasks.ray_runner import RayRunner
-
-    return RayRunner.connect(address, retries, progress)

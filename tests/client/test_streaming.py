@@ -20,10 +20,10 @@ from stgs.codec.keyframe import KeyframeError, KeyframeSegment
 from stgs.codec.mp4 import set_timeline, split_fragmented
 from stgs.codec.video import VideoTiming, decode_segment, encode_gop
 from stgs.errors import FieldError
-from stgs.evaluate import packaged_gops
 from stgs.fsio import to_uint8
 from stgs.model.store import load_model
 from stgs.model.view import FrameRenderer
+from stgs.packaged import packaged_gops
 from stgs.tree import rep_id
 from tests.client.conftest import QUICK, SCENE, copy_tree, segment, serving
 
