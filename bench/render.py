@@ -18,7 +18,7 @@ import torch
 from stgs.camera import Camera, intrinsics, look_at
 from stgs.metrics import psnr
 from stgs.model.gop import GOPModel, GOPShape
-from stgs.native.build import available
+from stgs.native.library import available
 from stgs.render import rasterize
 from stgs.synth.config import DEFAULT_EFFECTS
 from stgs.synth.scene import ProceduralScene

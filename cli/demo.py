@@ -28,7 +28,7 @@ from stgs.camera import Camera, intrinsics, look_at
 from stgs.fsio import atomic_write_bytes, image_grid, save_png
 from stgs.metrics import psnr
 from stgs.model.view import FrameRenderer
-from stgs.native.build import available
+from stgs.native.library import available
 from stgs.synth import PRESETS, SCENE_TARGET, synthesize
 from stgs.tree import KEYFRAME_REP, MANIFEST
 

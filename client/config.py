@@ -14,7 +14,7 @@ from stgs.client.view import ViewSpec
 from stgs.errors import FieldError, StgsError
 from stgs.model.native_deform import check_precision
 from stgs.mpd_profile import FEATURE_CODEC_CHOICES
-from stgs.native.build import NativeUnavailableError
+from stgs.native.library import NativeUnavailableError
 
 
 class PlaybackError(StgsError):

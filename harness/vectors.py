@@ -3,7 +3,7 @@ ports of the rules (web/src/abr) to replay under Node and match rung for rung.
 
 One contract, two implementations: the Python rules in stgs.client.abr are the reference; the simulator records
 each AbrState a rule is handed and the Decision it returns, in order (a stateful rule, BOLA-E's placeholder or
-mpc's error history, sees the same sequence in the replay), and tests/web/test_abr_vectors.py replays them.
+mpc's error history, sees the same sequence in the replay), and tests/web/test_contracts.py replays them.
 
     python -m stgs.harness.vectors SCENE_DIR OUT.json     # every rule over FIXED_TRACES
 """

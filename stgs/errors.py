@@ -18,3 +18,7 @@ class FieldError(StgsError):
     def __init__(self, field: str, message: str):
         super().__init__(f"{field}: {message}")
         self.field, self.message = field, message
+
+
+class NativeUnavailableError(RuntimeError):
+    """The native kernels could not be built or loaded (the pure-torch reference runs instead, where there is one)."""

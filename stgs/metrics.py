@@ -9,7 +9,7 @@ import torch
 
 from stgs.errors import StgsError
 from stgs.native.abi import ptr
-from stgs.native.build import available, load
+from stgs.native.library import available, load
 
 
 def psnr(image: torch.Tensor, reference: torch.Tensor, peak: float = 1.0, mask: torch.Tensor | None = None) -> float:

@@ -52,8 +52,9 @@ def test_checker_sees_an_import_inside_a_function(tmp_path):
 
 
 CORE_TIERS = (
-    {"errors", "limits", "lazy", "fsio", "memory", "picks", "loopback", "mpd_schema", "native"},
-    {"mpd_values", "tasks", "render", "metrics"},
+    {"errors", "limits", "lazy", "fsio", "memory", "picks", "loopback", "mpd_schema"},
+    {"native", "mpd_values", "tasks"},
+    {"render", "metrics"},
     {"tree", "mpd"},
     {"camera"},
     {"model"},

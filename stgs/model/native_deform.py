@@ -28,7 +28,7 @@ from stgs.model.gop import (
 )
 from stgs.model.precision import PRECISIONS
 from stgs.native.abi import ffi, ptr
-from stgs.native.build import NativeUnavailableError, available, load
+from stgs.native.library import NativeUnavailableError, available, load
 
 BF16_BACKENDS = {"amx": 2, "avx512-bf16": 1}
 """The bf16 deformation's back ends, preferred first, with their bit in stgs_deform_bf16_backends: AMX tiles

@@ -20,7 +20,7 @@ import torch
 from stgs.camera import Camera, orbit
 from stgs.model.gop import Gaussians, GOPModel
 from stgs.model.static import StaticLayer, merge
-from stgs.native.build import available
+from stgs.native.library import available
 from stgs.render import Backend, rasterize
 from stgs.render.fixed import FixedLayerView
 

@@ -1,5 +1,5 @@
 """Typed bindings of the native library: cffi reads the declarations of csrc/stgs_abi.h, the one header every
-kernel source includes, so Python and C++ see one signature per function (stgs.native.build.load opens the
+kernel source includes, so Python and C++ see one signature per function (stgs.native.library.load opens the
 library through it).
 
 A call with the wrong number of arguments, or a tensor of the wrong dtype where the header wants `float *`,

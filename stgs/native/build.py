@@ -1,9 +1,9 @@
-"""Build and load the native CPU kernels (C++ with OpenMP, loaded through cffi by stgs.native.abi).
+"""Compile the native CPU kernels (C++ with OpenMP); stgs.native.library loads them.
 
 The library is compiled once per source/flag/compiler combination into a cache
 folder (``$STGS_NATIVE_CACHE``, else ``$XDG_CACHE_HOME/stgs/native``, else
 ``~/.cache/stgs/native``), written atomically, and reused. The README's setup
-builds it (``python -m stgs.native.build``); the first import builds it if the
+builds it (``python -m stgs.native.build``); the first load builds it if the
 setup did not. Without a compiler everything still works on the pure-torch
 reference, slower.
 """
@@ -18,7 +18,8 @@ import sys
 import tempfile
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+
+from stgs.errors import NativeUnavailableError
 
 SOURCES = ("project.cpp", "binning.cpp", "forward.cpp", "kept.cpp", "backward.cpp", "ssim.cpp", "temporal.cpp",
            "deform.cpp", "deform_bf16.cpp", "deform_int16.cpp")
@@ -36,10 +37,6 @@ FLAGS = ["-O3", f"-march={ARCH}", "-fopenmp", "-fPIC", "-shared", "-std=c++17", 
 """-ffp-contract=off keeps forward and backward recomputations bit-identical;
 -fno-trapping-math lets floor and float->int conversions vectorise (no FP traps are used);
 -fvisibility=hidden leaves the declarations of stgs_abi.h as the library's only exports."""
-
-
-class NativeUnavailableError(RuntimeError):
-    """The native library could not be built or loaded."""
 
 
 def compiler() -> str:
@@ -112,39 +109,6 @@ def _run_compiler(cmd: list[str]) -> None:
     proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         raise NativeUnavailableError(f"native build failed: {proc.stderr.strip()[:2000]}")
-
-
-_LIB: Any = None
-_ERROR: str | None = None
-
-
-def load() -> Any:
-    """The loaded native library, its functions typed by csrc/stgs_abi.h (built on first use); raises
-    NativeUnavailableError."""
-    global _LIB, _ERROR
-    if _LIB is not None:
-        return _LIB
-    if _ERROR is not None:
-        raise NativeUnavailableError(_ERROR)
-    if os.environ.get("STGS_NATIVE", "1") == "0":
-        _ERROR = "disabled by STGS_NATIVE=0"
-        raise NativeUnavailableError(_ERROR)
-    try:
-        from stgs.native.abi import ffi
-
-        _LIB = ffi().dlopen(str(build()))
-    except (NativeUnavailableError, OSError) as exc:
-        _ERROR = str(exc)
-        raise NativeUnavailableError(_ERROR) from exc
-    return _LIB
-
-
-def available() -> bool:
-    try:
-        load()
-    except NativeUnavailableError:
-        return False
-    return True
 
 
 def main() -> int:

@@ -13,7 +13,7 @@ from typing import Literal
 import torch
 
 from stgs.limits import MAX_IMAGE_SIDE
-from stgs.native.build import NativeUnavailableError, available, load
+from stgs.native.library import NativeUnavailableError, available, load
 from stgs.render.project import Projected, project
 from stgs.render.reference import composite_reference
 

@@ -24,7 +24,7 @@ import threading
 import torch
 
 from stgs.native.abi import ptr
-from stgs.native.build import load
+from stgs.native.library import load
 from stgs.render import _check_inputs, needs_grad
 from stgs.render.native import RasterHandle, f32, project_native, project_trainable
 

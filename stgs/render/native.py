@@ -8,7 +8,7 @@ from typing import Any
 import torch
 
 from stgs.native.abi import ptr
-from stgs.native.build import load
+from stgs.native.library import load
 from stgs.render.project import Projected
 from stgs.render.stages import TILE, Bins
 

@@ -6,7 +6,7 @@ import torch
 
 from stgs.metrics import masked_mean, ssim
 from stgs.native.abi import ptr
-from stgs.native.build import available, load
+from stgs.native.library import available, load
 
 
 def photometric(image: torch.Tensor, target: torch.Tensor, lambda_ssim: float = 0.2,

@@ -19,7 +19,7 @@ from stgs.model.native_deform import (
 )
 from stgs.model.precision_oracles import deform_bf16_reference, deform_int16_reference
 from stgs.model.view import FrameRenderer, in_guard_band, splat
-from stgs.native.build import NativeUnavailableError, available
+from stgs.native.library import NativeUnavailableError, available
 
 
 def random_model(n=300, gop_size=10, window=3, seed=0) -> GOPModel:

@@ -16,7 +16,7 @@ from stgs.model.gop import Gaussians
 from stgs.model.static import StaticLayer, merge
 from stgs.model.store import load_gop, load_model, load_static, read_meta, save_model
 from stgs.model.view import FrameRenderer
-from stgs.native.build import available
+from stgs.native.library import available
 from stgs.render import rasterize
 from tests.model.test_gop import random_model
 

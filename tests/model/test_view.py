@@ -10,7 +10,7 @@ import torch
 from stgs.camera import Camera, intrinsics, look_at
 from stgs.model.gop import Gaussians, GOPModel, GOPShape
 from stgs.model.view import GUARD_BAND, NEAR_CLIP, FrameRenderer, in_guard_band, splat
-from stgs.native.build import available
+from stgs.native.library import available
 from stgs.render import rasterize
 
 W, H = 64, 48

@@ -9,7 +9,7 @@ import torch
 from stgs.camera import Camera, intrinsics, look_at
 from stgs.model.static import merge
 from stgs.model.view import FrameRenderer, StaticDrawer
-from stgs.native.build import available
+from stgs.native.library import available
 from stgs.render import rasterize
 from stgs.render.fixed import FixedLayerView
 from stgs.render.native import NativeComposite, bin_native, f32, project_native

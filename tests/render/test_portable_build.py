@@ -54,7 +54,7 @@ CHECK = textwrap.dedent("""
     assert torch.allclose(want.colors, got.colors, rtol=1e-4, atol=1e-5)
     from stgs.model.native_deform import bf16_available, check_precision, int16_available
     from stgs.model.precision_oracles import deform_int16_reference
-    from stgs.native.build import NativeUnavailableError
+    from stgs.native.library import NativeUnavailableError
     assert not bf16_available()  # no AMX tiles in these builds: bf16 reports itself unavailable
     if os.environ["STGS_NATIVE_ARCH"] == "x86-64-v3":  # AVX2: the int16 kernel is built, and right
         assert int16_available()

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from bench.splat_stages import reached_pairs
-from stgs.native.build import available
+from stgs.native.library import available
 from stgs.render.native import raster_forward
 
 

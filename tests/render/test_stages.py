@@ -10,7 +10,8 @@ import subprocess
 import pytest
 import torch
 
-from stgs.native.build import CSRC, available
+from stgs.native.build import CSRC
+from stgs.native.library import available
 from stgs.render.project import Projected, project
 from stgs.render.stages import bin_tiles, composite_tiles
 from tests.conftest import pinhole, random_scene
@@ -192,7 +193,7 @@ def test_backward_stage_matches_autograd_through_its_twin(scene):
 
 def test_the_library_exports_exactly_the_abi_header():
     from stgs.native.abi import declarations
-    from stgs.native.build import library_path, load
+    from stgs.native.library import library_path, load
 
     declared = {name for name in dir(load()) if name.startswith("stgs_")}
     assert declared == {line.split("(")[0].split()[-1].lstrip("*") for line in declarations().splitlines()
@@ -206,7 +207,7 @@ def test_the_library_exports_exactly_the_abi_header():
 
 def test_a_call_with_a_wrong_dtype_or_arity_fails_before_running():
     from stgs.native.abi import ptr
-    from stgs.native.build import load
+    from stgs.native.library import load
 
     lib = load()
     n = 4

@@ -9,7 +9,7 @@ import torch
 
 from stgs.camera import Camera, intrinsics
 from stgs.metrics import SSIM_C1, SSIM_C2, psnr, ssim, ssim_map
-from stgs.native.build import available
+from stgs.native.library import available
 from stgs.train import losses
 from stgs.train.dynamic import gop_dynamic_masks, variance_mask
 from stgs.train.views import tensor_views

@@ -3,6 +3,7 @@ decision vectors the simulator records (stgs.harness.vectors) and the TypeScript
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import subprocess
@@ -19,6 +20,26 @@ def test_the_pages_caps_are_the_python_caps():
     shared = {k: v for k, v in ours.items() if hasattr(limits, k)}
     assert len(shared) >= 15
     assert {k: float(getattr(limits, k)) for k in shared} == shared
+
+
+def test_the_pages_view_frustum_is_the_python_one():
+    from stgs.model import view
+
+    text = (WEB / "src" / "sort.ts").read_text()
+    ours = {m[1]: float(m[2]) for m in re.finditer(r"export const (NEAR_CLIP|GUARD_BAND) = ([\d.]+);", text)}
+    assert ours == {"NEAR_CLIP": view.NEAR_CLIP, "GUARD_BAND": view.GUARD_BAND}
+
+
+def test_the_keyframe_quantisations_are_the_python_ones():
+    from stgs.codec.quant import FLOAT_FIELD_BITS, LOSSLESS, MAX_FIELD_BITS
+
+    text = (WEB / "src" / "container.ts").read_text()
+    lossless = re.search(r"export const LOSSLESS: KeyframeQuant = \{([^}]*)\}", text)[1]
+    fields = dict(re.findall(r"(\w+): (\w+)", lossless))
+    consts = {m[1]: int(m[2]) for m in re.finditer(r"export const (FLOAT_FIELD_BITS|MAX_FIELD_BITS) = (\d+);", text)}
+    assert consts == {"FLOAT_FIELD_BITS": FLOAT_FIELD_BITS, "MAX_FIELD_BITS": MAX_FIELD_BITS}
+    values = {k: int(v) if v.isdigit() else consts[v] for k, v in fields.items()}
+    assert values == dataclasses.asdict(LOSSLESS)
 
 
 def test_the_abr_defaults_are_the_python_defaults():

@@ -1,6 +1,6 @@
 // What every ABR rule shares (client/abr_state.py, ported): the settings tree, throughput samples and
 // estimators, the state a rule sees and the Decision it returns (dash.js's SwitchRequest). The Python module
-// is the reference; tests/web/test_abr_vectors.py replays its decisions through these ports under Node.
+// is the reference; tests/web/test_contracts.py replays its decisions through these ports under Node.
 
 export interface AbrSettings {
   safetyFactor: number;
