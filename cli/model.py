@@ -115,7 +115,8 @@ def add_train(sub: argparse._SubParsersAction) -> None:
                    "capture (docs/CAPTURE.md; `stgs inspect` shows what it holds)")
     p.add_argument("out", type=Path, help="output model dir")
     p.add_argument("--budget", choices=sorted(BUDGETS), default="quick",
-                   help="quick (CI, minutes), cpu (a 60-frame GOP at 640x360 in ~1 h), paper (12k it, ~150k Gaussians)")
+                   help="quick (CI and smoke runs), cpu (a real capture's GOP on a few cores), paper (the paper's "
+                   "sizes, for a bigger machine); sizes and times: docs/TRAINING.md, 'Budgets'")
     p.add_argument("--kind", choices=["auto", *KINDS], default="auto", help="dataset layout (default: auto)")
     p.add_argument("--holdout", type=name_list, help="comma-separated validation cameras (default: the dataset's)")
     p.add_argument("--fps", type=positive_float,
@@ -128,8 +129,7 @@ def add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--layers", choices=["single", "layered"],
                    help="single (default): every GOP holds every Gaussian, model format 1; layered: a static layer "
                    "fitted once (stage A) + smaller per-GOP dynamic layers (stage B), model format 2 (`stgs pack` "
-                   "sends its static layer once; measured on a real capture with --budget cpu: 0.7-2.3 dB better "
-                   "held out in 1.04-1.08x the training time, docs/TRAINING.md)")
+                   "sends its static layer once; what it costs and buys: docs/BENCHMARKS.md, 'Layered scenes')")
     p.add_argument("--static-grid-side", type=positive_int,
                    help="S_s: Gaussians S_s² of the static layer (layered; default: the budget's)")
     p.add_argument("--no-migrate", dest="migrate", action="store_false", default=None,

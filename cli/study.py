@@ -65,8 +65,8 @@ def add_demo(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, default=Path("demo-output"),
                    help="output folder (default: ./demo-output)")
     p.add_argument("--fit-steps", type=int, default=None,
-                   help="Adam steps per GOP when fitting the scene (default: the demo preset's 400; "
-                   "150 takes under half the time for a rougher model, about 43 dB against 53.6)")
+                   help="Adam steps per GOP when fitting the scene (default: the demo preset's; fewer fit a rougher "
+                   "model sooner: the README's demo section gives the figures)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(run=run_demo)
 

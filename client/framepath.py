@@ -61,28 +61,46 @@ class FrameTiming:
     splat_s: float
 
 
+@dataclass(frozen=True)
+class Playback:
+    """What the frame path reads of its playback (client.player.Session holds it)."""
+
+    cfg: PlayConfig
+    pres: Presentation
+    clock: PlaybackClock
+    records: dict[int, GOPRecord]
+    gops: list[int]
+    """The GOPs played, in order."""
+    frames: int
+    """How many frames are played from the first GOP's first."""
+    now: Callable[[], float]
+    """The playback clock (media seconds)."""
+    sleep: Callable[[float], Awaitable[None]]
+    """Sleep that many media seconds."""
+    t_start: float
+    """now() when the playback began."""
+
+
 class FramePath:
     """Renders and presents the frames of one playback (see the module docstring)."""
 
-    def __init__(self, cfg: PlayConfig, pres: Presentation, clock: PlaybackClock, records: dict[int, GOPRecord],
-                 gops: list[int], frames: int, decoder: GOPDecoder, now: Callable[[], float],
-                 sleep: Callable[[float], Awaitable[None]], cameras: list | None, on_frame: FrameHook | None,
-                 t_start: float):
-        """gops: the GOPs played, in order; frames: how many frames are played from the first GOP's first;
-        now, sleep: the playback clock (media seconds); t_start: now() when the playback began."""
-        self.cfg, self.clock, self.records, self.gops = cfg, clock, records, gops
-        self.decoder, self.now, self.sleep, self.cameras, self.on_frame = decoder, now, sleep, cameras, on_frame
-        self.t_start, self.frames = t_start, frames
-        self.G, self.fps = pres.shape.gop_size, pres.fps
-        self.k0 = gops[0]
+    def __init__(self, playback: Playback, decoder: GOPDecoder, cameras: list | None, on_frame: FrameHook | None):
+        """cameras: the scene's cameras (for a view that names one), or None; on_frame: called with every frame
+        presented."""
+        p = playback
+        self.cfg, self.clock, self.records, self.gops = p.cfg, p.clock, p.records, p.gops
+        self.decoder, self.now, self.sleep, self.cameras, self.on_frame = decoder, p.now, p.sleep, cameras, on_frame
+        self.t_start, self.frames = p.t_start, p.frames
+        self.G, self.fps = p.pres.shape.gop_size, p.pres.fps
+        self.k0 = p.gops[0]
         self.sink = NullSink()
         self.trajectory: Trajectory | None = None
-        self.queue: asyncio.Queue[FrameTiming | None] = asyncio.Queue(cfg.render_ahead + 1)
-        self.lead = cfg.render_ahead / self.fps if cfg.realtime and cfg.decode else 0.0
+        self.queue: asyncio.Queue[FrameTiming | None] = asyncio.Queue(p.cfg.render_ahead + 1)
+        self.lead = p.cfg.render_ahead / self.fps if p.cfg.realtime and p.cfg.decode else 0.0
         """The renderer's head start: the first GOP, and one that stalled, start this long after they are ready."""
         self.arrived = self.k0
         """The GOP the presenter has reached (playing it, or waiting for it)."""
-        self.started = {k: asyncio.Event() for k in gops}
+        self.started = {k: asyncio.Event() for k in p.gops}
         """Set once GOP k's start time is known (its stall, if any, counted)."""
         self.first_shown: float | None = None
         """now() when the first rendered frame went to the output (its slot, or when it was rendered if later)."""

@@ -49,7 +49,7 @@ from stgs.client.fetchsteps import (
     Step,
     Wait,
 )
-from stgs.client.framepath import FrameHook, FramePath
+from stgs.client.framepath import FrameHook, FramePath, Playback
 from stgs.client.gopdecode import GOPDecoder
 from stgs.client.manifest import Presentation
 from stgs.client.playlog import GOPRecord, playback_log
@@ -91,8 +91,9 @@ class Session:
         self.budget = ThreadBudget.for_cores(usable_cores(), cfg.render_threads, cfg.decode_threads)
         self.decoder = GOPDecoder(cfg, pres, self.schedule, self.records, self.budget, self.drive,
                                   self.t_start / self.speed)
-        self.frame_path = FramePath(cfg, pres, self.clock, self.records, self.gops, self.frames, self.decoder,
-                                    self.now, self.sleep, cameras, on_frame, self.t_start)
+        playback = Playback(cfg, pres, self.clock, self.records, self.gops, self.frames, self.now, self.sleep,
+                            self.t_start)
+        self.frame_path = FramePath(playback, self.decoder, cameras, on_frame)
         if cfg.decode and cfg.ring_frames < pres.shape.window:
             raise PlaybackError(f"a ring of {cfg.ring_frames} feature frames cannot hold one frame's window of "
                                 f"{pres.shape.window}")

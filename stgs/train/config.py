@@ -250,10 +250,8 @@ LAYERED = {
 that together with it holds about twice the single layer's Gaussians, and iterations moved from the per-GOP
 stage to stage A (which nothing refines later), so that one GOP takes about the single layer's wall time. cpu:
 stage A's first 40 % and each GOP's first 80 % at half resolution, which pays for the GOP iterations that lift
-the players; on Panoptic, one 60-frame GOP, six seeds, each run beside format 1's on an AVX2-only AMD machine,
-it took 1.01x format 1's wall time (0.90-1.10x per seed) for a +2.14 dB held-out lead (docs/BENCHMARKS.md; the
-earlier split, 3,500 + 2,000 at full resolution, took 0.86-0.99x on an Intel machine and 1.07-1.17x on that AMD
-one). paper: not measured."""
+the players. What each costs and buys is measured in docs/BENCHMARKS.md, "Layered scenes (model format 2) against
+format 1"; paper: not measured."""
 
 SWITCHES = {"aux": "--no-aux", "dynamic": "--no-dynamic-density", "temporal_weight": "--no-temporal-reg",
             "relocate": "--no-relocate", "migrate": "--no-migrate", "hull_seeds": "--no-hull-seeds",
