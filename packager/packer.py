@@ -40,7 +40,7 @@ from stgs.model.store import SceneMeta, load_gop, load_static, read_meta
 from stgs.mpd_profile import StaticLayerDescriptor
 from stgs.packager.ladder import Candidate, LadderRules, Verdict, allocation_saving, choose_rungs
 from stgs.packager.manifest import ManifestBuilder, RepresentationRecords, SegmentRecord, StaticRecord
-from stgs.packager.segments import FeatureEncoder, PreparedGOP, measure, prepare_gop, quality_views
+from stgs.packager.segments import FeatureEncoder, PreparedGOP, lossy_rungs, measure, prepare_gop, quality_views
 from stgs.packager.state import PackState, check_output_dir, pack_id
 from stgs.synth import load_ground_truth
 from stgs.tree import (
@@ -52,7 +52,6 @@ from stgs.tree import (
     STATS,
     feature_path,
     keyframe_path,
-    keyframe_rep_id,
     quality_measure,
     static_path,
     version_dir,
@@ -202,9 +201,10 @@ class Packer:
 
     def report_keyframes(self, k: int, sizes: dict[str, int]) -> None:
         """Tell the builder of GOP k's keyframe segments (Representation id -> bytes)."""
-        quants = {keyframe_rep_id(name): quant.value for name, quant in KEYFRAME_RUNGS.items() if name != "lossless"}
+        quants = lossy_rungs(self.cfg.lossy_keyframes())
         for rep, size in sizes.items():
-            self.builder.on_keyframe(SegmentRecord(k, self.seconds_per_gop, size), rep, quants.get(rep))
+            quant = None if rep not in quants else quants[rep].value
+            self.builder.on_keyframe(SegmentRecord(k, self.seconds_per_gop, size), rep, quant)
 
     def write_static(self) -> None:
         """A layered scene's static layer, sorted and encoded, into the tree (before any GOP: the QP tasks

@@ -28,7 +28,7 @@ from stgs.codec.features import (
 from stgs.codec.keyframe import Keyframe, decode_keyframe, encode_keyframe
 from stgs.codec.mp4 import set_timeline, split_fragmented
 from stgs.codec.plas import PLASConfig, permute_gop, plas_order, sort_key
-from stgs.codec.quant import KEYFRAME_RUNGS
+from stgs.codec.quant import KEYFRAME_RUNGS, KeyframeQuant
 from stgs.codec.video import FeatureCodec, VideoTiming, decode_segment, encode_gop
 from stgs.fsio import load_png
 from stgs.metrics import mse_psnr, psnr
@@ -107,6 +107,12 @@ def quality_views(model_dir: Path, meta: SceneMeta, model: Callable[[], GOPModel
     return QualityViews(framing_orbit(model(), cameras, 320, 240), "orbit", picked)
 
 
+def lossy_rungs(names: tuple[str, ...]) -> dict[str, KeyframeQuant]:
+    """Keyframe Representation id (stgs.tree.keyframe_rep_id) -> quantisation of each keyframe rung named
+    (KEYFRAME_RUNGS)."""
+    return {keyframe_rep_id(name): KEYFRAME_RUNGS[name] for name in names}
+
+
 def prepare_gop(model_dir: Path, meta: SceneMeta, k: int, plas: PLASConfig | None, views: int, frames: int | None,
                 static: StaticLayer | None = None, bits: tuple[int, ...] = (VIDEO_BITS,),
                 keyframe_rungs: tuple[str, ...] = ()) -> PreparedGOP:
@@ -130,9 +136,9 @@ def prepare_gop(model_dir: Path, meta: SceneMeta, k: int, plas: PLASConfig | Non
     reference = [renderer.render(f, cam).clamp(0, 1) for f, cam in pairs]
     decoded = decode_keyframe(keyframe, meta.shape, k, max_bytes=len(keyframe))
     lossy = {}
-    for rung in keyframe_rungs:
-        data = encode_keyframe(k, model, ranges, KEYFRAME_RUNGS[rung])
-        lossy[keyframe_rep_id(rung)] = (data, decode_keyframe(data, meta.shape, k, len(data), KEYFRAME_RUNGS[rung]))
+    for rep, quant in lossy_rungs(keyframe_rungs).items():
+        data = encode_keyframe(k, model, ranges, quant)
+        lossy[rep] = (data, decode_keyframe(data, meta.shape, k, len(data), quant))
     return PreparedGOP(k, tiled, ranges, keyframe, decoded, pairs, reference,
                        model_error(model_dir, meta, k, pairs, reference), lossy)
 
@@ -189,7 +195,7 @@ def load_prepared(path: Path, keyframe: bytes, meta: SceneMeta, lossy: dict[str,
     reference = [torch.from_numpy(tensors[f"reference.{i}"]) for i in range(len(views))]
     decoded = decode_keyframe(keyframe, meta.shape, k, max_bytes=len(keyframe))
     frames = {int(name.split(".")[1]): t for name, t in tensors.items() if name.startswith("frames.")}
-    quants = {keyframe_rep_id(name): quant for name, quant in KEYFRAME_RUNGS.items()}
+    quants = lossy_rungs(tuple(KEYFRAME_RUNGS))
     decoded_lossy = {rep: (data, decode_keyframe(data, meta.shape, k, len(data), quants[rep]))
                      for rep, data in (lossy or {}).items()}
     return PreparedGOP(k, frames, torch.from_numpy(tensors["ranges"]), keyframe, decoded, views, reference,
@@ -236,10 +242,11 @@ def quality(gop: PreparedGOP, frames: np.ndarray, bits: int, static: StaticLayer
     lossless keyframe, and under `keyframes` the two PSNRs with each lossy keyframe rung of the GOP instead."""
     feature_psnr = psnr(torch.from_numpy(frames.astype(np.float32)) / code_max(bits),
                         torch.from_numpy(gop.frames[VIDEO_BITS].astype(np.float32)) / VIDEO_MAX)
+    features = features_from_frames(frames, frames.shape[-1] // 4, gop.ranges, bits)  # one decode for every rung
     out = {"feature_psnr": round(min(feature_psnr, 99.0), 4),
-           **_view_psnrs(gop, view_errors(gop, frames, bits, static))}
+           **_view_psnrs(gop, render_errors(gop, gop.decoded_keyframe, features, static))}
     if gop.lossy:
-        out["keyframes"] = {rep: _view_psnrs(gop, view_errors(gop, frames, bits, static, keyframe))
+        out["keyframes"] = {rep: _view_psnrs(gop, render_errors(gop, keyframe, features, static))
                             for rep, (_, keyframe) in gop.lossy.items()}
     return out
 
@@ -251,12 +258,16 @@ def _view_psnrs(gop: PreparedGOP, errors: list[float]) -> dict:
     return out
 
 
-def view_errors(gop: PreparedGOP, frames: np.ndarray, bits: int, static: StaticLayer | None = None,
-                keyframe: Keyframe | None = None) -> list[float]:
-    """Mean squared error of each reference view (gop.views) rendered from the decoded GOP (its decoded keyframe, or
-    `keyframe`, and the `bits`-bit feature `frames`) against the uncompressed GOP's render."""
-    side = frames.shape[-1] // 4
-    features = features_from_frames(frames, side, gop.ranges, bits)
-    renderer = FrameRenderer((keyframe or gop.decoded_keyframe).to_model(features), static=static)
+def view_errors(gop: PreparedGOP, frames: np.ndarray, bits: int, static: StaticLayer | None = None) -> list[float]:
+    """Mean squared error of each reference view (gop.views) rendered from the decoded GOP (its decoded keyframe and
+    the `bits`-bit feature `frames`) against the uncompressed GOP's render."""
+    features = features_from_frames(frames, frames.shape[-1] // 4, gop.ranges, bits)
+    return render_errors(gop, gop.decoded_keyframe, features, static)
+
+
+def render_errors(gop: PreparedGOP, keyframe: Keyframe, features: torch.Tensor,
+                  static: StaticLayer | None = None) -> list[float]:
+    """view_errors of the GOP drawn from `keyframe` and decoded (E, N, 16) `features`."""
+    renderer = FrameRenderer(keyframe.to_model(features), static=static)
     return [(renderer.render(f, cam).clamp(0, 1).double() - ref.double()).square().mean().item()
             for (f, cam), ref in zip(gop.views, gop.reference, strict=True)]

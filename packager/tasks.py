@@ -21,9 +21,9 @@ from stgs.codec.video import CODECS
 from stgs.errors import StgsError
 from stgs.packager.ladder import LadderRules
 from stgs.packager.packer import PackConfig, Packer, point_task_name
-from stgs.packager.segments import load_prepared, save_prepared
+from stgs.packager.segments import load_prepared, lossy_rungs, save_prepared
 from stgs.tasks import Runner, Task
-from stgs.tree import KEYFRAME_REP, PACK_LOGS, PACK_WORK, feature_path, keyframe_path, keyframe_rep_id
+from stgs.tree import KEYFRAME_REP, PACK_LOGS, PACK_WORK, feature_path, keyframe_path
 
 
 @dataclass(frozen=True)
@@ -57,7 +57,7 @@ def prepare_task(job: PackJob, k: int) -> dict:
 
 
 def _keyframe_reps(packer: Packer) -> list[str]:
-    return [KEYFRAME_REP, *(keyframe_rep_id(name) for name in packer.cfg.lossy_keyframes())]
+    return [KEYFRAME_REP, *lossy_rungs(packer.cfg.lossy_keyframes())]
 
 
 def encode_task(job: PackJob, k: int, codec: str, q: int) -> dict:

@@ -53,14 +53,19 @@ SPECS = (
 """The five attribute images, in container order."""
 
 
+def value_range(values: torch.Tensor) -> torch.Tensor:
+    """(2, C) per-column [min, max] of `values` (N, C), a flat column widened so that it can be normalised."""
+    lo, hi = values.amin(0), values.amax(0)
+    hi = torch.where(hi - lo > 1e-12, hi, lo + 1e-6)
+    return torch.stack([lo, hi]).float()
+
+
 def attribute_range(spec: AttributeSpec, values: torch.Tensor) -> torch.Tensor:
     """(2, C) [lo, hi] used to normalise `values` (N, C)."""
-    if spec.clip is not None:
-        lo = torch.full((spec.channels,), spec.clip[0])
-        hi = torch.full((spec.channels,), spec.clip[1])
-    else:
-        lo, hi = values.amin(0), values.amax(0)
-        hi = torch.where(hi - lo > 1e-12, hi, lo + 1e-6)
+    if spec.clip is None:
+        return value_range(values)
+    lo = torch.full((spec.channels,), spec.clip[0])
+    hi = torch.full((spec.channels,), spec.clip[1])
     return torch.stack([lo, hi]).float()
 
 

@@ -40,7 +40,7 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load, save
 
-from stgs.codec.attributes import SPECS, AttributeSpec, apply_attributes, dequantize, encode_attributes
+from stgs.codec.attributes import SPECS, AttributeSpec, apply_attributes, dequantize, encode_attributes, value_range
 from stgs.codec.features import VIDEO_BITS
 from stgs.codec.jxl import ImageDecodeError, decode_jxl, encode_jxl
 from stgs.codec.quant import FLOAT_FIELD_BITS, LOSSLESS, KeyframeQuant
@@ -106,11 +106,11 @@ def quantize_weight(weight: torch.Tensor, bits: int) -> tuple[np.ndarray, torch.
     """(out, in) weights -> (out, in, 1) uint8 codes at 2^bits levels over each row's [lo, hi], and that (2, out)
     range."""
     w = weight.detach().float()
-    lo, hi = w.amin(1), w.amax(1)
-    hi = torch.where(hi - lo > 1e-12, hi, lo + 1e-6)
+    rng = value_range(w.T)  # a column per output row
+    lo, hi = rng
     levels = (1 << bits) - 1
     codes = torch.round((w - lo[:, None]) / (hi - lo)[:, None] * levels).clamp(0, levels)
-    return codes.to(torch.uint8).numpy()[:, :, None], torch.stack([lo, hi]).contiguous()
+    return codes.to(torch.uint8).numpy()[:, :, None], rng.contiguous()
 
 
 def dequantize_weight(codes: np.ndarray, rng: torch.Tensor, bits: int) -> torch.Tensor:
