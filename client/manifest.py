@@ -32,6 +32,7 @@ from stgs.mpd_profile import (
     choose_feature_set,
     gop_count,
     keyframe_quant,
+    paired_keyframe,
 )
 from stgs.mpd_values import MPDError, expand_template
 from stgs.tree import KEYFRAME_REP, qp_of
@@ -72,15 +73,6 @@ class Rung:
     def total_bandwidth(self) -> int:
         """Features and keyframes, bit/s: what the ladder is ordered by."""
         return self.bandwidth + self.keyframe_bandwidth
-
-
-def _paired_keyframe(rep: Representation, keyframes: dict[str, Representation]) -> Representation:
-    """The keyframe Representation a feature Representation names in @associationId (exactly one)."""
-    named = [a for a in rep.association_id if a in keyframes]
-    if len(named) != 1:
-        raise MPDError(f"feature Representation {rep.id} must name one keyframe Representation in @associationId "
-                       f"(of {', '.join(keyframes)}), it names {' '.join(rep.association_id) or 'none'}")
-    return keyframes[named[0]]
 
 
 @dataclass(frozen=True)
@@ -144,7 +136,7 @@ class Presentation:
             raise MPDError(f"{self.num_gops} GOPs is over the client limit of {MAX_GOPS}")
         rungs = []
         for r in self.features.representations:
-            kf = _paired_keyframe(r, self.keyframe_reps)
+            kf = paired_keyframe(r, self.keyframe_reps)
             rungs.append(Rung(r.id, r.bandwidth, qp_of(r.id), QualityDescriptor.parse(r), kf.id, kf.bandwidth))
         self.ladder = sorted(rungs, key=lambda r: (r.total_bandwidth, r.rep_id))
         """Feature Representations, each with its keyframe Representation, by rising total bandwidth."""

@@ -181,6 +181,17 @@ def keyframe_quant(representation: Representation) -> KeyframeQuant:
         raise MPDError(f"keyframe Representation {representation.id}: {exc}") from None
 
 
+def paired_keyframe(representation: Representation, keyframes: dict[str, Representation]) -> Representation:
+    """The keyframe Representation (of `keyframes`, by id) a feature Representation plays with: the one its
+    @associationId names, exactly one (MPDError otherwise)."""
+    named = [a for a in representation.association_id if a in keyframes]
+    if len(named) != 1:
+        raise MPDError(f"feature Representation {representation.id} must name one keyframe Representation in "
+                       f"@associationId (of {', '.join(keyframes)}), it names "
+                       f"{' '.join(representation.association_id) or 'none'}")
+    return keyframes[named[0]]
+
+
 DURATION_PRECISION_S = 1e-3
 """@mediaPresentationDuration is written to the millisecond: a GOP that starts within this of its end is rounding."""
 

@@ -23,6 +23,7 @@ from stgs.mpd_profile import (
     StaticLayerDescriptor,
     feature_set_codec,
     keyframe_quant,
+    paired_keyframe,
 )
 from stgs.mpd_values import MPDError, expand_template
 from stgs.tree import MANIFEST
@@ -61,9 +62,8 @@ def packaged_gops(dash: Path) -> dict[str, Callable[[int], GOPModel]]:
 
     def loader(video: AdaptationSet, codec: FeatureCodec, rep: Representation) -> Callable[[int], GOPModel]:
         init = (dash / expand_template(video.segment_template.initialization, rep.id)).read_bytes()
-        paired = next((keyframe_reps[a] for a in rep.association_id if a in keyframe_reps),
-                      kf_set.representations[0])
         try:
+            paired = paired_keyframe(rep, keyframe_reps)
             quant = keyframe_quant(paired)
         except MPDError as exc:
             raise StgsError(f"{dash}: {exc}") from None
