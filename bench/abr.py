@@ -205,8 +205,8 @@ def rd_table(ladder: Ladder) -> None:
     T, G = ladder.pres.segment_seconds, ladder.pres.shape.gop_size
     print("| QP | features kbit/s | keyframe + features kbit/s | KB/frame | rendered PSNR dB |")
     print("|---|---|---|---|---|")
-    kf = statistics.mean(ladder.keyframe_bytes)
-    for r in reversed(ladder.pres.ladder):
+    for i, r in reversed(list(enumerate(ladder.pres.ladder))):
+        kf = statistics.mean(ladder.rung_keyframe_bytes(i))  # the keyframes this rung plays with
         media = statistics.mean(ladder.media_bytes[r.rep_id])
         print(f"| {r.qp} | {media * 8 / T / 1e3:.0f} | {(kf + media) * 8 / T / 1e3:.0f} | {(kf + media) / G / 1e3:.1f} "
               f"| {statistics.mean(ladder.psnr[r.rep_id]):.2f} |")
@@ -275,9 +275,7 @@ def compare_ladders(dash: Path, against: Path) -> int:
         for tree in (dash, against):
             ladders[tree] = long_ladder(load_ladder(str(tree)), (tree / MANIFEST).read_text(), SECONDS)
         first = ladders[dash]
-        top = first.pres.ladder[-1].rep_id
-        top_kbps = (statistics.mean(first.keyframe_bytes) + statistics.mean(first.media_bytes[top])) * 8 \
-            / first.pres.segment_seconds / 1e3
+        top_kbps = first.rung_kbps(-1)
         print(f"\nMachine: {platform.machine()} {platform.processor() or ''}; A = {dash}, B = {against}, each repeated "
               f"to {SECONDS} s; traces scaled to A's top rung, {top_kbps:.0f} kbit/s\n")
         for tree, ladder in ladders.items():
@@ -323,9 +321,7 @@ def main(dash: Path | None, trace_dirs: list[Path] | None = None, latency_ms: fl
         print(f"\nMachine: {platform.machine()} {platform.processor() or ''}; scene {dash} repeated to {SECONDS} s\n")
         rd_table(ladders[next(iter(ladders))])
         for lname, ladder in ladders.items():
-            top = ladder.pres.ladder[-1].rep_id
-            top_kbps = (statistics.mean(ladder.keyframe_bytes) + statistics.mean(ladder.media_bytes[top])) * 8 \
-                / ladder.pres.segment_seconds / 1e3
+            top_kbps = ladder.rung_kbps(-1)
             if trace_dirs:
                 sets = recorded_sets(trace_dirs, latency_ms, top_kbps if scale else None)
             else:

@@ -73,9 +73,7 @@ def main(argv: list[str] | None = None) -> int:
         dash = args.dash or packed_scene(Path(tmp))
         base = load_ladder(str(dash))
         ladder = long_ladder(base, (dash / MANIFEST).read_text(), SECONDS)
-        top = ladder.pres.ladder[-1].rep_id
-        top_kbps = (statistics.mean(ladder.keyframe_bytes) + statistics.mean(ladder.media_bytes[top])) * 8 \
-            / ladder.pres.segment_seconds / 1e3
+        top_kbps = ladder.rung_kbps(-1)
         traces = {ts.name: trace_set(ts, top_kbps, Path(tmp)) for ts in SETS}
         keys = [(ts, b) for ts in SETS for b in BUFFERS]
         classic = {rule: [run(ladder, traces[ts.name], ts, b, rule, AbrSettings()) for ts, b in keys]

@@ -29,10 +29,11 @@ SCALED = 4.0
 
 
 def scenarios(ladder: Ladder) -> dict[str, dict]:
-    """Named effect sets scaled to the scene's rates (kf: keyframe kbit/s, top: keyframe + top rung)."""
+    """Named effect sets scaled to the scene's rates (kf: the floor rung's keyframe kbit/s, top: the top rung's
+    keyframe + features)."""
     T = ladder.pres.segment_seconds
-    kf = max(ladder.keyframe_bytes) * 8 / T / 1e3
-    top = kf + max(ladder.media_bytes[ladder.pres.ladder[-1].rep_id]) * 8 / T / 1e3
+    kf = max(ladder.rung_keyframe_bytes(0)) * 8 / T / 1e3  # the floor rung's keyframes
+    top = (max(ladder.rung_keyframe_bytes(-1)) + max(ladder.media_bytes[ladder.pres.ladder[-1].rep_id])) * 8 / T / 1e3
     return {
         "ample (10x top)": {"bandwidth": {"kbps": 10 * top}},
         "tight (1.3x keyframe)": {"bandwidth": {"kbps": 1.3 * kf}},

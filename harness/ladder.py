@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import urlparse
@@ -49,6 +50,17 @@ class Ladder:
     def keyframe_size(self, rep: str, k: int) -> int:
         """Bytes of GOP k's segment of keyframe Representation `rep`."""
         return self.keyframe_bytes[k] if rep == KEYFRAME_REP else self.lossy_keyframe_bytes[rep][k]
+
+    def rung_keyframe_bytes(self, i: int) -> list[int]:
+        """Per GOP, the bytes of the keyframes ladder rung i plays with (its keyframe Representation's)."""
+        r = self.pres.ladder[i]
+        return [self.keyframe_size(r.keyframe_rep, k) for k in range(len(self.media_bytes[r.rep_id]))]
+
+    def rung_kbps(self, i: int) -> float:
+        """Mean kbit/s of ladder rung i over the GOPs: its features and the keyframes it plays with."""
+        r = self.pres.ladder[i]
+        return (statistics.mean(self.rung_keyframe_bytes(i)) + statistics.mean(self.media_bytes[r.rep_id])) * 8 \
+            / self.pres.segment_seconds / 1e3
 
     def gop_info(self, k: int) -> UpcomingGOP:
         """GOP k's sizes (bits) and per-rung PSNR (None unless every rung has one), as the ABR rules see them."""
