@@ -31,7 +31,8 @@ const sparkPatch = {
       const source = readFileSync(args.path, "utf8");
       const literal = /^const jsContent = ('(?:[^'\\]|\\.)*');$/m.exec(source);
       const blobUrl = "(self.URL || self.webkitURL).createObjectURL(blob)";
-      if (!literal || !source.includes(blobUrl)) throw new Error("Spark's worker is not where the bench build expects it");
+      if (!literal || !source.includes(blobUrl))
+        throw new Error("Spark's worker is not where the bench build expects it");
       sparkWorker = new Function(`return ${literal[1]}`)();
       return { contents: source.replace(blobUrl, "self.sparkWorkerUrl"), loader: "js" };
     });
@@ -80,17 +81,18 @@ const html = readFileSync(join(here, "src/index.html"), "utf8")
   .replace("%MAIN%", assets.main)
   .replace("%ASSETS%", JSON.stringify(assets).replaceAll("'", "&#39;"));
 writeFileSync(join(tmp, "index.html"), html);
-writeFileSync(join(tmp, "assets.json"), JSON.stringify(assets, null, 1) + "\n");
+writeFileSync(join(tmp, "assets.json"), `${JSON.stringify(assets, null, 1)}\n`);
 
-if (!bench) await esbuild.build({
-  entryPoints: ["src/abr/index.ts"],
-  bundle: true,
-  format: "esm",
-  platform: "node",
-  target: "node20",
-  outfile: join(tmp, "node", "abr.mjs"),
-  logLevel: "warning",
-});
+if (!bench)
+  await esbuild.build({
+    entryPoints: ["src/abr/index.ts"],
+    bundle: true,
+    format: "esm",
+    platform: "node",
+    target: "node20",
+    outfile: join(tmp, "node", "abr.mjs"),
+    logLevel: "warning",
+  });
 
 rmSync(out, { recursive: true, force: true });
 renameSync(tmp, out);

@@ -8,14 +8,14 @@
 // alpha of the most opaque splat falls below 1/255 as ours does; Spark's own default is 2.83), pictures=1.
 import { dyno, SparkRenderer, SplatGenerator } from "@sparkjsdev/spark";
 import * as THREE from "three";
+import type { View } from "../src/camera";
 import { Player, type PlayerOptions } from "../src/player";
-import type { Deformer } from "../src/render/layers";
-import type { StaticTextures } from "../src/render/splat";
-import type { Assets } from "../src/stream/workers";
+import type { FramePipeline } from "../src/render/frame";
+import type { Assets } from "../src/stream/worker-pools";
 
+/** The player's GPU side, which the comparison draws from (a private field of the player). */
 interface PlayerInternals {
-  deform: Deformer;
-  staticLayer: StaticTextures | null;
+  frames: FramePipeline;
 }
 
 interface Result {
@@ -55,8 +55,14 @@ function blobWorkerRefused(): Promise<boolean> {
 
 /** The generator's GLSL: Gaussian `index` from the static layer's textures, then the dynamic layer's, activated
  * as our splat pass reads them (static colour plus its degree-1 term toward the camera). */
-function gaussianProgram(staticCount: number, staticSide: number, shDegree: number, dynSide: number,
-  inputs: Record<string, string>, out: string): string[] {
+function gaussianProgram(
+  staticCount: number,
+  staticSide: number,
+  shDegree: number,
+  dynSide: number,
+  inputs: Record<string, string>,
+  out: string,
+): string[] {
   return [
     `int id = ${inputs.index};`,
     "vec4 mo; vec3 scale; vec4 q; vec3 color;",
@@ -64,11 +70,13 @@ function gaussianProgram(staticCount: number, staticSide: number, shDegree: numb
     `  ivec2 g = ivec2(id % ${staticSide}, id / ${staticSide});`,
     `  mo = texelFetch(${inputs.sMean}, g, 0); scale = texelFetch(${inputs.sScale}, g, 0).xyz;`,
     `  q = texelFetch(${inputs.sQuat}, g, 0); color = texelFetch(${inputs.sColor}, g, 0).xyz;`,
-    ...(shDegree ? [
-      `  vec3 d = mo.xyz - ${inputs.camera}; d = d / max(length(d), 1e-12);`,
-      `  color += d.x * texelFetch(${inputs.sh0}, g, 0).xyz + d.y * texelFetch(${inputs.sh1}, g, 0).xyz`,
-      `    + d.z * texelFetch(${inputs.sh2}, g, 0).xyz;`,
-    ] : []),
+    ...(shDegree
+      ? [
+          `  vec3 d = mo.xyz - ${inputs.camera}; d = d / max(length(d), 1e-12);`,
+          `  color += d.x * texelFetch(${inputs.sh0}, g, 0).xyz + d.y * texelFetch(${inputs.sh1}, g, 0).xyz`,
+          `    + d.z * texelFetch(${inputs.sh2}, g, 0).xyz;`,
+        ]
+      : []),
     "} else {",
     `  int j = id - ${staticCount};`,
     `  ivec2 g = ivec2(j % ${dynSide}, j / ${dynSide});`,
@@ -85,9 +93,14 @@ function gaussianProgram(staticCount: number, staticSide: number, shDegree: numb
   ];
 }
 
-function generator(internals: PlayerInternals, capacity: number, dynSide: number, camera: dyno.DynoVal<"vec3">,
-  external: THREE.ExternalTexture[]): SplatGenerator {
-  const s = internals.staticLayer;
+function generator(
+  internals: PlayerInternals,
+  capacity: number,
+  dynSide: number,
+  camera: dyno.DynoVal<"vec3">,
+  external: THREE.ExternalTexture[],
+): SplatGenerator {
+  const s = internals.frames.staticLayer;
   const staticCount = s ? s.count : 0;
   const sampler = (t: THREE.ExternalTexture) => dyno.dynoSampler2D(t as unknown as THREE.Texture);
   const names = ["dMean", "dScale", "dQuat", "dColor", "sMean", "sScale", "sQuat", "sColor", "sh0", "sh1", "sh2"];
@@ -95,16 +108,18 @@ function generator(internals: PlayerInternals, capacity: number, dynSide: number
     const inTypes: Record<string, string> = { index: "int", camera: "vec3" };
     const inputs: Record<string, unknown> = { index, camera };
     external.forEach((t, i) => {
-      inTypes[names[i]] = "sampler2D";
-      inputs[names[i]] = sampler(t);
+      inTypes[names[i]!] = "sampler2D";
+      inputs[names[i]!] = sampler(t);
     });
-    type Glsl = { inputs: Record<string, string>; outputs: Record<string, string> };
+    type Glsl = { inputs: Record<string, string>; outputs: { gsplat: string } };
     // The inputs are assembled at run time (the static layer's textures only where there is one), which Dyno's
     // generic parameter types cannot follow: hence the casts.
     const d = new dyno.Dyno({
-      inTypes, outTypes: { gsplat: dyno.Gsplat }, inputs,
-      statements: ({ inputs: glsl, outputs }: Glsl) => gaussianProgram(staticCount, s ? s.side : 1,
-        s ? s.shDegree : 0, dynSide, glsl, outputs.gsplat),
+      inTypes,
+      outTypes: { gsplat: dyno.Gsplat },
+      inputs,
+      statements: ({ inputs: glsl, outputs }: Glsl) =>
+        gaussianProgram(staticCount, s ? s.side : 1, s ? s.shDegree : 0, dynSide, glsl, outputs.gsplat),
     } as never) as dyno.Dyno<{ index: "int" }, { gsplat: typeof dyno.Gsplat }>;
     return { gsplat: d.outputs.gsplat };
   });
@@ -112,12 +127,10 @@ function generator(internals: PlayerInternals, capacity: number, dynSide: number
 }
 
 /** A three.js camera equal to our View: OpenCV pose and pinhole K (skew included) as OpenGL matrices. */
-type View = ReturnType<Player["camera"]["view"]>;
 
 function setCamera(camera: THREE.PerspectiveCamera, view: View): void {
   const flip = new THREE.Matrix4().makeScale(1, -1, -1);
-  const worldToCamera = new THREE.Matrix4().set(...(Array.from(view.viewmat) as [number, number, number, number,
-    number, number, number, number, number, number, number, number, number, number, number, number]));
+  const worldToCamera = new THREE.Matrix4().set(...(Array.from(view.viewmat) as Parameters<THREE.Matrix4["set"]>));
   camera.matrixAutoUpdate = false;
   camera.matrix.copy(flip.multiply(worldToCamera).invert());
   camera.matrix.decompose(camera.position, camera.quaternion, camera.scale);
@@ -127,8 +140,24 @@ function setCamera(camera: THREE.PerspectiveCamera, view: View): void {
   const [near, far] = [0.01, 1000];
   camera.near = near;
   camera.far = far;
-  camera.projectionMatrix.set(2 * fx / W, -2 * skew / W, 1 - 2 * cx / W, 0, 0, 2 * fy / H, 2 * cy / H - 1, 0,
-    0, 0, -(far + near) / (far - near), -2 * far * near / (far - near), 0, 0, -1, 0);
+  camera.projectionMatrix.set(
+    (2 * fx) / W,
+    (-2 * skew) / W,
+    1 - (2 * cx) / W,
+    0,
+    0,
+    (2 * fy) / H,
+    (2 * cy) / H - 1,
+    0,
+    0,
+    0,
+    -(far + near) / (far - near),
+    (-2 * far * near) / (far - near),
+    0,
+    0,
+    -1,
+    0,
+  );
   camera.projectionMatrixInverse.copy(camera.projectionMatrix).invert();
 }
 
@@ -144,7 +173,7 @@ function psnr(a: Uint8Array, b: Uint8Array): number {
   let n = 0;
   for (let i = 0; i < a.length; i++) {
     if (i % 4 === 3) continue;
-    sum += (a[i] - b[i]) ** 2;
+    sum += (a[i]! - b[i]!) ** 2;
     n++;
   }
   return sum === 0 ? Infinity : 10 * Math.log10((255 * 255) / (sum / n));
@@ -152,13 +181,23 @@ function psnr(a: Uint8Array, b: Uint8Array): number {
 
 async function bench(): Promise<Result> {
   const params = new URLSearchParams(location.search);
-  const assets = JSON.parse(document.querySelector<HTMLMetaElement>('meta[name="stgs-assets"]')!.content) as Assets
-    & { sparkWorker: string };
+  const assets = JSON.parse(document.querySelector<HTMLMetaElement>('meta[name="stgs-assets"]')!.content) as Assets & {
+    sparkWorker: string;
+  };
   window.sparkWorkerUrl = new URL(assets.sparkWorker, location.href).href;
-  const [w, h] = (params.get("size") ?? "640x360").split("x").map(Number);
+  const [w = 640, h = 360] = (params.get("size") ?? "640x360").split("x").map(Number);
   const frames = Number(params.get("frames") ?? 12);
-  const options: PlayerOptions = { abr: "dynamic", rung: null, bufferGops: 3, background: [0, 0, 0], size: [w, h],
-    syncTiming: true, digests: false, weights: null, webgpu: false };
+  const options: PlayerOptions = {
+    abr: "dynamic",
+    rung: null,
+    bufferGops: 3,
+    background: [0, 0, 0],
+    size: [w, h],
+    syncTiming: true,
+    digests: false,
+    weights: null,
+    webgpu: false,
+  };
   const canvas = document.getElementById("view") as HTMLCanvasElement;
   const player = new Player(canvas, assets, options);
   player.paused = true;
@@ -168,7 +207,12 @@ async function bench(): Promise<Result> {
     player.options.rung = rung;
     player.setRung(rung);
   }
-  player.snapTo(Math.max(0, player.cameras.findIndex((c) => c.name === params.get("camera"))));
+  player.snapTo(
+    Math.max(
+      0,
+      player.cameras.findIndex((c) => c.name === params.get("camera")),
+    ),
+  );
   const internals = player as unknown as PlayerInternals;
   const gl = canvas.getContext("webgl2")!;
 
@@ -180,7 +224,9 @@ async function bench(): Promise<Result> {
     await player.showFrame(f);
     if (f === middle) [oursPicture, oursPng] = [readCanvas(gl, w, h), canvas.toDataURL()];
   }
-  const ours = player.stats.frameTimes.slice(-frames).map((t) => ({ deform: t.deform, sort: t.sortWait, draw: t.draw }));
+  const ours = player.stats.frameTimes
+    .slice(-frames)
+    .map((t) => ({ deform: t.deform, sort: t.sortWait, draw: t.draw }));
 
   const renderer = new THREE.WebGLRenderer({ canvas, context: gl, antialias: false });
   renderer.setPixelRatio(1);
@@ -188,12 +234,22 @@ async function bench(): Promise<Result> {
   renderer.outputColorSpace = THREE.SRGBColorSpace; // Spark writes the colours as they are (no sRGB-to-linear)
   renderer.setClearColor(0x000000, 1);
   const scene = new THREE.Scene();
-  const spark = new SparkRenderer({ renderer, autoUpdate: false, minSortIntervalMs: 0, minAlpha: 1 / 255, blurAmount: 0.3,
-    preBlurAmount: 0, maxStdDev: Number(params.get("stddev") ?? Math.sqrt(2 * Math.log(255))), sortRadial: false, accumExtSplats: params.get("ext") === "1", enableLod: false });
+  const spark = new SparkRenderer({
+    renderer,
+    autoUpdate: false,
+    minSortIntervalMs: 0,
+    minAlpha: 1 / 255,
+    blurAmount: 0.3,
+    preBlurAmount: 0,
+    maxStdDev: Number(params.get("stddev") ?? Math.sqrt(2 * Math.log(255))),
+    sortRadial: false,
+    accumExtSplats: params.get("ext") === "1",
+    enableLod: false,
+  });
   scene.add(spark);
   const camera = new THREE.PerspectiveCamera();
   const eye = dyno.dynoVec3(new THREE.Vector3());
-  const sources = () => [...internals.deform.outputs, ...(internals.staticLayer?.textures ?? [])];
+  const sources = () => [...internals.frames.deformer.outputs, ...(internals.frames.staticLayer?.textures ?? [])];
   const external = sources().map((t) => new THREE.ExternalTexture(t));
   const splats = generator(internals, player.manifest.shape.capacity, player.manifest.shape.side, eye, external);
   scene.add(splats);
@@ -207,7 +263,9 @@ async function bench(): Promise<Result> {
     const view = player.camera.view(w, h);
     setCamera(camera, view);
     eye.value.copy(camera.position);
-    sources().forEach((t, i) => { external[i].sourceTexture = t; });
+    sources().forEach((t, i) => {
+      external[i]!.sourceTexture = t;
+    });
     const t0 = performance.now();
     splats.updateVersion();
     await spark.update({ scene, camera });
@@ -218,9 +276,15 @@ async function bench(): Promise<Result> {
     if (f === middle) [sparkPicture, sparkPng] = [readCanvas(gl, w, h), canvas.toDataURL()];
   }
   renderer.resetState();
-  return { gaussians: splats.numSplats, ours, spark: spk, psnr: psnr(oursPicture, sparkPicture),
+  return {
+    gaussians: splats.numSplats,
+    ours,
+    spark: spk,
+    psnr: psnr(oursPicture, sparkPicture),
     pictures: params.get("pictures") === "1" ? [oursPng, sparkPng] : null,
-    blobWorkerRefused: await blobWorkerRefused(), agent: navigator.userAgent };
+    blobWorkerRefused: await blobWorkerRefused(),
+    agent: navigator.userAgent,
+  };
 }
 
 window.sparkBench = bench();

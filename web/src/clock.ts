@@ -16,7 +16,12 @@ export class PresentationClock {
 
   /** The newest ready frame after `current` that the clock has reached (-1: none), and whether the clock has
    * just stopped for want of one (a stall). */
-  next(now: number, current: number, total: number, ready: (frame: number) => boolean): { frame: number; stalled: boolean } {
+  next(
+    now: number,
+    current: number,
+    total: number,
+    ready: (frame: number) => boolean,
+  ): { frame: number; stalled: boolean } {
     if (this.start < 0 && ready(this.frame)) this.start = now;
     const due = this.start < 0 ? this.frame : this.frame + Math.floor(((now - this.start) / 1e3) * this.fps);
     const target = Math.min(due, total - 1);

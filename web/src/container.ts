@@ -22,7 +22,23 @@ export const SPECS: AttributeSpec[] = [
   { name: "opacity", channels: 1, levels: 1 << 6 },
   { name: "color", channels: 3, levels: 1 << 16 },
 ];
-export const SH1_SPECS: AttributeSpec[] = ["x", "y", "z"].map((a) => ({ name: `sh1_${a}`, channels: 3, levels: 1 << 16 }));
+export const SH1_SPECS: AttributeSpec[] = ["x", "y", "z"].map((a) => ({
+  name: `sh1_${a}`,
+  channels: 3,
+  levels: 1 << 16,
+}));
+
+/** The decoded attributes of a keyframe or static layer: SPECS' five, and SH1_SPECS' where the layer has them. */
+export type Attributes = Record<"position" | "scale" | "rotation" | "opacity" | "color", Float32Array> &
+  Partial<Record<string, Float32Array>>;
+
+/** `decoded` (attribute name -> floats) as Attributes, once each of SPECS' names is there (SegmentError if not). */
+export function asAttributes(decoded: Record<string, Float32Array>, what: string): Attributes {
+  const { position, scale, rotation, opacity, color } = decoded;
+  if (!position || !scale || !rotation || !opacity || !color)
+    throw new SegmentError(`${what}: an attribute is missing`);
+  return { ...decoded, position, scale, rotation, opacity, color };
+}
 
 /** The deformation field's weights (name -> [out, in]); stgs/model/gop.py DeformationField. */
 export function fieldShapes(window: number, peFreqs: number): Record<string, [number, number]> {
@@ -53,7 +69,14 @@ export interface KeyframeQuant {
 
 export const FLOAT_FIELD_BITS = 32;
 export const MAX_FIELD_BITS = 8;
-export const LOSSLESS: KeyframeQuant = { position: 16, scale: 6, rotation: 7, opacity: 6, color: 16, field: FLOAT_FIELD_BITS };
+export const LOSSLESS: KeyframeQuant = {
+  position: 16,
+  scale: 6,
+  rotation: 7,
+  opacity: 6,
+  color: 16,
+  field: FLOAT_FIELD_BITS,
+};
 const QUANT_KEYS = ["position", "scale", "rotation", "opacity", "color", "field"] as const;
 
 export function isLossless(q: KeyframeQuant): boolean {
@@ -75,9 +98,13 @@ export function parseQuant(value: string): KeyframeQuant {
   const q = { ...LOSSLESS };
   for (const k of QUANT_KEYS) {
     const raw = got.get(k) ?? "";
-    if (!/^\d{1,2}$/.test(raw)) throw new Error(`quant bits must be integers, got ${JSON.stringify(value.slice(0, 80))}`);
+    if (!/^\d{1,2}$/.test(raw))
+      throw new Error(`quant bits must be integers, got ${JSON.stringify(value.slice(0, 80))}`);
     const bits = Number(raw);
-    const ok = k === "field" ? bits === FLOAT_FIELD_BITS || (bits >= 2 && bits <= MAX_FIELD_BITS) : bits >= 1 && bits <= LOSSLESS[k];
+    const ok =
+      k === "field"
+        ? bits === FLOAT_FIELD_BITS || (bits >= 2 && bits <= MAX_FIELD_BITS)
+        : bits >= 1 && bits <= LOSSLESS[k];
     if (!ok) throw new Error(`quant ${k}=${bits} is out of range`);
     q[k] = bits;
   }
@@ -113,25 +140,46 @@ export function imageTensors(specs: AttributeSpec[]): Map<string, number[] | nul
   return want;
 }
 
-export function keyframeMetadata(gop: number, shape: SceneShape, quant: KeyframeQuant = LOSSLESS): Record<string, string> {
+export function keyframeMetadata(
+  gop: number,
+  shape: SceneShape,
+  quant: KeyframeQuant = LOSSLESS,
+): Record<string, string> {
   const meta: Record<string, string> = {
-    format: "streamstgs-keyframe", version: "1", gop: String(gop), grid_side: String(shape.side),
-    capacity: String(shape.capacity), gop_size: String(shape.gopSize), window: String(shape.window),
-    pe_freqs: String(shape.peFreqs), feature_bits: "12",
+    format: "streamstgs-keyframe",
+    version: "1",
+    gop: String(gop),
+    grid_side: String(shape.side),
+    capacity: String(shape.capacity),
+    gop_size: String(shape.gopSize),
+    window: String(shape.window),
+    pe_freqs: String(shape.peFreqs),
+    feature_bits: "12",
   };
   if (!isLossless(quant)) meta.quant = quantValue(quant);
   return meta;
 }
 
 export function staticMetadata(capacity: number, side: number, shDegree: number): Record<string, string> {
-  return { format: "streamstgs-static", version: "1", capacity: String(capacity), grid_side: String(side), sh_degree: String(shDegree) };
+  return {
+    format: "streamstgs-static",
+    version: "1",
+    capacity: String(capacity),
+    grid_side: String(side),
+    sh_degree: String(shDegree),
+  };
 }
 
 export type Tensors = Map<string, Uint8Array | Float32Array>;
 
 /** The segment's tensors: JPEG XL byte strings as Uint8Array views, floats copied into Float32Arrays. */
-export function readContainer(data: ArrayBuffer, metadata: Record<string, string>, want: Map<string, number[] | null>,
-  maxBytes: number, what: string): Tensors {
+export function readContainer(
+  data: ArrayBuffer,
+  metadata: Record<string, string>,
+  want: Map<string, number[] | null>,
+  maxBytes: number,
+  what: string,
+): Tensors {
   const fail = (m: string): never => {
     throw new SegmentError(`${what} ${m}`);
   };
@@ -157,7 +205,9 @@ export function readContainer(data: ArrayBuffer, metadata: Record<string, string
   for (const [key, value] of Object.entries(metadata)) {
     if (meta[key] !== value) fail(`${key} is ${JSON.stringify(meta[key])}, expected ${JSON.stringify(value)}`);
   }
-  const extra = Object.keys(meta).filter((k) => !(k in metadata)).sort();
+  const extra = Object.keys(meta)
+    .filter((k) => !(k in metadata))
+    .sort();
   if (extra.length) fail(`metadata has unexpected keys ${JSON.stringify(extra)}`);
   const names = Object.keys(header).filter((k) => k !== "__metadata__");
   const missing = [...want.keys()].filter((k) => !names.includes(k));
@@ -170,11 +220,18 @@ export function readContainer(data: ArrayBuffer, metadata: Record<string, string
     const dtype = shape === null ? "U8" : "F32";
     if (typeof entry !== "object" || entry === null || entry.dtype !== dtype) fail(`tensor ${name} must be ${dtype}`);
     const offsets = entry.data_offsets;
-    if (!Array.isArray(offsets) || offsets.length !== 2 || !offsets.every((o) => Number.isSafeInteger(o) && o >= 0)
-      || offsets[0] > offsets[1] || body + offsets[1] > data.byteLength) fail(`tensor ${name} has bad byte offsets`);
+    if (
+      !Array.isArray(offsets) ||
+      offsets.length !== 2 ||
+      !offsets.every((o) => Number.isSafeInteger(o) && o >= 0) ||
+      offsets[0] > offsets[1] ||
+      body + offsets[1] > data.byteLength
+    )
+      fail(`tensor ${name} has bad byte offsets`);
     const [start, end] = offsets as [number, number];
     if (shape === null) {
-      if (!Array.isArray(entry.shape) || entry.shape.length !== 1 || entry.shape[0] !== end - start) fail(`tensor ${name} shape does not match its bytes`);
+      if (!Array.isArray(entry.shape) || entry.shape.length !== 1 || entry.shape[0] !== end - start)
+        fail(`tensor ${name} shape does not match its bytes`);
       tensors.set(name, new Uint8Array(data, body + start, end - start));
     } else {
       if (!Array.isArray(entry.shape) || entry.shape.join(",") !== shape.join(",")) {
@@ -202,27 +259,33 @@ export function dequantize(spec: AttributeSpec, codes: Uint8Array | Uint16Array,
   const f = Math.fround;
   const denom = f(spec.levels - 1);
   for (let i = 0; i < codes.length; i++) {
-    const code = codes[i];
+    const code = codes[i]!;
     if (code >= spec.levels) throw new SegmentError(`${spec.name}: code ${code} exceeds ${spec.levels - 1}`);
     const ch = i % c;
-    const lo = range[ch];
-    out[i] = f(f(f(code / denom) * f(range[c + ch] - lo)) + lo);
+    const lo = range[ch]!;
+    out[i] = f(f(f(code / denom) * f(range[c + ch]! - lo)) + lo);
   }
   return out;
 }
 
 /** Per-row weight codes (out x in, row-major) -> float32 weights: unit = code / (2^bits - 1); lo + unit * (hi - lo)
  * with row r's [lo, hi] = range[r], range[out + r] (stgs/codec/keyframe.py dequantize_weight). */
-export function dequantizeWeight(codes: Uint8Array, range: Float32Array, bits: number, out: number, inp: number): Float32Array {
+export function dequantizeWeight(
+  codes: Uint8Array,
+  range: Float32Array,
+  bits: number,
+  out: number,
+  inp: number,
+): Float32Array {
   const f = Math.fround;
   const levels = 2 ** bits - 1;
   const denom = f(levels);
   const w = new Float32Array(out * inp);
   for (let r = 0; r < out; r++) {
-    const lo = range[r];
-    const span = f(range[out + r] - lo);
+    const lo = range[r]!;
+    const span = f(range[out + r]! - lo);
     for (let c = 0; c < inp; c++) {
-      const code = codes[r * inp + c];
+      const code = codes[r * inp + c]!;
       if (code > levels) throw new SegmentError(`weight code ${code} exceeds ${levels}`);
       w[r * inp + c] = f(f(f(code / denom) * span) + lo);
     }

@@ -1,4 +1,4 @@
-// The caps of stgs/limits.py that the page applies to what it fetches (DESIGN.md: sizes are checked before
+// The caps of stgs/limits.py that the page applies to what it fetches (docs/ARCHITECTURE.md: sizes are checked before
 // allocation). tests/web/test_contracts.py holds every value here equal to the Python one of the same name.
 export const MAX_CAPACITY = 4194304;
 export const MAX_GOP_SIZE = 1024;

@@ -5,7 +5,7 @@
 import { RULES } from "./abr/index";
 import { describe, UnsupportedError } from "./errors";
 import { Player, type PlayerOptions } from "./player";
-import type { Assets } from "./stream/workers";
+import type { Assets } from "./stream/worker-pools";
 import { bindControls, showError } from "./ui";
 
 declare global {
@@ -19,7 +19,8 @@ async function main(): Promise<void> {
   const assets = JSON.parse(document.querySelector<HTMLMetaElement>('meta[name="stgs-assets"]')!.content) as Assets;
   const mpd = params.get("mpd");
   if (!mpd) return listScenes();
-  if (typeof VideoDecoder === "undefined") throw new UnsupportedError("this browser has no WebCodecs VideoDecoder, which the feature video (AV1) needs");
+  if (typeof VideoDecoder === "undefined")
+    throw new UnsupportedError("this browser has no WebCodecs VideoDecoder, which the feature video (AV1) needs");
   const abr = params.get("abr") ?? "dynamic";
   if (!(abr in RULES)) throw new Error(`abr=${abr} is not a rule; known: ${Object.keys(RULES).join(", ")}`);
   const size = params.get("size");
@@ -27,7 +28,9 @@ async function main(): Promise<void> {
   if (size && !sizeMatch) throw new Error(`size=${size} is not WIDTHxHEIGHT`);
   const bg = (params.get("background") ?? "0,0,0").split(",").map(Number);
   const options: PlayerOptions = {
-    abr, rung: null, bufferGops: Number(params.get("buffer") ?? 3) || 3,
+    abr,
+    rung: null,
+    bufferGops: Number(params.get("buffer") ?? 3) || 3,
     background: [bg[0] || 0, bg[1] || 0, bg[2] || 0],
     size: sizeMatch ? [Number(sizeMatch[1]), Number(sizeMatch[2])] : null,
     syncTiming: params.get("timing") === "sync",
@@ -36,7 +39,8 @@ async function main(): Promise<void> {
     webgpu: params.get("deform") === "webgpu",
   };
   const weights = params.get("weights");
-  if (weights !== null && weights !== "uniform" && weights !== "texture") throw new Error(`weights=${weights} is not uniform or texture`);
+  if (weights !== null && weights !== "uniform" && weights !== "texture")
+    throw new Error(`weights=${weights} is not uniform or texture`);
   options.weights = weights;
   const player = new Player(document.getElementById("view") as HTMLCanvasElement, assets, options);
   window.stgsPlayer = player;
@@ -46,13 +50,19 @@ async function main(): Promise<void> {
   const quality = params.get("quality");
   if (params.get("autoplay") === "0") player.paused = true;
   await player.load(mpd);
-  const codec = player.manifest.rungs[0].codecs;
+  const codec = player.manifest.rungs[0]!.codecs;
   const side = 4 * player.manifest.shape.side;
   const { supported } = await VideoDecoder.isConfigSupported({ codec, codedWidth: side, codedHeight: side });
-  if (!supported) throw new UnsupportedError(`this browser's WebCodecs cannot decode ${codec} (AV1 10-bit), which the feature video needs`);
+  if (!supported)
+    throw new UnsupportedError(
+      `this browser's WebCodecs cannot decode ${codec} (AV1 10-bit), which the feature video needs`,
+    );
   if (quality !== null && quality !== "auto") {
     const rung = player.manifest.rungs.findIndex((r) => r.id === quality);
-    if (rung < 0) throw new Error(`quality=${quality} is not a rung; the scene has ${player.manifest.rungs.map((r) => r.id).join(", ")}`);
+    if (rung < 0)
+      throw new Error(
+        `quality=${quality} is not a rung; the scene has ${player.manifest.rungs.map((r) => r.id).join(", ")}`,
+      );
     player.options.rung = rung;
     player.setRung(rung);
   }

@@ -1,4 +1,4 @@
-// The MPD as the page sees it (client/manifest.py's checks, manifests/PROFILE.md): one static Period; the
+// The MPD as the page sees it (stgs/client/manifest.py's checks, manifests/PROFILE.md): one static Period; the
 // keyframe set, the optional static-layer set and the AV1 10-bit feature set found by their scheme URIs;
 // the scene's sizes read from the descriptors and checked against the caps before anything is fetched;
 // SegmentTemplates resolved against the MPD's URL and its BaseURLs, every URL checked by the URL policy.
@@ -66,7 +66,7 @@ export interface Manifest {
   shape: SceneShape;
   staticLayer: StaticLayerInfo | null;
   keyframeReps: Map<string, KeyframeRep>;
-  /** Feature rungs by rising total bandwidth (features and their keyframes; client/manifest.py's order). */
+  /** Feature rungs by rising total bandwidth (features and their keyframes; stgs/client/manifest.py's order). */
   rungs: Rung[];
   /** Codecs of the HEVC set when the tree also has one (the page cannot decode it). */
   otherCodecs: string[];
@@ -87,9 +87,11 @@ function fail(message: string): never {
 }
 
 export function parseDuration(text: string | null, what: string): number {
-  const m = text ? /^P(?:(\d+(?:\.\d+)?)D)?(?:T(?:(\d+(?:\.\d+)?)H)?(?:(\d+(?:\.\d+)?)M)?(?:(\d+(?:\.\d+)?)S)?)?$/.exec(text.trim()) : null;
+  const m = text
+    ? /^P(?:(\d+(?:\.\d+)?)D)?(?:T(?:(\d+(?:\.\d+)?)H)?(?:(\d+(?:\.\d+)?)M)?(?:(\d+(?:\.\d+)?)S)?)?$/.exec(text.trim())
+    : null;
   if (!m || text === "P" || text === "PT") fail(`${what} is not an ISO 8601 duration: ${JSON.stringify(text)}`);
-  const [d, h, min, s] = m.slice(1).map((v) => (v ? Number(v) : 0));
+  const [d = 0, h = 0, min = 0, s = 0] = m.slice(1).map((v) => (v ? Number(v) : 0));
   const seconds = d * 86400 + h * 3600 + min * 60 + s;
   if (!Number.isFinite(seconds) || seconds <= 0 || seconds > L.MAX_DURATION_S) fail(`${what} ${text} is out of range`);
   return seconds;
@@ -153,7 +155,9 @@ function quality(rep: Element, id: string): { renderPsnr: number | null; truthPs
     const raw = fields.get(key);
     if (raw === undefined && optional) return null;
     if (raw === undefined || !/^\d{1,2}(\.\d{1,6})?$/.test(raw)) {
-      fail(`quality descriptor of Representation ${id}: ${key}=${String(raw).slice(0, 40)} is not a number in 0..99 dB`);
+      fail(
+        `quality descriptor of Representation ${id}: ${key}=${String(raw).slice(0, 40)} is not a number in 0..99 dB`,
+      );
     }
     return Number(raw);
   };
@@ -165,7 +169,10 @@ function children(el: Element, name: string): Element[] {
 }
 
 function scheme(set: Element): Element | null {
-  return children(set, "SupplementalProperty").find((p) => p.getAttribute("schemeIdUri")?.startsWith("urn:streamstgs:")) ?? null;
+  return (
+    children(set, "SupplementalProperty").find((p) => p.getAttribute("schemeIdUri")?.startsWith("urn:streamstgs:")) ??
+    null
+  );
 }
 
 interface Template {
@@ -181,12 +188,17 @@ function template(set: Element): Template {
   const timescale = intAttr(t, "timescale", 1, 1e12, 1);
   const duration = intAttr(t, "duration", 1, 1e15);
   const media = t.getAttribute("media") ?? fail("SegmentTemplate lacks @media");
-  return { media, init: t.getAttribute("initialization"), seconds: duration / timescale, start: intAttr(t, "startNumber", 0, 1e9, 1) };
+  return {
+    media,
+    init: t.getAttribute("initialization"),
+    seconds: duration / timescale,
+    start: intAttr(t, "startNumber", 0, 1e9, 1),
+  };
 }
 
 function baseOf(el: Element, base: string, policy: UrlPolicy): string {
   const [b] = children(el, "BaseURL");
-  if (!b || !b.textContent) return base;
+  if (!b?.textContent) return base;
   const resolved = new URL(b.textContent.trim(), base).href;
   policy.allowHostsOf([resolved]);
   return resolved;
@@ -198,25 +210,31 @@ export function parseManifest(text: string, url: string): Manifest {
   if (/<!DOCTYPE|<!ENTITY/i.test(text)) fail("the manifest has a DOCTYPE or an entity declaration (refused)");
   const doc = new DOMParser().parseFromString(text, "application/xml");
   const error = doc.getElementsByTagName("parsererror")[0];
-  if (error) fail(`the manifest is not XML (${(error.textContent ?? "").trim().split("\n")[0].slice(0, 160)})`);
+  if (error) fail(`the manifest is not XML (${(error.textContent ?? "").trim().split("\n")[0]!.slice(0, 160)})`);
   const mpd = doc.documentElement;
   if (mpd.namespaceURI !== NS || mpd.localName !== "MPD") fail("the document is not an MPEG-DASH MPD");
   if (mpd.getAttribute("type") !== null && mpd.getAttribute("type") !== "static") fail("only static MPDs are played");
-  if (!(mpd.getAttribute("profiles") ?? "").split(",").map((p) => p.trim()).includes(PROFILE)) {
+  if (
+    !(mpd.getAttribute("profiles") ?? "")
+      .split(",")
+      .map((p) => p.trim())
+      .includes(PROFILE)
+  ) {
     fail(`the MPD does not declare the StreamSTGS profile (${PROFILE})`);
   }
   const periods = children(mpd, "Period");
   if (periods.length !== 1) fail(`a StreamSTGS MPD has exactly one Period, this one has ${periods.length}`);
   const policy = new UrlPolicy(url);
-  const base = baseOf(periods[0], baseOf(mpd, url, policy), policy);
-  const sets = children(periods[0], "AdaptationSet");
-  if (sets.length > L.MAX_ADAPTATION_SETS) fail(`the Period has ${sets.length} AdaptationSets, over ${L.MAX_ADAPTATION_SETS}`);
+  const base = baseOf(periods[0]!, baseOf(mpd, url, policy), policy);
+  const sets = children(periods[0]!, "AdaptationSet");
+  if (sets.length > L.MAX_ADAPTATION_SETS)
+    fail(`the Period has ${sets.length} AdaptationSets, over ${L.MAX_ADAPTATION_SETS}`);
   const bySchema = (s: string) => sets.filter((a) => scheme(a)?.getAttribute("schemeIdUri") === s);
   const durationS = parseDuration(mpd.getAttribute("mediaPresentationDuration"), "@mediaPresentationDuration");
 
   const keyframeSets = bySchema(KEYFRAME_SCHEME);
   if (keyframeSets.length !== 1) fail(`the MPD needs exactly one keyframe AdaptationSet (${KEYFRAME_SCHEME})`);
-  const kset = keyframeSets[0];
+  const kset = keyframeSets[0]!;
   const kf = descriptorFields(scheme(kset)!.getAttribute("value") ?? "", "keyframe");
   if (kf.get("version") !== "1") fail(`keyframe descriptor version ${kf.get("version")} is not 1`);
   const capacity = intField(kf, "capacity", 1, L.MAX_CAPACITY, "keyframe");
@@ -226,16 +244,20 @@ export function parseManifest(text: string, url: string): Manifest {
   const window = intField(kf, "window", 1, L.MAX_WINDOW, "keyframe");
   const peFreqs = intField(kf, "pe_freqs", 0, L.MAX_PE_FREQS, "keyframe");
   const fps = Number(kf.get("fps"));
-  if (!(fps >= L.MIN_FPS && fps <= L.MAX_FPS)) fail(`keyframe descriptor fps=${kf.get("fps")} is outside ${L.MIN_FPS}..${L.MAX_FPS}`);
+  if (!(fps >= L.MIN_FPS && fps <= L.MAX_FPS))
+    fail(`keyframe descriptor fps=${kf.get("fps")} is outside ${L.MIN_FPS}..${L.MAX_FPS}`);
   const shape: SceneShape = { capacity, side, gopSize, window, peFreqs, numFeatures: gopSize + window - 1 };
   const kt = template(kset);
   const kbase = baseOf(kset, base, policy);
   const keyframeReps = new Map<string, KeyframeRep>();
   for (const r of children(kset, "Representation")) {
     const id = r.getAttribute("id") ?? fail("a keyframe Representation lacks @id");
-    if (!/^[A-Za-z0-9_.-]{1,64}$/.test(id)) fail(`keyframe Representation id ${JSON.stringify(id.slice(0, 70))} is not a plain name`);
+    if (!/^[A-Za-z0-9_.-]{1,64}$/.test(id))
+      fail(`keyframe Representation id ${JSON.stringify(id.slice(0, 70))} is not a plain name`);
     if (keyframeReps.has(id)) fail(`two keyframe Representations share the id ${id}`);
-    const prop = children(r, "SupplementalProperty").find((p) => p.getAttribute("schemeIdUri") === KEYFRAME_QUANT_SCHEME);
+    const prop = children(r, "SupplementalProperty").find(
+      (p) => p.getAttribute("schemeIdUri") === KEYFRAME_QUANT_SCHEME,
+    );
     let quant = LOSSLESS;
     if (prop) {
       try {
@@ -248,7 +270,8 @@ export function parseManifest(text: string, url: string): Manifest {
   }
   if (keyframeReps.size === 0) fail("the keyframe AdaptationSet has no Representation");
   const gopSeconds = kt.seconds;
-  if (Math.abs(gopSeconds * fps - gopSize) > 1e-3 * gopSize) fail(`a GOP lasts ${gopSeconds} s, not ${gopSize} frames at ${fps} fps`);
+  if (Math.abs(gopSeconds * fps - gopSize) > 1e-3 * gopSize)
+    fail(`a GOP lasts ${gopSeconds} s, not ${gopSize} frames at ${fps} fps`);
   const gops = Math.round(durationS / gopSeconds);
   if (gops < 1 || gops > L.MAX_GOPS) fail(`the presentation has ${gops} GOPs, outside 1..${L.MAX_GOPS}`);
 
@@ -256,7 +279,7 @@ export function parseManifest(text: string, url: string): Manifest {
   const staticSets = bySchema(STATIC_SCHEME);
   if (staticSets.length > 1) fail("the MPD has more than one static-layer AdaptationSet");
   if (staticSets.length === 1) {
-    const sset = staticSets[0];
+    const sset = staticSets[0]!;
     const sf = descriptorFields(scheme(sset)!.getAttribute("value") ?? "", "static-layer");
     const scap = intField(sf, "capacity", 1, L.MAX_CAPACITY, "static-layer");
     const sside = intField(sf, "grid_side", 1, 2048, "static-layer");
@@ -265,48 +288,82 @@ export function parseManifest(text: string, url: string): Manifest {
     const reps = children(sset, "Representation");
     if (reps.length !== 1) fail("the static-layer AdaptationSet must have exactly one Representation");
     const st = template(sset);
-    const surl = new URL(expandTemplate(st.media, reps[0].getAttribute("id") ?? "", st.start), baseOf(sset, base, policy)).href;
-    staticLayer = { capacity: scap, side: sside, shDegree, url: surl, bandwidth: intAttr(reps[0], "bandwidth", 1, 1e12) };
+    const surl = new URL(
+      expandTemplate(st.media, reps[0]!.getAttribute("id") ?? "", st.start),
+      baseOf(sset, base, policy),
+    ).href;
+    staticLayer = {
+      capacity: scap,
+      side: sside,
+      shDegree,
+      url: surl,
+      bandwidth: intAttr(reps[0]!, "bandwidth", 1, 1e12),
+    };
   }
 
   const featureSets = bySchema(FEATURE_SCHEME);
   if (featureSets.length === 0) fail(`the MPD has no feature-video AdaptationSet (${FEATURE_SCHEME})`);
   const av1 = featureSets.filter((a) => {
     const reps = children(a, "Representation");
-    return reps.length > 0 && reps.every((r) => (r.getAttribute("codecs") ?? a.getAttribute("codecs") ?? "").startsWith("av01."));
+    return (
+      reps.length > 0 &&
+      reps.every((r) => (r.getAttribute("codecs") ?? a.getAttribute("codecs") ?? "").startsWith("av01."))
+    );
   });
-  const otherCodecs = featureSets.filter((a) => !av1.includes(a))
+  const otherCodecs = featureSets
+    .filter((a) => !av1.includes(a))
     .flatMap((a) => children(a, "Representation").map((r) => r.getAttribute("codecs") ?? "?"));
   if (av1.length === 0) {
-    throw new UnsupportedError(`this tree has no AV1 feature set, only ${[...new Set(otherCodecs)].join(", ")}, which ` +
-      "browsers cannot decode; pack it with --codecs hevc,av1");
+    throw new UnsupportedError(
+      `this tree has no AV1 feature set, only ${[...new Set(otherCodecs)].join(", ")}, which ` +
+        "browsers cannot decode; pack it with --codecs hevc,av1",
+    );
   }
   if (av1.length > 1) fail("the MPD has two AV1 feature sets");
-  const fset = av1[0];
+  const fset = av1[0]!;
   const ff = descriptorFields(scheme(fset)!.getAttribute("value") ?? "", "feature");
-  if (ff.get("tiles") !== "4x4" || ff.get("channels") !== "16") fail("the feature descriptor is not tiles=4x4;channels=16");
+  if (ff.get("tiles") !== "4x4" || ff.get("channels") !== "16")
+    fail("the feature descriptor is not tiles=4x4;channels=16");
   if (ff.get("bits") !== String(AV1_BITS)) fail(`the AV1 feature set carries bits=${ff.get("bits")}, not ${AV1_BITS}`);
   const ft = template(fset);
-  if (Math.abs(ft.seconds - gopSeconds) > 1e-9 * gopSeconds || ft.start !== kt.start) fail("the feature and keyframe segment templates differ in duration or start");
+  if (Math.abs(ft.seconds - gopSeconds) > 1e-9 * gopSeconds || ft.start !== kt.start)
+    fail("the feature and keyframe segment templates differ in duration or start");
   if (!ft.init) fail("the feature SegmentTemplate lacks @initialization");
   const reps = children(fset, "Representation");
-  if (reps.length > L.MAX_REPRESENTATIONS) fail(`the AV1 set has ${reps.length} Representations, over ${L.MAX_REPRESENTATIONS}`);
+  if (reps.length > L.MAX_REPRESENTATIONS)
+    fail(`the AV1 set has ${reps.length} Representations, over ${L.MAX_REPRESENTATIONS}`);
   const frameSide = FEATURE_TILES * side;
-  const rungs: Rung[] = reps.map((r) => {
-    const id = r.getAttribute("id") ?? fail("a feature Representation lacks @id");
-    if (!/^[A-Za-z0-9_.-]{1,64}$/.test(id)) fail(`feature Representation id ${JSON.stringify(id.slice(0, 70))} is not a plain name`);
-    const w = intAttr(r, "width", 1, L.MAX_IMAGE_SIDE, intAttr(fset, "width", 1, L.MAX_IMAGE_SIDE, frameSide));
-    const h = intAttr(r, "height", 1, L.MAX_IMAGE_SIDE, intAttr(fset, "height", 1, L.MAX_IMAGE_SIDE, frameSide));
-    if (w !== frameSide || h !== frameSide) fail(`Representation ${id} is ${w}x${h}, not the ${frameSide}x${frameSide} of grid_side ${side}`);
-    const named = (r.getAttribute("associationId") ?? "").split(/\s+/).filter((a) => keyframeReps.has(a));
-    if (named.length !== 1) {
-      fail(`feature Representation ${id} must name one keyframe Representation in @associationId ` +
-        `(of ${[...keyframeReps.keys()].join(", ")}), it names ${r.getAttribute("associationId") || "none"}`);
-    }
-    const kf = keyframeReps.get(named[0])!;
-    return { id, bandwidth: intAttr(r, "bandwidth", 1, 1e12), codecs: r.getAttribute("codecs") ?? fset.getAttribute("codecs") ?? "",
-             ...quality(r, id), keyframeRep: kf.id, keyframeBandwidth: kf.bandwidth };
-  }).sort((a, b) => a.bandwidth + a.keyframeBandwidth - (b.bandwidth + b.keyframeBandwidth) || (a.id < b.id ? -1 : a.id > b.id ? 1 : 0));
+  const rungs: Rung[] = reps
+    .map((r) => {
+      const id = r.getAttribute("id") ?? fail("a feature Representation lacks @id");
+      if (!/^[A-Za-z0-9_.-]{1,64}$/.test(id))
+        fail(`feature Representation id ${JSON.stringify(id.slice(0, 70))} is not a plain name`);
+      const w = intAttr(r, "width", 1, L.MAX_IMAGE_SIDE, intAttr(fset, "width", 1, L.MAX_IMAGE_SIDE, frameSide));
+      const h = intAttr(r, "height", 1, L.MAX_IMAGE_SIDE, intAttr(fset, "height", 1, L.MAX_IMAGE_SIDE, frameSide));
+      if (w !== frameSide || h !== frameSide)
+        fail(`Representation ${id} is ${w}x${h}, not the ${frameSide}x${frameSide} of grid_side ${side}`);
+      const named = (r.getAttribute("associationId") ?? "").split(/\s+/).filter((a) => keyframeReps.has(a));
+      if (named.length !== 1) {
+        fail(
+          `feature Representation ${id} must name one keyframe Representation in @associationId ` +
+            `(of ${[...keyframeReps.keys()].join(", ")}), it names ${r.getAttribute("associationId") || "none"}`,
+        );
+      }
+      const kf = keyframeReps.get(named[0]!)!;
+      return {
+        id,
+        bandwidth: intAttr(r, "bandwidth", 1, 1e12),
+        codecs: r.getAttribute("codecs") ?? fset.getAttribute("codecs") ?? "",
+        ...quality(r, id),
+        keyframeRep: kf.id,
+        keyframeBandwidth: kf.bandwidth,
+      };
+    })
+    .sort(
+      (a, b) =>
+        a.bandwidth + a.keyframeBandwidth - (b.bandwidth + b.keyframeBandwidth) ||
+        (a.id < b.id ? -1 : a.id > b.id ? 1 : 0),
+    );
   if (new Set(rungs.map((r) => r.id)).size !== rungs.length) fail("two feature Representations share an id");
   const fbase = baseOf(fset, base, policy);
   const check = (u: string) => {
@@ -314,7 +371,15 @@ export function parseManifest(text: string, url: string): Manifest {
     return u;
   };
   const manifest: Manifest = {
-    url, durationS, gops, gopSeconds, fps, shape, staticLayer, rungs, otherCodecs,
+    url,
+    durationS,
+    gops,
+    gopSeconds,
+    fps,
+    shape,
+    staticLayer,
+    rungs,
+    otherCodecs,
     keyframeReps,
     keyframeUrl: (k, rep) => {
       if (!keyframeReps.has(rep)) throw new ManifestError(`no keyframe Representation ${JSON.stringify(rep)}`);
@@ -324,9 +389,10 @@ export function parseManifest(text: string, url: string): Manifest {
       const base = Math.min(...rungs.map((r) => r.keyframeBandwidth));
       return rungs.map((r) => r.bandwidth + r.keyframeBandwidth - base);
     },
-    initUrl: (i) => check(new URL(expandTemplate(ft.init!, rungs[i].id), fbase).href),
-    mediaUrl: (i, k) => check(new URL(expandTemplate(ft.media, rungs[i].id, ft.start + k), fbase).href),
-    maxSegmentBytes: (bandwidth) => Math.min(L.MAX_SEGMENT_BYTES, Math.ceil(bandwidth / 8 * gopSeconds * L.SEGMENT_SLACK) + 4096),
+    initUrl: (i) => check(new URL(expandTemplate(ft.init!, rungs[i]!.id), fbase).href),
+    mediaUrl: (i, k) => check(new URL(expandTemplate(ft.media, rungs[i]!.id, ft.start + k), fbase).href),
+    maxSegmentBytes: (bandwidth) =>
+      Math.min(L.MAX_SEGMENT_BYTES, Math.ceil((bandwidth / 8) * gopSeconds * L.SEGMENT_SLACK) + 4096),
     statsUrl: new URL("stats.json", url).href,
     camerasUrl: new URL("cameras.json", url).href,
     policy,

@@ -4,7 +4,7 @@
 // stall). Each shown frame: deform the dynamic layer (GPU), read back its means, depth-sort both layers
 // (worker), splat (GPU).
 import { DEFAULT_SETTINGS, type Decision, makeRule } from "./abr/index";
-import { type SceneCamera, ViewerCamera, parseSceneCameras, sceneCenter, sceneUp } from "./camera";
+import { type SceneCamera, ViewerCamera, cameraCenter, parseSceneCameras, sceneCenter, sceneUp } from "./camera";
 import { PresentationClock } from "./clock";
 import { describe } from "./errors";
 import * as L from "./limits";
@@ -12,15 +12,15 @@ import { type Manifest, parseManifest } from "./manifest";
 import { UrlPolicy } from "./urlpolicy";
 import { DeformPass, type WeightStorage } from "./render/deform";
 import { WebGpuDeform } from "./render/deform-webgpu";
-import type { Deformer } from "./render/layers";
+import type { Deformer } from "./render/deformer";
 import { createContext } from "./render/gl";
-import { SplatPass, type StaticTextures, cameraCenter } from "./render/splat";
+import { FramePipeline } from "./render/frame";
+import { SplatPass, type StaticTextures, staticTextures } from "./render/splat";
 import { Downloader, type GopDownload, type GopState } from "./stream/downloader";
 import { fetchJson, fetchStream } from "./stream/fetch";
 import { loadStaticLayer } from "./stream/static-layer";
 import { FeatureRing } from "./stream/ring";
-import { type Assets, FeatureDecoder, KeyframePool, Sorter } from "./stream/workers";
-import { guardLimits } from "./sort";
+import { type Assets, FeatureDecoder, KeyframePool, Sorter } from "./stream/worker-pools";
 import { PlayerStats, sha256Hex } from "./stats";
 
 export interface PlayerOptions {
@@ -53,10 +53,8 @@ export class Player {
   private keyframes!: KeyframePool;
   private sorter!: Sorter;
   private deform!: Deformer;
-  private splat!: SplatPass;
-  private staticLayer: StaticTextures | null = null;
+  private frames!: FramePipeline;
   private readonly gops = new Map<number, GopState>();
-  private loadedGop = -1;
   /** Last presented frame (global index), -1 before the first. */
   current = -1;
   private clock!: PresentationClock;
@@ -70,7 +68,11 @@ export class Player {
   onError: (message: string) => void = () => undefined;
   onDecision: (d: Decision, gop: number, rung: number) => void = () => undefined;
 
-  constructor(private readonly canvas: HTMLCanvasElement, private readonly assets: Assets, readonly options: PlayerOptions) {}
+  constructor(
+    private readonly canvas: HTMLCanvasElement,
+    private readonly assets: Assets,
+    readonly options: PlayerOptions,
+  ) {}
 
   get totalFrames(): number {
     return this.manifest.gops * this.manifest.shape.gopSize;
@@ -90,7 +92,8 @@ export class Player {
     this.clock = new PresentationClock(m.fps);
     const stats = await fetchJson(m.statsUrl, m.policy, L.MAX_DOC_BYTES, "stats.json").catch(() => null);
     this.cameras = await fetchJson(m.camerasUrl, m.policy, L.MAX_DOC_BYTES, "cameras.json")
-      .then((doc) => parseSceneCameras(doc, L.MAX_PATH_CAMERAS)).catch(() => []); // a scene may come without cameras
+      .then((doc) => parseSceneCameras(doc, L.MAX_PATH_CAMERAS))
+      .catch(() => []); // a scene may come without cameras
     this.camera.up = sceneUp(this.cameras);
     this.camera.target = sceneCenter(this.cameras);
     if (this.cameras.length) this.snapTo(0);
@@ -104,20 +107,43 @@ export class Player {
     this.features.onError = (_gop, err) => this.fail(err);
     this.ring = new FeatureRing(this.features, Math.max(8, 2 * m.shape.window + 2));
     const slots = this.ring.capacity + m.shape.window;
-    this.deform = this.options.webgpu ? await WebGpuDeform.create(ctx.gl, m.shape, slots)
+    this.deform = this.options.webgpu
+      ? await WebGpuDeform.create(ctx.gl, m.shape, slots)
       : new DeformPass(ctx.gl, m.shape, slots, this.options.weights ?? undefined);
     this.stats.deformer = this.deform.kind;
-    this.splat = new SplatPass(ctx.gl, ctx.floatBlend);
     this.stats.floatBlend = ctx.floatBlend;
-    if (m.staticLayer) [this.staticLayer, this.stats.staticMs] = await loadStaticLayer(m, ctx.gl, this.keyframes, this.sorter);
+    let staticLayer: StaticTextures | null = null;
+    if (m.staticLayer) {
+      const layer = await loadStaticLayer(m, this.keyframes, this.sorter);
+      staticLayer = staticTextures(ctx.gl, layer.attributes, layer.capacity, layer.side, layer.shDegree);
+      this.stats.staticMs = layer.ms;
+    }
+    const sorter = this.sorter;
+    this.frames = new FramePipeline(
+      this.deform,
+      new SplatPass(ctx.gl, ctx.floatBlend),
+      (means, viewmat, guard) => sorter.sort(means, viewmat, guard),
+      staticLayer,
+      m.shape.side,
+      this.options.background,
+      this.options.syncTiming,
+    );
     const settings = DEFAULT_SETTINGS;
-    this.downloader = new Downloader(m, makeRule(this.options.abr, settings), settings, this.features, this.keyframes,
-      this.options.bufferGops * m.gopSeconds, stats, {
+    this.downloader = new Downloader(
+      m,
+      makeRule(this.options.abr, settings),
+      settings,
+      this.features,
+      this.keyframes,
+      this.options.bufferGops * m.gopSeconds,
+      stats,
+      {
         playheadS: () => this.playheadS(),
         playing: () => this.started,
         onGop: (d) => this.onGop(d),
         onError: (e) => this.fail(e),
-      });
+      },
+    );
     this.downloader.pinned = this.options.rung;
     this.stats.loadMs = performance.now() - start;
     this.seek(0);
@@ -133,12 +159,15 @@ export class Player {
   private onGop(d: GopDownload): void {
     const state: GopState = { download: d, decoded: null };
     this.gops.set(d.gop, state);
-    this.stats.onGop(d, this.manifest.rungs[d.rung].id);
+    this.stats.onGop(d, this.manifest.rungs[d.rung]!.id);
     this.onDecision(d.decision, d.gop, d.rung);
-    d.keyframe.then((k) => {
-      state.decoded = k;
-      this.stats.keyframeMs = k.ms;
-    }, (e) => this.fail(e));
+    d.keyframe.then(
+      (k) => {
+        state.decoded = k;
+        this.stats.keyframeMs = k.ms;
+      },
+      (e) => this.fail(e),
+    );
   }
 
   snapTo(index: number): void {
@@ -166,8 +195,7 @@ export class Player {
     this.downloader.stop();
     this.features.reset();
     this.gops.clear();
-    this.deform.forget();
-    this.loadedGop = -1;
+    this.frames.forget();
     this.current = gop * this.manifest.shape.gopSize - 1;
     this.clock.restart(this.current + 1);
     this.started = false;
@@ -260,34 +288,23 @@ export class Player {
     this.dirty = false;
     this.presentable = true;
     const state = this.gops.get(k)!;
-    if (this.loadedGop !== k) {
-      this.deform.loadGop(state.decoded!.attributes, state.decoded!.floats);
-      this.loadedGop = k;
-      for (const old of this.gops.keys()) if (old < k) this.gops.delete(old);
-    }
+    if (!this.frames.holds(k)) for (const old of this.gops.keys()) if (old < k) this.gops.delete(old);
     const [w, h] = this.renderSize();
     if (this.canvas.width !== w || this.canvas.height !== h) [this.canvas.width, this.canvas.height] = [w, h];
     const view = this.camera.view(w, h);
-    const t0 = performance.now();
-    const layers = Array.from({ length: W }, (_, j) => this.deform.layer(k, i + j, () => this.ring.get(k, i + j)!));
-    const means = await this.deform.deform(i, layers, cameraCenter(view.viewmat));
-    const side = this.manifest.shape.side;
-    const t1 = performance.now();
-    const [fx, , cx, fy, cy] = view.K;
-    const { order, ms } = await this.sorter.sort(means, view.viewmat, guardLimits(fx, cx, fy, cy, w, h));
-    const t2 = performance.now();
-    this.splat.draw(view, order, order.length, this.staticLayer, this.deform.outputs, side, this.options.background);
-    if (this.options.syncTiming) this.deform.sync();
-    const t3 = performance.now();
+    const t = await this.frames.draw(k, i, W, state.decoded!, (e) => this.ring.get(k, e)!, view);
     this.ring.release(k, i);
-    this.stats.frame(t1 - t0, ms, t2 - t1, t3 - t2, this.ring.copyMs, order.length);
+    this.stats.frame(t.deform, t.sort, t.sortWait, t.draw, this.ring.copyMs, t.visible);
     this.stats.shown = { gop: k, frame: i };
   }
 
   renderSize(): [number, number] {
     if (this.options.size) return this.options.size;
     const dpr = Math.min(2, window.devicePixelRatio || 1);
-    return [Math.max(1, Math.round(this.canvas.clientWidth * dpr)), Math.max(1, Math.round(this.canvas.clientHeight * dpr))];
+    return [
+      Math.max(1, Math.round(this.canvas.clientWidth * dpr)),
+      Math.max(1, Math.round(this.canvas.clientHeight * dpr)),
+    ];
   }
 
   bufferS(): number {

@@ -24,9 +24,13 @@ export function bindControls(player: Player): void {
   const m = player.manifest;
 
   seek.max = String(m.gops - 1);
-  m.rungs.forEach((r, i) => quality.add(new Option(rungLabel(r), String(i))));
+  m.rungs.forEach((r, i) => {
+    quality.add(new Option(rungLabel(r), String(i)));
+  });
   if (player.options.rung !== null) quality.value = String(player.options.rung);
-  player.cameras.forEach((c, i) => camera.add(new Option(c.name, String(i))));
+  player.cameras.forEach((c, i) => {
+    camera.add(new Option(c.name, String(i)));
+  });
   if (player.cameras.length) camera.value = "0";
 
   const togglePause = () => {
@@ -63,7 +67,8 @@ export function bindControls(player: Player): void {
   statsToggle.onclick = toggleStats;
   $<HTMLButtonElement>("fullscreen").onclick = fullscreen;
 
-  const pointers = new Map<number, { x: number; y: number }>();
+  type Point = { x: number; y: number };
+  const pointers = new Map<number, Point>();
   canvas.addEventListener("pointerdown", (e) => {
     canvas.setPointerCapture(e.pointerId);
     pointers.set(e.pointerId, { x: e.clientX, y: e.clientY });
@@ -77,10 +82,10 @@ export function bindControls(player: Player): void {
     const dx = e.clientX - last.x;
     const dy = e.clientY - last.y;
     if (pointers.size === 2) {
-      const [a, b] = [...pointers.values()];
+      const [a, b] = [...pointers.values()] as [Point, Point];
       const before = Math.hypot(a.x - b.x, a.y - b.y);
       pointers.set(e.pointerId, { x: e.clientX, y: e.clientY });
-      const [c, d] = [...pointers.values()];
+      const [c, d] = [...pointers.values()] as [Point, Point];
       player.camera.zoom(before / Math.max(1, Math.hypot(c.x - d.x, c.y - d.y)));
     } else if (e.shiftKey || e.buttons === 2 || e.buttons === 4) {
       pointers.set(e.pointerId, { x: e.clientX, y: e.clientY });
@@ -92,13 +97,24 @@ export function bindControls(player: Player): void {
     moved();
   });
   canvas.addEventListener("contextmenu", (e) => e.preventDefault());
-  canvas.addEventListener("wheel", (e) => {
-    e.preventDefault();
-    player.camera.zoom(Math.exp(e.deltaY * 0.001));
-    moved();
-  }, { passive: false });
+  canvas.addEventListener(
+    "wheel",
+    (e) => {
+      e.preventDefault();
+      player.camera.zoom(Math.exp(e.deltaY * 0.001));
+      moved();
+    },
+    { passive: false },
+  );
 
-  const flyKeys: Record<string, [number, number, number]> = { w: [1, 0, 0], s: [-1, 0, 0], a: [0, -1, 0], d: [0, 1, 0], q: [0, 0, -1], e: [0, 0, 1] };
+  const flyKeys: Record<string, [number, number, number]> = {
+    w: [1, 0, 0],
+    s: [-1, 0, 0],
+    a: [0, -1, 0],
+    d: [0, 1, 0],
+    q: [0, 0, -1],
+    e: [0, 0, 1],
+  };
   document.addEventListener("keydown", (e) => {
     const target = e.target as HTMLElement;
     if (e.ctrlKey || e.metaKey || e.altKey || ["INPUT", "SELECT", "TEXTAREA"].includes(target.tagName)) return;
@@ -114,7 +130,7 @@ export function bindControls(player: Player): void {
     else if (key === "arrowdown") player.camera.orbit(0, -0.05);
     else if (key === "+" || key === "=") player.camera.zoom(0.9);
     else if (key === "-") player.camera.zoom(1 / 0.9);
-    else if (key in flyKeys) player.camera.fly(...flyKeys[key]);
+    else if (key in flyKeys) player.camera.fly(...flyKeys[key]!);
     else if (key === "c") return snap((Number(camera.value || -1) + 1) % Math.max(1, player.cameras.length));
     else if (/^[1-9]$/.test(key)) return snap(Number(key) - 1);
     else if (key === "i") return toggleStats();

@@ -1,4 +1,4 @@
-// Which URLs the page follows (client/urlpolicy.py's rules, as far as a page can apply them): http(s) only; the
+// Which URLs the page follows (stgs/client/urlpolicy.py's rules, as far as a page can apply them): http(s) only; the
 // manifest's host and the hosts its own BaseURLs name; never a link-local literal (169.254.0.0/16, fe80::/10,
 // where cloud metadata services answer); a loopback literal only when the manifest itself is on loopback. A page
 // cannot see what a name resolves to, so a name pointing at a refused address is not caught here (DNS

@@ -24,5 +24,7 @@ for (const v of vectors) {
       mismatches.push({ step: i, python: want, web: got });
     }
   });
-  process.stdout.write(JSON.stringify({ rule: v.rule, scenario: v.scenario, steps: v.steps.length, mismatches }) + "\n");
+  process.stdout.write(
+    `${JSON.stringify({ rule: v.rule, scenario: v.scenario, steps: v.steps.length, mismatches })}\n`,
+  );
 }

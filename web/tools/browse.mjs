@@ -24,12 +24,25 @@ if (!planFile) {
   process.exit(2);
 }
 const plan = JSON.parse(readFileSync(planFile, "utf8"));
-const args = ["--no-sandbox", "--disable-quic", "--no-first-run", "--disable-background-networking",
-  "--disable-component-update", "--disable-sync", "--disable-background-timer-throttling",
-  "--disable-renderer-backgrounding", "--disable-backgrounding-occluded-windows"];
+const args = [
+  "--no-sandbox",
+  "--disable-quic",
+  "--no-first-run",
+  "--disable-background-networking",
+  "--disable-component-update",
+  "--disable-sync",
+  "--disable-background-timer-throttling",
+  "--disable-renderer-backgrounding",
+  "--disable-backgrounding-occluded-windows",
+];
 if (plan.webgpu) {
-  args.push("--enable-unsafe-webgpu", "--enable-features=Vulkan", "--use-vulkan=swiftshader", "--use-angle=swiftshader",
-    "--enable-unsafe-swiftshader");
+  args.push(
+    "--enable-unsafe-webgpu",
+    "--enable-features=Vulkan",
+    "--use-vulkan=swiftshader",
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+  );
 } else {
   args.push("--use-angle=swiftshader", "--enable-unsafe-swiftshader");
 }
@@ -69,9 +82,17 @@ try {
       cdp ??= await page.context().newCDPSession(page);
       await cdp.send("Network.enable");
       const t = step.throttle;
-      await cdp.send("Network.emulateNetworkConditions", t ? {
-        offline: false, latency: t.latencyMs ?? 0, downloadThroughput: (t.kbps * 1000) / 8, uploadThroughput: -1,
-      } : { offline: false, latency: 0, downloadThroughput: -1, uploadThroughput: -1 });
+      await cdp.send(
+        "Network.emulateNetworkConditions",
+        t
+          ? {
+              offline: false,
+              latency: t.latencyMs ?? 0,
+              downloadThroughput: (t.kbps * 1000) / 8,
+              uploadThroughput: -1,
+            }
+          : { offline: false, latency: 0, downloadThroughput: -1, uploadThroughput: -1 },
+      );
     } else throw new Error(`unknown step ${JSON.stringify(step)}`);
   }
   out.url = page.url();
@@ -81,7 +102,7 @@ try {
 } finally {
   await browser.close();
 }
-process.stdout.write(JSON.stringify(out) + "\n");
+process.stdout.write(`${JSON.stringify(out)}\n`);
 if (failure) {
   process.stderr.write(`browse: ${failure}\n`);
   process.exitCode = 1;

@@ -31,7 +31,7 @@ files.forEach((file, index) => {
     const samples = png.data;
     writeFileSync(raw, new Uint8Array(samples.buffer, samples.byteOffset, samples.byteLength));
     const info = { file, width: png.width, height: png.height, channels: png.channels, depth: png.depth, raw };
-    process.stdout.write(JSON.stringify(info) + "\n");
+    process.stdout.write(`${JSON.stringify(info)}\n`);
   } catch (err) {
     process.stderr.write(`jxl-decode: ${file}: ${err instanceof Error ? err.message : err}\n`);
     process.exit(1);

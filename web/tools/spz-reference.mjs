@@ -9,8 +9,10 @@ import { readFileSync } from "node:fs";
 process.type = "renderer";
 const { loadSpz } = await import("@spz-loader/core");
 
-const cloud = await loadSpz(new Uint8Array(readFileSync(process.argv[2])),
-  { colorScaleFactor: 0.28209479177387814, unpackOptions: { coordinateSystem: "RDF" } });
+const cloud = await loadSpz(new Uint8Array(readFileSync(process.argv[2])), {
+  colorScaleFactor: 0.28209479177387814,
+  unpackOptions: { coordinateSystem: "RDF" },
+});
 const out = { numPoints: cloud.numPoints, shDegree: cloud.shDegree };
 for (const key of ["positions", "scales", "rotations", "alphas", "colors", "sh"]) out[key] = Array.from(cloud[key]);
 process.stdout.write(JSON.stringify(out));

@@ -23,8 +23,15 @@ const server = createServer((_, res) => res.end("<!doctype html><title>webcodecs
 await new Promise((resolve) => server.listen(0, "127.0.0.1", resolve));
 const browser = await chromium.launch({
   executablePath,
-  args: ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
-    "--disable-component-update", "--disable-sync"],
+  args: [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+  ],
 });
 try {
   const page = await browser.newPage();
@@ -36,11 +43,17 @@ try {
     const { supported } = await VideoDecoder.isConfigSupported(config);
     const frames = [];
     let failure = null;
-    const decoder = new VideoDecoder({ output: (f) => frames.push(f), error: (e) => { failure = String(e); } });
+    const decoder = new VideoDecoder({
+      output: (f) => frames.push(f),
+      error: (e) => {
+        failure = String(e);
+      },
+    });
     decoder.configure(config);
     for (const c of job.chunks) {
-      decoder.decode(new EncodedVideoChunk({ type: c.key ? "key" : "delta", timestamp: c.timestamp,
-        data: bytes(c.data) }));
+      decoder.decode(
+        new EncodedVideoChunk({ type: c.key ? "key" : "delta", timestamp: c.timestamp, data: bytes(c.data) }),
+      );
     }
     await decoder.flush();
     if (failure) throw new Error(failure);
@@ -60,7 +73,7 @@ try {
     }
     return { supported, format, frames: digests };
   }, job);
-  process.stdout.write(JSON.stringify(result) + "\n");
+  process.stdout.write(`${JSON.stringify(result)}\n`);
 } catch (err) {
   process.stderr.write(`webcodecs-decode: ${err instanceof Error ? err.message.split("\n")[0] : err}\n`);
   process.exitCode = 1;

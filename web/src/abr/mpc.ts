@@ -1,9 +1,19 @@
-// The look-ahead rule (client/abr_mpc.py, ported): RobustMPC over the next GOPs' exact sizes and rendered PSNR
+// The look-ahead rule (stgs/client/abr/mpc.py, ported): RobustMPC over the next GOPs' exact sizes and rendered PSNR
 // from stats.json. Every rung sequence over the horizon is scored in the same order as the Python's
 // itertools.product, so ties break the same way.
 import { MIN_KBPS, harmonicKbps, predictKbps, relativeError } from "./predict";
-import { type AbrRule, type AbrSettings, type AbrState, type Decision, DEFAULT_SETTINGS, type UpcomingGOP, fixed, latencyS,
-  sampleKbps, sizes } from "./state";
+import {
+  type AbrRule,
+  type AbrSettings,
+  type AbrState,
+  type Decision,
+  DEFAULT_SETTINGS,
+  type UpcomingGOP,
+  fixed,
+  latencyS,
+  sampleKbps,
+  sizes,
+} from "./state";
 
 export class MpcRule implements AbrRule {
   readonly name = "mpc";
@@ -17,7 +27,7 @@ export class MpcRule implements AbrRule {
     if (!samples.length) return null;
     const kbps = samples.map(sampleKbps);
     if (this.predicted !== null && this.predicted[0] < samples.length) {
-      this.errors.push(relativeError(this.predicted[1], kbps[kbps.length - 1]));
+      this.errors.push(relativeError(this.predicted[1], kbps[kbps.length - 1]!));
     }
     const harmonic = harmonicKbps(kbps.slice(-this.settings.mpcHistory));
     this.predicted = [samples.length, harmonic];
@@ -26,8 +36,13 @@ export class MpcRule implements AbrRule {
 
   table(state: AbrState): UpcomingGOP[] {
     let gops = state.upcoming.slice(0, this.settings.mpcHorizon);
-    if (!gops.length) gops = Array.from({ length: this.settings.mpcHorizon }, () => ({ keyframeBits: state.keyframeBits, segmentBits: sizes(state), psnr: null }));
-    gops[0] = { keyframeBits: state.keyframeBits, segmentBits: sizes(state), psnr: gops[0].psnr };
+    if (!gops.length)
+      gops = Array.from({ length: this.settings.mpcHorizon }, () => ({
+        keyframeBits: state.keyframeBits,
+        segmentBits: sizes(state),
+        psnr: null,
+      }));
+    gops[0] = { keyframeBits: state.keyframeBits, segmentBits: sizes(state), psnr: gops[0]!.psnr };
     return gops;
   }
 
@@ -40,15 +55,15 @@ export class MpcRule implements AbrRule {
     const rungs = state.bandwidths.length;
     const s = this.settings;
     const H = gops.length;
-    const psnr = s.mpcUtility === "psnr" && gops.every((gp) => gp.psnr !== null && gp.psnr.every((p) => p !== null));
+    const psnr = s.mpcUtility === "psnr" && gops.every((gp) => gp.psnr?.every((p) => p !== null));
     const bits = gops.map((gp) => gp.segmentBits.map((b) => gp.keyframeBits + b));
     const utility = psnr ? gops.map((gp) => gp.psnr!.slice()) : bits.map((row) => row.map((b) => b / T / 1e6));
     const mu = psnr ? s.mpcRebufferPsnr : s.mpcRebufferBitrate;
     const download = bits.map((row) => row.slice());
     const trips = new Array<number>(H).fill(state.roundTrips);
     if (state.keyframeFetched) {
-      download[0] = download[0].map((b) => b - gops[0].keyframeBits);
-      trips[0] -= 1;
+      download[0] = download[0]!.map((b) => b - gops[0]!.keyframeBits);
+      trips[0]! -= 1;
     }
     const latency = latencyS(state.samples);
     const plan = new Array<number>(H).fill(0);
@@ -75,8 +90,8 @@ export class MpcRule implements AbrRule {
       let stall = 0;
       let qsum = 0;
       for (let j = 0; j < H; j++) {
-        const seconds = trips[j] * latency + download[j][plan[j]] / (Math.max(robust, MIN_KBPS) * 1e3);
-        qsum += utility[j][plan[j]];
+        const seconds = trips[j]! * latency + download[j]![plan[j]!]! / (Math.max(robust, MIN_KBPS) * 1e3);
+        qsum += utility[j]![plan[j]!]!;
         if (j === 0 && !state.playing) {
           stall += seconds;
           buffer = T;
@@ -85,10 +100,10 @@ export class MpcRule implements AbrRule {
         stall += Math.max(seconds - buffer, 0);
         buffer = Math.min(Math.max(buffer - seconds, 0) + T, state.bufferCapacityS);
       }
-      const q0 = utility[0][plan[0]];
-      const previous = state.current !== null ? utility[0][state.current] : q0;
+      const q0 = utility[0]![plan[0]!]!;
+      const previous = state.current !== null ? utility[0]![state.current]! : q0;
       let diffs = 0;
-      for (let j = 1; j < H; j++) diffs += Math.abs(utility[j][plan[j]] - utility[j - 1][plan[j - 1]]);
+      for (let j = 1; j < H; j++) diffs += Math.abs(utility[j]![plan[j]!]! - utility[j - 1]![plan[j - 1]!]!);
       const switches = Math.abs(q0 - previous) + diffs;
       const shortfall = Math.max(s.mpcReservoir * state.bufferCapacityS - buffer, 0);
       const score = qsum - mu * (stall + s.mpcReservoirWeight * shortfall) - s.mpcSwitchWeight * switches;
@@ -103,7 +118,8 @@ export class MpcRule implements AbrRule {
         anyFeasible = true;
         if (score > feasibleScore) [feasibleScore, feasiblePlan, feasibleStall] = [score, plan.slice(), stall];
       }
-      if (plan.every((r) => r === state.current)) { // holding the rung over the whole horizon
+      if (plan.every((r) => r === state.current)) {
+        // holding the rung over the whole horizon
         stayScore = score;
         stayPlan = plan.slice();
         stayStall = stall;
@@ -121,7 +137,12 @@ export class MpcRule implements AbrRule {
       [bestScore, bestPlan, bestStall] = [stayScore, stayPlan, stayStall];
     }
     const unit = psnr ? "dB" : "Mbit/s";
-    return { index: bestPlan[0], rule: this.name, reason: `throughput ${fixed(harmonic, 0)} kbit/s, robust ${fixed(robust, 0)}; plan ` +
-      `${bestPlan.join("-")} over ${H} GOPs scores ${fixed(bestScore, 2)} (${unit} utility, stall ${fixed(bestStall, 2)} s)${held}` };
+    return {
+      index: bestPlan[0]!,
+      rule: this.name,
+      reason:
+        `throughput ${fixed(harmonic, 0)} kbit/s, robust ${fixed(robust, 0)}; plan ` +
+        `${bestPlan.join("-")} over ${H} GOPs scores ${fixed(bestScore, 2)} (${unit} utility, stall ${fixed(bestStall, 2)} s)${held}`,
+    };
   }
 }

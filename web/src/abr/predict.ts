@@ -1,4 +1,4 @@
-// The look-ahead rule's throughput predictors (client/abr_predict.py, ported): each turns the GOP throughput
+// The look-ahead rule's throughput predictors (stgs/client/abr/predict.py, ported): each turns the GOP throughput
 // history (kbit/s, oldest first) and the relative errors of past harmonic-mean predictions into the kbit/s a plan is
 // run at. Every predictor is finite and non-negative on any history, 0 on an empty one. The quantile is numpy's to
 // the bit; ewma-lower's Math.exp and Math.log may differ from Python's libm in the last bit (the decision vectors
@@ -31,14 +31,14 @@ function quantile(values: number[], q: number): number {
   const lo = Math.floor(pos);
   const hi = Math.min(lo + 1, sorted.length - 1);
   const t = pos - lo;
-  const diff = sorted[hi] - sorted[lo];
-  return t >= 0.5 ? sorted[hi] - diff * (1 - t) : sorted[lo] + diff * t;
+  const diff = sorted[hi]! - sorted[lo]!;
+  return t >= 0.5 ? sorted[hi]! - diff * (1 - t) : sorted[lo]! + diff * t;
 }
 
 function ewmaLower(kbps: number[], halfLife: number, deviations: number): number {
   const alpha = 1 - 0.5 ** (1 / halfLife);
   const logs = kbps.map((k) => Math.log(clamp(k)));
-  let mean = logs[0];
+  let mean = logs[0]!;
   let variance = 0;
   for (const x of logs.slice(1)) {
     const diff = x - mean;

@@ -1,7 +1,17 @@
-// The throughput, BOLA, BOLA-E, insufficient-buffer and DYNAMIC rules (client/abr.py, ported line for line:
+// The throughput, BOLA, BOLA-E, insufficient-buffer and DYNAMIC rules (stgs/client/abr/rules.py, ported line for line:
 // the same arithmetic in the same order, so the decisions match the Python simulator's vectors).
-import { type AbrRule, type AbrSettings, type AbrState, type Decision, DEFAULT_SETTINGS, fixed, sizes, stateLatencyS,
-  sustainedBits, throughputKbps } from "./state";
+import {
+  type AbrRule,
+  type AbrSettings,
+  type AbrState,
+  type Decision,
+  DEFAULT_SETTINGS,
+  fixed,
+  sizes,
+  stateLatencyS,
+  sustainedBits,
+  throughputKbps,
+} from "./state";
 
 /** Python's "{:g}": up to six significant digits, trailing zeros dropped. */
 function g(v: number): string {
@@ -54,8 +64,13 @@ export class ThroughputRule implements AbrRule {
     }
     const budget = (spend * (T - latency)) / T;
     const rtt = latency ? ` after ${fixed(latency * 1e3, 0)} ms of round trips` : "";
-    return { index: best, rule: this.name, reason: `estimate ${fixed(kbps, 0)} kbit/s x ${g(st.safetyFactor)} = budget ` +
-      `${fixed(budget, 0)} kbit/s${rtt}; rung ${best} sustains ${fixed(sustained[best] / T / 1e3, 0)}${held}` };
+    return {
+      index: best,
+      rule: this.name,
+      reason:
+        `estimate ${fixed(kbps, 0)} kbit/s x ${g(st.safetyFactor)} = budget ` +
+        `${fixed(budget, 0)} kbit/s${rtt}; rung ${best} sustains ${fixed(sustained[best]! / T / 1e3, 0)}${held}`,
+    };
   }
 }
 
@@ -65,37 +80,42 @@ export class BolaRule implements AbrRule {
 
   parameters(state: AbrState): [number[], number[], number, number] {
     const s = sustainedBits(state, this.settings.sustainedGops);
-    const utilities = s.map((x) => Math.log(x / s[0]) + 1);
+    const utilities = s.map((x) => Math.log(x / s[0]!) + 1);
     const minBuffer = this.settings.bolaMinBufferS || state.segmentS;
     const target = Math.max(state.bufferCapacityS - state.segmentS, minBuffer + state.segmentS);
-    const gp = Math.max(utilities[utilities.length - 1] - 1, 1e-9) / (target / minBuffer - 1);
+    const gp = Math.max(utilities[utilities.length - 1]! - 1, 1e-9) / (target / minBuffer - 1);
     return [s, utilities, minBuffer / gp, gp];
   }
 
   bestAt(state: AbrState, bufferS: number): [number, number] {
     const [s, utilities, v, gp] = this.parameters(state);
-    const scores = utilities.map((u, i) => (v * (u + gp) - bufferS) / s[i]);
+    const scores = utilities.map((u, i) => (v * (u + gp) - bufferS) / s[i]!);
     let best = 0;
-    for (let i = 1; i < scores.length; i++) if (scores[i] >= scores[best]) best = i;
-    return [best, scores[best]];
+    for (let i = 1; i < scores.length; i++) if (scores[i]! >= scores[best]!) best = i;
+    return [best, scores[best]!];
   }
 
   thresholds(state: AbrState, rung: number): [number, number] {
     const [s, utilities, v, gp] = this.parameters(state);
-    const crossing = (lo: number, hi: number) => (v * ((utilities[lo] + gp) * s[hi] - (utilities[hi] + gp) * s[lo])) / (s[hi] - s[lo]);
+    const crossing = (lo: number, hi: number) =>
+      (v * ((utilities[lo]! + gp) * s[hi]! - (utilities[hi]! + gp) * s[lo]!)) / (s[hi]! - s[lo]!);
     let low = -Infinity;
-    for (let i = 0; i < rung; i++) if (s[i] < s[rung]) low = Math.max(low, crossing(i, rung));
+    for (let i = 0; i < rung; i++) if (s[i]! < s[rung]!) low = Math.max(low, crossing(i, rung));
     if (low === -Infinity) low = 0;
     let high = Infinity;
-    for (let i = rung + 1; i < s.length; i++) if (s[i] > s[rung]) high = Math.min(high, crossing(rung, i));
+    for (let i = rung + 1; i < s.length; i++) if (s[i]! > s[rung]!) high = Math.min(high, crossing(rung, i));
     return [Math.max(low, 0), high];
   }
 
   choose(state: AbrState): Decision {
     const [, , v, gp] = this.parameters(state);
     const [best, score] = this.bestAt(state, state.bufferS);
-    return { index: best, rule: this.name, reason: `buffer ${fixed(state.bufferS, 2)} s, V ${g3(v)}, gamma*p ${g3(gp)}: ` +
-      `best score ${g3(score)} per bit` };
+    return {
+      index: best,
+      rule: this.name,
+      reason:
+        `buffer ${fixed(state.bufferS, 2)} s, V ${g3(v)}, gamma*p ${g3(gp)}: ` + `best score ${g3(score)} per bit`,
+    };
   }
 }
 
@@ -152,8 +172,13 @@ export class InsufficientBufferRule {
     if (kbps === null || !state.playing) return null;
     const window = state.bufferS * this.settings.insufficientBufferSafety;
     const cap = highestFitting(state, kbps, window, sustainedBits(state, this.settings.sustainedGops));
-    return { index: cap, rule: this.name, reason: `buffer ${fixed(state.bufferS, 2)} s: rung ${cap} is the highest that arrives in ` +
-      `${fixed(window, 2)} s at ${fixed(kbps, 0)} kbit/s` };
+    return {
+      index: cap,
+      rule: this.name,
+      reason:
+        `buffer ${fixed(state.bufferS, 2)} s: rung ${cap} is the highest that arrives in ` +
+        `${fixed(window, 2)} s at ${fixed(kbps, 0)} kbit/s`,
+    };
   }
 }
 
@@ -179,13 +204,18 @@ export class DynamicRule implements AbrRule {
     const band = this.usingBola ? `>= ${g(s.dynamicBolaOff)}` : `< ${g(s.dynamicBolaOn)}`;
     const where = `dynamic: buffer ${fixed(state.bufferS, 2)} s ${band} x capacity ${fixed(state.bufferCapacityS, 2)} s`;
     let chosen: Decision;
-    if (!this.usingBola) chosen = { index: throughput.index, rule: throughput.rule, reason: `${where}; ${throughput.reason}` };
+    if (!this.usingBola)
+      chosen = { index: throughput.index, rule: throughput.rule, reason: `${where}; ${throughput.reason}` };
     else if (bola.index < throughput.index) {
-      chosen = { index: throughput.index, rule: throughput.rule, reason: `${where}, but bola's rung ${bola.index} is below ` +
-        `throughput's; ${throughput.reason}` };
+      chosen = {
+        index: throughput.index,
+        rule: throughput.rule,
+        reason: `${where}, but bola's rung ${bola.index} is below ` + `throughput's; ${throughput.reason}`,
+      };
     } else chosen = { index: bola.index, rule: bola.rule, reason: `${where}; ${bola.reason}` };
     const cap = this.insufficient.choose(state);
-    if (cap !== null && cap.index < chosen.index) return { index: cap.index, rule: cap.rule, reason: `${chosen.reason}; capped: ${cap.reason}` };
+    if (cap !== null && cap.index < chosen.index)
+      return { index: cap.index, rule: cap.rule, reason: `${chosen.reason}; capped: ${cap.reason}` };
     return chosen;
   }
 }

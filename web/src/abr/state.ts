@@ -1,4 +1,4 @@
-// What every ABR rule shares (client/abr_state.py, ported): the settings tree, throughput samples and
+// What every ABR rule shares (stgs/client/abr/state.py, ported): the settings tree, throughput samples and
 // estimators, the state a rule sees and the Decision it returns (dash.js's SwitchRequest). The Python module
 // is the reference; tests/web/test_contracts.py replays its decisions through these ports under Node.
 
@@ -104,7 +104,7 @@ export function sizes(state: AbrState): number[] {
 export function sustainedBits(state: AbrState, gops: number): number[] {
   const table: [number, number[]][] = [[state.keyframeBits, sizes(state)]];
   for (const g of state.upcoming.slice(1, gops)) table.push([g.keyframeBits, g.segmentBits]);
-  return state.bandwidths.map((_, i) => table.reduce((a, [k, s]) => a + (k + s[i]), 0) / table.length);
+  return state.bandwidths.map((_, i) => table.reduce((a, [k, s]) => a + (k + s[i]!), 0) / table.length);
 }
 
 const EWMA_NEGLIGIBLE = 1e-3;
@@ -113,11 +113,12 @@ export function ewmaKbps(samples: ThroughputSample[], halfLifeS: number): number
   let estimate = 0;
   let decay = 1;
   for (let i = samples.length - 1; i >= 0; i--) {
-    const s = samples[i];
+    const s = samples[i]!;
     let body = s.seconds - s.ttfb;
+    // biome-ignore lint/complexity/useMathMinMax: as the Python twin, a NaN body becomes 1e-6, not NaN
     body = body > 1e-6 ? body : 1e-6;
     const alpha = 0.5 ** (body / halfLifeS);
-    estimate += decay * (1 - alpha) * s.bytes * 8e-3 / body;
+    estimate += (decay * (1 - alpha) * s.bytes * 8e-3) / body;
     decay *= alpha;
     if (decay < EWMA_NEGLIGIBLE) break;
   }

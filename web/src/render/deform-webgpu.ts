@@ -2,18 +2,17 @@
 // the dynamic layer, the same arithmetic as the WebGL2 fragment shader (render/deform.ts). WebGPU and WebGL
 // share no resources, so the result is read back (the sort needs the means on the CPU anyway) and uploaded to
 // the four textures the WebGL2 splat pass reads: one more copy than the WebGL2 path (docs/WEB.md measures it).
-import { fieldShapes } from "../container";
+import { type Attributes, fieldShapes } from "../container";
 import { UnsupportedError } from "../errors";
 import type { SceneShape } from "../manifest";
-import { CODE_MAX, packWeights } from "./deform";
 import { floatTexture, rgba } from "./gl";
-import { type Deformer, LayerRing, dequantisation, positionalEncoding } from "./layers";
+import { CODE_MAX, type Deformer, LayerRing, dequantisation, packWeights, positionalEncoding } from "./deformer";
 
 function wgsl(shape: SceneShape, offsets: Record<string, [number, number]>): string {
   const W = shape.window;
   const peVec = Math.max(1, Math.ceil((2 * shape.peFreqs) / 4));
   const inVec = W * 4 + Math.ceil((2 * shape.peFreqs) / 4);
-  const o = (n: string) => offsets[n][0];
+  const o = (n: string) => offsets[n]![0];
   const dense64 = (name: string, input: string, extra: boolean) => `
   for (var j = 0u; j < 64u; j++) {
     let row = ${o(name)}u + j * ${extra ? 17 : 16}u;
@@ -117,47 +116,74 @@ export class WebGpuDeform implements Deformer {
     const n = shape.capacity;
     const frameBytes = 16 * n * 2;
     const needed = Math.max(frameBytes * slots, 16 * 4 * n);
-    if (needed > adapter.limits.maxStorageBufferBindingSize) throw new UnsupportedError("the scene is too large for this GPU's storage buffers");
-    const device = await adapter.requestDevice({ requiredLimits: { maxStorageBufferBindingSize: needed, maxBufferSize: needed } });
+    if (needed > adapter.limits.maxStorageBufferBindingSize)
+      throw new UnsupportedError("the scene is too large for this GPU's storage buffers");
+    const device = await adapter.requestDevice({
+      requiredLimits: { maxStorageBufferBindingSize: needed, maxBufferSize: needed },
+    });
     return new WebGpuDeform(gl, device, shape, slots);
   }
 
-  private constructor(private readonly gl: WebGL2RenderingContext, private readonly device: GPUDevice,
-    private readonly shape: SceneShape, slots: number) {
+  private constructor(
+    private readonly gl: WebGL2RenderingContext,
+    private readonly device: GPUDevice,
+    private readonly shape: SceneShape,
+    slots: number,
+  ) {
     const n = shape.capacity;
     this.n = n;
     const shapes = fieldShapes(shape.window, shape.peFreqs);
-    const zeros = Object.fromEntries(Object.entries(shapes).map(([k, [r, c]]) => [`field.${k}`, new Float32Array(r * c)]));
+    const zeros = Object.fromEntries(
+      Object.entries(shapes).map(([k, [r, c]]) => [`field.${k}`, new Float32Array(r * c)]),
+    );
     const layout = packWeights(zeros, shape.window, shape.peFreqs);
     const module = device.createShaderModule({ code: wgsl(shape, layout.offsets) });
     this.pipeline = device.createComputePipeline({ layout: "auto", compute: { module, entryPoint: "main" } });
     const S = GPUBufferUsage;
     const peVec = Math.max(1, Math.ceil((2 * shape.peFreqs) / 4));
-    this.params = device.createBuffer({ size: 16 * (4 + 4 + peVec + 1 + 1 + Math.ceil(shape.window / 4)), usage: S.UNIFORM | S.COPY_DST });
+    this.params = device.createBuffer({
+      size: 16 * (4 + 4 + peVec + 1 + 1 + Math.ceil(shape.window / 4)),
+      usage: S.UNIFORM | S.COPY_DST,
+    });
     this.canon = device.createBuffer({ size: 64 * n, usage: S.STORAGE | S.COPY_DST });
     this.weights = device.createBuffer({ size: layout.texels.byteLength, usage: S.STORAGE | S.COPY_DST });
     const frameWords = 8 * n; // (4S)² codes of 16 bits
     this.feats = device.createBuffer({ size: 4 * frameWords * slots, usage: S.STORAGE | S.COPY_DST });
     this.out = device.createBuffer({ size: 64 * n, usage: S.STORAGE | S.COPY_SRC });
     this.read = device.createBuffer({ size: 64 * n, usage: S.MAP_READ | S.COPY_DST });
-    this.bind = device.createBindGroup({ layout: this.pipeline.getBindGroupLayout(0), entries: [this.params, this.canon,
-      this.weights, this.feats, this.out].map((buffer, binding) => ({ binding, resource: { buffer } })) });
-    this.ring = new LayerRing(slots, (slot, codes) => device.queue.writeBuffer(this.feats, 4 * frameWords * slot, codes as Uint16Array<ArrayBuffer>));
+    this.bind = device.createBindGroup({
+      layout: this.pipeline.getBindGroupLayout(0),
+      entries: [this.params, this.canon, this.weights, this.feats, this.out].map((buffer, binding) => ({
+        binding,
+        resource: { buffer },
+      })),
+    });
+    this.ring = new LayerRing(slots, (slot, codes) =>
+      device.queue.writeBuffer(this.feats, 4 * frameWords * slot, codes as Uint16Array<ArrayBuffer>),
+    );
     this.outputs = [0, 1, 2, 3].map(() => floatTexture(gl, shape.side, shape.side, null));
   }
 
-  loadGop(attributes: Record<string, Float32Array>, floats: Record<string, Float32Array>): void {
+  loadGop(attributes: Attributes, floats: Record<string, Float32Array>): void {
     const n = this.n;
     const canon = new Float32Array(16 * n);
-    const parts = [rgba(attributes.position, 3, n), rgba(attributes.scale, 3, n), rgba(attributes.rotation, 4, n),
-      rgba(attributes.color, 3, n)];
+    const parts = [
+      rgba(attributes.position, 3, n),
+      rgba(attributes.scale, 3, n),
+      rgba(attributes.rotation, 4, n),
+      rgba(attributes.color, 3, n),
+    ];
     for (let i = 0; i < n; i++) {
-      parts[0][4 * i + 3] = attributes.opacity[i];
-      for (let p = 0; p < 4; p++) canon.set(parts[p].subarray(4 * i, 4 * i + 4), 16 * i + 4 * p);
+      parts[0]![4 * i + 3] = attributes.opacity[i]!;
+      for (let p = 0; p < 4; p++) canon.set(parts[p]!.subarray(4 * i, 4 * i + 4), 16 * i + 4 * p);
     }
     this.device.queue.writeBuffer(this.canon, 0, canon);
-    this.device.queue.writeBuffer(this.weights, 0, packWeights(floats, this.shape.window, this.shape.peFreqs).texels as Float32Array<ArrayBuffer>);
-    [this.lo, this.step] = dequantisation(floats["range.features"], CODE_MAX);
+    this.device.queue.writeBuffer(
+      this.weights,
+      0,
+      packWeights(floats, this.shape.window, this.shape.peFreqs).texels as Float32Array<ArrayBuffer>,
+    );
+    [this.lo, this.step] = dequantisation(floats["range.features"]!, CODE_MAX);
   }
 
   layer(gop: number, e: number, codes: () => Uint16Array): number {
@@ -179,7 +205,7 @@ export class WebGpuDeform implements Deformer {
     f.set(this.step, 16);
     f.set(pe.subarray(0, 4 * peVec), 32);
     const at = 32 + 4 * peVec;
-    f.set([camera[0], camera[1], camera[2], 0], at);
+    f.set([camera[0]!, camera[1]!, camera[2]!, 0], at);
     u.set([shape.side, 8 * n, 0, 0], at + 4);
     u.set(layers, at + 8);
     device.queue.writeBuffer(this.params, 0, params);
@@ -197,7 +223,17 @@ export class WebGpuDeform implements Deformer {
     const gl = this.gl;
     this.outputs.forEach((tex, k) => {
       gl.bindTexture(gl.TEXTURE_2D, tex);
-      gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, shape.side, shape.side, gl.RGBA, gl.FLOAT, all.subarray(4 * n * k, 4 * n * (k + 1)));
+      gl.texSubImage2D(
+        gl.TEXTURE_2D,
+        0,
+        0,
+        0,
+        shape.side,
+        shape.side,
+        gl.RGBA,
+        gl.FLOAT,
+        all.subarray(4 * n * k, 4 * n * (k + 1)),
+      );
     });
     return all.slice(0, 4 * n);
   }

@@ -4,42 +4,32 @@
 // deformed, activated Gaussian into four RGBA32F render targets: (mean, opacity), scale, quaternion, colour.
 // Features come from R16UI texture layers (the 10-bit codes as decoded, dequantised here), weights from one
 // RGBA32F texture (each matrix row padded to whole texels).
-import { fieldShapes } from "../container";
+import { type Attributes, fieldShapes } from "../container";
 import type { SceneShape } from "../manifest";
 import { UnsupportedError } from "../errors";
-import { type Deformer, LayerRing, dequantisation, positionalEncoding } from "./layers";
-import { bindTextures, compile, floatTexture, framebuffer, rgba } from "./gl";
+import {
+  CODE_MAX,
+  type Deformer,
+  LayerRing,
+  type Packed,
+  WEIGHT_TEXTURE_WIDTH,
+  dequantisation,
+  packWeights,
+  positionalEncoding,
+} from "./deformer";
+import { FULLSCREEN_VS, bindTextures, compile, floatTexture, framebuffer, rgba } from "./gl";
 
-const WEIGHT_TEXTURE_WIDTH = 1024;
-export const CODE_MAX = 1023;
-
-interface Packed {
-  texels: Float32Array;
-  /** matrix name -> [first texel, texels per row] */
-  offsets: Record<string, [number, number]>;
-}
-
-export function packWeights(floats: Record<string, Float32Array>, window: number, peFreqs: number): Packed {
-  const shapes = fieldShapes(window, peFreqs);
-  const offsets: Record<string, [number, number]> = {};
-  let texels = 0;
-  for (const [name, [rows, cols]] of Object.entries(shapes)) {
-    offsets[name] = [texels, Math.ceil(cols / 4)];
-    texels += rows * Math.ceil(cols / 4);
-  }
-  const height = Math.ceil(texels / WEIGHT_TEXTURE_WIDTH);
-  const data = new Float32Array(WEIGHT_TEXTURE_WIDTH * height * 4);
-  for (const [name, [rows, cols]] of Object.entries(shapes)) {
-    const w = floats[`field.${name}`];
-    const [first, per] = offsets[name];
-    for (let r = 0; r < rows; r++) for (let c = 0; c < cols; c++) data[4 * (first + r * per) + c] = w[r * cols + c];
-  }
-  return { texels: data, offsets };
-}
-
-const MATRICES: [string, string][] = [["temporal.weight", "mT"], ["d_pos.0.weight", "mP0"], ["d_pos.2.weight", "mP2"],
-  ["d_cov.0.weight", "mC0"], ["d_cov.2.weight", "mC2"], ["d_opacity.0.weight", "mO0"], ["d_opacity.2.weight", "mO2"],
-  ["d_color.0.weight", "mK0"], ["d_color.2.weight", "mK2"]];
+const MATRICES: [string, string][] = [
+  ["temporal.weight", "mT"],
+  ["d_pos.0.weight", "mP0"],
+  ["d_pos.2.weight", "mP2"],
+  ["d_cov.0.weight", "mC0"],
+  ["d_cov.2.weight", "mC2"],
+  ["d_opacity.0.weight", "mO0"],
+  ["d_opacity.2.weight", "mO2"],
+  ["d_color.0.weight", "mK0"],
+  ["d_color.2.weight", "mK2"],
+];
 
 /** Where the weights live: one uniform block per matrix (needs uniform blocks as large as the largest matrix,
  * 17 KB at W = 3) or one float texture (any device). */
@@ -55,12 +45,15 @@ function shader(shape: SceneShape, packed: Packed, storage: WeightStorage): stri
   const shapes = fieldShapes(W, L);
   const at = (name: string, index: string) => {
     const id = MATRICES.find(([n]) => n === name)![1];
-    return storage === "uniform" ? `${id}[${index}]` : `w(${packed.offsets[name][0]} + ${index})`;
+    return storage === "uniform" ? `${id}[${index}]` : `w(${packed.offsets[name]![0]} + ${index})`;
   };
-  const blocks = storage === "uniform" ? MATRICES.map(([name, id]) => {
-    const [rows, cols] = shapes[name];
-    return `layout(std140) uniform B_${id} { vec4 ${id}[${rows * Math.ceil(cols / 4)}]; };`;
-  }).join("\n") : "";
+  const blocks =
+    storage === "uniform"
+      ? MATRICES.map(([name, id]) => {
+          const [rows, cols] = shapes[name]!;
+          return `layout(std140) uniform B_${id} { vec4 ${id}[${rows * Math.ceil(cols / 4)}]; };`;
+        }).join("\n")
+      : "";
   /** out[0..15] = act(M · (in[0..15] [, extra])) for a 64-row matrix. */
   const dense64 = (name: string, out: string, input: string, extra: string | null, act: string) => {
     const per = extra ? 17 : 16;
@@ -150,10 +143,6 @@ ${head("d_color.2.weight", "dcol", 3)}
 }`;
 }
 
-const FULLSCREEN_VS = `#version 300 es
-void main() { vec2 p = vec2(float((gl_VertexID << 1) & 2), float(gl_VertexID & 2)); gl_Position = vec4(p * 2.0 - 1.0, 0.0, 1.0); }`;
-export { FULLSCREEN_VS };
-
 export class DeformPass implements Deformer {
   readonly outputs: WebGLTexture[];
   private readonly program: WebGLProgram;
@@ -170,16 +159,25 @@ export class DeformPass implements Deformer {
   readonly storage: WeightStorage;
   private readonly blocks: WebGLBuffer[] = [];
 
-  constructor(private readonly gl: WebGL2RenderingContext, private readonly shape: SceneShape, readonly ringLayers: number,
-    storage?: WeightStorage) {
+  constructor(
+    private readonly gl: WebGL2RenderingContext,
+    private readonly shape: SceneShape,
+    readonly ringLayers: number,
+    storage?: WeightStorage,
+  ) {
     const s = shape.side;
     this.side = s;
     const shapes = fieldShapes(shape.window, shape.peFreqs);
-    const zeros = Object.fromEntries(Object.entries(shapes).map(([n, [r, c]]) => [`field.${n}`, new Float32Array(r * c)]));
+    const zeros = Object.fromEntries(
+      Object.entries(shapes).map(([n, [r, c]]) => [`field.${n}`, new Float32Array(r * c)]),
+    );
     const layout = packWeights(zeros, shape.window, shape.peFreqs);
     const largest = Math.max(...Object.values(shapes).map(([r, c]) => r * Math.ceil(c / 4) * 16));
-    const fits = largest <= gl.getParameter(gl.MAX_UNIFORM_BLOCK_SIZE) && MATRICES.length <= gl.getParameter(gl.MAX_FRAGMENT_UNIFORM_BLOCKS);
-    if (storage === "uniform" && !fits) throw new UnsupportedError("the deformation weights do not fit this GPU's uniform blocks");
+    const fits =
+      largest <= gl.getParameter(gl.MAX_UNIFORM_BLOCK_SIZE) &&
+      MATRICES.length <= gl.getParameter(gl.MAX_FRAGMENT_UNIFORM_BLOCKS);
+    if (storage === "uniform" && !fits)
+      throw new UnsupportedError("the deformation weights do not fit this GPU's uniform blocks");
     // a texture by default: as fast as uniform blocks on SwiftShader (docs/BENCHMARKS.md, "Web player") and it
     // fits on every device
     this.storage = storage ?? "texture";
@@ -198,7 +196,8 @@ export class DeformPass implements Deformer {
     this.features = gl.createTexture()!;
     gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.features);
     gl.texStorage3D(gl.TEXTURE_2D_ARRAY, 1, gl.R16UI, 4 * s, 4 * s, ringLayers);
-    for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D_ARRAY, p, gl.NEAREST);
+    for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER])
+      gl.texParameteri(gl.TEXTURE_2D_ARRAY, p, gl.NEAREST);
     this.kind = `webgl2 (${this.storage} weights)`;
     this.ring = new LayerRing(ringLayers, (layer, codes) => {
       gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.features);
@@ -208,30 +207,44 @@ export class DeformPass implements Deformer {
   }
 
   /** A GOP's canonical attributes, weights and feature ranges (from its decoded keyframe). */
-  loadGop(attributes: Record<string, Float32Array>, floats: Record<string, Float32Array>): void {
+  loadGop(attributes: Attributes, floats: Record<string, Float32Array>): void {
     const gl = this.gl;
     const n = this.side * this.side;
     const x = rgba(attributes.position, 3, n);
-    for (let i = 0; i < n; i++) x[4 * i + 3] = attributes.opacity[i];
+    for (let i = 0; i < n; i++) x[4 * i + 3] = attributes.opacity[i]!;
     const data = [x, rgba(attributes.scale, 3, n), rgba(attributes.rotation, 4, n), rgba(attributes.color, 3, n)];
     data.forEach((d, i) => {
-      gl.bindTexture(gl.TEXTURE_2D, this.canonical[i]);
+      gl.bindTexture(gl.TEXTURE_2D, this.canonical[i]!);
       gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, this.side, this.side, gl.RGBA, gl.FLOAT, d);
     });
     const packed = packWeights(floats, this.shape.window, this.shape.peFreqs);
     if (this.storage === "uniform") {
       const shapes = fieldShapes(this.shape.window, this.shape.peFreqs);
       MATRICES.forEach(([name], binding) => {
-        const [first, per] = packed.offsets[name];
-        gl.bindBuffer(gl.UNIFORM_BUFFER, this.blocks[binding]);
-        gl.bufferData(gl.UNIFORM_BUFFER, packed.texels.subarray(4 * first, 4 * (first + shapes[name][0] * per)), gl.STATIC_DRAW);
+        const [first, per] = packed.offsets[name]!;
+        gl.bindBuffer(gl.UNIFORM_BUFFER, this.blocks[binding]!);
+        gl.bufferData(
+          gl.UNIFORM_BUFFER,
+          packed.texels.subarray(4 * first, 4 * (first + shapes[name]![0] * per)),
+          gl.STATIC_DRAW,
+        );
       });
       gl.bindBuffer(gl.UNIFORM_BUFFER, null);
     } else {
       gl.bindTexture(gl.TEXTURE_2D, this.weights);
-      gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, WEIGHT_TEXTURE_WIDTH, packed.texels.length / 4 / WEIGHT_TEXTURE_WIDTH, gl.RGBA, gl.FLOAT, packed.texels);
+      gl.texSubImage2D(
+        gl.TEXTURE_2D,
+        0,
+        0,
+        0,
+        WEIGHT_TEXTURE_WIDTH,
+        packed.texels.length / 4 / WEIGHT_TEXTURE_WIDTH,
+        gl.RGBA,
+        gl.FLOAT,
+        packed.texels,
+      );
     }
-    [this.lo, this.step] = dequantisation(floats["range.features"], CODE_MAX);
+    [this.lo, this.step] = dequantisation(floats["range.features"]!, CODE_MAX);
   }
 
   layer(gop: number, e: number, codes: () => Uint16Array): number {
@@ -259,15 +272,23 @@ export class DeformPass implements Deformer {
     gl.viewport(0, 0, this.side, this.side);
     gl.disable(gl.BLEND);
     const p = this.program;
-    bindTextures(gl, p, [["uX", this.canonical[0]], ["uS", this.canonical[1]], ["uQ", this.canonical[2]],
-      ["uC", this.canonical[3]], ["uWt", this.weights], ["uF", this.features, gl.TEXTURE_2D_ARRAY]]);
+    bindTextures(gl, p, [
+      ["uX", this.canonical[0]!],
+      ["uS", this.canonical[1]!],
+      ["uQ", this.canonical[2]!],
+      ["uC", this.canonical[3]!],
+      ["uWt", this.weights],
+      ["uF", this.features, gl.TEXTURE_2D_ARRAY],
+    ]);
     gl.uniform1iv(gl.getUniformLocation(p, "uLayer"), layers);
     gl.uniform1fv(gl.getUniformLocation(p, "uLo"), this.lo);
     gl.uniform1fv(gl.getUniformLocation(p, "uStep"), this.step);
     gl.uniform4fv(gl.getUniformLocation(p, "uPe"), pe);
-    gl.uniform3f(gl.getUniformLocation(p, "uCam"), camera[0], camera[1], camera[2]);
+    gl.uniform3f(gl.getUniformLocation(p, "uCam"), camera[0]!, camera[1]!, camera[2]!);
     gl.uniform1i(gl.getUniformLocation(p, "uSide"), this.side);
-    this.blocks.forEach((b, binding) => gl.bindBufferBase(gl.UNIFORM_BUFFER, binding, b));
+    this.blocks.forEach((b, binding) => {
+      gl.bindBufferBase(gl.UNIFORM_BUFFER, binding, b);
+    });
     gl.drawArrays(gl.TRIANGLES, 0, 3);
     gl.bindFramebuffer(gl.FRAMEBUFFER, null);
   }

@@ -1,11 +1,12 @@
-// The splat pass (DESIGN.md's splatter numerics, as far as a rasteriser allows; docs/WEB.md lists the
+// The splat pass (the splatter numerics of docs/ARCHITECTURE.md, as far as a rasteriser allows; docs/WEB.md lists the
 // deviations): one instanced quad per visible Gaussian in the sort's front-to-back order, sized by the
 // opacity-aware screen extent; the vertex shader projects with EWA (Σ' = J W Σ Wᵀ Jᵀ + 0.3 px²) exactly as
 // stgs/render/project.py does, the fragment shader evaluates alpha = min(0.99, o·exp(−½ dᵀΣ'⁻¹d)) at the pixel
 // centre and discards alpha < 1/255, and "under" blending (ONE_MINUS_DST_ALPHA, ONE) composites front to back
 // into a float target holding (Σ c·α·T, 1 − T). A last pass adds T·background.
-import { FULLSCREEN_VS } from "./deform";
-import { bindTextures, compile, floatTexture, framebuffer } from "./gl";
+import { type View, cameraCenter } from "../camera";
+import type { Attributes } from "../container";
+import { FULLSCREEN_VS, bindTextures, compile, floatTexture, framebuffer } from "./gl";
 
 const SPLAT_VS = `#version 300 es
 precision highp float;
@@ -118,25 +119,15 @@ export interface StaticTextures {
   textures: WebGLTexture[];
 }
 
-export interface View {
-  /** World-to-camera, row-major 4x4 (OpenCV: x right, y down, z forward). */
-  viewmat: Float64Array;
-  /** fx, skew, cx, fy, cy for the render size. */
-  K: [number, number, number, number, number];
-  width: number;
-  height: number;
-}
-
-export function cameraCenter(viewmat: ArrayLike<number>): [number, number, number] {
-  const c: [number, number, number] = [0, 0, 0];
-  for (let i = 0; i < 3; i++) c[i] = -(viewmat[i] * viewmat[3] + viewmat[4 + i] * viewmat[7] + viewmat[8 + i] * viewmat[11]);
-  return c;
-}
-
 /** The static layer's activated attributes as textures: (mean, sigmoid(opacity)), exp(scale), quaternion,
  * relu(colour), and the three sh1 rows. */
-export function staticTextures(gl: WebGL2RenderingContext, attrs: Record<string, Float32Array>, count: number, side: number,
-  shDegree: number): StaticTextures {
+export function staticTextures(
+  gl: WebGL2RenderingContext,
+  attrs: Attributes,
+  count: number,
+  side: number,
+  shDegree: number,
+): StaticTextures {
   const f = Math.fround;
   const mean = new Float32Array(count * 4);
   const scale = new Float32Array(count * 4);
@@ -144,18 +135,20 @@ export function staticTextures(gl: WebGL2RenderingContext, attrs: Record<string,
   const color = new Float32Array(count * 4);
   for (let i = 0; i < count; i++) {
     for (let c = 0; c < 3; c++) {
-      mean[4 * i + c] = attrs.position[3 * i + c];
-      scale[4 * i + c] = f(Math.exp(attrs.scale[3 * i + c]));
-      color[4 * i + c] = Math.max(0, attrs.color[3 * i + c]);
+      mean[4 * i + c] = attrs.position[3 * i + c]!;
+      scale[4 * i + c] = f(Math.exp(attrs.scale[3 * i + c]!));
+      color[4 * i + c] = Math.max(0, attrs.color[3 * i + c]!);
     }
-    mean[4 * i + 3] = f(1 / (1 + Math.exp(-attrs.opacity[i])));
-    for (let c = 0; c < 4; c++) quat[4 * i + c] = attrs.rotation[4 * i + c];
+    mean[4 * i + 3] = f(1 / (1 + Math.exp(-attrs.opacity[i]!)));
+    for (let c = 0; c < 4; c++) quat[4 * i + c] = attrs.rotation[4 * i + c]!;
   }
-  const sh = shDegree ? ["sh1_x", "sh1_y", "sh1_z"].map((name) => {
-    const out = new Float32Array(count * 4);
-    for (let i = 0; i < count; i++) for (let c = 0; c < 3; c++) out[4 * i + c] = attrs[name][3 * i + c];
-    return out;
-  }) : [];
+  const sh = shDegree
+    ? ["sh1_x", "sh1_y", "sh1_z"].map((name) => {
+        const out = new Float32Array(count * 4);
+        for (let i = 0; i < count; i++) for (let c = 0; c < 3; c++) out[4 * i + c] = attrs[name]![3 * i + c]!;
+        return out;
+      })
+    : [];
   const textures = [mean, scale, quat, color, ...sh].map((d) => floatTexture(gl, side, side, d));
   return { count, side, shDegree, textures };
 }
@@ -170,7 +163,10 @@ export class SplatPass {
   private size = [0, 0];
   private readonly empty: WebGLTexture;
 
-  constructor(private readonly gl: WebGL2RenderingContext, private readonly floatBlend: boolean) {
+  constructor(
+    private readonly gl: WebGL2RenderingContext,
+    private readonly floatBlend: boolean,
+  ) {
     this.splat = compile(gl, SPLAT_VS, SPLAT_FS);
     this.composite = compile(gl, FULLSCREEN_VS, COMPOSITE_FS);
     this.vao = gl.createVertexArray()!;
@@ -200,8 +196,15 @@ export class SplatPass {
   }
 
   /** Splat the Gaussians `order` names (static ids first, then the dynamic layer's) and composite over `background`. */
-  draw(view: View, order: Uint32Array, count: number, layer: StaticTextures | null, dynamic: WebGLTexture[], dynSide: number,
-    background: [number, number, number]): void {
+  draw(
+    view: View,
+    order: Uint32Array,
+    count: number,
+    layer: StaticTextures | null,
+    dynamic: WebGLTexture[],
+    dynSide: number,
+    background: [number, number, number],
+  ): void {
     const gl = this.gl;
     const { width, height, viewmat: m, K } = view;
     this.target(width, height);
@@ -215,18 +218,28 @@ export class SplatPass {
     gl.useProgram(this.splat);
     const p = this.splat;
     const s = layer?.textures ?? [];
-    bindTextures(gl, p, [["uSMean", s[0] ?? this.empty], ["uSScale", s[1] ?? this.empty], ["uSQuat", s[2] ?? this.empty],
-      ["uSColor", s[3] ?? this.empty], ["uSh0", s[4] ?? this.empty], ["uSh1", s[5] ?? this.empty], ["uSh2", s[6] ?? this.empty],
-      ["uDMean", dynamic[0]], ["uDScale", dynamic[1]], ["uDQuat", dynamic[2]], ["uDColor", dynamic[3]]]);
+    bindTextures(gl, p, [
+      ["uSMean", s[0] ?? this.empty],
+      ["uSScale", s[1] ?? this.empty],
+      ["uSQuat", s[2] ?? this.empty],
+      ["uSColor", s[3] ?? this.empty],
+      ["uSh0", s[4] ?? this.empty],
+      ["uSh1", s[5] ?? this.empty],
+      ["uSh2", s[6] ?? this.empty],
+      ["uDMean", dynamic[0]!],
+      ["uDScale", dynamic[1]!],
+      ["uDQuat", dynamic[2]!],
+      ["uDColor", dynamic[3]!],
+    ]);
     const u = (name: string) => gl.getUniformLocation(p, name);
     gl.uniform1i(u("uStaticCount"), layer?.count ?? 0);
     gl.uniform1i(u("uStaticSide"), layer?.side ?? 1);
     gl.uniform1i(u("uDynSide"), dynSide);
     gl.uniform1i(u("uShDegree"), layer?.shDegree ?? 0);
-    gl.uniform3f(u("uR0"), m[0], m[1], m[2]);
-    gl.uniform3f(u("uR1"), m[4], m[5], m[6]);
-    gl.uniform3f(u("uR2"), m[8], m[9], m[10]);
-    gl.uniform3f(u("uT"), m[3], m[7], m[11]);
+    gl.uniform3f(u("uR0"), m[0]!, m[1]!, m[2]!);
+    gl.uniform3f(u("uR1"), m[4]!, m[5]!, m[6]!);
+    gl.uniform3f(u("uR2"), m[8]!, m[9]!, m[10]!);
+    gl.uniform3f(u("uT"), m[3]!, m[7]!, m[11]!);
     const c = cameraCenter(m);
     gl.uniform3f(u("uCam"), c[0], c[1], c[2]);
     gl.uniform4f(u("uK"), K[0], K[1], K[2], K[3]);

@@ -1,4 +1,4 @@
-// The download loop (client/schedule.py's order of work, in the page): for each GOP from the start GOP on, wait
+// The download loop (stgs/client/fetch/schedule.py's order of work, in the page): for each GOP from the start GOP on, wait
 // for room in the buffer, let the ABR rule choose the rung (its features and the keyframe Representation it pairs
 // with; the cheapest keyframes are budgeted apart), fetch the rung's init segment once, then its keyframe and media
 // segment together; the media
@@ -11,7 +11,7 @@ import { MAX_INIT_BYTES } from "../limits";
 import { KEYFRAME_REP, type KeyframeRep, type Manifest } from "../manifest";
 import type { DecodedSegment } from "../workers/keyframe.worker";
 import { fetchStream } from "./fetch";
-import type { FeatureDecoder, KeyframePool } from "./workers";
+import type { FeatureDecoder, KeyframePool } from "./worker-pools";
 
 export interface GopDownload {
   gop: number;
@@ -36,22 +36,32 @@ export interface DownloaderHooks {
   onError(err: Error): void;
 }
 
-/** GOP k's keyframe and per-rung feature bits and PSNR from stats.json (client/abr_state.py UpcomingGOP.from_stats):
+/** GOP k's keyframe and per-rung feature bits and PSNR from stats.json (stgs/client/abr/state.py UpcomingGOP.from_stats):
  * each rung's keyframes are those of `keyframeReps` (its @associationId); the cheapest are the keyframe bits, what a
  * rung's cost beyond them counts to its segment bits. */
-export function upcomingFromStats(stats: unknown, k: number, repIds: string[], keyframeReps: string[]): UpcomingGOP | null {
+export function upcomingFromStats(
+  stats: unknown,
+  k: number,
+  repIds: string[],
+  keyframeReps: string[],
+): UpcomingGOP | null {
   try {
-    const gop = (stats as { gops: Record<string, unknown>[] }).gops[k] as { index: number; keyframe_bytes: number;
+    const gop = (stats as { gops: Record<string, unknown>[] }).gops[k] as {
+      index: number;
+      keyframe_bytes: number;
       keyframes?: Record<string, number>;
-      representations: Record<string, { bytes: number; render_psnr?: number; truth_psnr?: number }> };
+      representations: Record<string, { bytes: number; render_psnr?: number; truth_psnr?: number }>;
+    };
     if (gop.index !== k) return null;
-    const paired = keyframeReps.map((rep) => Number(rep === KEYFRAME_REP ? gop.keyframe_bytes : gop.keyframes![rep]) * 8);
-    const features = repIds.map((r) => Number(gop.representations[r].bytes) * 8);
+    const paired = keyframeReps.map(
+      (rep) => Number(rep === KEYFRAME_REP ? gop.keyframe_bytes : gop.keyframes![rep]) * 8,
+    );
+    const features = repIds.map((r) => Number(gop.representations[r]!.bytes) * 8);
     if (![...paired, ...features].every((v) => Number.isFinite(v) && v > 0)) return null;
     const keyframeBits = Math.min(...paired);
-    const segmentBits = features.map((f, i) => f + paired[i] - keyframeBits);
+    const segmentBits = features.map((f, i) => f + paired[i]! - keyframeBits);
     // against the capture where every rung has it, else against the uncompressed model (stgs.tree.rung_quality)
-    const entries = repIds.map((r) => gop.representations[r]);
+    const entries = repIds.map((r) => gop.representations[r]!);
     const truth = entries.every((e) => "truth_psnr" in e);
     let psnr: number[] | null = entries.map((e) => Number(truth ? e.truth_psnr : e.render_psnr));
     if (!psnr.every(Number.isFinite)) psnr = null;
@@ -76,13 +86,27 @@ export class Downloader {
   private lastKeyframeBits = 0;
   pinned: number | null = null;
 
-  constructor(private readonly manifest: Manifest, private readonly rule: AbrRule, private readonly settings: AbrSettings,
-    private readonly features: FeatureDecoder, private readonly keyframes: KeyframePool, readonly bufferCapacityS: number,
-    private readonly stats: unknown, private readonly hooks: DownloaderHooks) {}
+  constructor(
+    private readonly manifest: Manifest,
+    private readonly rule: AbrRule,
+    private readonly settings: AbrSettings,
+    private readonly features: FeatureDecoder,
+    private readonly keyframes: KeyframePool,
+    readonly bufferCapacityS: number,
+    private readonly stats: unknown,
+    private readonly hooks: DownloaderHooks,
+  ) {}
 
   private upcoming(k: number): UpcomingGOP | null {
     const rungs = this.manifest.rungs;
-    return this.stats ? upcomingFromStats(this.stats, k, rungs.map((r) => r.id), rungs.map((r) => r.keyframeRep)) : null;
+    return this.stats
+      ? upcomingFromStats(
+          this.stats,
+          k,
+          rungs.map((r) => r.id),
+          rungs.map((r) => r.keyframeRep),
+        )
+      : null;
   }
 
   state(k: number, waitedS: number): AbrState {
@@ -143,34 +167,54 @@ export class Downloader {
       const start = performance.now();
       let init = this.inits.get(rung);
       if (!init) {
-        init = (await fetchStream(m.initUrl(rung), m.policy, MAX_INIT_BYTES, `init segment of ${m.rungs[rung].id}`, signal)).data;
+        init = (
+          await fetchStream(m.initUrl(rung), m.policy, MAX_INIT_BYTES, `init segment of ${m.rungs[rung]!.id}`, signal)
+        ).data;
         this.inits.set(rung, init);
       }
       if (generation !== this.generation) return;
-      this.features.open(k, rung, m.shape.side, m.shape.numFeatures, m.rungs[rung].codecs, init);
-      const kfRep = m.keyframeReps.get(m.rungs[rung].keyframeRep)!;
+      this.features.open(k, rung, m.shape.side, m.shape.numFeatures, m.rungs[rung]!.codecs, init);
+      const kfRep = m.keyframeReps.get(m.rungs[rung]!.keyframeRep)!;
       const kfMax = m.maxSegmentBytes(kfRep.bandwidth);
       let keyframe: Promise<DecodedSegment> | null = null;
       const [kf, media] = await Promise.all([
         fetchStream(m.keyframeUrl(k, kfRep.id), m.policy, kfMax, `keyframe segment of GOP ${k}`, signal).then((got) => {
           // decoded in a worker as soon as it is here, while the media segment still streams
-          keyframe = this.keyframes.decode({ data: got.data.slice(0), what: "keyframe",
-            metadata: keyframeMetadata(k, m.shape, kfRep.quant), want: [...keyframeTensors(m.shape, kfRep.quant)],
-            side: m.shape.side, shDegree: 0, maxBytes: kfMax, quant: kfRep.quant, fieldShapes: quantisedFields(m, kfRep) });
+          keyframe = this.keyframes.decode({
+            data: got.data.slice(0),
+            what: "keyframe",
+            metadata: keyframeMetadata(k, m.shape, kfRep.quant),
+            want: [...keyframeTensors(m.shape, kfRep.quant)],
+            side: m.shape.side,
+            shDegree: 0,
+            maxBytes: kfMax,
+            quant: kfRep.quant,
+            fieldShapes: quantisedFields(m, kfRep),
+          });
           keyframe.catch(() => undefined);
           return got;
         }),
-        fetchStream(m.mediaUrl(rung, k), m.policy, m.maxSegmentBytes(m.rungs[rung].bandwidth), `feature segment of GOP ${k}`, signal,
-          (chunk) => this.features.chunk(k, chunk, false)),
+        fetchStream(
+          m.mediaUrl(rung, k),
+          m.policy,
+          m.maxSegmentBytes(m.rungs[rung]!.bandwidth),
+          `feature segment of GOP ${k}`,
+          signal,
+          (chunk) => this.features.chunk(k, chunk, false),
+        ),
       ]);
       if (generation !== this.generation) return;
       this.features.chunk(k, null, true);
       const seconds = (performance.now() - start) / 1e3;
-      const sample = { bytes: kf.sample.bytes + media.sample.bytes, seconds, ttfb: Math.min(kf.sample.ttfb, media.sample.ttfb) };
+      const sample = {
+        bytes: kf.sample.bytes + media.sample.bytes,
+        seconds,
+        ttfb: Math.min(kf.sample.ttfb, media.sample.ttfb),
+      };
       this.samples.push(sample);
       // as the cheapest keyframes of the ladder would be (what AbrState.keyframeBits stands for)
       const cheapest = Math.min(...m.rungs.map((r) => r.keyframeBandwidth));
-      this.lastKeyframeBits = kf.sample.bytes * 8 * cheapest / kfRep.bandwidth;
+      this.lastKeyframeBits = (kf.sample.bytes * 8 * cheapest) / kfRep.bandwidth;
       this.current = rung;
       this.downloadedUntilS = (k + 1) * T;
       arrived = performance.now();

@@ -10,8 +10,14 @@ export interface Fetched {
   sample: ThroughputSample;
 }
 
-export async function fetchStream(url: string, policy: UrlPolicy, maxBytes: number, what: string, signal: AbortSignal | null,
-  onChunk?: (chunk: Uint8Array) => void): Promise<Fetched> {
+export async function fetchStream(
+  url: string,
+  policy: UrlPolicy,
+  maxBytes: number,
+  what: string,
+  signal: AbortSignal | null,
+  onChunk?: (chunk: Uint8Array) => void,
+): Promise<Fetched> {
   policy.check(url);
   const start = performance.now();
   let response: Response;
@@ -59,7 +65,8 @@ export async function fetchStream(url: string, policy: UrlPolicy, maxBytes: numb
     received += value.byteLength;
     onChunk?.(value);
   }
-  if (Number.isFinite(length) && received !== length) throw new FetchError(`${what}: ${url} ended after ${received} of ${length} bytes`);
+  if (Number.isFinite(length) && received !== length)
+    throw new FetchError(`${what}: ${url} ended after ${received} of ${length} bytes`);
   const seconds = (performance.now() - start) / 1e3;
   return { data: data.buffer.slice(0, received) as ArrayBuffer, sample: { bytes: received, seconds, ttfb } };
 }

@@ -1,7 +1,7 @@
-// The bounded ring of decoded feature frames just ahead of the renderer (DESIGN.md, client pipeline): at most
+// The bounded ring of decoded feature frames just ahead of the renderer (docs/CLIENT.md's pipeline): at most
 // `capacity` frames are held or being decoded; the decoder gets one credit back for every frame the renderer
 // is done with (or that arrives already stale, after a drop or a seek).
-import type { FeatureDecoder, FeatureFrame } from "./workers";
+import type { FeatureDecoder, FeatureFrame } from "./worker-pools";
 
 export class FeatureRing {
   private readonly frames = new Map<number, Map<number, Uint16Array>>();
@@ -10,7 +10,10 @@ export class FeatureRing {
   private keepIndex = 0;
   copyMs = 0;
 
-  constructor(private readonly decoder: FeatureDecoder, readonly capacity: number) {}
+  constructor(
+    private readonly decoder: FeatureDecoder,
+    readonly capacity: number,
+  ) {}
 
   start(gop: number): void {
     this.frames.clear();
@@ -30,7 +33,10 @@ export class FeatureRing {
       return;
     }
     let gop = this.frames.get(f.gop);
-    if (!gop) this.frames.set(f.gop, (gop = new Map()));
+    if (!gop) {
+      gop = new Map();
+      this.frames.set(f.gop, gop);
+    }
     gop.set(f.index, f.data);
   }
 

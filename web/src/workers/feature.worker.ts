@@ -41,8 +41,10 @@ function fail(job: Job, message: string): void {
 
 function av1cPayload(file: ISOFile, trackId: number): Uint8Array | undefined {
   const trak = file.getTrackById(trackId);
-  // eslint-disable-next-line @typescript-eslint/no-explicit-any
-  const entry = (trak?.mdia?.minf?.stbl?.stsd?.entries?.[0] ?? null) as any;
+  // mp4box.js types the sample entry without its av1C child box
+  const entry = (trak?.mdia?.minf?.stbl?.stsd?.entries?.[0] ?? null) as {
+    av1C?: { write(s: DataStream): void };
+  } | null;
   const box = entry?.av1C;
   if (!box) return undefined;
   const stream = new DataStream(undefined, 0, Endianness.BIG_ENDIAN);
@@ -50,16 +52,40 @@ function av1cPayload(file: ISOFile, trackId: number): Uint8Array | undefined {
   return new Uint8Array(stream.buffer as ArrayBuffer, 8); // the payload, without the box header
 }
 
-function open(msg: { gop: number; rung: number; side: number; frames: number; codec: string; init: ArrayBuffer }): void {
+function open(msg: {
+  gop: number;
+  rung: number;
+  side: number;
+  frames: number;
+  codec: string;
+  init: ArrayBuffer;
+}): void {
   const file = createFile();
-  const job: Job = { gop: msg.gop, rung: msg.rung, side: msg.side, frames: msg.frames, codec: msg.codec, file,
-    received: 0, ended: false, samples: [], description: undefined, trackId: -1, fed: 0, output: 0, failed: false };
+  const job: Job = {
+    gop: msg.gop,
+    rung: msg.rung,
+    side: msg.side,
+    frames: msg.frames,
+    codec: msg.codec,
+    file,
+    received: 0,
+    ended: false,
+    samples: [],
+    description: undefined,
+    trackId: -1,
+    fed: 0,
+    output: 0,
+    failed: false,
+  };
   file.onError = (_module: string, message: string) => fail(job, `the feature segment does not parse (${message})`);
   file.onReady = (info) => {
     const track = info.videoTracks[0];
     if (!track || info.videoTracks.length !== 1) return fail(job, "the feature segment has no single video track");
     if (track.video && (track.video.width !== 4 * job.side || track.video.height !== 4 * job.side)) {
-      return fail(job, `the feature track is ${track.video.width}x${track.video.height}, not ${4 * job.side}x${4 * job.side}`);
+      return fail(
+        job,
+        `the feature track is ${track.video.width}x${track.video.height}, not ${4 * job.side}x${4 * job.side}`,
+      );
     }
     job.trackId = track.id;
     job.description = av1cPayload(file, track.id);
@@ -110,12 +136,14 @@ function onFrame(frame: VideoFrame, mine: number): void {
   const side = 4 * job.side;
   try {
     if ((frame.format as string | null) !== "I420P10" || frame.codedWidth !== side || frame.codedHeight !== side) {
-      throw new Error(`a decoded feature frame is ${frame.format} ${frame.codedWidth}x${frame.codedHeight}, expected I420P10 ${side}x${side}`);
+      throw new Error(
+        `a decoded feature frame is ${frame.format} ${frame.codedWidth}x${frame.codedHeight}, expected I420P10 ${side}x${side}`,
+      );
     }
     const all = new Uint8Array(frame.allocationSize());
     const start = performance.now();
     void frame.copyTo(all).then((layout) => {
-      const luma = layout[0];
+      const luma = layout[0]!;
       const plane = new Uint16Array(side * side);
       for (let row = 0; row < side; row++) {
         plane.set(new Uint16Array(all.buffer, luma.offset + row * luma.stride, side), row * side);
@@ -123,7 +151,9 @@ function onFrame(frame: VideoFrame, mine: number): void {
       frame.close();
       if (mine !== epoch) return;
       const index = job.output++;
-      post({ type: "frame", gop: job.gop, rung: job.rung, index, data: plane, copyMs: performance.now() - start }, [plane.buffer]);
+      post({ type: "frame", gop: job.gop, rung: job.rung, index, data: plane, copyMs: performance.now() - start }, [
+        plane.buffer,
+      ]);
       if (job.output === job.frames) jobs.shift();
       pump();
     });
@@ -157,8 +187,12 @@ async function pump(): Promise<void> {
       const key = job.codec + (job.description?.join(",") ?? "");
       if (!decoder || decoder.state === "closed") decoder = makeDecoder();
       if (configured !== key) {
-        const config: VideoDecoderConfig = { codec: job.codec, codedWidth: 4 * job.side, codedHeight: 4 * job.side,
-          optimizeForLatency: true };
+        const config: VideoDecoderConfig = {
+          codec: job.codec,
+          codedWidth: 4 * job.side,
+          codedHeight: 4 * job.side,
+          optimizeForLatency: true,
+        };
         if (job.description) config.description = job.description;
         const { supported } = await VideoDecoder.isConfigSupported(config);
         if (!supported) {
@@ -169,7 +203,7 @@ async function pump(): Promise<void> {
         decoder.configure(config);
         configured = key;
       }
-      const s = job.samples[job.fed];
+      const s = job.samples[job.fed]!;
       if (job.fed === 0 && !s.is_sync) {
         fail(job, `the feature segment of GOP ${job.gop} does not start with a key frame`);
         break;

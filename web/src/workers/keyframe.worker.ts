@@ -3,7 +3,17 @@
 // do not give) and dequantise them, so the main thread gets float attributes ready for the GPU.
 import { decode as decodePng } from "fast-png";
 import initJxl, { JxlImage } from "jxl-oxide-wasm";
-import { LOSSLESS, SH1_SPECS, dequantize, dequantizeWeight, quantSpecs, readContainer, type KeyframeQuant } from "../container";
+import {
+  type Attributes,
+  asAttributes,
+  LOSSLESS,
+  SH1_SPECS,
+  dequantize,
+  dequantizeWeight,
+  quantSpecs,
+  readContainer,
+  type KeyframeQuant,
+} from "../container";
 import { SegmentError } from "../errors";
 
 export interface DecodeJob {
@@ -22,7 +32,7 @@ export interface DecodeJob {
 }
 
 export interface DecodedSegment {
-  attributes: Record<string, Float32Array>;
+  attributes: Attributes;
   /** Float tensors of the container (ranges and deformation weights) by name. */
   floats: Record<string, Float32Array>;
   ms: number;
@@ -51,8 +61,10 @@ function decodeImage(bytes: Uint8Array, want: ImageShape, what: string): Uint8Ar
     const png = decodePng(image.render().encodeToPng());
     const depth = want.levels <= 256 ? 8 : 16;
     if (png.width !== width || png.height !== height || png.channels !== channels || png.depth !== depth) {
-      throw new SegmentError(`${what} image ${name} is ${png.width}x${png.height}x${png.channels} at ${png.depth} bits, ` +
-        `expected ${width}x${height}x${channels} at ${depth}`);
+      throw new SegmentError(
+        `${what} image ${name} is ${png.width}x${png.height}x${png.channels} at ${png.depth} bits, ` +
+          `expected ${width}x${height}x${channels} at ${depth}`,
+      );
     }
     return png.data as Uint8Array | Uint16Array;
   } finally {
@@ -66,19 +78,32 @@ function run(job: DecodeJob): DecodedSegment {
   const quant = job.quant ?? LOSSLESS;
   const base = quantSpecs(quant);
   const specs = job.shDegree ? [...base, ...SH1_SPECS] : base;
-  const attributes: Record<string, Float32Array> = {};
+  const decoded: Record<string, Float32Array> = {};
   for (const spec of specs) {
-    const codes = decodeImage(tensors.get(`image.${spec.name}`) as Uint8Array,
-      { ...spec, width: job.side, height: job.side }, job.what);
-    attributes[spec.name] = dequantize(spec, codes, tensors.get(`range.${spec.name}`) as Float32Array);
+    const codes = decodeImage(
+      tensors.get(`image.${spec.name}`) as Uint8Array,
+      { ...spec, width: job.side, height: job.side },
+      job.what,
+    );
+    decoded[spec.name] = dequantize(spec, codes, tensors.get(`range.${spec.name}`) as Float32Array);
   }
+  const attributes = asAttributes(decoded, job.what);
   const floats: Record<string, Float32Array> = {};
   for (const [name, t] of tensors) if (t instanceof Float32Array && !name.startsWith("range.field.")) floats[name] = t;
-  for (const [name, [out, inp]] of job.fieldShapes ?? []) {  // quantised weights: decoded to the float32 names
-    const codes = decodeImage(tensors.get(`image.field.${name}`) as Uint8Array,
-      { name: `field.${name}`, width: inp, height: out, channels: 1, levels: 2 ** quant.field }, job.what);
-    floats[`field.${name}`] = dequantizeWeight(codes as Uint8Array, tensors.get(`range.field.${name}`) as Float32Array,
-      quant.field, out, inp);
+  for (const [name, [out, inp]] of job.fieldShapes ?? []) {
+    // quantised weights: decoded to the float32 names
+    const codes = decodeImage(
+      tensors.get(`image.field.${name}`) as Uint8Array,
+      { name: `field.${name}`, width: inp, height: out, channels: 1, levels: 2 ** quant.field },
+      job.what,
+    );
+    floats[`field.${name}`] = dequantizeWeight(
+      codes as Uint8Array,
+      tensors.get(`range.field.${name}`) as Float32Array,
+      quant.field,
+      out,
+      inp,
+    );
   }
   return { attributes, floats, ms: performance.now() - start };
 }
@@ -93,7 +118,9 @@ self.onmessage = async (event: MessageEvent) => {
   try {
     await ready;
     const out = run(job);
-    const transfer = [...Object.values(out.attributes), ...Object.values(out.floats)].map((a) => a.buffer as ArrayBuffer);
+    const transfer = [...Object.values(out.attributes), ...Object.values(out.floats)].flatMap((a) =>
+      a ? [a.buffer as ArrayBuffer] : [],
+    );
     self.postMessage({ id: job.id, ok: out }, { transfer });
   } catch (err) {
     const message = err instanceof Error ? err.message : String(err);

@@ -6,7 +6,13 @@ let staticLayer: Float32Array<ArrayBuffer> = new Float32Array(0);
 let scratch: SortScratch | null = null;
 
 self.onmessage = (event: MessageEvent) => {
-  const msg = event.data as { type: string; id: number; positions: Float32Array<ArrayBuffer>; view: number[]; guard: [number, number, number] };
+  const msg = event.data as {
+    type: string;
+    id: number;
+    positions: Float32Array<ArrayBuffer>;
+    view: number[];
+    guard: [number, number, number];
+  };
   if (msg.type === "static") {
     staticLayer = msg.positions;
     return;

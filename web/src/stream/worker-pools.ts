@@ -16,7 +16,10 @@ function moduleWorker(url: string): Worker {
 export class KeyframePool {
   private readonly workers: Worker[];
   private readonly busy: number[];
-  private readonly pending = new Map<number, { resolve: (d: DecodedSegment) => void; reject: (e: Error) => void; worker: number }>();
+  private readonly pending = new Map<
+    number,
+    { resolve: (d: DecodedSegment) => void; reject: (e: Error) => void; worker: number }
+  >();
   private next = 0;
 
   constructor(assets: Assets, size: number) {
@@ -34,7 +37,7 @@ export class KeyframePool {
     const job = this.pending.get(msg.id);
     if (!job) return;
     this.pending.delete(msg.id);
-    this.busy[worker]--;
+    this.busy[worker]!--;
     if (msg.ok) job.resolve(msg.ok);
     else job.reject(new SegmentError(msg.error ?? "decode failed"));
   }
@@ -42,16 +45,16 @@ export class KeyframePool {
   decode(job: Omit<DecodeJob, "id">): Promise<DecodedSegment> {
     const id = this.next++;
     let w = 0;
-    for (let i = 1; i < this.workers.length; i++) if (this.busy[i] < this.busy[w]) w = i;
-    this.busy[w]++;
+    for (let i = 1; i < this.workers.length; i++) if (this.busy[i]! < this.busy[w]!) w = i;
+    this.busy[w]!++;
     return new Promise((resolve, reject) => {
       this.pending.set(id, { resolve, reject, worker: w });
-      this.workers[w].postMessage({ job: { ...job, id } }, [job.data]);
+      this.workers[w]!.postMessage({ job: { ...job, id } }, [job.data]);
     });
   }
 
   terminate(): void {
-    this.workers.forEach((w) => w.terminate());
+    for (const w of this.workers) w.terminate();
   }
 }
 
@@ -73,7 +76,8 @@ export class FeatureDecoder {
     this.worker.onmessage = (e) => {
       const m = e.data;
       if (m.type === "frame") this.onFrame(m);
-      else if (m.type === "error") this.onError(m.gop, new SegmentError(`feature segment of GOP ${m.gop}: ${m.message}`));
+      else if (m.type === "error")
+        this.onError(m.gop, new SegmentError(`feature segment of GOP ${m.gop}: ${m.message}`));
       else if (m.type === "unsupported") this.onError(-1, new UnsupportedError(m.message));
     };
   }
@@ -118,7 +122,11 @@ export class Sorter {
     this.worker.postMessage({ type: "static", positions });
   }
 
-  sort(positions: Float32Array, view: ArrayLike<number>, guard: [number, number, number]): Promise<{ order: Uint32Array; ms: number }> {
+  sort(
+    positions: Float32Array,
+    view: ArrayLike<number>,
+    guard: [number, number, number],
+  ): Promise<{ order: Uint32Array; ms: number }> {
     const id = this.next++;
     return new Promise((resolve) => {
       this.pending.set(id, resolve);

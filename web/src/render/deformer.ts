@@ -1,10 +1,15 @@
 // Which ring slot on the GPU holds which feature frame (gop, e): a frame is uploaded once, when a frame first
 // needs it, into the slot used longest ago.
+import { type Attributes, fieldShapes } from "../container";
+
 export class LayerRing {
   private readonly slotOf = new Map<string, number>();
   private next = 0;
 
-  constructor(readonly slots: number, private readonly upload: (slot: number, codes: Uint16Array) => void) {}
+  constructor(
+    readonly slots: number,
+    private readonly upload: (slot: number, codes: Uint16Array) => void,
+  ) {}
 
   slot(gop: number, e: number, codes: () => Uint16Array): number {
     const key = `${gop}:${e}`;
@@ -29,7 +34,7 @@ export interface Deformer {
   readonly kind: string;
   /** The deformed dynamic layer as the splat pass reads it: (mean, opacity), scale, quaternion, colour. */
   readonly outputs: WebGLTexture[];
-  loadGop(attributes: Record<string, Float32Array>, floats: Record<string, Float32Array>): void;
+  loadGop(attributes: Attributes, floats: Record<string, Float32Array>): void;
   /** The slot holding feature frame `e` of `gop` (uploaded from `codes` when not resident). */
   layer(gop: number, e: number, codes: () => Uint16Array): number;
   forget(): void;
@@ -56,8 +61,36 @@ export function dequantisation(ranges: Float32Array, codeMax: number): [Float32A
   const lo = new Float32Array(16);
   const step = new Float32Array(16);
   for (let c = 0; c < 16; c++) {
-    lo[c] = ranges[c];
-    step[c] = Math.fround(Math.fround(ranges[16 + c] - ranges[c]) / codeMax);
+    lo[c] = ranges[c]!;
+    step[c] = Math.fround(Math.fround(ranges[16 + c]! - ranges[c]!) / codeMax);
   }
   return [lo, step];
+}
+
+export const WEIGHT_TEXTURE_WIDTH = 1024;
+export const CODE_MAX = 1023;
+
+/** The deformation weights packed into RGBA32F texels, each matrix row padded to whole texels. */
+export interface Packed {
+  texels: Float32Array;
+  /** matrix name -> [first texel, texels per row] */
+  offsets: Record<string, [number, number]>;
+}
+
+export function packWeights(floats: Record<string, Float32Array>, window: number, peFreqs: number): Packed {
+  const shapes = fieldShapes(window, peFreqs);
+  const offsets: Record<string, [number, number]> = {};
+  let texels = 0;
+  for (const [name, [rows, cols]] of Object.entries(shapes)) {
+    offsets[name] = [texels, Math.ceil(cols / 4)];
+    texels += rows * Math.ceil(cols / 4);
+  }
+  const height = Math.ceil(texels / WEIGHT_TEXTURE_WIDTH);
+  const data = new Float32Array(WEIGHT_TEXTURE_WIDTH * height * 4);
+  for (const [name, [rows, cols]] of Object.entries(shapes)) {
+    const w = floats[`field.${name}`]!;
+    const [first, per] = offsets[name]!;
+    for (let r = 0; r < rows; r++) for (let c = 0; c < cols; c++) data[4 * (first + r * per) + c] = w[r * cols + c]!;
+  }
+  return { texels: data, offsets };
 }
