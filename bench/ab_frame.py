@@ -39,7 +39,7 @@ except ImportError:  # a tree from before the int16 deformation
     from stgs.model.native_deform import bf16_available
     def runnable_precisions():
         return ["fp32"] + (["bf16"] if bf16_available() else [])
-from stgs.model.view import FrameRenderer
+from stgs.model.renderer import FrameRenderer
 
 n, frames, model_dir = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3]
 if model_dir:

@@ -6,8 +6,8 @@ keep-alive, round-robin over every segment of a packaged scene) and reads the wo
 stime of /proc/PID/stat) before and after; then the other tree, the order alternating by round. Like
 bench/ab_frame.py, it compares builds within one run because this machine's speed drifts.
 
-The editable install maps stgs.server (and client, packager, harness) to this checkout, so each tree runs
-from a folder of symlinks that puts its own server/, client/, packager/ and harness/ under its stgs/.
+The editable install maps `stgs` to this checkout, so each tree runs from a folder of symlinks to its own stgs/
+(a tree from before server, client, packager, harness and cli moved under stgs/ gets those linked in).
 
 Usage: .venv/bin/python -m bench.ab_serve OLD_TREE NEW_TREE DASH_DIR [--rounds 4] [--clients 64] [--seconds 6]
 """
@@ -26,16 +26,17 @@ from bench.serve import WRK_SCRIPT, check_serves, cpu_per_request, free_port, wa
 from stgs.tree import SEGMENT_SUFFIXES
 
 TOP_LEVEL = ("server", "client", "packager", "harness", "cli")
+"""Packages that older trees kept at the top level and mapped into stgs."""
 
 
 def import_root(tree: Path, tmp: Path) -> Path:
-    """A folder whose stgs/ is tree's stgs/ plus its top-level packages (for PYTHONPATH)."""
+    """A folder whose stgs/ is tree's stgs/, plus an older tree's top-level packages (for PYTHONPATH)."""
     root = tmp / tree.name
     (root / "stgs").mkdir(parents=True)
     for entry in (tree / "stgs").iterdir():
         (root / "stgs" / entry.name).symlink_to(entry)
     for name in TOP_LEVEL:
-        if (tree / name).is_dir():  # cli/ exists from the restructure on (before it, stgs/cli.py)
+        if (tree / name).is_dir() and not (tree / "stgs" / name).exists():
             (root / "stgs" / name).symlink_to(tree / name)
     return root
 

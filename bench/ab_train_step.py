@@ -27,7 +27,7 @@ import json, statistics, sys, tempfile, time
 from pathlib import Path
 import torch
 from stgs.model.gop import GOPModel
-from stgs.model.view import splat, static_backdrops
+from stgs.model.renderer import splat, static_backdrops
 from stgs.train import losses
 from stgs.train.camera_colour import CameraColour, as_recorded
 from stgs.train.config import budget

@@ -1,4 +1,4 @@
-"""A/B of one layered GOP-stage training step drawn over the kept static layer (stgs.model.view.static_backdrops)
+"""A/B of one layered GOP-stage training step drawn over the kept static layer (stgs.model.renderer.static_backdrops)
 against one differentiable splat of both layers.
 
     python -m bench.backdrop --model MODEL_DIR --steps 20 --rounds 4
@@ -27,8 +27,8 @@ import torch
 
 from bench import ms_cell
 from stgs.camera import read_scene_cameras
+from stgs.model.renderer import guarded_opacities, splat_over, static_backdrops, static_view
 from stgs.model.store import load_gop, load_static, read_meta
-from stgs.model.view import guarded_opacities, splat_over, static_backdrops, static_view
 from stgs.render.native import bin_native, f32
 from stgs.render.project import project
 from stgs.train import losses

@@ -20,8 +20,8 @@ import torch
 
 from stgs.camera import read_scene_cameras, resize
 from stgs.model.native_deform import PackedWeights, deform_native
+from stgs.model.renderer import guard_limits, splat
 from stgs.model.store import load_gop, read_meta
-from stgs.model.view import guard_limits, splat
 from stgs.synth import load_ground_truth
 from stgs.tree import CAMERAS, GROUND_TRUTH_DIR
 

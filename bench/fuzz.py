@@ -48,11 +48,10 @@ from stgs.client.manifest import Presentation
 from stgs.codec.keyframe import KeyframeError, decode_keyframe
 from stgs.codec.mp4 import MP4Error, hevc_codecs, media_timeline, set_timeline, split_fragmented, track_timescale
 from stgs.codec.static import StaticSegmentError, decode_static
-from stgs.errors import StgsError
+from stgs.errors import MPDError, StgsError
 from stgs.harness.scenario import load_scenario
 from stgs.harness.trace import load_trace
-from stgs.mpd import parse_mpd
-from stgs.mpd_values import MPDError
+from stgs.mpd.model import parse_mpd
 
 CASE_ALARM_S = 5.0
 """A case that runs longer than this hangs (every target takes milliseconds on honest input)."""

@@ -111,8 +111,8 @@ def held_out_views(model_dir: Path, dataset: Path, stride: int,
     frame of every GOP."""
     from stgs.data import open_dataset
     from stgs.evaluate import scaled_view
+    from stgs.model.renderer import FrameRenderer
     from stgs.model.store import load_gop, load_static, read_meta
-    from stgs.model.view import FrameRenderer
 
     meta = read_meta(model_dir)
     extra = meta.extra or {}

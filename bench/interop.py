@@ -33,7 +33,7 @@ from stgs.interop.frames import frame_splats, open_source
 from stgs.interop.splats import Splats, from_static, to_static
 from stgs.interop.static import fold_over
 from stgs.metrics import psnr
-from stgs.model.view import FrameRenderer, in_guard_band, splat
+from stgs.model.renderer import FrameRenderer, in_guard_band, splat
 from stgs.render import rasterize
 from stgs.synth import SynthConfig, synthesize
 

@@ -28,7 +28,7 @@ from stgs.codec.jxl import encode_jxl
 from stgs.codec.keyframe import Keyframe, decode_keyframe, dequantize_weight, encode_keyframe, quantize_weight
 from stgs.codec.quant import KEYFRAME_RUNGS, LOSSLESS
 from stgs.metrics import mse_psnr
-from stgs.model.view import FrameRenderer
+from stgs.model.renderer import FrameRenderer
 from stgs.packager.packer import PackConfig, Packer
 from stgs.packager.segments import PreparedGOP
 

@@ -26,8 +26,8 @@ from bench.realtime import loop_model, play_process
 from stgs.camera import Camera, read_scene_cameras, resize
 from stgs.metrics import psnr
 from stgs.model.native_deform import runnable_precisions
+from stgs.model.renderer import FrameRenderer
 from stgs.model.store import load_model, read_meta
-from stgs.model.view import FrameRenderer
 from stgs.packaged import packaged_gops
 from stgs.packager import PackConfig, pack
 from stgs.server.app import loopback

@@ -37,7 +37,7 @@ import torch
 
 from stgs.camera import Camera, look_at
 from stgs.model.gop import GOPModel, GOPShape
-from stgs.model.view import FrameRenderer
+from stgs.model.renderer import FrameRenderer
 from stgs.synth import SynthConfig, ground_truth_cameras, synthesize, truth_static_layer
 from stgs.synth.config import DEFAULT_EFFECTS
 from stgs.synth.scene import ProceduralScene
@@ -172,10 +172,10 @@ def model_rows(dirs: list[Path], dataset: Path, camera: str) -> list[str]:
 def sh_rows(model_dir: Path, dataset: Path, iterations: int, stride: int, work: Path) -> list[str]:
     from stgs.model.store import load_model, load_static, save_model
     from stgs.train.config import LearningRates, TrainConfig
+    from stgs.train.images import view_draws
     from stgs.train.layers import fit_view_dependent, moving_pixels
     from stgs.train.run import stage_views
     from stgs.train.trainer import Trainer
-    from stgs.train.views import view_draws
     from stgs.tree import CAMERAS, TRAIN_REPORT
 
     meta, gops = load_model(model_dir)

@@ -25,8 +25,8 @@ import torch
 from bench import capacity_parser, ms_cell, print_capacity_table, torch_table_header
 from stgs.camera import read_scene_cameras
 from stgs.model.gop import GOPModel, GOPShape
+from stgs.model.renderer import splat
 from stgs.model.store import load_gop, read_meta
-from stgs.model.view import splat
 from stgs.train import budget, losses
 from stgs.train.ops import Optimizer
 

@@ -19,7 +19,8 @@ import matplotlib.pyplot as plt
 import torch
 
 from stgs.codec.mp4 import split_fragmented
-from stgs.codec.plas import PLASConfig, neighbour_distance, plas_order
+from stgs.codec.plas import neighbour_distance, plas_order
+from stgs.codec.plas_config import PLASConfig
 from stgs.codec.video import HEVC, decode_segment, encode_gop
 from stgs.fsio import save_figure
 from stgs.metrics import psnr

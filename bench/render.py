@@ -113,7 +113,7 @@ def bench_size(n: int, width: int, height: int, repeats: int, reference_max: int
 def deform_rows(n: int, width: int, height: int, repeats: int) -> list[str]:
     """Deformation alone and deformation + splat per precision; accuracy against the fp32 deformation's image."""
     from stgs.model.native_deform import bf16_backends, int16_kernel, runnable_precisions
-    from stgs.model.view import FrameRenderer
+    from stgs.model.renderer import FrameRenderer
 
     cam = bench_camera(width, height)
     model = random_model(n)

@@ -11,7 +11,7 @@ what any aiohttp server can reach on this machine; the gap between it and `stgs 
 Python costs.
 
 `--gunicorn` adds a fourth: the same app under gunicorn's aiohttp worker (2 workers), the measurement behind
-running our own worker processes (server/workers.py). gunicorn is not a dependency of the project; install it
+running our own worker processes (stgs/server/workers.py). gunicorn is not a dependency of the project; install it
 in the venv for this (`.venv/bin/pip install gunicorn`).
 
 Usage: .venv/bin/python -m bench.serve_floor DASH_DIR [--rounds 4] [--clients 64] [--seconds 6] [--gunicorn]

@@ -20,8 +20,8 @@ import torch
 
 from bench.culling import first_camera, table_main
 from stgs.camera import resize
+from stgs.model.renderer import FrameRenderer
 from stgs.model.store import load_gop, read_meta
-from stgs.model.view import FrameRenderer
 from stgs.render.native import bin_native, f32, project_native, raster_forward
 from stgs.render.stages import TILE
 

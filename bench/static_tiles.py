@@ -27,9 +27,9 @@ import torch
 from bench import ms_cell
 from bench.culling import first_camera
 from stgs.camera import Camera, look_at, resize
+from stgs.model.renderer import FrameRenderer
 from stgs.model.static import merge
 from stgs.model.store import load_gop, load_static, read_meta
-from stgs.model.view import FrameRenderer
 from stgs.render.stages import TILE
 
 

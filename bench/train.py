@@ -17,9 +17,10 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
+from stgs.cli.model import train_flags
 from stgs.errors import StgsError
 from stgs.fsio import save_figure
-from stgs.train.config import BUDGETS, SWITCHES
+from stgs.train.config import BUDGETS
 from stgs.tree import MODEL_META, TRAIN_REPORT
 
 
@@ -39,7 +40,8 @@ config lacks the key trained without the component."""
 def switched_off(config: dict) -> list[str]:
     """The ablation flags of the components a run's config (model.json's `extra.config`) trained without."""
     layers = config.get("layers", "single")  # runs from before layered training were single-layer
-    return [flag for key, flag in SWITCHES.items()
+    switches = {spec.field: spec.option for spec in train_flags() if spec.off}
+    return [flag for key, flag in switches.items()
             if (key in config and not config[key]) or (key not in config and layers in ABSENT_MEANS_OFF.get(key, ()))]
 
 

@@ -15,11 +15,6 @@ FROM python:3.11-slim
 WORKDIR /app
 COPY requirements.lock pyproject.toml README.md ./
 COPY stgs ./stgs
-COPY server ./server
-COPY packager ./packager
-COPY client ./client
-COPY harness ./harness
-COPY cli ./cli
 COPY --from=web /web/dist ./web/dist
 # The server's slice of requirements.lock, at exactly the versions the README's setup installs.
 RUN grep -E '^(aiohttp|aiohappyeyeballs|aiosignal|attrs|frozenlist|multidict|propcache|yarl|idna|typing_extensions|lxml|prometheus_client)==' \

@@ -22,3 +22,7 @@ class FieldError(StgsError):
 
 class NativeUnavailableError(RuntimeError):
     """The native kernels could not be built or loaded (the pure-torch reference runs instead, where there is one)."""
+
+
+class MPDError(ValueError):
+    """A manifest that is not well-formed or not what this profile expects."""

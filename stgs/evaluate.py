@@ -26,10 +26,10 @@ from stgs.errors import FieldError, StgsError
 from stgs.fsio import atomic_write_bytes, image_grid, save_png
 from stgs.metrics import LPIPS, lpips_backbone_file, mse_psnr, psnr, ssim
 from stgs.model.gop import GOPModel
+from stgs.model.renderer import FrameRenderer
 from stgs.model.store import load_gop, load_static, read_meta
-from stgs.model.view import FrameRenderer
 from stgs.packaged import packaged_gops, packaged_static
-from stgs.train.views import default_memory, open_views, scale_camera
+from stgs.train.images import default_memory, open_views, scale_camera
 from stgs.tree import TRAIN_REPORT
 
 GRID_ROWS = 4
@@ -40,7 +40,7 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
              ) -> dict:
     """Write and return eval.json's document; `lpips_net` None: no LPIPS even where its weights are present;
     `max_memory`: bytes of held-out views decoded ahead and kept for the next stream (None: the default share of
-    RAM, stgs.train.views.default_memory)."""
+    RAM, stgs.train.images.default_memory)."""
     from tqdm import tqdm
 
     meta = read_meta(model_dir)
@@ -73,7 +73,9 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
     # View-major: every stream draws a view in turn, so each view's truth is decoded once and a packaged stream is
     # also scored against the uncompressed model's render of the same view (`render_psnr`, as stgs pack measures).
     frames = [start + k * g + i for k in range(meta.num_gops) for i in range(0, g, stride)]
-    _, truths = open_views(ds, [], frames, scale, default_memory() if max_memory is None else max_memory, cams_val)
+    _, held_out = open_views(ds, [], frames, scale, default_memory() if max_memory is None else max_memory, cams_val)
+    assert held_out is not None  # open_views gives the holdout's views when asked for them
+    truths = held_out
     truths.plan([(p, c, 0) for p in range(len(frames)) for c in range(len(cams_val))])
     per_gop: dict[str, list[dict]] = {name: [] for name in sources}
     streamed = [name for name in sources if name != "uncompressed"]
@@ -88,7 +90,7 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
                 by_name = {c.name: c for c in ds.cameras(f)}
                 for c, cam_name in enumerate(cams_val):
                     cam, truth = scale_camera(by_name[cam_name], scale), truths.target(p, c)
-                    reference = None
+                    reference = torch.empty(0)  # the uncompressed render, drawn first
                     for name, renderer in renderers.items():
                         image = renderer.render(i, cam).clamp(0, 1)
                         row = {"frame": f, "camera": cam_name, "psnr": _finite(psnr(image, truth)),

@@ -1,4 +1,4 @@
-"""Every size cap of the system, in one place (DESIGN.md, security rules: sizes are checked before allocation).
+"""Every size cap of the system, in one place (docs/ARCHITECTURE.md, "Security": sizes are checked before allocation).
 
 A model dir, a manifest and a keyframe segment are all checked against these
 same numbers, so whatever `stgs train`/`stgs synth` may write, `stgs pack`

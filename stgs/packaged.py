@@ -11,11 +11,11 @@ from stgs.codec.features import features_from_frames
 from stgs.codec.keyframe import decode_keyframe
 from stgs.codec.static import decode_static
 from stgs.codec.video import CODECS, FeatureCodec, decode_segment
-from stgs.errors import StgsError
+from stgs.errors import MPDError, StgsError
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.model.static import StaticLayer
-from stgs.mpd import AdaptationSet, Representation, read_mpd
-from stgs.mpd_profile import (
+from stgs.mpd.model import AdaptationSet, Representation, read_mpd
+from stgs.mpd.profile import (
     FEATURE_SCHEME,
     KEYFRAME_SCHEME,
     STATIC_SCHEME,
@@ -25,8 +25,7 @@ from stgs.mpd_profile import (
     keyframe_quant,
     paired_keyframe,
 )
-from stgs.mpd_values import MPDError, expand_template
-from stgs.tree import MANIFEST
+from stgs.tree import MANIFEST, expand_template
 
 
 def packaged_static(dash: Path) -> StaticLayer | None:
@@ -61,7 +60,10 @@ def packaged_gops(dash: Path) -> dict[str, Callable[[int], GOPModel]]:
     keyframe_reps = {r.id: r for r in kf_set.representations}
 
     def loader(video: AdaptationSet, codec: FeatureCodec, rep: Representation) -> Callable[[int], GOPModel]:
-        init = (dash / expand_template(video.segment_template.initialization, rep.id)).read_bytes()
+        template = video.segment_template.initialization
+        if template is None:
+            raise StgsError(f"{dash}: the feature SegmentTemplate has no initialization")
+        init = (dash / expand_template(template, rep.id)).read_bytes()
         try:
             paired = paired_keyframe(rep, keyframe_reps)
             quant = keyframe_quant(paired)

@@ -6,10 +6,13 @@ Packaged tree (manifests/PROFILE.md): the MPD, stats.json and cameras.json
 beside it, and every segment under a folder named after a digest of the
 pack's inputs (`v-<id>/`), so content under a URL never changes. The MPD's
 SegmentTemplates and the packager's file names both come from the templates
-here, expanded by the one DASH template expander.
+here, expanded by the one DASH template expander (expand_template, at the end).
 """
 
-from stgs.mpd_values import expand_template
+import re
+
+from stgs.errors import MPDError
+from stgs.limits import MAX_TEMPLATE_NUMBER_WIDTH
 
 # --- model dir ---
 MODEL_META = "model.json"
@@ -154,7 +157,40 @@ def parse_rep_id(rep: str) -> tuple[str, int] | None:
     return None
 
 
+def packaged_rep_id(rep: str) -> tuple[str, int]:
+    """parse_rep_id of an id the packager made itself (ValueError for any other)."""
+    parsed = parse_rep_id(rep)
+    if parsed is None:
+        raise ValueError(f"{rep!r} is not a feature Representation id of this packager")
+    return parsed
+
+
 def qp_of(rep: str) -> int | None:
     """The ladder point (HEVC QP, AV1 QP) a Representation id names (`qp<N>`, `av1q<N>`), or None."""
     parsed = parse_rep_id(rep)
     return None if parsed is None else parsed[1]
+
+
+def expand_template(template: str, representation_id: str, number: int | None = None) -> str:
+    """Substitute $RepresentationID$, $Number$ / $Number%0Nd$ and $$ in a segment URL template."""
+    def sub(match: re.Match) -> str:
+        name, fmt = match.group(1), match.group(2)
+        if name == "":
+            return "$"
+        if name == "RepresentationID":
+            return representation_id
+        if name == "Number":
+            if number is None:
+                raise MPDError(f"template {template!r} needs $Number$")
+            if fmt:
+                width = re.fullmatch(r"%0(\d+)d", fmt)
+                if not width:
+                    raise MPDError(f"unsupported format tag {fmt!r} in {template!r}")
+                if len(width.group(1)) > 3 or int(width.group(1)) > MAX_TEMPLATE_NUMBER_WIDTH:
+                    raise MPDError(f"$Number$ width {width.group(1)} in {template!r} is over the limit of "
+                                   f"{MAX_TEMPLATE_NUMBER_WIDTH}")
+                return f"{number:0{int(width.group(1))}d}"
+            return str(number)
+        raise MPDError(f"unsupported identifier ${name}$ in {template!r}")
+
+    return re.sub(r"\$([A-Za-z]*)(%[^$]*)?\$", sub, template)

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from stgs.camera import Camera, intrinsics, look_at, read_scene_cameras, rig_focus, rig_orbit, surrounds
-from stgs.client.view import ViewSpec, build_trajectory
+from stgs.client.config import ViewSpec
+from stgs.client.viewpoint import build_trajectory
 from stgs.errors import StgsError
 from stgs.model.gop import GOPModel, GOPShape
 from stgs.tree import CAMERAS, CAMERAS_FORMAT

@@ -1,13 +1,17 @@
-"""Dependencies point one way (DESIGN.md, Folders): core <- stages <- top layer (CLI, demo, benchmarks)."""
+"""Imports point one way (docs/ARCHITECTURE.md, "Folders and imports"): the core, then the stages, then the top
+layer (CLI, demo, benchmarks); and inside the core, each module or subpackage only below its own tier."""
 
 import ast
+import re
+import sys
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-STAGES = {"packager": "stgs.packager", "server": "stgs.server", "client": "stgs.client", "harness": "stgs.harness"}
-TOP = {"cli": "stgs.cli"}
+STAGES = {"stgs/packager": "stgs.packager", "stgs/server": "stgs.server", "stgs/client": "stgs.client",
+          "stgs/harness": "stgs.harness"}
+TOP = {"stgs/cli": "stgs.cli"}
 ALLOWED = {"stgs.harness": {"stgs.client"}}
 """Stage -> other stages it may import (the harness drives the reference client)."""
 
@@ -30,10 +34,15 @@ def under(module: str, package: str) -> bool:
     return module == package or module.startswith(package + ".")
 
 
+def core_files() -> dict[str, set[str]]:
+    """imported_modules of the core: stgs/ without the stages and the top layer."""
+    outside = tuple(f"{folder}/" for folder in [*STAGES, *TOP])
+    return {f: mods for f, mods in imported_modules(ROOT / "stgs").items() if not f.startswith(outside)}
+
+
 def test_core_imports_no_stage_and_no_top_layer():
     forbidden = [*STAGES.values(), *TOP.values(), "bench"]
-    bad = {f: sorted(m for m in mods if any(under(m, p) for p in forbidden))
-           for f, mods in imported_modules(ROOT / "stgs").items()}
+    bad = {f: sorted(m for m in mods if any(under(m, p) for p in forbidden)) for f, mods in core_files().items()}
     assert not {f: m for f, m in bad.items() if m}
 
 
@@ -52,14 +61,13 @@ def test_checker_sees_an_import_inside_a_function(tmp_path):
 
 
 CORE_TIERS = (
-    {"errors", "limits", "lazy", "fsio", "memory", "picks", "loopback", "mpd_schema"},
-    {"native", "mpd_values", "tasks"},
+    {"errors", "limits", "lazy", "fsio", "memory", "picks", "loopback"},
+    {"native", "tasks", "tree"},
     {"render", "metrics"},
-    {"tree", "mpd"},
     {"camera"},
     {"model"},
     {"codec"},
-    {"mpd_profile"},
+    {"mpd"},
     {"packaged"},
     {"interop"},
     {"synth"},
@@ -68,13 +76,13 @@ CORE_TIERS = (
     {"evaluate"},
 )
 """The core's own modules and subpackages (`stgs.<name>`), lowest first: each imports only from tiers below its own
-(docs/ARCHITECTURE.md once it exists; until then the order is this list)."""
+(docs/ARCHITECTURE.md, "Folders and imports", draws the same order)."""
 
 
 def core_imports() -> dict[str, set[str]]:
     """`stgs.<name>` -> the other `stgs.<name>` it imports (any depth of either)."""
     out: dict[str, set[str]] = {}
-    for path, mods in imported_modules(ROOT / "stgs").items():
+    for path, mods in core_files().items():
         parts = Path(path).with_suffix("").parts
         if parts[1:] == ("__init__",):
             continue
@@ -85,9 +93,60 @@ def core_imports() -> dict[str, set[str]]:
     return out
 
 
-def test_the_core_imports_downwards_only():
+def upward_imports() -> list[str]:
+    """Each import of the core that is not to a lower tier of CORE_TIERS (an untiered module counts as the top)."""
     tier = {name: i for i, names in enumerate(CORE_TIERS) for name in names}
     graph = core_imports()
-    assert sorted(set(graph) - set(tier)) == []  # a new module or subpackage takes a place in CORE_TIERS
-    upward = sorted(f"stgs.{a} -> stgs.{b}" for a, deps in graph.items() for b in deps if tier[b] >= tier[a])
-    assert upward == []
+    return sorted(f"stgs.{a} -> stgs.{b}" for a, deps in graph.items() for b in deps
+                  if tier.get(b, len(CORE_TIERS)) >= tier.get(a, len(CORE_TIERS)))
+
+
+def test_the_core_imports_downwards_only():
+    assert sorted(set(core_imports()) - set().union(*CORE_TIERS)) == []  # a new module takes a place in CORE_TIERS
+    assert upward_imports() == []
+
+
+if __name__ == "__main__":  # python -m tests.test_layers: the core's import graph and what goes against the tiers
+    for module, deps in sorted(core_imports().items()):
+        print(f"stgs.{module} -> {', '.join(f'stgs.{d}' for d in sorted(deps)) or '(nothing)'}")
+    print("upward:", ", ".join(upward_imports()) or "none")
+
+
+WEB_SRC = ROOT / "web" / "src"
+WEB_FORBIDDEN = {
+    "stream": ("render/", "player", "ui", "main"),
+    "render": ("stream/", "player", "ui", "main"),
+    "abr": ("stream/", "render/", "player", "ui", "main"),
+    "workers": ("stream/", "render/", "player", "ui", "main"),
+    "camera": ("stream/", "render/", "player", "ui", "main"),
+}
+"""The web player's parts and what each may not import (docs/ARCHITECTURE.md, "Folders and imports"): streaming
+and rendering know nothing of each other, and only the player and the page join them."""
+
+
+def web_imports(path: Path) -> set[str]:
+    """The web/src-relative modules a TypeScript file imports (relative specifiers only)."""
+    found = set()
+    for spec in re.findall(r'^\s*(?:import|export)[^;]*?from\s+"(\.[^"]+)"', path.read_text(), re.M | re.S):
+        found.add((path.parent / spec).resolve().relative_to(WEB_SRC.resolve()).as_posix())
+    return found
+
+
+@pytest.mark.skipif(not WEB_SRC.is_dir(), reason="no web/src")
+def test_the_web_players_parts_import_one_way():
+    bad = {}
+    for path in sorted(WEB_SRC.rglob("*.ts")):
+        rel = path.relative_to(WEB_SRC).as_posix()
+        part = rel.split("/")[0] if "/" in rel else rel.removesuffix(".ts")
+        banned = WEB_FORBIDDEN.get(part, ())
+        hits = sorted(m for m in web_imports(path) if any(m == b or m.startswith(b) for b in banned))
+        if hits:
+            bad[rel] = hits
+    assert bad == {}
+
+
+def test_the_web_check_sees_an_import_it_forbids(tmp_path, monkeypatch):
+    (tmp_path / "render").mkdir()
+    (tmp_path / "render" / "x.ts").write_text('import { a } from "../stream/y";\nimport type { B } from "./z";\n')
+    monkeypatch.setattr(sys.modules[__name__], "WEB_SRC", tmp_path)
+    assert web_imports(tmp_path / "render" / "x.ts") == {"stream/y", "render/z"}

@@ -1,4 +1,4 @@
-"""Canonical Gaussian attributes <-> five quantised images (DESIGN.md's numerics).
+"""Canonical Gaussian attributes <-> five quantised images (docs/ARCHITECTURE.md, "The model and its compression").
 
 | image    | channels | stored            | clip     | levels |
 |----------|----------|-------------------|----------|--------|

@@ -54,7 +54,7 @@ def to_picture(plane: np.ndarray) -> av.VideoFrame:
     for i, p in enumerate(frame.planes):
         rows = h if i == 0 else h // 2
         cols = w if i == 0 else w // 2
-        view = np.frombuffer(p, np.uint16).reshape(-1, p.line_size // 2)[:rows, :cols]
+        view = np.frombuffer(memoryview(p), np.uint16).reshape(-1, p.line_size // 2)[:rows, :cols]
         view[...] = plane if i == 0 else NEUTRAL
     return frame
 
@@ -62,7 +62,7 @@ def to_picture(plane: np.ndarray) -> av.VideoFrame:
 def luma(frame: av.VideoFrame) -> np.ndarray:
     """The (H, W) uint16 luma plane of a decoded yuv420p10le picture (a copy: the decoder reuses its buffers)."""
     p = frame.planes[0]
-    return np.frombuffer(p, np.uint16).reshape(-1, p.line_size // 2)[:frame.height, :frame.width].copy()
+    return np.frombuffer(memoryview(p), np.uint16).reshape(-1, p.line_size // 2)[:frame.height, :frame.width].copy()
 
 
 def av1_codecs(init: bytes) -> str:

@@ -56,7 +56,7 @@ def iter_boxes(data: bytes | bytearray, start: int = 0, end: int | None = None) 
         pos += size
 
 
-def find_path(data: bytes, path: list[str], start: int = 0, end: int | None = None,
+def find_path(data: bytes | bytearray, path: list[str], start: int = 0, end: int | None = None,
               skips: dict[str, int] | None = None) -> Box:
     """The box at `path` (e.g. ['moov', 'trak']); `skips` gives bytes to skip inside a box before its children."""
     skips = skips or {}
@@ -67,6 +67,8 @@ def find_path(data: bytes, path: list[str], start: int = 0, end: int | None = No
             raise MP4Error(f"no {'/'.join(path)} box")
         box = found
         start, end = box.body + skips.get(kind, 0), box.end
+    if box is None:
+        raise MP4Error("an empty box path")
     return box
 
 

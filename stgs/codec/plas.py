@@ -17,11 +17,11 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 
+from stgs.codec.plas_config import PLASConfig
 from stgs.model.gop import GOPModel
 from stgs.model.static import StaticLayer
 
@@ -29,25 +29,10 @@ PERMUTATIONS = torch.tensor(list(itertools.permutations(range(4))))
 """(24, 4): every placement of a group's 4 Gaussians on its 4 cells."""
 
 
-@dataclass(frozen=True)
-class PLASConfig:
-    """Knobs of the sort (defaults: a few seconds for S = 256 on 2 cores)."""
-
-    shrink: float = 0.9
-    """Radius factor per level (closer to 1: more levels, smoother, slower)."""
-    steps_per_radius: int = 4
-    """Group-assignment steps per radius level."""
-    min_radius: float = 1.0
-    """Last radius."""
-    seed: int = 0
-    """Seed of the initial arrangement and the group offsets."""
-    position_weight: float = 2.0
-    """Weight of the position columns of the sort key."""
-    feature_weight: float = 2.0
-    """Weight of the temporal-feature columns (what the video codec sees)."""
+DEFAULT_PLAS = PLASConfig()
 
 
-def sort_key(model: GOPModel | StaticLayer, cfg: PLASConfig = PLASConfig()) -> torch.Tensor:
+def sort_key(model: GOPModel | StaticLayer, cfg: PLASConfig = DEFAULT_PLAS) -> torch.Tensor:
     """(N, D) standardised attributes a grid should be smooth in.
 
     Each attribute group (position, colour, log scale, rotation, opacity, the
@@ -125,7 +110,7 @@ def _assign_step(grid: torch.Tensor, index: torch.Tensor, target: torch.Tensor, 
     return torch.roll(g, (oy, ox), dims=(0, 1)), torch.roll(idx, (oy, ox), dims=(0, 1))
 
 
-def plas_order(key: torch.Tensor, side: int, cfg: PLASConfig = PLASConfig()) -> torch.Tensor:
+def plas_order(key: torch.Tensor, side: int, cfg: PLASConfig = DEFAULT_PLAS) -> torch.Tensor:
     """Permutation p (N,) such that key[p] laid out row-major on an S x S grid is smooth."""
     n = key.shape[0]
     if n != side * side:

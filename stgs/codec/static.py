@@ -28,7 +28,8 @@ from safetensors.torch import save
 
 from stgs.codec.attributes import SPECS, AttributeSpec, apply_attributes, attribute_range, encode_attributes, quantize
 from stgs.codec.keyframe import META_KEY, decode_images, image_shapes, image_tensors, read_container
-from stgs.codec.plas import PLASConfig, permute_static, plas_order, sort_key
+from stgs.codec.plas import permute_static, plas_order, sort_key
+from stgs.codec.plas_config import PLASConfig
 from stgs.model.static import StaticLayer
 
 FORMAT = "streamstgs-static"

@@ -131,6 +131,7 @@ class FeatureStream:
             if self._closed:
                 raise StreamClosedError(f"{self.name}: closed")
             if self._decoded < i + w:
+                assert self._error is not None  # what stopped the decoding short
                 raise self._error
             return [self._held[j] for j in range(i, i + w)]
 
@@ -180,15 +181,16 @@ class FeatureStream:
                 if self._closed:
                     return
                 keep = i >= self._released
-                out = self._spare.pop() if keep and self._spare else None
+                spare = self._spare.pop() if keep and self._spare else None
             waited = time.perf_counter()
+            out = None
             if keep:
                 out = dequantize_frame(frame, self.side, self.ranges,
-                                       out if out is not None else torch.empty(self.side ** 2, FEATURE_DIM),
+                                       spare if spare is not None else torch.empty(self.side ** 2, FEATURE_DIM),
                                        self.codec.bits)
             done = time.perf_counter()
             with self._cond:
-                if keep and i >= self._released and not self._closed:
+                if out is not None and i >= self._released and not self._closed:
                     self._held[i] = out
                     self.peak_held = max(self.peak_held, len(self._held))
                 self._decoded = i + 1

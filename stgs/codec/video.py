@@ -174,11 +174,12 @@ def _encode(frames: np.ndarray, timing: VideoTiming, codec: FeatureCodec, option
     try:
         with av.open(out, "w", format="mp4", options=muxer) as container:
             stream = container.add_stream(codec.encoder, rate=timing.rate, options=options)
+            assert isinstance(stream, av.VideoStream)  # a video encoder's
             stream.width, stream.height, stream.pix_fmt = w, h, codec.pixel_format
             stream.codec_tag = codec.codec_tag
             stream.codec_context.thread_count = 1
             stream.time_base = 1 / timing.rate
-            packets = []
+            packets: list[av.Packet] = []
             for i, plane in enumerate(np.ascontiguousarray(frames)):
                 frame = codec.picture(plane)
                 frame.pts, frame.time_base = i, 1 / timing.rate
@@ -196,7 +197,7 @@ def _decode_timestamps(packets: list[av.Packet], count: int) -> list[av.Packet]:
     libx265 in PyAV's FFmpeg build sometimes returns garbage decode timestamps (seen as -2.8e17 from the second
     encoder of a process on); the presentation timestamps are the frame numbers we gave. The i-th decoded packet
     gets the i-th smallest pts, less the reorder delay that keeps every dts at or before its pts."""
-    pts = [p.pts for p in packets]
+    pts = [-1 if p.pts is None else p.pts for p in packets]
     if sorted(pts) != list(range(count)):
         raise RuntimeError(f"the encoder returned presentation timestamps {pts}, expected 0..{count - 1}")
     delay = max(0, max(rank - p for rank, p in enumerate(pts)))

@@ -89,10 +89,11 @@ class ColmapReader:
     def __init__(self, root: Path, layout: str | None = None, holdout: list[str] | None = None,
                  fps: float | None = None, cache: Path | None = None):
         self.root = Path(root)
-        self.layout = layout or detect_layout(self.root)
-        if self.layout not in LAYOUTS:
+        found = layout or detect_layout(self.root)
+        if found not in LAYOUTS:
             raise StgsError(f"{self.root}: not a COLMAP capture (frameNNNNNN/images/ folders, or images/<cam>/ or "
                             "videos/ beside sparse/0)")
+        self.layout: str = found
         self.name = f"colmap-{self.layout}:{self.root.name}"
         self.cache = Path(cache or DEFAULT_CACHE)
         self._files: dict[str, list[Path]] = {}

@@ -49,13 +49,13 @@ class Intrinsics:
         if model == "SIMPLE_PINHOLE":
             out = cls(model, width, height, p[0], p[0], p[1], p[2])
         elif model == "PINHOLE":
-            out = cls(model, width, height, *p[:4])
+            out = cls(model, width, height, p[0], p[1], p[2], p[3])
         elif model == "SIMPLE_RADIAL":
             out = cls(model, width, height, p[0], p[0], p[1], p[2], (p[3], 0.0, 0.0, 0.0))
         elif model == "RADIAL":
             out = cls(model, width, height, p[0], p[0], p[1], p[2], (p[3], p[4], 0.0, 0.0))
         elif model in ("OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE"):
-            out = cls(model, width, height, *p[:4], tuple(p[4:]))
+            out = cls(model, width, height, p[0], p[1], p[2], p[3], tuple(p[4:]))
         else:
             raise ValueError(f"the {model} model is not supported (supported: {', '.join(MODELS)})")
         if not (out.fx > 0 and out.fy > 0):
@@ -146,7 +146,8 @@ class Intrinsics:
                 self._maps = cv2.fisheye.initUndistortRectifyMap(K, D, np.eye(3), K, size, cv2.CV_32FC1)
             else:
                 self._maps = cv2.initUndistortRectifyMap(K, D, None, K, size, cv2.CV_32FC1)
-        return cv2.remap(rgb, *self._maps, cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR,
+        map_x, map_y = self._maps
+        return cv2.remap(rgb, map_x, map_y, cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_CONSTANT)
 
     def distort(self, rgb: np.ndarray) -> np.ndarray:

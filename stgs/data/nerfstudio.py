@@ -105,8 +105,8 @@ class NerfstudioReader:
         self.camera_names = sorted(groups, key=natural_key)
         counts = {name: len(items) for name, items in groups.items()}
         if len(set(counts.values())) > 1:
-            odd = min(counts, key=counts.get)
-            most = max(counts, key=counts.get)
+            odd = min(counts, key=lambda name: counts[name])
+            most = max(counts, key=lambda name: counts[name])
             raise StgsError(f"{self.path}: camera {odd} has {counts[odd]} frames, {most} has {counts[most]} (every "
                             "camera needs the same frames)")
         self.num_frames = next(iter(counts.values()))

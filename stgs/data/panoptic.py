@@ -1,4 +1,5 @@
-"""The Panoptic / Dynamic 3D Gaussians layout (DESIGN.md, `../shared/data/panoptic-basketball`).
+"""The Panoptic / Dynamic 3D Gaussians layout (docs/CAPTURE.md; the development capture is
+`../shared/data/panoptic-basketball`).
 
 `train_meta.json`: w, h, k[frame][cam] (3x3), w2c[frame][cam] (4x4,
 world-to-camera, OpenCV axes), fn[frame][cam] (`<cam>/<frame>.jpg` under

@@ -17,15 +17,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from stgs.errors import StgsError
+from stgs.errors import MPDError, StgsError
 from stgs.interop import sh as harmonics
 from stgs.interop.splats import Splats, colour_to_dc, from_gaussians, from_static
 from stgs.model.gop import GOPModel, frame_time
 from stgs.model.static import StaticLayer
 from stgs.model.store import MODEL_META, load_gop, load_static, read_meta
-from stgs.mpd import read_mpd
-from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_SCHEME, KeyframeDescriptor, gop_count
-from stgs.mpd_values import MPDError
+from stgs.mpd.model import read_mpd
+from stgs.mpd.profile import FEATURE_SCHEME, KEYFRAME_SCHEME, KeyframeDescriptor, gop_count
 from stgs.packaged import packaged_gops, packaged_static
 from stgs.tree import MANIFEST
 
@@ -116,7 +115,7 @@ def frame_splats(source: SceneSource, frame: int, eye: torch.Tensor, sh_degree: 
     sh = None
     if sh_degree:
         colours, dirs = [], []
-        for centre in cameras:
+        for centre in cameras or []:
             colours.append(model.apply_offsets(model.field.decode(h, model.xyz, centre.float())).colors.numpy())
             d = g.means.numpy().astype(np.float64) - centre.double().numpy()
             dirs.append(d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12))

@@ -170,8 +170,10 @@ def sh1_to_coefficients(sh1: np.ndarray) -> np.ndarray:
     ideal = harmonics.degree1_coefficients(sh1.astype(np.float64))
     out = np.empty(ideal.shape, dtype=np.float32)
     for k, (axis, sign) in enumerate(((1, -1.0), (2, 1.0), (0, -1.0))):  # coefficient k's axis in w, and sign
-        out[:, k] = preimage(lambda c, s=sign: (s * harmonics.C1 * c.astype(np.float64)).astype(np.float32),
-                             sh1[:, axis], ideal[:, k])
+        def forward(c: np.ndarray, s: float = sign) -> np.ndarray:
+            return (s * harmonics.C1 * c.astype(np.float64)).astype(np.float32)
+
+        out[:, k] = preimage(forward, sh1[:, axis], ideal[:, k])
     return out
 
 

@@ -2,7 +2,7 @@
 
 Per frame i (0-based) of a GOP of G frames the deformation field reads the
 features e_i ... e_{i+W-1} of every Gaussian and a positional encoding of
-t = i / (G - 1), and returns offsets to the canonical attributes (DESIGN.md):
+t = i / (G - 1), and returns offsets to the canonical attributes (docs/MODEL_FORMAT.md):
 
     means = X + ΔX            scales = exp(S + ΔS)        quats = Q + ΔQ
     opacity = clamp(sigmoid(O) + ΔO, 0, 1)                colours = relu(C) + ΔC
@@ -178,7 +178,7 @@ class GOPModel(nn.Module):
             raise ValueError(f"frame {frame} is outside the GOP (0..{self.shape.gop_size - 1})")
 
     def canonical(self) -> Gaussians:
-        """The canonical Gaussians with the activations of DESIGN.md and no deformation."""
+        """The canonical Gaussians, activated (docs/MODEL_FORMAT.md), with no deformation."""
         return Gaussians(self.xyz, self.rotation, torch.exp(self.log_scale),
                          torch.sigmoid(self.opacity_logit), torch.relu(self.color))
 
@@ -189,7 +189,7 @@ class GOPModel(nn.Module):
         return self.apply_offsets(self.field(self.window_features(frame, window), t, self.xyz, camera_center))
 
     def apply_offsets(self, offsets: tuple[torch.Tensor, ...]) -> Gaussians:
-        """Canonical Gaussians + the field's offsets (ΔX, ΔS, ΔQ, ΔO, ΔC), activated (DESIGN.md)."""
+        """Canonical Gaussians + the field's offsets (ΔX, ΔS, ΔQ, ΔO, ΔC), activated (docs/MODEL_FORMAT.md)."""
         d_x, d_s, d_q, d_o, d_c = offsets
         opacity = (torch.sigmoid(self.opacity_logit) + d_o).clamp(0.0, 1.0)
         return Gaussians(self.xyz + d_x, self.rotation + d_q, torch.exp(self.log_scale + d_s),

@@ -80,7 +80,9 @@ def check_precision(precision: str) -> None:
         raise NativeUnavailableError("int16 deformation needs the native build on a CPU with AVX2; use fp32")
 
 
-def _c(t: torch.Tensor) -> torch.Tensor:
+def _c(t: torch.Tensor | torch.nn.Module) -> torch.Tensor:
+    """A weight or tensor as a contiguous detached float32 copy (a layer's `weight` types as either)."""
+    assert isinstance(t, torch.Tensor)
     return t.detach().to(torch.float32).contiguous()
 
 
@@ -191,7 +193,7 @@ def deform_native(model: GOPModel, frame: int, camera_center: torch.Tensor,
     With viewmat/K/width/height, Gaussians that cannot put alpha >= 1/255 on
     the image get opacity 0 (the splatter would skip them anyway), and so do
     those outside `guard` = (near, x limit, y limit), the guard band of
-    stgs.model.view.guard_limits.
+    stgs.model.renderer.guard_limits.
     """
     model.check_frame(frame)
     check_precision(precision)
@@ -209,6 +211,8 @@ def deform_native(model: GOPModel, frame: int, camera_center: torch.Tensor,
                     torch.empty(n, 3))
     view = intr = limits = None
     if viewmat is not None:
+        if K is None:
+            raise ValueError("a viewmat needs its K")
         view = viewmat.detach().to(torch.float64).contiguous()
         intr = K.detach().to(torch.float64).contiguous()
         if guard is not None:

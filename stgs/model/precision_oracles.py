@@ -10,7 +10,8 @@ from stgs.model.gop import FEATURE_DIM, Gaussians, GOPModel, frame_time, positio
 from stgs.model.native_deform import Int16Layer, PackedWeights
 
 
-def _bf16(t: torch.Tensor) -> torch.Tensor:
+def _bf16(t: torch.Tensor | torch.nn.Module) -> torch.Tensor:
+    assert isinstance(t, torch.Tensor)  # a layer's `weight` types as either
     return t.detach().to(torch.bfloat16).to(torch.float32)
 
 

@@ -7,7 +7,7 @@ same activations, and optionally a degree-1 view-dependent colour term
     colour = relu(C) + Σ_k d_k · sh1[:, k, :]       d = unit vector from the camera to the mean
 
 No temporal features and no deformation: frame i of GOP k draws these
-Gaussians unchanged beside the deformed dynamic layer (stgs.model.view).
+Gaussians unchanged beside the deformed dynamic layer (stgs.model.renderer).
 """
 
 from __future__ import annotations

@@ -72,6 +72,8 @@ def read_lenses(path: Path, sizes: dict[str, tuple[int, int]]) -> dict[str, Intr
         raise LensFileError(f'{path}: expected {{"lens": {{...}}}} or {{"cameras": {{name: {{...}}}}}}')
     lenses = {}
     for cam, d in given.items():
+        if not isinstance(d, dict):
+            raise LensFileError(f"{path}: camera {cam}: expected an object, got {d!r:.40}")
         try:
             lenses[cam] = Intrinsics.from_json(d).resized(*sizes[cam])
         except ValueError as exc:
@@ -198,12 +200,12 @@ def calibrate(views: dict[str, dict[int, np.ndarray]], camera_model: str = DEFAU
             pycolmap.extract_features(database, images, camera_mode=pycolmap.CameraMode.PER_FOLDER,
                                       reader_options=reader, extraction_options=extraction)
             known = _give_lenses(pycolmap, database, lenses)
-            frames = sorted({i for f in views.values() for i in f})
+            instants = sorted({i for f in views.values() for i in f})
             pairs = root / "pairs.txt"
             # Across cameras only at one instant (people move); across instants only within a camera, whose
             # pose does not change: those matches tie each camera's views of different frames into one track.
-            across = [f"{a}/{i:06d}.png {b}/{i:06d}.png" for i in frames for a, b in itertools.combinations(views, 2)]
-            within = [f"{c}/{i:06d}.png {c}/{j:06d}.png" for c in views for i, j in itertools.combinations(frames, 2)]
+            across = [f"{a}/{i:06d}.png {b}/{i:06d}.png" for i in instants for a, b in itertools.combinations(views, 2)]
+            within = [f"{c}/{i:06d}.png {c}/{j:06d}.png" for c in views for i, j in itertools.combinations(instants, 2)]
             pairs.write_text("\n".join(across + within) + "\n")
             matching = pycolmap.FeatureMatchingOptions()
             matching.guided_matching = True

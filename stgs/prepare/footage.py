@@ -110,6 +110,8 @@ def probe(path: Path) -> Footage:
             if first is None:
                 raise FootageError(f"{path}: the video stream has no frames")
             turn = _rotation(stream, first)
+            if stream.time_base is None:
+                raise FootageError(f"{path}: the video stream has no time base")
             step = float(1 / (Fraction(rate) * stream.time_base))
     except av.FFmpegError as exc:
         raise FootageError(f"{path}: not a readable video ({exc.strerror or exc})") from None
@@ -152,6 +154,8 @@ def read_frames(footage: Footage, first: int, count: int) -> Iterator[tuple[int,
             stream = container.streams.video[0]
             stream.thread_type = "AUTO"
             origin = stream.start_time or 0
+            if stream.time_base is None:
+                raise FootageError(f"{footage.path}: the video stream has no time base")
             tick = 1 / (footage.rate * stream.time_base)
             if first > 0:
                 container.seek(int(origin + math.floor(first * tick)), stream=stream, backward=True)

@@ -2,7 +2,7 @@
 
 `backend="auto"` picks the native C++ kernel for float32 CPU inputs when it is
 built, and the pure-torch reference otherwise (float64, other devices, no
-compiler). Both follow DESIGN.md's numerics; tests hold them to each other.
+compiler). Both follow the numerics of docs/ARCHITECTURE.md; tests hold them to each other.
 """
 
 from __future__ import annotations
@@ -81,7 +81,7 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
               opacities: torch.Tensor, colors: torch.Tensor, viewmat: torch.Tensor,
               K: torch.Tensor, width: int, height: int, background: torch.Tensor | None = None,
               backend: Backend = "auto") -> torch.Tensor:
-    """Splat N Gaussians into an (height, width, 3) image (DESIGN.md's splatter contract).
+    """Splat N Gaussians into an (height, width, 3) image (docs/ARCHITECTURE.md, "The splatter").
 
     means (N,3), quats (N,4) wxyz (normalised inside), scales (N,3) linear,
     opacities (N,) in [0,1], colors (N,3), viewmat 4x4 world-to-camera (OpenCV

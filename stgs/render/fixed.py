@@ -1,6 +1,6 @@
 """Splatting moving Gaussians over a layer that does not move, from a camera that does not move.
 
-A layered scene (DESIGN.md, "Layered scenes") draws its static layer and the deformed dynamic layer in one
+A layered scene (model format 2, docs/MODEL_FORMAT.md) draws its static layer and the deformed dynamic layer in one
 `rasterize` call per frame. While the camera stays put, the static layer's projection and tile lists are the
 same every frame, and so is every tile that no dynamic Gaussian reaches: its list is the same static
 Gaussians in the same depth order, so compositing it again gives the same pixels. `FixedLayerView` projects,

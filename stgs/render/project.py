@@ -2,7 +2,7 @@
 
 The reference splatter's projection, and the torch twin of the native one (csrc/project.cpp) and of its
 gradient (stgs_project_backward), which the parity tests hold to autograd through this code. The constants
-here are the splatter contract of DESIGN.md.
+here are the splatter contract of docs/ARCHITECTURE.md.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Short and literal on purpose. Each screen tile composites its depth-sorted
 Gaussians densely (K Gaussians x P pixels), which is exactly the per-pixel
-front-to-back loop of DESIGN.md written with cumulative products.
+front-to-back loop of docs/ARCHITECTURE.md written with cumulative products.
 """
 
 from __future__ import annotations
@@ -19,7 +19,8 @@ REFERENCE_TILE = 32
 def tile_weights(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor, pix: torch.Tensor,
                  inside: torch.Tensor | None = None
                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """DESIGN.md's front-to-back loop for depth-sorted Gaussians (K, ...) over pixel centres pix (P, 2):
+    """The splatter's front-to-back loop (docs/ARCHITECTURE.md) for depth-sorted Gaussians (K, ...) over pixel
+    centres pix (P, 2):
     (alpha, weight of each contribution, added, final transmittance), the first three (K, P), the last (P,).
     `inside` (K, P), where given, zeroes alpha outside it (the native kernel's pixel rects)."""
     d = pix[None, :, :] - means2d[:, None, :]

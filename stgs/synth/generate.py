@@ -19,9 +19,9 @@ from stgs.errors import StgsError
 from stgs.fsio import DIR_MODE, atomic_write_bytes, load_png, save_png
 from stgs.metrics import psnr
 from stgs.model.gop import GOPShape
+from stgs.model.renderer import FrameRenderer, in_guard_band
 from stgs.model.static import StaticLayer
 from stgs.model.store import load_model, load_static, save_model
-from stgs.model.view import FrameRenderer, in_guard_band
 from stgs.render import rasterize
 from stgs.synth.config import SCENE_TARGET, SynthConfig
 from stgs.synth.fit import fit_gop
@@ -58,7 +58,7 @@ def _draw(frames: list[TruthFrame], camera: Camera, colors: list[torch.Tensor] |
 
 def render_truth(scene: ProceduralScene, time_s: float, camera: Camera) -> torch.Tensor:
     """The true image (the static backdrop, if any, and the objects in one depth order). The backdrop is
-    drawn with the model's guard band (stgs.model.view): beside a camera, a wall Gaussian seen at a grazing
+    drawn with the model's guard band (stgs.model.renderer): beside a camera, a wall Gaussian seen at a grazing
     angle would otherwise veil the whole image."""
     frames = [scene.at(time_s)]
     if scene.static is not None:
@@ -80,6 +80,8 @@ def imported_backdrop(cfg: SynthConfig) -> TruthFrame:
     """The backdrop of a 3DGS file (SynthConfig.static_from), view-independent, as the scene's truth."""
     from stgs.interop.static import import_static
 
+    if cfg.static_from is None:
+        raise ValueError("static_from: no 3DGS file given")
     matrix = None if cfg.static_transform is None else np.asarray(cfg.static_transform, np.float64).reshape(4, 4)
     layer, _ = import_static(Path(cfg.static_from), matrix)
     n = layer.capacity

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import torch
 
+from stgs.model.gop import GOPModel
+from stgs.model.static import StaticLayer
 from stgs.render.project import normalize_quats
 from stgs.synth.config import EFFECTS
 
@@ -51,7 +53,7 @@ class TruthFrame:
     """(N, 3) per-channel gain of the view-dependent term (0 when the effect is off)."""
 
     @torch.no_grad()
-    def copy_into(self, target: torch.nn.Module, opacity_eps: float) -> None:
+    def copy_into(self, target: GOPModel | StaticLayer, opacity_eps: float) -> None:
         """Set the canonical attributes (xyz, log_scale, rotation, opacity_logit, color) of a GOP model or a
         static layer to these Gaussians; opacities are clamped to [eps, 1 - eps] before the logit."""
         target.xyz.copy_(self.means)

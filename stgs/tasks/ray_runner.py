@@ -13,6 +13,7 @@ import socket
 import traceback
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from tqdm import tqdm
 
@@ -49,7 +50,7 @@ class RayRunner:
         if retries < 0:
             raise StgsError(f"retries must be >= 0, got {retries}")
         os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-        options = {"log_to_driver": False, "logging_level": logging.WARNING, "configure_logging": True}
+        options: dict[str, Any] = {"log_to_driver": False, "logging_level": logging.WARNING, "configure_logging": True}
         if address == "local":
             options |= {"num_cpus": os.cpu_count() or 1, "include_dashboard": False}
         else:

@@ -6,6 +6,7 @@ import dataclasses
 import hashlib
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 from stgs.errors import StgsError
 
@@ -96,13 +97,13 @@ class TrainConfig:
     """Canonical 3DGS stage on frames from all times (layered: stage A, the static layer, on static pixels)."""
     coarse_low_res: float = 0.0
     """Share of the coarse stage's (stage A's) iterations drawn first at half the training resolution (a quarter
-    of the pixels; about twice the iterations per second), before the rest at full resolution."""
+    of the pixels: cheaper iterations; docs/TRAINING.md has what they cost), before the rest at full resolution."""
     iterations: int = 600
     """Iterations per GOP."""
     gop_low_res: float = 0.0
     """Share of each GOP stage's iterations drawn first at half the training resolution (images, masks and, in a
-    layered scene, the static backdrops halved; about half the cost of a step), before the rest at full
-    resolution: more iterations in the same time for a stage that is short of them (docs/TRAINING.md)."""
+    layered scene, the static backdrops halved), before the rest at full resolution: more iterations in the same
+    time for a stage that is short of them (docs/TRAINING.md has what a step costs)."""
     feature_noise: float = 1e-3
     """λ of the feature noise λ·U(−0.5, 0.5) (simulates the video codec)."""
     lambda_ssim: float = 0.2
@@ -138,8 +139,9 @@ class TrainConfig:
     floor sigmoid(-4) = 0.018, where training holds the faintest Gaussians (3DGS-MCMC's 0.005 is unreachable)."""
     lr: LearningRates = field(default_factory=LearningRates)
     seed: int = 0
+    """Random seed: the same seed and threads give the same bytes, locally or on Ray."""
     checkpoint_every: int = 200
-    """Iterations between checkpoints (for --resume)."""
+    """Iterations between checkpoints (what a resumed run starts from)."""
     init_points: int = 0
     """Use at most this many triangulated points (0: all)."""
     init_frames: int = 6
@@ -155,7 +157,7 @@ class TrainConfig:
     where it has them and the cameras surround the scene (stgs.train.hull), instead of filler points."""
     static_triangulation: bool = True
     """Layered: triangulate the static layer's seeds outside the foreground masks, matching along the epipolar
-    lines (the walls' dots, seams and lamps; stgs.train.init.BACKGROUND_MATCHING), instead of on the people, whom
+    lines (the walls' dots, seams and lamps; stgs.train.triangulate.BACKGROUND_MATCHING), instead of on the people, whom
     stage A does not fit."""
     background_share: float = 0.0
     """Share of the capacity first placed on the rig's walls and floor, for the background a rig that
@@ -163,7 +165,7 @@ class TrainConfig:
     threads: int | None = None
     """torch threads (None: torch's default)."""
     max_memory: int | None = None
-    """Bytes of decoded views a stage holds (stgs.train.views; None: the machine's RAM / 16, at most 1 GiB).
+    """Bytes of decoded views a stage holds (stgs.train.images; None: the machine's RAM / 16, at most 1 GiB).
     Only how often a view is decoded depends on it, never the model's bytes."""
     static_frames: int | None = None
     """Layered: the frames stage A draws from, spread over the trained span (None: every frame)."""
@@ -240,26 +242,19 @@ BUDGETS = {
 """quick: CI (tiny, minutes); cpu: a 60-frame Panoptic GOP at 640x360 in about an hour on 2 cores;
 paper: 12k iterations, ~150k Gaussians, for a bigger machine."""
 
-LAYERED = {
+LAYERED: dict[str, dict[str, Any]] = {
     "quick": {"grid_side": 16, "static_grid_side": 24},
     "cpu": {"grid_side": 96, "static_grid_side": 160, "coarse_iterations": 3500, "coarse_low_res": 0.4,
             "iterations": 3700, "gop_low_res": 0.8},
     "paper": {"grid_side": 256, "static_grid_side": 448, "coarse_iterations": 5000, "iterations": 10000},
 }
-"""What --layers layered changes in each budget (unless set explicitly): a smaller dynamic layer, a static layer
-that together with it holds about twice the single layer's Gaussians, and iterations moved from the per-GOP
-stage to stage A (which nothing refines later), so that one GOP takes about the single layer's wall time. cpu:
-stage A's first 40 % and each GOP's first 80 % at half resolution, which pays for the GOP iterations that lift
-the players. What each costs and buys is measured in docs/BENCHMARKS.md, "Layered scenes (model format 2) against
-format 1"; paper: not measured."""
-
-SWITCHES = {"aux": "--no-aux", "dynamic": "--no-dynamic-density", "temporal_weight": "--no-temporal-reg",
-            "relocate": "--no-relocate", "migrate": "--no-migrate", "hull_seeds": "--no-hull-seeds",
-            "camera_colour": "--no-camera-colour", "static_triangulation": "--no-static-triangulation"}
-"""Config fields the ablation switches turn off."""
+"""What layers = "layered" changes in each budget (unless set explicitly): a smaller dynamic layer beside a
+static layer, and iterations moved from the per-GOP stage to stage A (which nothing refines later); cpu: stage A's
+first 40 % and each GOP's first 80 % drawn at half resolution. What each costs and buys is measured in
+docs/BENCHMARKS.md, "Layered scenes (model format 2) against format 1"; paper: not measured."""
 
 
-def budget(name: str, **overrides) -> TrainConfig:
+def budget(name: str, **overrides: Any) -> TrainConfig:
     if name not in BUDGETS:
         raise StgsError(f"unknown budget {name!r}; choose from {', '.join(BUDGETS)}")
     layered = LAYERED[name] if overrides.get("layers") == "layered" else {}

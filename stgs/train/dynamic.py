@@ -8,18 +8,19 @@ from collections.abc import Iterable
 import numpy as np
 import torch
 
-from stgs.train.views import Views
+from stgs.train.images import Views
 
 LUMA = np.array([0.299, 0.587, 0.114])
 
 
 def variance_mask(frames: Iterable[np.ndarray | torch.Tensor], theta: float) -> np.ndarray:
     """(H, W) bool: pixels whose luminance std (unbiased) over `frames` ((H, W, 3) RGB in [0, 1]) exceeds theta."""
-    n, mean, m2 = 0, None, None
+    n = 0
+    mean = m2 = np.zeros(0)
     for frame in frames:
         luma = np.asarray(frame, dtype=np.float64) @ LUMA
         n += 1
-        if mean is None:
+        if n == 1:
             mean, m2 = luma.copy(), np.zeros_like(luma)
             continue
         delta = luma - mean

@@ -1,6 +1,6 @@
 """Seeds on the moving people from the dataset's foreground masks: the surface of their visual hull.
 
-SIFT triangulation (stgs.train.init) finds a few hundred points per frame on the people, where their clothes
+SIFT triangulation (stgs.train.triangulate) finds a few hundred points per frame on the people, where their clothes
 have texture, and none on a ball or a plain shirt. A rig that surrounds the action with calibrated cameras and
 has foreground masks pins the people down better: a point of space belongs to them when every camera that sees
 it sees a foreground pixel there (space carving). `hull_surface_points` carves a voxel grid around the rig's
@@ -19,7 +19,7 @@ import torch
 from scipy import ndimage
 
 from stgs.camera import Camera, rig_focus
-from stgs.train.init import in_view
+from stgs.train.triangulate import in_view
 
 _COARSE_FACTOR = 2
 """The coarse pass's voxels are this many fine voxels wide."""

@@ -31,14 +31,14 @@ from stgs.data import Dataset
 from stgs.errors import StgsError
 from stgs.metrics import psnr
 from stgs.model.gop import GOPModel
+from stgs.model.renderer import splat, static_view
 from stgs.model.static import STATIC_TENSORS, StaticLayer
-from stgs.model.view import splat, static_view
 from stgs.train import losses
 from stgs.train.camera_colour import CameraColour, as_recorded
 from stgs.train.dynamic import variance_mask
-from stgs.train.init import grown, in_view
+from stgs.train.images import Views
 from stgs.train.seeding import InitialPoints, init_canonical
-from stgs.train.views import Views
+from stgs.train.triangulate import grown, in_view
 
 MIN_SCORE_CAMERAS = 2
 """Cameras that must see a Gaussian before its motion can be told from occlusion."""
@@ -85,7 +85,7 @@ def static_background_psnr(static: StaticLayer, ds: Dataset, names: list[str], f
 
 @dataclass
 class MovingPixels:
-    """The moving pixels of the training views (a stgs.train.views.MaskSource): the dataset's foreground masks,
+    """The moving pixels of the training views (a stgs.train.images.MaskSource): the dataset's foreground masks,
     grown, for a camera that has one at the span's first frame (then it must have one at every frame); one
     temporal-variance mask over the span for a camera that has none."""
 
@@ -190,7 +190,9 @@ def init_dynamic(model: GOPModel, init: InitialPoints, migrated: Migrated | None
     The seeded opacities (0.02–0.1) are as small as a randomly initialised ΔO; where ΔO is negative the
     opacity clamps at 0 and neither it nor ΔO gets a gradient again: a whole layer can start dead."""
     init_canonical(model, init)
-    model.field.d_opacity[-1].weight.zero_()
+    last = model.field.d_opacity[-1]
+    assert isinstance(last, torch.nn.Linear)
+    last.weight.zero_()
     if migrated is None or len(migrated.index) == 0:
         return 0
     m = min(len(migrated.index), model.shape.capacity)
@@ -203,7 +205,7 @@ def fit_view_dependent(static: StaticLayer, views: Views, draws: list[tuple[int,
                        lambda_ssim: float, progress: bool = False, colour: CameraColour | None = None
                        ) -> StaticLayer:
     """A degree-1 copy of `static` whose colour and sh1 are fitted on the pixels that do not move, one view per
-    iteration (`draws`: stgs.train.views.view_draws); positions, scales, rotations and opacities stay."""
+    iteration (`draws`: stgs.train.images.view_draws); positions, scales, rotations and opacities stay."""
     layer = StaticLayer.from_canonical(static, 1, static.sh1 if static.sh_degree else None)
     for name in STATIC_TENSORS:
         getattr(layer, name).requires_grad_(name == "color")

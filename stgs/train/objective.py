@@ -1,7 +1,7 @@
 """What one GOP-stage iteration minimises (stgs.train.trainer's per-GOP loop), and the canonical regularisers
 the coarse stage and stage A share with it.
 
-One drawn (frame, camera) pair per iteration (stgs.train.views.view_draws): the temporal features of the frame's
+One drawn (frame, camera) pair per iteration (stgs.train.images.view_draws): the temporal features of the frame's
 window with feature noise λ·U(−0.5, 0.5) go through the deformation field; the deformed Gaussians are drawn (over
 the frozen static layer's backdrop for that camera in a layered scene), through the camera's colour response
 (stgs.train.camera_colour) and compared with the target (L1 + SSIM, again on the dynamic mask's pixels); the
@@ -18,12 +18,12 @@ import torch
 
 from stgs.metrics import ssim_map
 from stgs.model.gop import Gaussians, GOPModel, flat_window, frame_time
-from stgs.model.view import Backdrop, splat_over
+from stgs.model.renderer import Backdrop, splat_over
 from stgs.train import losses
 from stgs.train.aux import AuxTransformer
 from stgs.train.camera_colour import CameraColour, as_recorded
 from stgs.train.config import TrainConfig
-from stgs.train.views import Sample
+from stgs.train.images import Sample
 
 
 class GOPLoss(NamedTuple):
@@ -90,6 +90,7 @@ def gop_loss(cfg: TrainConfig, gen: torch.Generator, model: GOPModel, aux: AuxTr
         g_aux = model.apply_offsets(model.field.decode(h_aux, model.xyz, center))
         img_aux = as_recorded(colour, splat_over(backdrop, g_aux, cam), c)
         loss = loss + cfg.aux_ssim_weight * (1 - losses.ssim(img_aux, target))
+        assert h is not None  # deformed, so the MLP's hidden state is there
         loss = loss + cfg.distill_weight * losses.self_distillation(h, h_aux)
     if temporal is not None:
         loss = loss + cfg.temporal_weight * temporal

@@ -11,7 +11,8 @@ import math
 import torch
 
 from stgs.codec.attributes import OPACITY_LOGIT_RANGE
-from stgs.codec.plas import PLASConfig, plas_order, sort_key
+from stgs.codec.plas import plas_order, sort_key
+from stgs.codec.plas_config import PLASConfig
 from stgs.model.gop import GOPModel
 from stgs.train.aux import AuxTransformer
 from stgs.train.camera_colour import CameraColour

@@ -28,9 +28,9 @@ from stgs.tasks import Task, open_runner
 from stgs.train.base import BASE_FILE, BaseStage
 from stgs.train.config import TrainConfig, config_from_dict
 from stgs.train.dynamic import gop_dynamic_masks
+from stgs.train.images import Views, default_memory, open_views, scale_camera
 from stgs.train.layers import moving_pixels
 from stgs.train.trainer import Trainer
-from stgs.train.views import Views, default_memory, open_views, scale_camera
 from stgs.tree import CAMERAS, CAMERAS_FORMAT, TRAIN_REPORT, gop_file, gop_stem
 
 LOG_DIR = "logs"
@@ -198,7 +198,8 @@ def train(dataset: Path, out: Path, cfg: TrainConfig, progress: bool = True, res
         job = TrainJob(str(Path(dataset).resolve()), str(trainer.out.resolve()), dataclasses.asdict(cfg), kind,
                        progress and ray is None)
         cpus, logs = cfg.threads or 1, trainer.state / LOG_DIR
-        tasks, after = [], ()
+        tasks: list[Task] = []
+        after: tuple[str, ...] = ()
         if not (trainer.state / BASE_FILE).is_file():
             tasks.append(Task("base", base_task, (job,), cpus=cpus, fresh_process=True))
             after = ("base",)

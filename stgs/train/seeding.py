@@ -1,6 +1,6 @@
 """Where the Gaussians start: triangulated points at a few frames, the rig's walls and floor, jittered copies
 and random frustum points up to the capacity (`initial_points`), and the 3DGS-style attributes they get
-(`init_canonical`). The geometry is in stgs.train.init."""
+(`init_canonical`). The geometry is in stgs.train.triangulate."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from stgs.camera import Camera, surrounds
 from stgs.data import Dataset
 from stgs.model.gop import GOPModel
 from stgs.train.hull import HullConfig, hull_surface_points
-from stgs.train.init import (
+from stgs.train.triangulate import (
     BACKGROUND_MATCHING,
     MIN_TRIANGULATED,
     background_shell_points,
@@ -68,8 +68,9 @@ def initial_points(ds: Dataset, names: list[str], frames: list[int], count: int,
                                         BACKGROUND_MATCHING))
         else:
             found_at.append(triangulate(at_cams, at_images, masks))
-        if hull is not None and all(m is not None for m in masks) and surrounds(at_cams):
-            hull_at.append(hull_surface_points(at_cams, at_images, masks, hull))
+        known = [m for m in masks if m is not None]
+        if hull is not None and len(known) == len(masks) and surrounds(at_cams):
+            hull_at.append(hull_surface_points(at_cams, at_images, known, hull))
     # A time with too few points to describe the scene there (tiny images, no texture) contributes none: a few
     # points from each of several such times would draw every seeded copy around them instead of random points.
     found_at = [(p, c) for p, c in found_at if len(p) >= MIN_TRIANGULATED]

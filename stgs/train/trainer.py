@@ -1,8 +1,8 @@
 """Per-GOP StreamSTGS training on the CPU (`stgs train DATASET OUT`).
 
-1. Open the training views through a bounded cache (stgs.train.views); their dynamic or moving-pixel masks.
+1. Open the training views through a bounded cache (stgs.train.images); their dynamic or moving-pixel masks.
 2. Initial points: triangulated from the calibrated views of a few frames
-   spread over the trained span (stgs.train.init), topped up with jittered
+   spread over the trained span (stgs.train.triangulate), topped up with jittered
    copies and random frustum points to the capacity N = S².
 3. Coarse stage: canonical 3DGS (no deformation) on frames from all times (the first `coarse_low_res` share of
    its iterations at half resolution), and each training camera's colour response (stgs.train.camera_colour),
@@ -17,7 +17,7 @@ layer on the pixels that do not move (stgs.train.layers); Gaussians the data
 shows moving migrate out of it; step 4 is stage B, which fits each GOP's
 smaller dynamic layer, started from the migrated Gaussians and the GOP's
 triangulated points, drawn over the frozen static layer in one splat (the
-layer kept per training camera: stgs.model.view.static_backdrops).
+layer kept per training camera: stgs.model.renderer.static_backdrops).
 
 Checkpoints (safetensors + JSON, no pickle) under OUT/.train/ allow --resume;
 a non-finite loss stops the run with the last good checkpoint kept. Each stage
@@ -51,23 +51,23 @@ from stgs.errors import StgsError
 from stgs.memory import reuse_large_allocations
 from stgs.metrics import psnr
 from stgs.model.gop import GOPModel, GOPShape
+from stgs.model.renderer import Backdrop, static_backdrops
 from stgs.model.static import StaticLayer
-from stgs.model.view import Backdrop, static_backdrops
 from stgs.picks import spread
 from stgs.train.aux import AuxTransformer
 from stgs.train.base import BaseStage
 from stgs.train.camera_colour import CameraColour
-from stgs.train.canonical import fit_canonical, imported_static_model
+from stgs.train.canonical import CanonicalFit, fit_canonical, imported_static_model
 from stgs.train.checkpoint import Checkpoints
 from stgs.train.config import TrainConfig, stage_seed
 from stgs.train.gop_report import DivergedError, GOPReport
 from stgs.train.hull import HullConfig
+from stgs.train.images import Sample, Views, view_draws
 from stgs.train.layers import Migrated, fit_view_dependent, init_dynamic, migrate, motion_scores, moving_pixels
 from stgs.train.objective import GOPLoss, gop_loss
 from stgs.train.ops import Optimizer, opacity_level, prune, relocate, sort, track_opacities
 from stgs.train.seeding import initial_points
 from stgs.train.validation import mean_scores
-from stgs.train.views import Sample, Views, view_draws
 from stgs.tree import CAMERAS, MODEL_META, TRAIN_REPORT, gop_stem
 
 STATE_DIR = ".train"
@@ -110,7 +110,8 @@ class Trainer:
         self.checkpoints = Checkpoints(self.state, resume)
         self.seed_stage("setup")
         self.extent = scene_extent(self.ds.cameras(cfg.start_frame))
-        self.triangulated = self.background_points = None
+        self.triangulated: int | None = None
+        self.background_points: int | None = None
 
     def prepare_output(self) -> None:
         """Check the output folder (a model dir or ours to create) and, unless resuming, clear the run's state.
@@ -141,7 +142,12 @@ class Trainer:
     def coarse(self, views: Views, shape: GOPShape, stage: str = "coarse") -> GOPModel:
         """Canonical 3DGS (no deformation) on frames from all times; on views with moving-pixel masks, on the
         pixels that do not move only (stage A of layered training). Sets the cameras' colour responses."""
-        return fit_canonical(self, views, shape, stage)
+        return self.keep(fit_canonical(self, views, shape, stage))
+
+    def keep(self, fit: CanonicalFit) -> GOPModel:
+        """A canonical stage's results kept for the stages after it and the report; its model."""
+        self.colour, self.triangulated, self.background_points = fit.colour, fit.triangulated, fit.background_points
+        return fit.model
 
     def stage_a(self, views: Views) -> GOPModel:
         """The static layer (layered training): fitted on the pixels that do not move, then the Gaussians the
@@ -149,13 +155,22 @@ class Trainer:
         cfg = self.cfg
         moving = moving_pixels(self.ds, views, cfg.dynamic_theta)
         views.set_masks(moving)
+        if self.static_shape is None:
+            raise ValueError("stage A trains the static layer of a layered run")
         imported = cfg.static_from is not None
-        model = imported_static_model(self, views) if imported else self.coarse(views, self.static_shape, "static")
+        if imported:
+            brought = imported_static_model(self, views)
+            self.imported = brought.layer
+            self.layer_info["static_import"] = brought.report
+            model = self.keep(brought.refined) if brought.refined is not None else brought.model
+        else:
+            model = self.coarse(views, self.static_shape, "static")
         scores, share = motion_scores(model, views, moving)
         limit = int(cfg.migrate_share * self.shape.capacity) if cfg.migrate else 0
         self.migrated = migrate(model, scores, cfg.migrate_score, limit, cfg.dead_opacity)
-        kept = imported and self.imported.sh_degree and not cfg.static_refine  # refining re-sorts the slots
-        self.static = StaticLayer.from_canonical(model, sh1=self.imported.sh1 if kept else None)
+        sh1 = self.imported.sh1 if self.imported is not None and self.imported.sh_degree and not cfg.static_refine \
+            else None  # refining re-sorts the slots
+        self.static = StaticLayer.from_canonical(model, sh1=sh1)
         self.layer_info |= {"moving_mask_source": moving.source, "migrated": len(self.migrated.index),
                             "moving_pixel_share": share}
         if cfg.static_sh_degree:
@@ -215,7 +230,8 @@ class Trainer:
             start, report = extra["iteration"], GOPReport(**extra["report"])
             accum = saved_accum if saved_accum is not None else accum
         low_until = round(cfg.gop_low_res * cfg.iterations)
-        low = static_backdrops(self.static, views.at(1).cameras) if start < low_until and static is not None else None
+        low = (static_backdrops(self.static, views.at(1).cameras)
+               if start < low_until and self.static is not None else None)
         draws = view_draws(cfg.seed, gop_stem(k), cfg.iterations, *views.counts, low_until)
         views.plan(draws[start:])
         clock = setup - report.seconds  # the dynamic layer's seeding counts as the GOP's training time

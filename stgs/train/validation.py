@@ -6,10 +6,10 @@ import torch
 
 from stgs.metrics import psnr, ssim
 from stgs.model.gop import GOPModel
+from stgs.model.renderer import FrameRenderer
 from stgs.model.static import StaticLayer
-from stgs.model.view import FrameRenderer
 from stgs.train.camera_colour import CameraColour, as_recorded
-from stgs.train.views import Views
+from stgs.train.images import Views
 
 
 @torch.no_grad()

@@ -1,6 +1,6 @@
 """A byte-bounded cache that loads ahead along a known plan of requests, in a background thread.
 
-Training draws its views from a schedule fixed before the stage starts (stgs.train.views.view_draws), so the
+Training draws its views from a schedule fixed before the stage starts (stgs.train.images.view_draws), so the
 cache knows every future request: a loader thread walks the plan ahead of the consumer and loads what is not
 held, and when the budget is full it evicts the entry whose next planned use is furthest away (Belady's rule,
 optimal for a known sequence). An entry planned between the consumer and the loader is never evicted, so the

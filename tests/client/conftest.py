@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from stgs.client.download import DownloadSettings
+from stgs.client.fetch.download import DownloadSettings
 from stgs.packager import PackConfig, pack
 from stgs.server.app import loopback
 from stgs.synth import SynthConfig, synthesize

@@ -26,8 +26,8 @@ from stgs.client.abr import (
     ewma_kbps,
     throughput_kbps,
 )
-from stgs.client.abr_predict import harmonic_kbps, predict_kbps, relative_error
-from stgs.client.abr_state import MPC_PREDICTORS
+from stgs.client.abr.predict import harmonic_kbps, predict_kbps, relative_error
+from stgs.client.abr.state import MPC_PREDICTORS
 from stgs.errors import FieldError
 
 LADDER = [100_000, 200_000, 400_000]  # bit/s, one-second GOPs

@@ -13,15 +13,15 @@ import pytest
 from aiohttp import web
 
 from stgs.client import PlaybackError, PlayConfig, play
+from stgs.client.config import ViewSpec
 from stgs.client.manifest import Presentation
-from stgs.client.view import ViewSpec
 from stgs.codec.mp4 import set_timeline, split_fragmented
 from stgs.codec.video import VideoTiming
+from stgs.errors import MPDError
 from stgs.harness.ladder import load_ladder
 from stgs.harness.scenario import scenario_from_dict
 from stgs.harness.sim import simulate
 from stgs.metrics import psnr
-from stgs.mpd_values import MPDError
 from stgs.packager import MANIFEST, PackConfig, pack
 from tests.client.conftest import QUICK, SCENE, copy_tree, segment, serving
 from tests.client.test_hostile_server import HostileServer, hostile, play_bounded

@@ -18,9 +18,9 @@ import pytest
 from aiohttp import web
 
 from stgs.client import PlaybackError, PlayConfig, play
-from stgs.client.download import DownloadSettings
+from stgs.client.config import ViewSpec
+from stgs.client.fetch.download import DownloadSettings
 from stgs.client.urlpolicy import RefusedAddressError, RefusedUrlError, UrlPolicy, UrlPolicySettings
-from stgs.client.view import ViewSpec
 from stgs.errors import StgsError
 from tests.client.conftest import copy_tree
 

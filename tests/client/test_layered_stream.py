@@ -13,14 +13,14 @@ import pytest
 import torch
 
 from stgs.client import PlaybackError, PlayConfig, play
+from stgs.client.config import ViewSpec
 from stgs.client.manifest import Presentation
-from stgs.client.view import ViewSpec
 from stgs.codec.static import StaticSegmentError, decode_static, encode_static
 from stgs.metrics import psnr
+from stgs.model.renderer import FrameRenderer
 from stgs.model.store import load_model, load_static, read_meta
-from stgs.model.view import FrameRenderer
-from stgs.mpd import parse_mpd
-from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_SCHEME, STATIC_SCHEME
+from stgs.mpd.model import parse_mpd
+from stgs.mpd.profile import FEATURE_SCHEME, KEYFRAME_SCHEME, STATIC_SCHEME
 from stgs.packager import MANIFEST, STATS, PackConfig, pack
 from stgs.server.catalogue import catalogue
 from stgs.synth import SynthConfig, load_ground_truth, synthesize
@@ -63,7 +63,7 @@ def test_mpd_has_four_adaptation_sets_and_stays_valid(layered):
     assert mpd.adaptation_set(KEYFRAME_SCHEME).descriptor(KEYFRAME_SCHEME).fields()["capacity"] == "144"
     assert all(r.width == 48 for a in mpd.adaptation_sets(FEATURE_SCHEME) for r in a.representations)
     if XSD.is_file():
-        from stgs.mpd_schema import schema_errors
+        from stgs.mpd.schema import schema_errors
 
         assert schema_errors(data, XSD) == []
     probe = subprocess.run(["ffprobe", "-v", "error", "-show_entries", "stream=codec_name,width", "-of", "json",

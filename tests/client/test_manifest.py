@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 
 from stgs.client.manifest import Presentation
+from stgs.errors import MPDError
 from stgs.limits import MAX_CAPACITY
-from stgs.mpd_values import MPDError
 
 EXAMPLE = (Path(__file__).resolve().parents[2] / "manifests" / "example.mpd").read_bytes()
 
@@ -41,7 +41,7 @@ def test_base_url(base, expected):
 
 @pytest.mark.parametrize("gops,gop_size,fps", [(2, 4, 30.0), (3, 7, 29.97), (5, 60, 30.0), (1, 2, 240.0)])
 def test_gop_count_survives_millisecond_durations(gops, gop_size, fps):
-    from stgs.mpd_values import format_duration
+    from stgs.mpd.values import format_duration
 
     ticks = round(gop_size / fps * 90000)
     mpd = (EXAMPLE.replace(b'mediaPresentationDuration="PT2S"',

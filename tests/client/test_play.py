@@ -15,11 +15,11 @@ from aiohttp import web
 
 from stgs.camera import Camera
 from stgs.client import PlaybackError, PlayConfig, play
-from stgs.client.view import ViewSpec
+from stgs.client.config import ViewSpec
 from stgs.errors import StgsError
 from stgs.metrics import psnr
+from stgs.model.renderer import FrameRenderer
 from stgs.model.store import load_model
-from stgs.model.view import FrameRenderer
 from stgs.synth import load_ground_truth
 from tests.client.conftest import QUICK, SCENE, copy_tree, segment, serving
 

@@ -11,8 +11,8 @@ import struct
 
 import pytest
 
-from stgs.client import PlaybackError, PlayConfig, failure, play, player, resources
-from stgs.client.view import ViewSpec
+from stgs.client import PlaybackError, PlayConfig, failure, play, resources, session
+from stgs.client.config import ViewSpec
 from stgs.codec import stream
 from tests.client.conftest import QUICK, copy_tree, segment, serving
 
@@ -34,14 +34,14 @@ async def test_a_defect_in_the_decoder_ends_the_playback_with_its_traceback_logg
 
 
 async def test_a_defect_in_the_fetcher_ends_the_playback(scene, tmp_path, monkeypatch):
-    real = player.Session.drive
+    real = session.Session.drive
 
     async def broken(self, steps):
         if self.records[self.k0].rep:  # GOP 0 fetched: the next fetch fails
             raise KeyError("rung")
         return await real(self, steps)
 
-    monkeypatch.setattr(player.Session, "drive", broken)
+    monkeypatch.setattr(session.Session, "drive", broken)
     async with serving(scene / "dash") as url:
         with pytest.raises(failure.InternalError, match="KeyError"):
             await asyncio.wait_for(play(PlayConfig(url, qp=32, download=QUICK, view=SMALL, out=tmp_path / "o.mp4",

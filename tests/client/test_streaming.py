@@ -14,15 +14,15 @@ import pytest
 
 from stgs.camera import read_scene_cameras
 from stgs.client import PlayConfig, framepath, play
-from stgs.client.view import ViewSpec
+from stgs.client.config import ViewSpec
 from stgs.codec import stream
 from stgs.codec.keyframe import KeyframeError, KeyframeSegment
 from stgs.codec.mp4 import set_timeline, split_fragmented
 from stgs.codec.video import VideoTiming, decode_segment, encode_gop
 from stgs.errors import FieldError
 from stgs.fsio import to_uint8
+from stgs.model.renderer import FrameRenderer
 from stgs.model.store import load_model
-from stgs.model.view import FrameRenderer
 from stgs.packaged import packaged_gops
 from stgs.tree import rep_id
 from tests.client.conftest import QUICK, SCENE, copy_tree, segment, serving

@@ -1,4 +1,4 @@
-"""Attribute images: DESIGN.md's clip ranges and levels, bit-exact through lossless JPEG XL."""
+"""Attribute images: the clip ranges and levels of docs/ARCHITECTURE.md, bit-exact through lossless JPEG XL."""
 
 from __future__ import annotations
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from stgs.mpd import (
+from stgs.mpd.model import (
     MPD,
     AdaptationSet,
     Descriptor,
@@ -14,8 +14,9 @@ from stgs.mpd import (
     SegmentTemplate,
     parse_mpd,
 )
-from stgs.mpd_profile import KEYFRAME_SCHEME
-from stgs.mpd_values import expand_template, format_duration, parse_duration
+from stgs.mpd.profile import KEYFRAME_SCHEME
+from stgs.mpd.values import format_duration, parse_duration
+from stgs.tree import expand_template
 
 
 @pytest.mark.parametrize("seconds,text", [(0, "PT0S"), (2, "PT2S"), (2.5, "PT2.5S"), (61.25, "PT1M1.25S"),
@@ -102,7 +103,7 @@ def test_template_number_width_is_capped():
 
 
 def test_the_quality_descriptor_round_trips_and_refuses_what_is_not_a_db_figure():
-    from stgs.mpd_profile import QUALITY_SCHEME, QualityDescriptor
+    from stgs.mpd.profile import QUALITY_SCHEME, QualityDescriptor
 
     def rep(value: str | None) -> Representation:
         extra = [] if value is None else [Descriptor(QUALITY_SCHEME, value)]

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import torch
 
-from stgs.codec.plas import PLASConfig, blur, neighbour_distance, permute_gop, plas_order, sort_key
-from stgs.model.view import FrameRenderer
+from stgs.codec.plas import blur, neighbour_distance, permute_gop, plas_order, sort_key
+from stgs.codec.plas_config import PLASConfig
+from stgs.model.renderer import FrameRenderer
 from tests.model.test_gop import random_model
 
 

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from stgs.mpd import PROFILE_STGS, parse_mpd
-from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_SCHEME
+from stgs.mpd.model import PROFILE_STGS, parse_mpd
+from stgs.mpd.profile import FEATURE_SCHEME, KEYFRAME_SCHEME
 from tests.conftest import SHARED
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "manifests" / "example.mpd"
@@ -19,7 +19,7 @@ def test_example_validates_against_the_schema(example):
     xsd = SHARED / "dash" / "DASH-MPD.xsd"
     if not xsd.is_file():
         pytest.skip("../shared/dash is absent")
-    from stgs.mpd_schema import schema_errors
+    from stgs.mpd.schema import schema_errors
 
     assert schema_errors(example.read_bytes(), xsd) == []
 

@@ -18,7 +18,7 @@ from stgs.interop.frames import frame_splats, open_source
 from stgs.interop.splats import from_static, to_static
 from stgs.interop.static import fit_similarity, fitted_transform, import_static, transform
 from stgs.metrics import psnr
-from stgs.model.view import FrameRenderer, splat
+from stgs.model.renderer import FrameRenderer, splat
 from stgs.packager import PackConfig, pack
 from tests.conftest import run_stgs
 from tests.interop.conftest import random_splats

@@ -18,7 +18,7 @@ from stgs.model.native_deform import (
     int16_available,
 )
 from stgs.model.precision_oracles import deform_bf16_reference, deform_int16_reference
-from stgs.model.view import FrameRenderer, in_guard_band, splat
+from stgs.model.renderer import FrameRenderer, in_guard_band, splat
 from stgs.native.library import NativeUnavailableError, available
 
 

@@ -1,4 +1,4 @@
-"""Model format 2: a static layer beside the per-GOP dynamic layers (docs/MODEL_FORMAT.md, DESIGN.md)."""
+"""Model format 2: a static layer beside the per-GOP dynamic layers (docs/MODEL_FORMAT.md)."""
 
 from __future__ import annotations
 
@@ -13,9 +13,9 @@ from safetensors.torch import load_file, save_file
 from stgs.camera import Camera, intrinsics, look_at
 from stgs.errors import StgsError
 from stgs.model.gop import Gaussians
+from stgs.model.renderer import FrameRenderer
 from stgs.model.static import StaticLayer, merge
 from stgs.model.store import load_gop, load_model, load_static, read_meta, save_model
-from stgs.model.view import FrameRenderer
 from stgs.native.library import available
 from stgs.render import rasterize
 from tests.model.test_gop import random_model

@@ -1,4 +1,4 @@
-"""The frame path's guard band: Gaussians far outside the image are not drawn (stgs.model.view)."""
+"""The frame path's guard band: Gaussians far outside the image are not drawn (stgs.model.renderer)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import torch
 
 from stgs.camera import Camera, intrinsics, look_at
 from stgs.model.gop import Gaussians, GOPModel, GOPShape
-from stgs.model.view import GUARD_BAND, NEAR_CLIP, FrameRenderer, in_guard_band, splat
+from stgs.model.renderer import GUARD_BAND, NEAR_CLIP, FrameRenderer, in_guard_band, splat
 from stgs.native.library import available
 from stgs.render import rasterize
 
@@ -116,7 +116,7 @@ def test_the_native_deformation_applies_the_same_guard_band(precision):
 def test_a_kept_backdrop_draws_and_differentiates_as_the_splat_of_both_layers():
     """splat_over: the static layer kept per camera (static_backdrops) against its Gaussians splatted with the
     moving ones; the guard band applies to the moving layer in both (a grazing Gaussian is not drawn)."""
-    from stgs.model.view import splat_over, static_backdrops, static_view
+    from stgs.model.renderer import splat_over, static_backdrops, static_view
     from tests.model.test_gop import random_model
     from tests.model.test_layers import random_static
 

@@ -1,4 +1,4 @@
-"""The auto ladder's choice of rungs (packager/ladder.py) on measured-looking candidates."""
+"""The auto ladder's choice of rungs (stgs/packager/ladder.py) on measured-looking candidates."""
 
 from __future__ import annotations
 

@@ -14,11 +14,11 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
-from stgs.mpd import parse_mpd
-from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_QUANT_SCHEME, KEYFRAME_SCHEME
-from stgs.mpd_values import expand_template
+from stgs.mpd.model import parse_mpd
+from stgs.mpd.profile import FEATURE_SCHEME, KEYFRAME_QUANT_SCHEME, KEYFRAME_SCHEME
 from stgs.packager import MANIFEST, STATS, PackConfig, pack
 from stgs.synth import SynthConfig, synthesize
+from stgs.tree import expand_template
 from tests.conftest import LOOP_FILTERS_OFF, SHARED, loop_filter_flags
 from tests.conftest import run_stgs as stgs
 
@@ -44,7 +44,7 @@ def packed(scene, tmp_path_factory):
 
 def feature_sets(mpd):
     """{codec name: AdaptationSet} of a parsed MPD's feature sets."""
-    from stgs.mpd_profile import feature_set_codec
+    from stgs.mpd.profile import feature_set_codec
 
     return {feature_set_codec(a): a for a in mpd.adaptation_sets(FEATURE_SCHEME)}
 
@@ -57,7 +57,7 @@ def tree_digest(root: Path) -> dict[str, str]:
 def test_mpd_validates_against_the_dash_schema(packed):
     if not XSD.is_file():
         pytest.skip("../shared/dash is absent")
-    from stgs.mpd_schema import schema_errors
+    from stgs.mpd.schema import schema_errors
 
     out, _ = packed
     assert schema_errors((out / MANIFEST).read_bytes(), XSD) == []
@@ -364,7 +364,7 @@ def auto_packed(scene, tmp_path_factory):
 
 def test_the_auto_ladder_keeps_rungs_on_the_hull_and_says_why(auto_packed):
     from stgs.codec.video import AV1, HEVC
-    from stgs.mpd_profile import QualityDescriptor
+    from stgs.mpd.profile import QualityDescriptor
 
     out, stats, summary = auto_packed
     mpd = parse_mpd((out / MANIFEST).read_bytes())
@@ -419,7 +419,7 @@ def test_the_auto_ladder_keeps_rungs_on_the_hull_and_says_why(auto_packed):
 def test_the_auto_ladder_mpd_is_schema_valid_and_repacks_byte_identically(scene, auto_packed, tmp_path):
     out, _, _ = auto_packed
     if XSD.is_file():
-        from stgs.mpd_schema import schema_errors
+        from stgs.mpd.schema import schema_errors
 
         assert schema_errors((out / MANIFEST).read_bytes(), XSD) == []
     again = tmp_path / "again"
@@ -453,7 +453,7 @@ def test_a_scene_every_rung_renders_the_same_gets_one_rung_per_codec(tmp_path):
     assert paired_stats["representations"] and set(paired_stats.get("keyframe_representations", {})) <= {
         "keyframes-fine", "keyframes-coarse"}
     if XSD.is_file():
-        from stgs.mpd_schema import schema_errors
+        from stgs.mpd.schema import schema_errors
 
         for tree in (out, paired):
             assert schema_errors((tree / MANIFEST).read_bytes(), XSD) == []
@@ -465,6 +465,6 @@ def test_a_ladder_of_one_point_is_a_valid_tree(scene, tmp_path):
     assert list(stats["representations"]) == ["qp24"]
     assert [c["features"] for c in stats["ladders"]["hevc"]["candidates"] if c["kept"]] == ["qp24"]
     if XSD.is_file():
-        from stgs.mpd_schema import schema_errors
+        from stgs.mpd.schema import schema_errors
 
         assert schema_errors((out / MANIFEST).read_bytes(), XSD) == []

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from stgs.camera import Camera, intrinsics, look_at
+from stgs.model.renderer import FrameRenderer, StaticDrawer
 from stgs.model.static import merge
-from stgs.model.view import FrameRenderer, StaticDrawer
 from stgs.native.library import available
 from stgs.render import rasterize
 from stgs.render.fixed import FixedLayerView

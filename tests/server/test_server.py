@@ -18,15 +18,15 @@ from aiohttp import web
 from aiohttp.test_utils import TestServer
 
 from bench.serve import worker_pids
-from stgs.mpd import parse_mpd
-from stgs.mpd_profile import FEATURE_SCHEME, KEYFRAME_SCHEME
-from stgs.mpd_values import expand_template
+from stgs.mpd.model import parse_mpd
+from stgs.mpd.profile import FEATURE_SCHEME, KEYFRAME_SCHEME
 from stgs.packager import PackConfig, pack
 from stgs.server.app import SceneRunner, build_app
 from stgs.server.config import ServeConfig
 from stgs.server.files import BeneathOpener
 from stgs.server.metrics import Metrics
 from stgs.synth import SynthConfig, synthesize
+from stgs.tree import expand_template
 
 # fps = G: one-second GOPs (ffmpeg's DASH demuxer reads mediaPresentationDuration in whole seconds).
 SCENE = SynthConfig(grid_side=16, num_gops=2, gop_size=6, fps=6.0, width=48, height=36, num_cameras=2,

@@ -11,7 +11,7 @@ import torch
 from stgs.data import open_dataset, split
 from stgs.synth import SynthConfig, synthesize
 from stgs.synth.config import DEFAULT_EFFECTS
-from stgs.train.init import in_view
+from stgs.train.triangulate import in_view
 from tests.conftest import PANOPTIC
 
 HELD_OUT = ["1", "14", "27"]

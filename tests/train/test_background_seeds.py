@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from stgs.camera import Camera, intrinsics, look_at
-from stgs.train.init import (
+from stgs.train.seeding import initial_points
+from stgs.train.triangulate import (
     BACKGROUND_MATCHING,
     InitConfig,
     _sample,
@@ -18,7 +19,6 @@ from stgs.train.init import (
     project,
     triangulate,
 )
-from stgs.train.seeding import initial_points
 from tests.train.conftest import HELD_OUT, shares_per_point
 
 

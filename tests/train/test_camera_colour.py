@@ -10,9 +10,9 @@ import torch
 
 from stgs.train import budget
 from stgs.train.camera_colour import CameraColour, as_recorded
+from stgs.train.images import tensor_views
 from stgs.train.run import stage_views
 from stgs.train.trainer import Trainer
-from stgs.train.views import tensor_views
 from tests.train.conftest import LAYERED
 
 TINT = torch.tensor([0.75, 1.0, 1.25])

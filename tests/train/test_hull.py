@@ -11,7 +11,7 @@ import torch
 
 from stgs.camera import Camera, intrinsics, look_at
 from stgs.train.hull import HullConfig, hull_surface_points
-from stgs.train.init import in_view
+from stgs.train.triangulate import in_view
 from tests.train.conftest import HELD_OUT, shares_per_point
 
 RADIUS = 0.5

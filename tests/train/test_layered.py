@@ -17,9 +17,9 @@ from stgs.data import open_dataset
 from stgs.errors import StgsError
 from stgs.metrics import psnr
 from stgs.model.gop import Gaussians, GOPModel, GOPShape
+from stgs.model.renderer import splat, static_backdrops, static_view
 from stgs.model.static import StaticLayer
 from stgs.model.store import load_static, read_meta
-from stgs.model.view import splat, static_backdrops, static_view
 from stgs.synth import ground_truth_cameras, truth_static_layer
 from stgs.synth.scene import ProceduralScene
 from stgs.train import budget, train
@@ -27,11 +27,11 @@ from stgs.train import canonical as canonical_module
 from stgs.train import losses as loss_module
 from stgs.train import trainer as trainer_module
 from stgs.train.dynamic import gop_dynamic_masks
+from stgs.train.images import open_views, tensor_views, view_draws
 from stgs.train.layers import fit_view_dependent, migrate, motion_scores, moving_pixels, static_background_psnr
 from stgs.train.objective import drop_gaussians, gop_loss
 from stgs.train.run import gop_views, stage_views
 from stgs.train.trainer import Trainer
-from stgs.train.views import open_views, tensor_views, view_draws
 from tests.conftest import run_stgs as stgs
 from tests.train.conftest import LAYERED, SCENE, shares_per_point
 

@@ -21,8 +21,8 @@ from stgs.synth import SynthConfig, synthesize
 from stgs.synth.config import DEFAULT_EFFECTS
 from stgs.train import budget, train
 from stgs.train.base import BASE_FILE
+from stgs.train.images import open_views, quantised, smaller
 from stgs.train.layers import moving_pixels
-from stgs.train.views import open_views, quantised, smaller
 from stgs.tree import MANIFEST
 from tests.conftest import run_stgs as stgs
 from tests.train.conftest import LAYERED

@@ -12,7 +12,7 @@ from stgs.metrics import SSIM_C1, SSIM_C2, psnr, ssim, ssim_map
 from stgs.native.library import available
 from stgs.train import losses
 from stgs.train.dynamic import gop_dynamic_masks, variance_mask
-from stgs.train.views import tensor_views
+from stgs.train.images import tensor_views
 
 
 def test_temporal_huber_by_hand():

@@ -291,7 +291,7 @@ def _foreground_shares(ds, cams, frame: int, pts: torch.Tensor) -> list[float]:
 
 
 def test_triangulated_points_land_in_the_foreground(panoptic_frame0):
-    from stgs.train.init import triangulate
+    from stgs.train.triangulate import triangulate
 
     ds, cams = panoptic_frame0
     pts, colors = triangulate(cams, [ds.image(0, c.name) for c in cams], [ds.mask(0, c.name) for c in cams])
@@ -370,7 +370,7 @@ def test_init_frames_spread_over_the_span():
 
 
 def test_background_shell_points_cover_the_walls_and_floor_in_the_image_colours(panoptic_frame0):
-    from stgs.train.init import background_shell_points, ground_height, in_view, rig_sphere, triangulate
+    from stgs.train.triangulate import background_shell_points, ground_height, in_view, rig_sphere, triangulate
 
     ds, cams = panoptic_frame0
     images = [ds.image(0, c.name) for c in cams]
@@ -403,7 +403,7 @@ def _cameras_at(eyes, target) -> list:
 
 def test_rig_sphere_fits_a_dome_and_falls_back_for_a_ring():
     from stgs.camera import rig_focus, surrounds
-    from stgs.train.init import rig_sphere
+    from stgs.train.triangulate import rig_sphere
 
     gen = torch.Generator().manual_seed(1)
     centre = torch.tensor([0.5, -1.0, 2.0], dtype=torch.float64)
@@ -425,8 +425,8 @@ def test_rig_sphere_fits_a_dome_and_falls_back_for_a_ring():
 
 
 def test_times_with_too_few_triangulated_points_fall_back_to_random_points(scene):
-    from stgs.train.init import MIN_TRIANGULATED, triangulate
     from stgs.train.seeding import initial_points
+    from stgs.train.triangulate import MIN_TRIANGULATED, triangulate
 
     ds = open_dataset(scene)
     names, _ = split(ds)

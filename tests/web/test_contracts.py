@@ -23,11 +23,11 @@ def test_the_pages_caps_are_the_python_caps():
 
 
 def test_the_pages_view_frustum_is_the_python_one():
-    from stgs.model import view
+    from stgs.model import renderer
 
     text = (WEB / "src" / "sort.ts").read_text()
     ours = {m[1]: float(m[2]) for m in re.finditer(r"export const (NEAR_CLIP|GUARD_BAND) = ([\d.]+);", text)}
-    assert ours == {"NEAR_CLIP": view.NEAR_CLIP, "GUARD_BAND": view.GUARD_BAND}
+    assert ours == {"NEAR_CLIP": renderer.NEAR_CLIP, "GUARD_BAND": renderer.GUARD_BAND}
 
 
 def test_the_keyframe_quantisations_are_the_python_ones():

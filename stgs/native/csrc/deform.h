@@ -19,7 +19,7 @@ constexpr int kFeat = 16;        // channels of one temporal feature
 constexpr int kHidden = 64;      // width of every hidden layer
 constexpr int kMaxWindow = 16;   // largest sliding window the fp32 kernel accepts (stgs.limits.MAX_WINDOW)
 constexpr int kOut = 16;         // padded width of the packed second layers
-constexpr double kNearZ = 0.01;  // the splatter's near plane (DESIGN.md)
+constexpr double kNearZ = 0.01;  // the splatter's near plane (docs/ARCHITECTURE.md)
 
 // Conservative visibility from the camera's frustum: false only when the
 // Gaussian cannot put alpha >= 1/255 on any pixel whatever its opacity, or,

@@ -1,4 +1,4 @@
-// Stage 3, forward: front-to-back compositing of each tile's list (DESIGN.md's per-pixel
+// Stage 3, forward: front-to-back compositing of each tile's list (docs/ARCHITECTURE.md's per-pixel
 // loop), with the per-pixel bookkeeping (final transmittance, last contributor) the backward
 // pass reads. Its torch twin is stgs.render.stages.composite_tiles. The AVX-512 kernels sit
 // beside the portable one; AVX2 CPUs without AVX-512 take splat_avx2.h's kernels.

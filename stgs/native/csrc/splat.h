@@ -1,5 +1,5 @@
 // What the splatter's stages share (internal; the C ABI is stgs_abi.h): the contract's
-// constants (DESIGN.md; stgs/render/project.py), the per-Gaussian record the compositor
+// constants (docs/ARCHITECTURE.md; stgs/render/project.py), the per-Gaussian record the compositor
 // reads, the context a forward pass leaves for its backward pass, and the per-tile
 // compositing state. Stages: project.cpp, binning.cpp, forward.cpp, backward.cpp.
 #pragma once

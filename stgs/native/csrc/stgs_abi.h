@@ -121,7 +121,7 @@ void stgs_temporal_huber_backward(int64_t rows, int64_t cols, const float* featu
 
 // --- deformation (deform.cpp, deform_bf16.cpp, deform_int16.cpp) ---
 
-// The deformation field of one frame in float32 for n Gaussians (DESIGN.md; weights packed
+// The deformation field of one frame in float32 for n Gaussians (docs/MODEL_FORMAT.md; weights packed
 // by stgs/model/native_deform.py). window_feats holds `window` pointers, to the frame's
 // features e_i ... e_{i+W-1} (n x 16 floats each). With viewmat, Gaussians that cannot
 // reach the image (or, with guard, lie outside the guard band) get opacity 0.
