@@ -1,5 +1,6 @@
-"""Benchmarks, accuracy vs time (not installed): `stgs bench SUITE` from a source checkout runs bench/SUITE.py;
-the A/B scripts run as `python -m bench.NAME` from the repository root. Results: docs/BENCHMARKS.md."""
+"""Benchmarks, accuracy vs time (not installed), grouped by the question they answer (bench/README.md): `stgs
+bench SUITE` from a source checkout runs one of them (stgs.cli.study.SUITES), and every script runs as
+`python -m bench.GROUP.NAME` from the repository root. Results: docs/BENCHMARKS.md."""
 
 import argparse
 import json
@@ -46,7 +47,7 @@ def print_capacity_table(args: argparse.Namespace, header: str, measure: Callabl
 def run_tree(tree: Path, child: str, args: list[str]) -> dict:
     """Run the Python source `child` with `args` against the source tree `tree` (first on PYTHONPATH, so its own
     sources and native build) in a subprocess of this virtualenv's interpreter; the JSON object it printed last.
-    How the A/B scripts between two trees (bench.ab_frame, bench.ab_train_step) measure each side."""
+    How the A/B scripts between two trees (bench.frame.ab_frame, bench.training.ab_train_step) measure each side."""
     env = dict(os.environ, PYTHONPATH=str(tree))
     proc = subprocess.run([sys.executable, "-c", child, *args], cwd=tree, env=env, capture_output=True, text=True,
                           check=False)

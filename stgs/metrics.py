@@ -120,7 +120,7 @@ def _native_ssim(image: torch.Tensor, reference: torch.Tensor, partials: bool
 
 class _NativeSSIMMap(torch.autograd.Function):
     """_SSIMMap's formula and gradient on (H, W, 3) float32 images in one native pass each way (csrc/ssim.cpp),
-    without a full-size intermediate (bench.loss_terms times the three versions)."""
+    without a full-size intermediate (bench.training.loss_terms times the three versions)."""
 
     @staticmethod
     def forward(ctx, image: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:

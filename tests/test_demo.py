@@ -83,7 +83,7 @@ def test_bench_pack_smoke(tmp_path):
 
 
 def test_bench_synth_smoothness_table(capsys):
-    from bench.synth import smoothness_table
+    from bench.training.synth import smoothness_table
     from stgs.synth import SynthConfig
 
     tiny = SynthConfig(grid_side=8, num_gops=1, gop_size=4, width=32, height=24, num_cameras=1, fit_steps=10)

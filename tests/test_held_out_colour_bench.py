@@ -1,4 +1,4 @@
-"""bench.held_out_colour's least-squares colour response, against direct computation on images."""
+"""bench.training.held_out_colour's least-squares colour response, against direct computation on images."""
 
 import math
 import subprocess
@@ -7,7 +7,7 @@ import sys
 import pytest
 import torch
 
-from bench.held_out_colour import IDENTITY, ColourSums, psnr_of
+from bench.training.held_out_colour import IDENTITY, ColourSums, psnr_of
 from stgs.metrics import psnr
 from tests.conftest import PANOPTIC
 
@@ -61,7 +61,7 @@ def test_flat_render_and_empty_region_stay_finite_or_nan():
 def test_an_unknown_camera_is_one_line_before_any_table():
     if not PANOPTIC.is_dir():
         pytest.skip("../shared/data/panoptic-basketball is absent")
-    result = subprocess.run([sys.executable, "-m", "bench.held_out_colour", "--models", "no-such-scene",
+    result = subprocess.run([sys.executable, "-m", "bench.training.held_out_colour", "--models", "no-such-scene",
                              "--dataset", str(PANOPTIC), "--cameras", "1,no-such-camera"],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode != 0 and result.stdout == ""

@@ -2,7 +2,7 @@
 // immutable), index.html naming them (served with a short cache life), and dist/node/abr.mjs, the ABR rules
 // for the conformance replay under Node. `node build.mjs` (npm run build); the type check is `npm run check`.
 // `node build.mjs --bench` builds dist-bench/ instead: the same page whose entry is bench/spark.ts (Spark against
-// our splat pass; bench/web_spark.py), never shipped. Spark makes its sort worker from a blob: URL, which the
+// our splat pass; bench/web/web_spark.py), never shipped. Spark makes its sort worker from a blob: URL, which the
 // player's CSP (worker-src 'self') refuses; the bench build writes that worker out as a same-origin asset.
 import { createHash } from "node:crypto";
 import { mkdirSync, readFileSync, rmSync, writeFileSync, renameSync } from "node:fs";

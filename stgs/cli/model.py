@@ -149,7 +149,7 @@ def budget_default(field: str) -> str | None:
 
 def train_flags() -> tuple[ConfigFlag, ...]:
     """The TrainConfig fields `stgs train` sets; the switches that turn a component off come in the order the
-    training benchmark names them (bench/train.py)."""
+    training benchmark names them (bench/training/train.py)."""
     from stgs.train.config import LAYERS
 
     def flag(field: str, option: str | None = None, **kw) -> ConfigFlag:

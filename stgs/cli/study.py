@@ -77,14 +77,20 @@ def run_demo(args: argparse.Namespace) -> int:
     return run(args.out, progress=not args.quiet, fit_steps=args.fit_steps)
 
 
+SUITES = {"render": "frame.render", "synth": "training.synth", "pack": "packaging.pack", "serve": "serving.serve",
+          "play": "playback.realtime", "sim": "streaming.sim", "abr": "streaming.abr", "train": "training.train"}
+"""`stgs bench SUITE` -> the benchmark it runs (bench/GROUP/NAME.py)."""
+
+
 def add_bench(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmarks (accuracy vs time), printed as a Markdown table",
                        description="Run a benchmark suite and print Markdown for docs/BENCHMARKS.md.")
-    p.add_argument("suite", choices=["render", "synth", "pack", "serve", "play", "sim", "abr", "train"],
+    p.add_argument("suite", choices=list(SUITES),
                    help="render: splatter and deform per backend and Gaussian count; "
                    "synth: fit fidelity vs fit iterations; pack: rate, distortion and codec time per "
                    "QP and x265 preset, PLAS vs no sort, PLAS time; serve: stgs serve vs nginx with wrk; "
-                   "play: real-time playback (bench/realtime.py: drops, stalls, per-frame decode, wait, deform "
+                   "play: real-time playback (bench/playback/realtime.py: drops, stalls, per-frame decode, wait, "
+                   "deform "
                    "and splat, start-up, seek, peak memory per QP); "
                    "sim: simulated vs emulated QoE and playbacks per second; abr: every ABR rule over trace "
                    "sets (generated, or recorded with --traces) at 6 s and 25 s of buffer, each rule's paired "
@@ -127,10 +133,11 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=run_bench)
 
 
-def bench_suite(name: str):
-    """The module bench/<name>.py of the source checkout (the benchmarks are not installed with the package)."""
+def bench_suite(suite: str):
+    """The benchmark module of `suite` in the source checkout (the benchmarks are not installed with the package)."""
     root = Path(__file__).resolve().parents[2]
-    if not (root / "bench" / f"{name}.py").is_file():
+    name = SUITES[suite]
+    if not (root / "bench" / f"{name.replace('.', '/')}.py").is_file():
         raise UsageError("stgs bench runs from a source checkout: its bench/ folder is not installed")
     if str(root) not in sys.path:
         sys.path.insert(0, str(root))
@@ -146,7 +153,7 @@ def run_bench(args: argparse.Namespace) -> int:
         raise UsageError(f"--dash {args.dash}: no {MANIFEST} there")
     if args.suite == "train" and not args.runs:
         raise UsageError("bench train needs --runs DIR[,DIR...] (model dirs of finished stgs train runs)")
-    name = "realtime" if args.suite == "play" else args.suite
+    name = args.suite
     if args.suite == "train":
         return bench_suite(name).main([Path(d) for d in args.runs.split(",") if d],
                                       args.plot or Path("docs/train_curves.png"))

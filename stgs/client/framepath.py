@@ -11,9 +11,9 @@ Two asyncio tasks share the Session's clock and records:
   `render_ahead` slots after it is ready, so that the renderer has its lead there too; the first GOP of a
   real-time playback too, or once its first frame is rendered if that is later: the first frame is drawn
   before the clock starts, because it is the slow one (cold caches, and a layered scene's static layer drawn
-  whole), and started earlier it would take the lead of the frames after it (a trained 101,632-Gaussian
-  scene: 106 and 65 ms for its first two frames, one dropped); each frame goes to the output at the start of
-  its slot (or when it is rendered, if later), a dropped one repeats the last; GOP k ends when its last
+  whole), and started earlier it would take the lead of the frames after it (on a trained scene the first two
+  frames each take longer than a slot: docs/BENCHMARKS.md, "Real-time playback"); each frame goes to the output
+  at the start of its slot (or when it is rendered, if later), a dropped one repeats the last; GOP k ends when its last
   frame's interval does.
 
 Rendering ahead lets a frame slower than a slot borrow the time the frames before it did not use: the first

@@ -17,7 +17,7 @@ __all__ = ["check_decode_memory", "frozen_heap", "physical_memory", "process_pea
 def frozen_heap() -> Iterator[None]:
     """Playback with every object alive at its start (torch, the libraries, the scene's setup) moved out of
     the garbage collector's reach: a full collection traversed them all in the middle of playback, once a
-    minute, and its 130 ms dropped four frames (docs/BENCHMARKS.md, "Real-time playback")."""
+    minute, long enough to drop frames (docs/BENCHMARKS.md, "Real-time playback")."""
     gc.collect()
     gc.freeze()
     try:

@@ -6,13 +6,12 @@ bytes per frame and no decoder reads it back. The sequence is main profile, 10-b
 left unsignalled (decoders hand the plane's codes through unchanged: nothing here converts colour).
 
 The settings (docs/PACKAGING.md, "The browser ladder", has the measurements): a constant QP with adaptive
-quantisation off (the ladder point, as for HEVC: on the demo scene it renders 0.2 to 1.5 dB above SVT-AV1's
-default CRF at equal bytes), temporal filtering off (a denoiser of the key frame, made for pictures: on a
-trained Panoptic GOP it cost 0.9 to 1.2 dB rendered at equal bytes), preset 8 (preset 5 took 2.3x the time
-and rendered lower). Each GOP's segment decodes alone and a re-encode is byte-identical: one key frame at the start
-with keyint = E and scene-change detection off, level of parallelism 1 (one thread per encode; the packager runs
-encodes side by side), bit-exact muxing. SVT-AV1's own log lines (its version banner per encoder) are
-silenced through its SVT_LOG variable unless the caller set it.
+quantisation off (the ladder point, as for HEVC: it renders better than SVT-AV1's default CRF at equal
+bytes), temporal filtering off (a denoiser of the key frame, made for pictures, which costs rendered quality at
+equal bytes), preset 8 (a slower preset took longer and rendered lower). Each GOP's segment decodes alone and a
+re-encode is byte-identical: one key frame at the start with keyint = E and scene-change detection off, level of
+parallelism 1 (one thread per encode; the packager runs encodes side by side), bit-exact muxing. SVT-AV1's own
+log lines (its version banner per encoder) are silenced through its SVT_LOG variable unless the caller set it.
 """
 
 from __future__ import annotations

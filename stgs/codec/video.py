@@ -11,11 +11,10 @@ codec or size is not the one announced, and a picture of another pixel
 format; libavcodec's own `max_pixels` bounds what an in-band parameter set
 can make it allocate.
 
-Why PyAV and not the ffmpeg binary through a pipe: measured (bench/video_io.py,
-docs/BENCHMARKS.md "Video I/O"), the binary costs a process start before the
-first frame (150 against 26 ms at a 1024² grid) and a pipe copy per frame
-(all 62 frames: 590 against 303 ms). The binary's one advantage, that a
-decoder crash takes down only a child, is weighed in docs/CLIENT.md.
+Why PyAV and not the ffmpeg binary through a pipe: the binary costs a process
+start before the first frame and a pipe copy per frame (bench/packaging/video_io.py
+measures both; docs/BENCHMARKS.md, "Video I/O"). The binary's one advantage, that
+a decoder crash takes down only a child, is weighed in docs/CLIENT.md.
 """
 
 from __future__ import annotations

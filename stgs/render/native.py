@@ -34,7 +34,8 @@ def project_native(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tenso
 class NativeProjection(torch.autograd.Function):
     """project_native with its gradient (csrc/project.cpp's stgs_project_backward): means2d and conics
     differentiable in means, quats and scales; depths and extents are constants, as in the torch projection.
-    Forward and backward in 0.15x the time of autograd through the float64 torch twin (bench.loss_terms)."""
+    Faster than autograd through the float64 torch twin (bench.training.loss_terms; docs/BENCHMARKS.md, "Training
+    steps")."""
 
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, viewmat, K):

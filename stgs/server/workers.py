@@ -2,8 +2,8 @@
 (SO_REUSEPORT), graceful shutdown on SIGINT/SIGTERM.
 
 Why our own processes rather than gunicorn's aiohttp worker: gunicorn runs the app through aiohttp's router,
-without the fast path, and served 28 % fewer requests/s for 8 % more CPU per request (`bench/serve_floor.py
---gunicorn`, docs/BENCHMARKS.md), besides adding a dependency."""
+without the fast path, which serves fewer requests for more CPU per request (`bench/serving/serve_floor.py
+--gunicorn`; docs/BENCHMARKS.md, "Server"), besides adding a dependency."""
 
 from __future__ import annotations
 
@@ -19,6 +19,7 @@ import signal
 import socket
 import tempfile
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 from aiohttp import web
 from prometheus_client import multiprocess
@@ -132,3 +133,13 @@ async def serve_until_signalled(cfg: ServeConfig, access: logging.Logger, announ
         await stop.wait()
     finally:
         await runner.cleanup()
+
+
+def child_pids(pid: int) -> list[int]:
+    """The child processes of process `pid` (Linux: /proc)."""
+    return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+
+
+def worker_pids(pid: int) -> list[int]:
+    """The worker processes of a `stgs serve --workers N` parent (its multiprocessing spawn children; Linux)."""
+    return [c for c in child_pids(pid) if b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes()]

@@ -25,8 +25,8 @@ def photometric(image: torch.Tensor, target: torch.Tensor, lambda_ssim: float = 
 
 class _TemporalHuber(torch.autograd.Function):
     """Mean Huber penalty of e_{i+1} − e_i with a hand-written backward: one gradient buffer, where autograd's
-    two slices of the whole feature tensor are each zero-filled and then summed (the feature terms of an
-    iteration took 1.5x as long that way, bench.temporal)."""
+    two slices of the whole feature tensor are each zero-filled and then summed (bench.training.temporal measures
+    both; docs/BENCHMARKS.md, "Training steps")."""
 
     @staticmethod
     def forward(ctx, features: torch.Tensor, delta: float) -> torch.Tensor:
@@ -56,7 +56,7 @@ def temporal_huber(features: torch.Tensor, delta: float = 0.01) -> torch.Tensor:
 class _NativeWindowAndHuber(torch.autograd.Function):
     """The frame's window features[first:first + window] (a copy) and temporal_huber(features) in native
     kernels (csrc/temporal.cpp), the two gradients written as one buffer in one pass: autograd's slice of the
-    whole tensor zero-fills a second full-size gradient and adds it to the Huber term's (bench.temporal)."""
+    whole tensor zero-fills a second full-size gradient and adds it to the Huber term's (bench.training.temporal)."""
 
     @staticmethod
     def forward(ctx, features: torch.Tensor, first: int, window: int, delta: float):

@@ -1,5 +1,5 @@
-"""The fuzzers of bench/fuzz.py, bounded for CI: derandomised cases per target (the same every run), each under
-an alarm; only the target's own error type may escape, and memory stays bounded. `python -m bench.fuzz` runs
+"""The fuzzers of bench/fuzzing/fuzz.py, bounded for CI: derandomised cases per target (the same every run), each under
+an alarm; only the target's own error type may escape, and memory stays bounded. `python -m bench.fuzzing.fuzz` runs
 them for longer with fresh cases (docs/SECURITY.md)."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import time
 
 import pytest
 
-from bench.fuzz import MEMORY_BOUND_MB, TARGETS, HangError, Target, check, fuzz, peak_rss_mb
-from bench.fuzz_inputs import SEED_MPD, SEED_VALUES
+from bench.fuzzing.fuzz import MEMORY_BOUND_MB, TARGETS, HangError, Target, check, fuzz, peak_rss_mb
+from bench.fuzzing.fuzz_inputs import SEED_MPD, SEED_VALUES
 
 CASES = {"mpd": 2000, "keyframe": 1500, "static": 1000, "mp4": 2000, "trace": 1500, "scenario": 1500}
 
@@ -37,7 +37,7 @@ def test_the_manifests_that_once_broke_the_player_are_typed_errors(values):
 
 
 def test_a_scenario_listing_a_non_string_rule_is_a_typed_error(tmp_path):
-    check(TARGETS["scenario"], 'scene = "."\nabr = [[]]')  # found by bench/fuzz.py: a TypeError before
+    check(TARGETS["scenario"], 'scene = "."\nabr = [[]]')  # found by bench/fuzzing/fuzz.py: a TypeError before
 
 
 def test_the_harness_reports_an_untyped_error_and_a_hang():

@@ -1,5 +1,5 @@
-"""bench/abr.py's own parts: its trace writers agree with the readers, its long ladder repeats the scene, recorded
-trace folders and the paired intervals of `stgs bench abr`."""
+"""bench/streaming/abr.py's own parts: its trace writers agree with the readers, its long ladder repeats the scene,
+recorded trace folders and the paired intervals of `stgs bench abr`."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import scipy.stats
 
-from bench.abr import SETS, generate, long_ladder, paired_ci, recorded_sets, write
+from bench.streaming.abr import SETS, generate, long_ladder, paired_ci, recorded_sets, write
 from stgs.errors import StgsError
 from stgs.harness.sim import simulate
 from stgs.harness.trace import load_trace, load_trace_folder

@@ -1,4 +1,4 @@
-"""bench.layered_stream's bytes at equal rendered PSNR: a format-2 ladder read at a format-1 rung's PSNR, with
+"""bench.training.layered_stream's bytes at equal rendered PSNR: a format-2 ladder read at a format-1 rung's PSNR, with
 log KB linear in PSNR between rungs (worked by hand here) and no extrapolation."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from bench.layered_stream import equal_psnr_rows, kb_at_psnr
+from bench.training.layered_stream import equal_psnr_rows, kb_at_psnr
 
 
 def test_between_two_rungs_log_kb_is_linear_in_psnr():

@@ -181,11 +181,11 @@ def test_a_shared_drawer_keeps_the_static_layer_across_gops():
 
 
 def test_the_static_tiles_benchmark_times_equal_images(tmp_path):
-    """bench.static_tiles on a small layered model dir: one row, the kept layer's images checked against one
+    """bench.frame.static_tiles on a small layered model dir: one row, the kept layer's images checked against one
     splat of both layers on every timed frame (a difference ends the benchmark)."""
     import json
 
-    from bench.static_tiles import measure
+    from bench.frame.static_tiles import measure
     from stgs.model.store import save_model
 
     save_model(tmp_path, [random_model(n=36, gop_size=4, seed=2)], 30.0, static=random_static(400, seed=1))
@@ -200,11 +200,11 @@ def test_the_static_tiles_benchmark_times_equal_images(tmp_path):
 
 
 def test_the_backdrop_benchmark_times_equal_training_steps(tmp_path):
-    """bench.backdrop on a small layered model dir: one row, each kept step checked against the one-splat step
+    """bench.training.backdrop on a small layered model dir: one row, each kept step checked against the one-splat step
     (image and colour gradients; a difference ends the benchmark)."""
     import json
 
-    from bench.backdrop import measure
+    from bench.training.backdrop import measure
     from stgs.model.store import save_model
     from stgs.tree import CAMERAS_FORMAT
 

@@ -1,4 +1,4 @@
-"""bench.splat_stages' count of the binned pairs that compositing reaches, which bounds the early-termination
+"""bench.frame.splat_stages' count of the binned pairs that compositing reaches, which bounds the early-termination
 lever: by hand on a rank map, and on a scene where an opaque front Gaussian saturates every tile."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from bench.splat_stages import reached_pairs
+from bench.frame.splat_stages import reached_pairs
 from stgs.native.library import available
 from stgs.render.native import raster_forward
 

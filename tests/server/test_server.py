@@ -17,7 +17,6 @@ import pytest
 from aiohttp import web
 from aiohttp.test_utils import TestServer
 
-from bench.serve import worker_pids
 from stgs.mpd.model import parse_mpd
 from stgs.mpd.profile import FEATURE_SCHEME, KEYFRAME_SCHEME
 from stgs.packager import PackConfig, pack
@@ -25,6 +24,7 @@ from stgs.server.app import SceneRunner, build_app
 from stgs.server.config import ServeConfig
 from stgs.server.files import BeneathOpener
 from stgs.server.metrics import Metrics
+from stgs.server.workers import worker_pids
 from stgs.synth import SynthConfig, synthesize
 from stgs.tree import expand_template
 

@@ -363,7 +363,7 @@ def test_stage_a_draws_with_dropped_gaussians_and_the_coarse_stage_without(scene
 
 
 def test_the_stage_a_benchmark_scores_the_static_layer_it_trains(scene, tmp_path):
-    from bench.stage_a import parse_settings, row
+    from bench.training.stage_a import parse_settings, row
 
     settings = parse_settings("gop_size=6,grid_side=12,static_grid_side=16,coarse_iterations=40,coarse_low_res=0.5,"
                               "lr.camera_colour=5e-4")

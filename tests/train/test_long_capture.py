@@ -116,7 +116,7 @@ MINUTE_TRAIN = ["--budget", "quick", "--layers", "layered", "--grid-side", "8", 
 
 def test_a_one_minute_capture_trains_packs_serves_and_plays_to_its_end_locally_and_on_ray(tmp_path):
     """Trained here and on a local Ray instance to the same bytes, packed on Ray, served on loopback and played
-    to its last frame (bench.long_capture packs and plays a 1,800-frame capture without Ray)."""
+    to its last frame (bench.training.long_capture packs and plays a 1,800-frame capture without Ray)."""
     scene = tmp_path / "minute"
     made = stgs("synth", str(scene), *MINUTE)
     assert made.returncode == 0, made.stderr

@@ -90,7 +90,7 @@ def test_window_and_temporal_huber_refuses_a_window_outside_the_frames():
 
 
 def test_the_temporal_benchmark_times_four_variants_and_compares_their_gradients():
-    from bench.temporal import measure
+    from bench.training.temporal import measure
 
     cells = [c.strip() for c in measure(64, steps=2).strip("|").split("|")]
     assert cells[0] == "64" and len(cells) == 7
@@ -213,7 +213,7 @@ def test_masked_terms_are_the_means_over_the_mask():
 
 
 def test_the_loss_terms_benchmark_times_every_variant_and_finds_them_equal():
-    from bench.loss_terms import image_rows, projection_row
+    from bench.training.loss_terms import image_rows, projection_row
 
     for row in [*image_rows(1), projection_row(512, 1)]:
         cells = [c.strip() for c in row.strip("|").split("|")]

@@ -115,9 +115,9 @@ def test_relocation_onto_a_faint_live_set_never_splits_below_twice_the_dead_opac
 
 
 def test_the_fused_adam_step_is_the_per_parameter_one_up_to_rounding():
-    """The trainer's Adam is torch's fused CPU kernel; bench.optimizer times it against the per-parameter loop
+    """The trainer's Adam is torch's fused CPU kernel; bench.training.optimizer times it against the per-parameter loop
     and prints how far apart their parameters end (float32 rounding)."""
-    from bench.optimizer import measure
+    from bench.training.optimizer import measure
 
     cells = [c.strip() for c in measure(SIDE * SIDE, steps=3).strip("|").split("|")]
     assert cells[0] == f"{SIDE * SIDE}" and len(cells) == 6
@@ -128,7 +128,7 @@ def test_the_fused_adam_step_is_the_per_parameter_one_up_to_rounding():
 def test_the_optimizer_benchmark_times_whole_iterations_on_a_model_dir(tmp_path):
     import json
 
-    from bench.optimizer import measure_iterations
+    from bench.training.optimizer import measure_iterations
     from stgs.camera import Camera, intrinsics, look_at
     from stgs.model.store import save_model
     from stgs.tree import CAMERAS_FORMAT

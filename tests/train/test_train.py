@@ -198,7 +198,7 @@ def test_bench_train_tables_and_plot(trained, tmp_path):
 
 
 def test_bench_train_eval_rows_show_lpips_where_computed():
-    from bench.train import eval_rows
+    from bench.training.train import eval_rows
 
     view = {"frame": 0, "camera": "1", "psnr": 20.0, "ssim": 0.8}
     evaluation = {"streams": {
@@ -210,7 +210,7 @@ def test_bench_train_eval_rows_show_lpips_where_computed():
 
 
 def test_bench_train_labels_name_what_differs_from_the_budget(tmp_path):
-    from bench.train import run_label
+    from bench.training.train import run_label
 
     config = {"budget": "cpu", "grid_side": 192, "aux": False, "lr": {"position": 8e-4}, "init_frames": 12,
               "camera_colour": True}
@@ -231,7 +231,7 @@ def test_bench_train_labels_name_what_differs_from_the_budget(tmp_path):
 
 
 def test_bench_train_labels_a_run_from_before_a_component_as_trained_without_it(tmp_path):
-    from bench.train import run_label
+    from bench.training.train import run_label
 
     def label(config: dict) -> str:
         config = {"budget": "cpu", "init_frames": 6, **config}
@@ -248,7 +248,7 @@ def test_bench_train_labels_a_run_from_before_a_component_as_trained_without_it(
 
 
 def test_bench_train_tells_runs_with_the_same_settings_apart():
-    from bench.train import distinct_labels
+    from bench.training.train import distinct_labels
 
     dirs = [Path("/runs/new"), Path("/runs/old"), Path("/runs/seed1")]
     assert distinct_labels(dirs, ["cpu: --no-aux", "cpu: --no-aux", "cpu: --no-aux, seed 1"]) == [

@@ -1,4 +1,4 @@
-"""The Spark comparison page (web/bench/spark.ts, bench/web_spark.py) in Chromium against `stgs serve`: Spark
+"""The Spark comparison page (web/bench/spark.ts, bench/web/web_spark.py) in Chromium against `stgs serve`: Spark
 draws the player's own deformed Gaussians straight from its GPU textures, and its picture matches ours within
 Spark's quantisation; the player's CSP refuses the blob: worker Spark makes by default (the bench build serves it
 as a file)."""
@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import cv2
 
-from bench.web_spark import build_bench_page, measure
+from bench.web.web_spark import build_bench_page, measure
 from stgs.cli.browser import served as serve_root
 
 from .conftest import need_browser

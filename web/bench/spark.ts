@@ -1,6 +1,6 @@
 // Spark (three.js's Gaussian splat renderer) against our splat pass, on the player's own deformed Gaussians; a
-// benchmark page, never part of the player (bench/web_spark.py builds and drives it). The player plays frames
-// one by one as in bench/web.py; Spark then draws the same frame from the same GPU textures: a SplatGenerator
+// benchmark page, never part of the player (bench/web/web_spark.py builds and drives it). The player plays frames
+// one by one as in bench/web/web.py; Spark then draws the same frame from the same GPU textures: a SplatGenerator
 // whose GLSL reads the deform pass's output textures (and the static layer's) by index, so no Gaussian crosses
 // to the CPU. Spark regenerates its splat buffer, reads back depths, sorts them in its worker and draws.
 // Query: as the player's (mpd, quality, camera, size), plus frames=N, ext=1 (Spark's 32-byte ExtSplats instead

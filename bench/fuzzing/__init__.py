@@ -1,0 +1,1 @@
+"""The parsers under fuzzed input: cases per second and findings."""

@@ -1,0 +1,189 @@
+"""Fuzzing the parsers that read what the network or a user hands us (`python -m bench.fuzzing.fuzz`).
+
+Targets (each a function of the fuzzed input, with the one error type it may raise; their inputs:
+`bench.fuzzing.fuzz_inputs`):
+
+- `mpd`: the MPD model and the client's Presentation (URLs, spans, caps) on a StreamSTGS MPD whose attribute
+  values are drawn (huge numbers, odd durations, template widths, junk) or whose bytes are mutated; MPDError.
+  The MPD may carry a static-layer AdaptationSet (format 2) with a drawn descriptor.
+- `keyframe`: the keyframe reader on a real keyframe segment with its safetensors header's fields replaced by
+  drawn JSON values or its bytes mutated; KeyframeError.
+- `static`: the static-layer reader on a real static segment (with view-dependent colour) edited the same
+  ways; StaticSegmentError.
+- `mp4`: the ISO BMFF box code (split, timeline read/write, track timescale, codecs string) on a real HEVC
+  fragment with mutated bytes; MP4Error.
+- `trace`, `scenario`: the harness's trace formats and scenario files on drawn text; StgsError.
+
+Any other exception, a case running past its alarm, or memory growing past the bound is a finding. The test
+suite runs each target for a few hundred derandomised cases (tests/fuzz); this module runs them for as long as
+asked, with fresh random cases, and reports cases per second.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import resource
+import signal
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import strategies as st
+
+from bench.fuzzing.fuzz_inputs import (
+    STATIC_SEED_CAPACITY,
+    header_edits,
+    mpd_inputs,
+    mutated,
+    scenario_inputs,
+    seed_fragment,
+    seed_keyframe,
+    seed_static,
+    trace_inputs,
+)
+from stgs.client.manifest import Presentation
+from stgs.codec.keyframe import KeyframeError, decode_keyframe
+from stgs.codec.mp4 import MP4Error, hevc_codecs, media_timeline, set_timeline, split_fragmented, track_timescale
+from stgs.codec.static import StaticSegmentError, decode_static
+from stgs.errors import MPDError, StgsError
+from stgs.harness.scenario import load_scenario
+from stgs.harness.trace import load_trace
+from stgs.mpd.model import parse_mpd
+
+CASE_ALARM_S = 5.0
+"""A case that runs longer than this hangs (every target takes milliseconds on honest input)."""
+MEMORY_BOUND_MB = 1024
+"""Peak RSS growth a fuzz run may cause."""
+
+
+class HangError(Exception):
+    """A case ran past its alarm."""
+
+
+@contextlib.contextmanager
+def alarm(seconds: float) -> Iterator[None]:
+    def ring(signum: int, frame: object) -> None:
+        raise HangError(f"a case ran past {seconds:g} s")
+
+    previous = signal.signal(signal.SIGALRM, ring)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+# --- targets ---
+
+def mpd_target(data: bytes) -> None:
+    pres = Presentation(parse_mpd(data), "http://example.com/scene/manifest.mpd")
+    last = pres.ladder[-1].rep_id
+    pres.keyframe_url(0), pres.init_url(last), pres.media_url(last, pres.num_gops - 1)
+    pres.span(0.0, None, None), pres.span(pres.duration / 2, 1.0, 5.0), pres.gop_at(pres.duration)
+    pres.max_keyframe_bytes(), pres.max_media_bytes(last), pres.decoded_gop_bytes(8)
+    if pres.static is not None:
+        pres.static_url(), pres.max_static_bytes(), pres.static_layer_bytes()
+
+
+def keyframe_target(data: bytes) -> None:
+    _, shape = seed_keyframe()
+    decode_keyframe(data, shape, 1, 1 << 20)
+
+
+def static_target(data: bytes) -> None:
+    decode_static(data, STATIC_SEED_CAPACITY, 1, 1 << 20)
+
+
+def mp4_target(data: bytes) -> None:
+    init, media = split_fragmented(data)
+    hevc_codecs(init), track_timescale(init)
+    media_timeline(set_timeline(media, 7, 12345))
+
+
+def trace_target(case: tuple[str | None, str]) -> None:
+    fmt, text = case
+    with tempfile.NamedTemporaryFile("w", suffix=".trace") as f:
+        f.write(text)
+        f.flush()
+        load_trace(Path(f.name), fmt)
+
+
+def scenario_target(text: str) -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "s.toml"
+        path.write_text(text, errors="replace")
+        load_scenario(path)
+
+
+@dataclass(frozen=True)
+class Target:
+    inputs: Callable[[], st.SearchStrategy]
+    run: Callable[[object], None]
+    allowed: type[BaseException]
+    """The one error type the target may raise."""
+
+
+TARGETS = {
+    "mpd": Target(mpd_inputs, mpd_target, MPDError),
+    "keyframe": Target(lambda: st.one_of(header_edits(seed_keyframe()[0]), mutated(seed_keyframe()[0])),
+                       keyframe_target, KeyframeError),
+    "static": Target(lambda: st.one_of(header_edits(seed_static()), mutated(seed_static())), static_target,
+                     StaticSegmentError),
+    "mp4": Target(lambda: mutated(seed_fragment()), mp4_target, MP4Error),
+    "trace": Target(trace_inputs, trace_target, StgsError),
+    "scenario": Target(scenario_inputs, scenario_target, StgsError),
+}
+
+
+def check(target: Target, case: object) -> None:
+    """Run one case: only the target's own error type may escape, within the alarm."""
+    with alarm(CASE_ALARM_S), contextlib.suppress(target.allowed):
+        target.run(case)
+
+
+def fuzz(name: str, examples: int, derandomize: bool) -> int:
+    """Run `examples` cases of target `name`; returns how many ran (a finding raises)."""
+    target = TARGETS[name]
+    count = [0]
+
+    @settings(max_examples=examples, deadline=None, database=None, derandomize=derandomize,
+              phases=[Phase.generate, Phase.shrink], suppress_health_check=list(HealthCheck))
+    @given(target.inputs())
+    def run(case: object) -> None:
+        count[0] += 1
+        check(target, case)
+
+    run()
+    return count[0]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--examples", type=int, default=20_000, help="cases per target (default: 20000)")
+    parser.add_argument("--target", choices=sorted(TARGETS), action="append", help="only these (repeatable)")
+    args = parser.parse_args(argv)
+    print("| target | cases | seconds | cases/s | peak RSS growth |\n|---|---|---|---|---|")
+    for name in args.target or TARGETS:
+        TARGETS[name].inputs()  # builds the target's seeds (an encode, a model) outside the measured growth
+        before = peak_rss_mb()
+        start = time.perf_counter()
+        count = fuzz(name, args.examples, derandomize=False)
+        seconds = time.perf_counter() - start
+        grown = peak_rss_mb() - before
+        print(f"| {name} | {count} | {seconds:.0f} | {count / seconds:.0f} | {grown:.0f} MB |", flush=True)
+        if grown > MEMORY_BOUND_MB:
+            raise SystemExit(f"{name}: peak RSS grew by {grown:.0f} MB (bound {MEMORY_BOUND_MB} MB)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,1 @@
+"""The server: throughput and latency against nginx, CPU per request, and the soak beside hostile clients."""
