@@ -72,16 +72,22 @@ def field_docs(cls: type) -> dict[str, str]:
     return docs
 
 
+@functools.cache
+def _hints(cls: type) -> dict[str, Any]:
+    """typing.get_type_hints of a config class, resolved once (it evaluates every annotation of the class)."""
+    return typing.get_type_hints(cls)
+
+
 def _field(cls: type, path: str) -> tuple[type, dataclasses.Field, Any]:
     """(the dataclass holding it, the field, its type hint) of a dotted path from `cls`."""
     holder = cls
     *outer, last = path.split(".")
     for name in outer:
-        holder = typing.get_type_hints(holder)[name]
+        holder = _hints(holder)[name]
     fields = {f.name: f for f in dataclasses.fields(holder)}
     if last not in fields:
         raise KeyError(f"{cls.__name__} has no field {path!r}")
-    return holder, fields[last], typing.get_type_hints(holder)[last]
+    return holder, fields[last], _hints(holder)[last]
 
 
 def _plain(hint: Any) -> Any:
@@ -172,7 +178,7 @@ def build_config(cls: type, values: dict[str, Any], **fixed: Any) -> Any:
         if "." in key:
             head, rest = key.split(".", 1)
             nested.setdefault(head, {})[rest] = value
-    hints = typing.get_type_hints(cls)
+    hints = _hints(cls)
     for head, inner in nested.items():
         top[head] = build_config(hints[head], inner)
     return cls(**fixed, **top)

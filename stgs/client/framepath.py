@@ -17,8 +17,8 @@ Two asyncio tasks share the Session's clock and records:
   frame's interval does.
 
 Rendering ahead lets a frame slower than a slot borrow the time the frames before it did not use: the first
-frames of a GOP share the cores with the keyframe decode of the GOP after next and take twice as long as
-the others (docs/BENCHMARKS.md, "Real-time playback"). The price is latency: a frame is rendered from the
+frames of a GOP share the cores with the keyframe decode of the GOP after next and take longer than the others
+(docs/BENCHMARKS.md, "Real-time playback"). The price is latency: a frame is rendered from the
 camera of its own time, up to `render_ahead` intervals before it is shown, which matters only where the
 camera follows a viewer's input.
 """
@@ -63,7 +63,7 @@ class FrameTiming:
 
 @dataclass(frozen=True)
 class Playback:
-    """What the frame path reads of its playback (client.player.Session holds it)."""
+    """What the frame path reads of its playback (stgs.client.session.Session holds it)."""
 
     cfg: PlayConfig
     pres: Presentation
