@@ -59,7 +59,7 @@ def reuse_large_allocations() -> bool:
     """Serve large allocations from glibc's heap instead of fresh mmaps, and keep freed memory.
 
     A training step allocates and frees gradient buffers of the whole feature tensor (tens of MB);
-    fresh mmaps page-fault on first touch, which made zero-filling them ~5x slower. Returns False
+    fresh mmaps page-fault on first touch, which makes zero-filling them several times slower. Returns False
     (and changes nothing) where the C library is not glibc.
     """
     mallopt = _mallopt()

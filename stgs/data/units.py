@@ -3,8 +3,8 @@
 Captures come in metres, centimetres or COLMAP's arbitrary units. Some of what training does is not invariant to
 the unit: the deformation field's position offsets are in world units, with learning rates and an initialisation
 that are not; the splatter's near plane (stgs.render.project.NEAR_Z), triangulation's minimum depth and the seeds'
-smallest jitter are fixed lengths. And training is chaotic: a capture scaled by 1.001 trains to a model a dB
-away on a quick budget (docs/CAPTURE.md, "Units"), so invariance has to be exact to hold at all.
+smallest jitter are fixed lengths. And training is chaotic: a capture scaled by a hair trains to a visibly
+different model (docs/CAPTURE.md, "Units"), so invariance has to be exact to hold at all.
 
 So the trainer reads a capture scaled about the origin by `world_scale`: 1 where the rig's size
 (stgs.camera.rig_size) is within a factor √2 of REFERENCE_SIZE, the size its fixed lengths were set for (a capture
@@ -23,7 +23,8 @@ from stgs.camera import Camera, rig_size
 from stgs.data import Dataset
 
 REFERENCE_SIZE = 3.5
-"""The rig size the trainer's fixed lengths were set for (Panoptic's dome 3.37, the synthetic orbit 3.52)."""
+"""The rig size the trainer's fixed lengths were set for: about Panoptic's dome and the synthetic orbit
+(docs/CAPTURE.md, "Units")."""
 
 
 def world_scale(cameras: list[Camera]) -> float:

@@ -32,8 +32,7 @@ def variance_mask(frames: Iterable[np.ndarray | torch.Tensor], theta: float) -> 
 
 
 def gop_dynamic_masks(views: Views, count: int, theta: float) -> torch.Tensor:
-    """(C, H, W) dynamic masks of a GOP's views from its first `count` frames (frames spread over the GOP instead
-    measured worse held out on Panoptic: docs/BENCHMARKS.md), one view at a time."""
+    """(C, H, W) dynamic masks of a GOP's views from its first `count` frames, one view at a time."""
     frames = range(min(count, len(views.frames)))
     return torch.stack([torch.from_numpy(variance_mask((views.decoded(f, c) for f in frames), theta))
                         for c in range(len(views.cameras))])

@@ -81,8 +81,8 @@ def gop_views(trainer: Trainer, k: int) -> tuple[Views, Views | None]:
     """GOP k's training views with their dynamic-pixel masks, and its validation views (None without any).
     A layered GOP's masks are each frame's moving pixels, as stage A's (the dataset's foreground masks, grown,
     where it has them), since its layer holds only what moves; format 1's one mask per camera of what varied
-    over the GOP's first frames missed 41 % of a Panoptic frame's moving pixels and was 60 % pixels where no
-    player was in that frame (docs/BENCHMARKS.md)."""
+    over the GOP's first frames both misses pixels that move in a given frame and marks pixels that are still in it
+    (docs/TRAINING.md, the loss table)."""
     cfg = trainer.cfg
     views, val = stage_views(trainer, trainer.gop_frames(k), holdout=True)
     if cfg.dynamic and trainer.layered:

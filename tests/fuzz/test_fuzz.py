@@ -1,4 +1,4 @@
-"""The fuzzers of bench/fuzzing/fuzz.py, bounded for CI: derandomised cases per target (the same every run), each under
+"""The fuzzers of stgs.testing.fuzz, bounded for CI: derandomised cases per target (the same every run), each under
 an alarm; only the target's own error type may escape, and memory stays bounded. `python -m bench.fuzzing.fuzz` runs
 them for longer with fresh cases (docs/SECURITY.md)."""
 
@@ -8,8 +8,8 @@ import time
 
 import pytest
 
-from bench.fuzzing.fuzz import MEMORY_BOUND_MB, TARGETS, HangError, Target, check, fuzz, peak_rss_mb
-from bench.fuzzing.fuzz_inputs import SEED_MPD, SEED_VALUES
+from stgs.testing.fuzz import MEMORY_BOUND_MB, TARGETS, HangError, Target, check, fuzz, peak_rss_mb
+from stgs.testing.fuzz_inputs import SEED_MPD, SEED_VALUES
 
 CASES = {"mpd": 2000, "keyframe": 1500, "static": 1000, "mp4": 2000, "trace": 1500, "scenario": 1500}
 

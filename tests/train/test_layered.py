@@ -362,23 +362,6 @@ def test_stage_a_draws_with_dropped_gaussians_and_the_coarse_stage_without(scene
     assert rates == [0.3] * 2  # the last half draws every static Gaussian
 
 
-def test_the_stage_a_benchmark_scores_the_static_layer_it_trains(scene, tmp_path):
-    from bench.training.stage_a import parse_settings, row
-
-    settings = parse_settings("gop_size=6,grid_side=12,static_grid_side=16,coarse_iterations=40,coarse_low_res=0.5,"
-                              "lr.camera_colour=5e-4")
-    assert settings == {"gop_size": 6, "grid_side": 12, "static_grid_side": 16, "coarse_iterations": 40,
-                        "coarse_low_res": 0.5, "lr.camera_colour": 5e-4}
-    held_out = open_dataset(scene).camera_names[-1]
-    cells = row(scene, [held_out], settings, 0, tmp_path / "w", "quick").strip("| ").split(" | ")
-    assert cells[:2] == ["gop_size 6, grid_side 12, static_grid_side 16, coarse_iterations 40, coarse_low_res 0.5, "
-                         "lr.camera_colour 0.0005", "0"]
-    with pytest.raises(StgsError, match="unknown learning rate"):
-        row(scene, [held_out], {"lr.colour_camera": 1e-4}, 0, tmp_path / "bad", "quick")
-    seconds, held_out_psnr, fitted_psnr = (float(c) for c in cells[2:])
-    assert seconds >= 0 and 10 < held_out_psnr < 60 and 10 < fitted_psnr < 60
-
-
 def test_bad_layer_settings_are_clear_errors(scene, tmp_path):
     for overrides, message in [({"layers": "triple"}, "layers must be one of"),
                                ({"layers": "layered", "static_grid_side": 1}, "static_grid_side"),

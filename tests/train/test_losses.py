@@ -89,15 +89,6 @@ def test_window_and_temporal_huber_refuses_a_window_outside_the_frames():
         losses.window_and_temporal_huber(f, 0, 3, backend="cuda")
 
 
-def test_the_temporal_benchmark_times_four_variants_and_compares_their_gradients():
-    from bench.training.temporal import measure
-
-    cells = [c.strip() for c in measure(64, steps=2).strip("|").split("|")]
-    assert cells[0] == "64" and len(cells) == 7
-    assert all(float(c) > 0 for c in cells[1:6])
-    assert float(cells[6]) < 1e-9  # the hand-written and the native backward are autograd's gradient
-
-
 def test_ssim_of_flat_images_by_hand():
     a = torch.full((30, 30, 3), 0.2, dtype=torch.float64)  # float64: no rounding in the variances
     b = torch.full((30, 30, 3), 0.6, dtype=torch.float64)
@@ -210,13 +201,3 @@ def test_masked_terms_are_the_means_over_the_mask():
     nothing = torch.zeros(12, 10, dtype=torch.bool)
     assert losses.photometric(image, target, 0.2, nothing).item() == 0.0
     assert ssim(image, target, nothing).item() == 1.0
-
-
-def test_the_loss_terms_benchmark_times_every_variant_and_finds_them_equal():
-    from bench.training.loss_terms import image_rows, projection_row
-
-    for row in [*image_rows(1), projection_row(512, 1)]:
-        cells = [c.strip() for c in row.strip("|").split("|")]
-        assert len(cells) == 5
-        assert all(float(ms) > 0 for ms in cells[2].split(" / "))
-        assert float(cells[4].split()[0]) < 1e-5  # the variants compute the same values and gradients

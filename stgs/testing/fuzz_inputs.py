@@ -1,4 +1,4 @@
-"""What `bench.fuzzing.fuzz` feeds its targets: the seed inputs (a StreamSTGS MPD, a keyframe, a static segment, an HEVC
+"""What `stgs.testing.fuzz` feeds its targets: the seed inputs (a StreamSTGS MPD, a keyframe, a static segment, an HEVC
 fragment) and the Hypothesis strategies that draw or mutate them."""
 
 from __future__ import annotations
@@ -140,7 +140,7 @@ def json_values() -> st.SearchStrategy[object]:
 
 
 @functools.cache
-def seed_keyframe() -> tuple[bytes, object]:
+def seed_keyframe() -> tuple[bytes, GOPShape]:
     torch.manual_seed(0)
     model = GOPModel(GOPShape(capacity=64, gop_size=4, window=2))
     with torch.no_grad():

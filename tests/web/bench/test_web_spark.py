@@ -10,7 +10,7 @@ import cv2
 from bench.web.web_spark import build_bench_page, measure
 from stgs.cli.browser import served as serve_root
 
-from .conftest import need_browser
+from tests.web.conftest import need_browser
 
 
 def test_spark_draws_the_players_gaussians_from_its_textures(web_root, tmp_path):

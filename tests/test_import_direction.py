@@ -1,5 +1,6 @@
 """Imports point one way (docs/ARCHITECTURE.md, "Folders and imports"): the core, then the stages, then the top
-layer (CLI, demo, benchmarks); and inside the core, each module or subpackage only below its own tier."""
+layer (CLI, demo, test support, benchmarks); inside the core, each module or subpackage only below its own tier;
+of the tests, only a benchmark's own (in a `bench/` folder) import the benchmarks; and the web player's parts."""
 
 import ast
 import re
@@ -11,7 +12,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 STAGES = {"stgs/packager": "stgs.packager", "stgs/server": "stgs.server", "stgs/client": "stgs.client",
           "stgs/harness": "stgs.harness"}
-TOP = {"stgs/cli": "stgs.cli"}
+TOP = {"stgs/cli": "stgs.cli", "stgs/testing": "stgs.testing"}
 ALLOWED = {"stgs.harness": {"stgs.client"}}
 """Stage -> other stages it may import (the harness drives the reference client)."""
 
@@ -41,7 +42,7 @@ def core_files() -> dict[str, set[str]]:
 
 
 def test_core_imports_no_stage_and_no_top_layer():
-    forbidden = [*STAGES.values(), *TOP.values(), "bench"]
+    forbidden = [*STAGES.values(), *TOP.values(), "bench", "tests"]
     bad = {f: sorted(m for m in mods if any(under(m, p) for p in forbidden)) for f, mods in core_files().items()}
     assert not {f: m for f, m in bad.items() if m}
 
@@ -49,10 +50,28 @@ def test_core_imports_no_stage_and_no_top_layer():
 @pytest.mark.parametrize("folder", sorted(STAGES))
 def test_stages_import_core_only(folder):
     own = STAGES[folder]
-    others = [p for p in [*STAGES.values(), *TOP.values(), "bench"] if p != own and p not in ALLOWED.get(own, ())]
+    others = [p for p in [*STAGES.values(), *TOP.values(), "bench", "tests"]
+              if p != own and p not in ALLOWED.get(own, ())]
     bad = {f: sorted(m for m in mods if any(under(m, p) for p in others))
            for f, mods in imported_modules(ROOT / folder).items()}
     assert not {f: m for f, m in bad.items() if m}
+
+
+def test_top_layer_imports_no_benchmark_and_no_test():
+    bad = {f: sorted(m for m in mods if under(m, "bench") or under(m, "tests"))
+           for folder in TOP for f, mods in imported_modules(ROOT / folder).items()}
+    assert not {f: m for f, m in bad.items() if m}
+
+
+def test_only_a_benchmarks_own_tests_import_it():
+    """A test of a benchmark's code sits in a `bench/` folder under the tests of what it measures; every other test
+    imports the library and test support only, and the benchmarks import no test."""
+    bad = {f: sorted(m for m in mods if under(m, "bench"))
+           for f, mods in imported_modules(ROOT / "tests").items() if "bench" not in Path(f).parts[:-1]}
+    assert not {f: m for f, m in bad.items() if m}
+    from_bench = {f: sorted(m for m in mods if under(m, "tests"))
+                  for f, mods in imported_modules(ROOT / "bench").items()}
+    assert not {f: m for f, m in from_bench.items() if m}
 
 
 def test_checker_sees_an_import_inside_a_function(tmp_path):
@@ -106,7 +125,8 @@ def test_the_core_imports_downwards_only():
     assert upward_imports() == []
 
 
-if __name__ == "__main__":  # python -m tests.test_layers: the core's import graph and what goes against the tiers
+# python -m tests.test_import_direction: the core's import graph and what goes against the tiers
+if __name__ == "__main__":
     for module, deps in sorted(core_imports().items()):
         print(f"stgs.{module} -> {', '.join(f'stgs.{d}' for d in sorted(deps)) or '(nothing)'}")
     print("upward:", ", ".join(upward_imports()) or "none")
