@@ -9,7 +9,6 @@ import cv2
 
 from bench.web.web_spark import build_bench_page, measure
 from stgs.cli.browser import served as serve_root
-
 from tests.web.conftest import need_browser
 
 
