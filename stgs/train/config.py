@@ -239,8 +239,9 @@ BUDGETS = {
     "paper": TrainConfig(budget="paper", grid_side=388, coarse_iterations=3000, iterations=12000,
                          sort_every=3000, checkpoint_every=1000, background_share=0.5),
 }
-"""quick: CI (tiny, minutes); cpu: a 60-frame Panoptic GOP at 640x360 in about an hour on 2 cores;
-paper: 12k iterations, ~150k Gaussians, for a bigger machine."""
+"""quick: CI and smoke runs (tiny); cpu: a 60-frame Panoptic GOP at 640x360 on a CPU (its time and quality:
+docs/BENCHMARKS.md, "Training on Panoptic basketball: the `cpu` budget"); paper: the paper's 12k iterations and
+about 150k Gaussians, for a bigger machine."""
 
 LAYERED: dict[str, dict[str, Any]] = {
     "quick": {"grid_side": 16, "static_grid_side": 24},
