@@ -33,7 +33,13 @@ MAX_PATH_CAMERAS = 100_000
 MAX_MPD_BYTES = 1 << 20
 """Largest manifest accepted."""
 MAX_DOC_BYTES = 16 << 20
-"""Largest stats.json or cameras.json accepted."""
+"""Largest stats.json, cameras.json or scene.json accepted."""
+MAX_TITLE_CHARS = 200
+"""Longest scene title (stgs pack --title)."""
+MAX_DESCRIPTION_CHARS = 4000
+"""Longest scene description (stgs pack --description)."""
+MAX_POSTER_BYTES = 4 << 20
+"""Largest poster image a player fetches."""
 MAX_KEYFRAME_HEADER_BYTES = 1 << 20
 """Largest safetensors header of a keyframe segment."""
 MAX_SEGMENT_BYTES = 1 << 30

@@ -47,6 +47,10 @@ STATS = "stats.json"
 CAMERAS = "cameras.json"
 """The scene's cameras, when the model dir has them: {"format", "version", "cameras": [Camera.to_json()]}."""
 CAMERAS_FORMAT = "streamstgs-cameras"
+SCENE = "scene.json"
+"""What a catalogue shows of the scene: {"format", "version", "title", "description", "poster"} (stgs pack; the poster
+a path relative to the MPD, or null). A tree from before it has none: its folder name is its title."""
+SCENE_FORMAT = "streamstgs-scene"
 PACK_STATE = ".pack-state.json"
 """The packager's record of finished tasks (for --resume); hidden, so never served."""
 PACK_WORK = ".pack-work"
@@ -112,6 +116,12 @@ def keyframe_rep_id(rung: str) -> str:
 
 def static_template(version: str) -> str:
     return f"{version}/static/layer{STATIC_EXTENSION}"
+
+
+def poster_path(version: str) -> str:
+    """Path (relative to the MPD) of the poster: one WebP still of the scene, under the version folder (its URL
+    changes whenever the model does)."""
+    return f"{version}/poster.webp"
 
 
 def static_path(version: str) -> str:

@@ -53,6 +53,9 @@ def pack_flags() -> tuple[ConfigFlag, ...]:
         ConfigFlag("jobs", type=positive_int, default_note="the core count"),
         ConfigFlag("sort", "--no-sort", off=True),
         ConfigFlag("resume", on=True),
+        ConfigFlag("title", default_note="the model dir's name"),
+        ConfigFlag("description"),
+        ConfigFlag("poster", "--no-poster", off=True),
     )
 
 

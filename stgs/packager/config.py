@@ -4,12 +4,14 @@ packager's heavy stack."""
 from __future__ import annotations
 
 import os
+import unicodedata
 from dataclasses import asdict, dataclass, field
 
 from stgs.codec.plas_config import PLASConfig
 from stgs.codec.quant import KEYFRAME_RUNGS
 from stgs.codec.video import AV1, CODECS, HEVC, LADDERS, FeatureCodec
 from stgs.errors import FieldError
+from stgs.limits import MAX_DESCRIPTION_CHARS, MAX_TITLE_CHARS
 from stgs.packager.ladder import LadderRules
 
 
@@ -51,6 +53,12 @@ class PackConfig:
     rung", measures what fewer cost)."""
     resume: bool = False
     """Skip (GOP, ladder point) tasks whose outputs a previous interrupted run left complete."""
+    title: str | None = None
+    """The scene's title in a catalogue (scene.json; None: the model dir's name)."""
+    description: str = ""
+    """The scene's description in a catalogue (scene.json): plain text, shown as text, never as markup."""
+    poster: bool = True
+    """Render a poster (a WebP still from the first scene camera, mid first GOP) for catalogues and the player."""
 
     def validate(self) -> None:
         if self.ladder not in LADDERS:
@@ -75,6 +83,14 @@ class PackConfig:
                 raise FieldError(preset, f"must be one of {', '.join(codec.presets)}, got {getattr(self, preset)!r}")
         if self.jobs < 1:
             raise FieldError("jobs", f"must be >= 1, got {self.jobs}")
+        for name, text, cap in (("title", self.title or "", MAX_TITLE_CHARS),
+                                ("description", self.description, MAX_DESCRIPTION_CHARS)):
+            if len(text) > cap:
+                raise FieldError(name, f"must be at most {cap} characters, got {len(text)}")
+            if any(unicodedata.category(c) == "Cc" and c not in "\n\t" for c in text):
+                raise FieldError(name, "must not hold control characters")
+        if self.title is not None and not self.title.strip():
+            raise FieldError("title", "must not be blank")
 
     def digest_fields(self) -> dict:
         """What determines the output bytes (not jobs or resume)."""

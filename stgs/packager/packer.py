@@ -38,6 +38,7 @@ from stgs.mpd.profile import StaticLayerDescriptor
 from stgs.packager.config import PackConfig
 from stgs.packager.ladder import Candidate, Verdict, allocation_saving, choose_rungs
 from stgs.packager.manifest import ManifestBuilder, RepresentationRecords, SegmentRecord, StaticRecord
+from stgs.packager.poster import encode_poster, render_poster, scene_document
 from stgs.packager.segments import FeatureEncoder, PreparedGOP, lossy_rungs, measure, prepare_gop, quality_views
 from stgs.packager.state import PackState, check_output_dir, pack_id
 from stgs.synth import load_ground_truth
@@ -47,9 +48,11 @@ from stgs.tree import (
     GROUND_TRUTH_DIR,
     KEYFRAME_REP,
     MANIFEST,
+    SCENE,
     STATS,
     feature_path,
     keyframe_path,
+    poster_path,
     quality_measure,
     static_path,
     version_dir,
@@ -206,8 +209,19 @@ class Packer:
         stats = self.builder.stats(self.id) | {"quality_views": views.describe(), "ladders": ladders}
         atomic_write_bytes(self.out / STATS, (json.dumps(stats, indent=2) + "\n").encode())
         self.write_cameras()
+        self.write_scene()
         atomic_write_bytes(self.out / MANIFEST, self.builder.mpd().to_xml())
         return stats
+
+    def write_scene(self) -> None:
+        """scene.json, the catalogue's view of the scene, and the poster it names (unless poster is off)."""
+        poster, view = None, None
+        if self.cfg.poster:
+            rgb, view = render_poster(self.model_dir, self.meta, self.static)
+            poster = poster_path(self.version_dir)
+            self.write(poster, encode_poster(rgb))
+        title = self.cfg.title if self.cfg.title is not None else self.model_dir.resolve().name
+        atomic_write_bytes(self.out / SCENE, scene_document(title, self.cfg.description, poster, view))
 
     def choose_ladder(self) -> dict:
         """Each codec's rungs, each a feature Representation paired with a keyframe Representation: every point of a

@@ -88,6 +88,16 @@ class QualityViews:
                 "sizes": [[c.width, c.height] for c in self.cameras], "frames": self.frames}
 
 
+def scene_cameras(model_dir: Path) -> list[Camera]:
+    """The scene's cameras as a pack offers them: the model dir's cameras.json (stgs train), else a synthetic scene's
+    ground-truth cameras, else none."""
+    if (model_dir / CAMERAS).is_file():
+        return read_scene_cameras(model_dir)
+    if (model_dir / GROUND_TRUTH_DIR / CAMERAS).is_file():
+        return load_ground_truth(model_dir)[1]
+    return []
+
+
 def quality_views(model_dir: Path, meta: SceneMeta, model: Callable[[], GOPModel], cameras: int,
                   frames: int | None) -> QualityViews:
     """The views rung quality is measured at (QualityViews): the model dir's held-out cameras where it names them,
@@ -96,15 +106,13 @@ def quality_views(model_dir: Path, meta: SceneMeta, model: Callable[[], GOPModel
     model_dir = Path(model_dir)
     every = list(range(meta.shape.gop_size))
     picked = every if frames is None else spread(every, frames)
-    if (model_dir / CAMERAS).is_file():
-        scene = read_scene_cameras(model_dir)
-        by_name = {c.name: c for c in scene}
-        held = (meta.extra or {}).get("validation_cameras") or []
-        if held and all(name in by_name for name in held):
-            return QualityViews([by_name[name] for name in held], "held-out", picked)
+    scene = scene_cameras(model_dir)
+    by_name = {c.name: c for c in scene}
+    held = (meta.extra or {}).get("validation_cameras") or [] if (model_dir / CAMERAS).is_file() else []
+    if held and all(name in by_name for name in held):
+        return QualityViews([by_name[name] for name in held], "held-out", picked)
+    if scene:
         return QualityViews(spread(scene, cameras), "sample", picked)
-    if (model_dir / GROUND_TRUTH_DIR / CAMERAS).is_file():
-        return QualityViews(spread(load_ground_truth(model_dir)[1], cameras), "sample", picked)
     return QualityViews(framing_orbit(model(), cameras, 320, 240), "orbit", picked)
 
 

@@ -28,6 +28,7 @@ CONTENT_TYPES = {
     ".mjs": "text/javascript; charset=utf-8",
     ".wasm": "application/wasm",
     ".css": "text/css; charset=utf-8",
+    ".webp": "image/webp",
 }
 """The only files served, by extension."""
 

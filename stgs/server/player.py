@@ -1,8 +1,8 @@
 """The web player at `/player/` (web/, built into web/dist by setup): its index.html with a short cache life, its
 assets under content-hashed names cached as immutable, every answer with the player's Content-Security-Policy.
 
-The build is read once at start-up into memory (a few files, about 2 MB, the JPEG XL decoder's WASM most of
-it), so a request never touches the file system and no name outside the build can be asked for.
+The build is read once at start-up into memory (a few files, the JPEG XL decoder's WASM the largest), so a
+request never touches the file system and no name outside the build can be asked for.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ PLAYER_TYPES = {
 """The player's files by extension (the same types FILE_TYPES gives them under ROOT)."""
 
 PLAYER_CSP = ("default-src 'none'; script-src 'self' 'wasm-unsafe-eval'; worker-src 'self'; style-src 'self'; "
-              "connect-src 'self' http: https:; img-src 'self' data:; base-uri 'none'; form-action 'none'; "
+              "connect-src 'self' http: https:; img-src 'self' data: blob:; base-uri 'none'; form-action 'none'; "
               "frame-ancestors 'none'")
 """The page runs only its own scripts and WASM (compiling WASM needs 'wasm-unsafe-eval'; nothing fetched is
 evaluated), may fetch scenes from any http(s) origin (CORS and the page's URL policy decide), and cannot be

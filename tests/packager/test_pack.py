@@ -14,6 +14,7 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
+from stgs.metrics import psnr
 from stgs.mpd.model import parse_mpd
 from stgs.mpd.profile import FEATURE_SCHEME, KEYFRAME_QUANT_SCHEME, KEYFRAME_SCHEME
 from stgs.packager import MANIFEST, STATS, PackConfig, pack
@@ -352,6 +353,48 @@ def test_scene_cameras_are_published_beside_the_mpd(scene, packed):
     truth = load_ground_truth(scene)[1]
     assert [c.name for c in published] == [c.name for c in truth]
     assert all((a.viewmat == b.viewmat).all() and (a.K == b.K).all() for a, b in zip(published, truth, strict=True))
+
+
+def test_the_scene_face_has_a_poster_from_the_first_camera_mid_first_gop(scene, packed):
+    """scene.json names the model dir as the title and a WebP poster: the uncompressed model's middle frame of GOP 0
+    at the first scene camera, within the WebP's loss."""
+    import cv2
+
+    from stgs.model.renderer import FrameRenderer
+    from stgs.model.store import load_gop, read_meta
+    from stgs.synth import load_ground_truth
+    from stgs.tree import SCENE as SCENE_DOC
+    from stgs.tree import SCENE_FORMAT
+
+    out, _ = packed
+    doc = json.loads((out / SCENE_DOC).read_text())
+    assert doc["format"] == SCENE_FORMAT and doc["title"] == scene.name and doc["description"] == ""
+    assert doc["poster"].endswith("/poster.webp") and doc["poster"].startswith("v-")
+    cam = load_ground_truth(scene)[1][0]
+    assert doc["poster_view"] == {"camera": cam.name, "frame": SCENE.gop_size // 2}
+    poster = cv2.cvtColor(cv2.imread(str(out / doc["poster"])), cv2.COLOR_BGR2RGB)
+    assert poster.shape == (cam.height, cam.width, 3)
+    meta = read_meta(scene)
+    truth = FrameRenderer(load_gop(scene, meta, 0)).render(SCENE.gop_size // 2, cam).clamp(0, 1).numpy() * 255
+    assert psnr(torch.from_numpy(poster / 255.0), torch.from_numpy(truth / 255.0)) > 30
+
+
+def test_a_title_and_description_are_kept_as_given_and_a_bad_one_is_one_line(scene, tmp_path):
+    from stgs.tree import SCENE as SCENE_DOC
+
+    title, description = "Court <b>one</b> & \"two\"", "Line one\nline <script>two</script>"
+    result = stgs("pack", str(scene), str(tmp_path / "o"), "--quiet", "--ladder", "fixed", "--qps", "32",
+                  "--codecs", "hevc", "--title", title, "--description", description, "--no-poster")
+    assert result.returncode == 0, result.stderr
+    doc = json.loads((tmp_path / "o" / SCENE_DOC).read_text())
+    assert (doc["title"], doc["description"], doc["poster"]) == (title, description, None)
+    assert not list((tmp_path / "o").rglob("*.webp"))
+    for args, message in [(("--title", " "), "blank"), (("--title", "x" * 201), "at most 200"),
+                          (("--description", "a\x07b"), "control characters")]:
+        bad = stgs("pack", str(scene), str(tmp_path / "bad"), "--quiet", *args)
+        lines = bad.stderr.strip().splitlines()
+        assert bad.returncode == 2 and len(lines) == 1 and args[0] in lines[0] and message in lines[0], bad.stderr
+        assert not (tmp_path / "bad").exists()
 
 
 @pytest.fixture(scope="module")

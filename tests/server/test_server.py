@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hashlib
+import json
 import os
 import re
 import shutil
@@ -276,6 +277,50 @@ async def test_catalogue_health_and_metrics(client):
     assert "stgs_http_request_seconds_bucket" in text and "stgs_http_in_flight" in text
     sent = [line for line in text.splitlines() if line.startswith("stgs_http_sent_bytes_total")]
     assert float(sent[0].split()[1]) > 0
+
+
+async def test_the_catalogue_shows_each_scene_as_a_card_with_its_face(client, root):
+    data = await (await client.get("/scenes")).json()
+    [scene] = data["scenes"]
+    assert scene["title"] == "model" and scene["description"] == ""  # the model dir's name
+    assert scene["gaussians"] == SCENE.grid_side ** 2 and scene["rungs"] == 4
+    assert re.fullmatch(r"/scene1/v-[0-9a-f]+/poster\.webp", scene["poster"])
+    poster = await client.get(scene["poster"])
+    assert poster.status == 200 and poster.headers["Content-Type"] == "image/webp"
+    assert (await poster.read())[8:12] == b"WEBP"
+    page = await client.get("/", headers={"Accept": "text/html"})
+    html_text = await page.text()
+    csp = page.headers["Content-Security-Policy"]
+    assert "img-src 'self' data:" in csp and "script-src" not in csp and "<script" not in html_text
+    assert f'<img src="{scene["poster"]}" alt=""' in html_text and "<h2>model</h2>" in html_text
+    assert f'<a href="{scene["player"].replace("&", "&amp;")}">watch' in html_text
+
+
+async def test_a_scene_face_is_text_and_a_bad_one_falls_back(aiohttp_client, root, tmp_path):
+    """A title with markup is escaped; a tree without scene.json lists under its folder's name; a poster path
+    that leaves the scene's folder, a wrong format or an oversized title is ignored (the scene still lists)."""
+    from stgs.tree import SCENE
+
+    faces = {"markup": {"title": "<img src=x onerror=alert(1)>", "description": "a <b>bold</b> claim"},
+             "escape": {"title": "t", "poster": "../markup/v/poster.webp"},
+             "dots": {"title": "t", "poster": "v/../../x.webp"},
+             "format": {"format": "something-else", "title": "t"},
+             "long": {"title": "x" * 201},
+             "older": None}
+    for name, face in faces.items():
+        shutil.copytree(root / "scene1", tmp_path / name, symlinks=True, ignore=shutil.ignore_patterns("*.txt"))
+        if face is None:
+            (tmp_path / name / SCENE).unlink()
+        else:
+            (tmp_path / name / SCENE).write_text(json.dumps({"format": "streamstgs-scene", "version": 1, **face}))
+    client = await aiohttp_client(build_app(ServeConfig(root=tmp_path)))
+    scenes = {s["name"]: s for s in (await (await client.get("/scenes")).json())["scenes"]}
+    assert scenes["markup"]["title"] == faces["markup"]["title"]
+    for name in ("escape", "dots", "format", "long", "older"):
+        assert scenes[name]["title"] == name and scenes[name]["poster"] is None and "error" not in scenes[name]
+    page = await (await client.get("/", headers={"Accept": "text/html"})).text()
+    assert "<img src=x" not in page and "&lt;img src=x onerror=alert(1)&gt;" in page
+    assert "<b>bold</b>" not in page and "a &lt;b&gt;bold&lt;/b&gt; claim" in page
 
 
 @pytest.mark.parametrize("edit", [(rb'timescale="\d+"', b'timescale="0"'),

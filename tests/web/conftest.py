@@ -25,6 +25,8 @@ WEB_SCENE = SynthConfig(grid_side=16, num_gops=10, gop_size=6, fps=12.0, width=9
                         static_grid_side=16)
 """Ten half-second GOPs of a layered scene (a static layer of 256 Gaussians, a dynamic layer of 256)."""
 AV1_QPS = (16, 32, 41)
+SMALL_TITLE = "Small <i>scene</i> & co"
+"""The `small` scene's title: markup that must show as text."""
 
 
 def need_node() -> None:
@@ -48,8 +50,9 @@ def web_root(tmp_path_factory) -> Path:
     base = tmp_path_factory.mktemp("web")
     synthesize(WEB_SCENE, base / "model", progress=False)
     root = base / "root"
-    pack(base / "model", root / "small", PackConfig(ladder="fixed",
-                                                    codecs=("av1",), av1_qps=AV1_QPS, jobs=2), progress=False)
+    pack(base / "model", root / "small", PackConfig(ladder="fixed", codecs=("av1",), av1_qps=AV1_QPS, jobs=2,
+                                                    title=SMALL_TITLE, description="ten half-second GOPs"),
+         progress=False)
     pack(base / "model", root / "paired", PackConfig(codecs=("av1",), av1_qps=AV1_QPS, keyframe_rungs=("coarse",),
                                                      jobs=2), progress=False)
     shutil.copytree(root / "small", root / "broken")

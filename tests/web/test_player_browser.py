@@ -45,6 +45,8 @@ def test_the_demo_scene_plays_to_the_end_from_the_catalogue_link(served):
     out = browse({"viewport": [360, 300], "steps": [
         {"goto": served},
         {"click": "a[href*='small']"},
+        {"wait": "window.stgsPlayer && stgsPlayer.manifest"},
+        {"eval": "stgsPlayer.loop = false"},  # a scene this short loops by default
         {"wait": "window.stgsPlayer && stgsPlayer.ended", "timeout": 180000},
         {"eval": STATE, "as": "state"},
         {"eval": ERROR_TEXT, "as": "error"},
@@ -165,7 +167,7 @@ def test_a_throttled_link_makes_the_abr_go_down_within_a_bounded_stall(served, w
     out = browse({"viewport": [360, 300], "steps": [
         {"goto": served + "healthz"},
         {"throttle": {"kbps": kbps, "latencyMs": 40}},
-        {"goto": player(served, size="64x48", abr="throughput")},
+        {"goto": player(served, size="64x48", abr="throughput", loop="0")},
         {"wait": "window.stgsPlayer && stgsPlayer.ended", "timeout": 180000},
         {"eval": STATE, "as": "state"},
     ]})

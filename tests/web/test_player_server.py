@@ -55,7 +55,7 @@ def test_the_catalogue_links_every_playable_scene_to_the_player(served):
     assert status == 200 and headers["Content-Type"].startswith("text/html")
     assert "script-src" not in headers["Content-Security-Policy"] and "<script" not in page
     assert 'href="/player/?mpd=%2Fsmall%2Fmanifest.mpd"' in page
-    assert "broken: not a playable StreamSTGS manifest" in page
+    assert "<h2>broken</h2><p>not a playable StreamSTGS manifest" in page
     status, _, body = get(served)  # no Accept: the JSON catalogue, as before
     scenes = {s["name"]: s for s in json.loads(body)["scenes"]}
     assert scenes["small"]["player"] == "/player/?mpd=%2Fsmall%2Fmanifest.mpd"

@@ -197,6 +197,7 @@ async function bench(): Promise<Result> {
     digests: false,
     weights: null,
     webgpu: false,
+    loop: false,
   };
   const canvas = document.getElementById("view") as HTMLCanvasElement;
   const player = new Player(canvas, assets, options);

@@ -82,6 +82,9 @@ export function parseSceneCameras(doc: unknown, maxCameras: number): SceneCamera
   });
 }
 
+/** Largest coordinate of an orbit target a link may carry. */
+const POSE_LIMIT = 1e6;
+
 export class ViewerCamera {
   target: Vec3 = [0, 0, 0];
   up: Vec3 = [0, 1, 0];
@@ -150,6 +153,27 @@ export class ViewerCamera {
       this.target,
       add(scale(f, forward * step), add(scale(r, right * step), scale(norm(this.up), upward * step))),
     );
+  }
+
+  /** The orbit as a link carries it: target x, y, z, yaw, pitch, radius, horizontal field of view (degrees). */
+  orbitPose(): string {
+    const values = [...this.target, this.yaw, this.pitch, this.radius, this.fovX];
+    return values.map((v) => Number(v.toPrecision(7)).toString()).join(",");
+  }
+
+  /** Take the orbit a link carries (orbitPose's text); a malformed or out-of-range one throws and changes nothing. */
+  setOrbitPose(text: string): void {
+    const values = text.split(",").map(Number);
+    if (values.length !== 7 || !values.every(Number.isFinite))
+      throw new RangeError("the pose must be 7 finite numbers");
+    const [x, y, z, yaw, pitch, radius, fov] = values as [number, number, number, number, number, number, number];
+    if (Math.max(Math.abs(x), Math.abs(y), Math.abs(z)) > POSE_LIMIT) throw new RangeError("the target is too far out");
+    if (Math.abs(yaw) > 1e3 || Math.abs(pitch) > 1.5) throw new RangeError("yaw or pitch out of range");
+    if (!(radius >= 0.05 && radius <= 1e4)) throw new RangeError("the radius must be in 0.05..10000");
+    if (!(fov >= 1 && fov <= 179)) throw new RangeError("the field of view must be in 1..179 degrees");
+    this.pose = null;
+    this.target = [x, y, z];
+    [this.yaw, this.pitch, this.radius, this.fovX] = [yaw, pitch, radius, fov];
   }
 
   view(width: number, height: number): View {

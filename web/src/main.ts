@@ -1,12 +1,15 @@
 // The page's entry: options from the query string (?mpd=URL&abr=&quality=&camera=&size=WxH&autoplay=&gop=
-// &buffer=GOPs&background=r,g,b; for tests and benchmarks timing=sync, debug=features, weights=uniform|texture, deform=webgpu),
+// &loop=0|1&speed=&buffer=GOPs&background=r,g,b; for tests and benchmarks timing=sync, debug=features,
+// weights=uniform|texture, deform=webgpu), a deep link's moment and view from the fragment (#t=&cam=, link.ts),
 // the assets the build named, then the player and its controls. Without ?mpd it lists the scenes of the
 // server it came from (stgs serve's /scenes), when there is one.
 import { RULES } from "./abr/index";
+import { SPEEDS } from "./clock";
 import { describe, UnsupportedError } from "./errors";
+import { applyLink } from "./link";
 import { Player, type PlayerOptions } from "./player";
 import type { Assets } from "./stream/worker-pools";
-import { bindControls, showError } from "./ui";
+import { bindControls, showError, showScene } from "./ui";
 
 declare global {
   interface Window {
@@ -27,6 +30,11 @@ async function main(): Promise<void> {
   const sizeMatch = size ? /^(\d{1,5})x(\d{1,5})$/.exec(size) : null;
   if (size && !sizeMatch) throw new Error(`size=${size} is not WIDTHxHEIGHT`);
   const bg = (params.get("background") ?? "0,0,0").split(",").map(Number);
+  const loop = params.get("loop");
+  if (loop !== null && loop !== "0" && loop !== "1") throw new Error(`loop=${loop} is not 0 or 1`);
+  const speed = Number(params.get("speed") ?? 1);
+  if (!(SPEEDS as readonly number[]).includes(speed))
+    throw new Error(`speed=${params.get("speed")} is not one of ${SPEEDS}`);
   const options: PlayerOptions = {
     abr,
     rung: null,
@@ -37,6 +45,7 @@ async function main(): Promise<void> {
     digests: params.get("debug") === "features",
     weights: null,
     webgpu: params.get("deform") === "webgpu",
+    loop: loop === null ? null : loop === "1",
   };
   const weights = params.get("weights");
   if (weights !== null && weights !== "uniform" && weights !== "texture")
@@ -45,6 +54,7 @@ async function main(): Promise<void> {
   const player = new Player(document.getElementById("view") as HTMLCanvasElement, assets, options);
   window.stgsPlayer = player;
   player.onError = showError;
+  player.onScene = (face) => void showScene(face, player.manifest.policy);
   const status = document.getElementById("status")!;
   status.textContent = "loading…";
   const quality = params.get("quality");
@@ -74,6 +84,12 @@ async function main(): Promise<void> {
   }
   const gop = Number(params.get("gop") ?? 0);
   if (gop > 0) player.seek(gop);
+  if (speed !== 1) player.setSpeed(speed);
+  const followLink = () => {
+    for (const warning of applyLink(player, location.hash)) console.warn(`deep link ignored: ${warning}`);
+  };
+  followLink();
+  window.addEventListener("hashchange", followLink);
   bindControls(player);
   status.textContent = "";
   document.getElementById("view")!.focus();

@@ -79,6 +79,8 @@ export interface Manifest {
   maxSegmentBytes(bandwidth: number): number;
   statsUrl: string;
   camerasUrl: string;
+  /** scene.json beside the MPD: title, description and poster (stgs pack; absent from older trees). */
+  sceneUrl: string;
   policy: UrlPolicy;
 }
 
@@ -395,6 +397,7 @@ export function parseManifest(text: string, url: string): Manifest {
       Math.min(L.MAX_SEGMENT_BYTES, Math.ceil((bandwidth / 8) * gopSeconds * L.SEGMENT_SLACK) + 4096),
     statsUrl: new URL("stats.json", url).href,
     camerasUrl: new URL("cameras.json", url).href,
+    sceneUrl: new URL("scene.json", url).href,
     policy,
   };
   if (staticLayer) policy.check(staticLayer.url);

@@ -2,14 +2,15 @@
 // and presents frames on the wall clock: the frame the clock asks for is shown if its keyframe and feature
 // window are here, frames it passed are dropped, and only when nothing new is ready does the clock stop (a
 // stall). Each shown frame: deform the dynamic layer (GPU), read back its means, depth-sort both layers
-// (worker), splat (GPU).
+// (worker), splat (GPU). At the end it stops, or starts again from the first frame when it loops.
 import { DEFAULT_SETTINGS, type Decision, makeRule } from "./abr/index";
 import { type SceneCamera, ViewerCamera, cameraCenter, parseSceneCameras, sceneCenter, sceneUp } from "./camera";
-import { PresentationClock } from "./clock";
+import { PresentationClock, SPEEDS } from "./clock";
 import { describe } from "./errors";
 import * as L from "./limits";
 import { type Manifest, parseManifest } from "./manifest";
 import { UrlPolicy } from "./urlpolicy";
+import { type SceneFace, parseSceneFace } from "./scene";
 import { DeformPass, type WeightStorage } from "./render/deform";
 import { WebGpuDeform } from "./render/deform-webgpu";
 import type { Deformer } from "./render/deformer";
@@ -39,7 +40,12 @@ export interface PlayerOptions {
   weights: WeightStorage | null;
   /** Run the deformation as a WebGPU compute shader (where navigator.gpu exists) instead of WebGL2. */
   webgpu: boolean;
+  /** Start again at the end (null: loop scenes shorter than LOOP_UNDER_S). */
+  loop: boolean | null;
 }
+
+/** Scenes shorter than this (seconds) loop unless told otherwise. */
+export const LOOP_UNDER_S = 10;
 
 export class Player {
   manifest!: Manifest;
@@ -60,6 +66,12 @@ export class Player {
   private clock!: PresentationClock;
   paused = false;
   ended = false;
+  /** Start again from the first frame at the end. */
+  loop = false;
+  /** How many times playback reached the end and started again. */
+  loops = 0;
+  /** scene.json's title, description and poster (null: the tree has none, or it did not hold up). */
+  scene: SceneFace | null = null;
   private started = false;
   private busy = false;
   private dirty = false;
@@ -67,6 +79,8 @@ export class Player {
   private presentable = false;
   onError: (message: string) => void = () => undefined;
   onDecision: (d: Decision, gop: number, rung: number) => void = () => undefined;
+  /** The scene's face is known (called once during load, before the first GOP arrives). */
+  onScene: (face: SceneFace | null) => void = () => undefined;
 
   constructor(
     private readonly canvas: HTMLCanvasElement,
@@ -90,10 +104,20 @@ export class Player {
     this.manifest = parseManifest(new TextDecoder().decode(text.data), absolute);
     const m = this.manifest;
     this.clock = new PresentationClock(m.fps);
-    const stats = await fetchJson(m.statsUrl, m.policy, L.MAX_DOC_BYTES, "stats.json").catch(() => null);
-    this.cameras = await fetchJson(m.camerasUrl, m.policy, L.MAX_DOC_BYTES, "cameras.json")
-      .then((doc) => parseSceneCameras(doc, L.MAX_PATH_CAMERAS))
-      .catch(() => []); // a scene may come without cameras
+    this.loop = this.options.loop ?? m.durationS < LOOP_UNDER_S;
+    // a scene may come without stats, cameras or a face (an older tree): each is optional
+    const [stats, cameras, scene] = await Promise.all([
+      fetchJson(m.statsUrl, m.policy, L.MAX_DOC_BYTES, "stats.json").catch(() => null),
+      fetchJson(m.camerasUrl, m.policy, L.MAX_DOC_BYTES, "cameras.json")
+        .then((doc) => parseSceneCameras(doc, L.MAX_PATH_CAMERAS))
+        .catch(() => []),
+      fetchJson(m.sceneUrl, m.policy, L.MAX_DOC_BYTES, "scene.json")
+        .then((doc) => parseSceneFace(doc, m.sceneUrl))
+        .catch(() => null),
+    ]);
+    this.cameras = cameras;
+    this.scene = scene;
+    this.onScene(scene);
     this.camera.up = sceneUp(this.cameras);
     this.camera.target = sceneCenter(this.cameras);
     if (this.cameras.length) this.snapTo(0);
@@ -206,6 +230,34 @@ export class Player {
     this.downloader.start(gop);
   }
 
+  /** Jump to the frame at scene time `t` (seconds, clamped to the scene): its GOP is fetched and the clock starts
+   * at that frame. */
+  seekTime(t: number): void {
+    const G = this.manifest.shape.gopSize;
+    const frame = Math.max(0, Math.min(this.totalFrames - 1, Math.round(t * this.manifest.fps)));
+    const k = Math.floor(frame / G);
+    this.seek(k);
+    this.current = frame - 1;
+    this.clock.restart(frame);
+    this.ring.release(k, frame % G);
+  }
+
+  /** The scene time (seconds) of the frame on screen. */
+  shownTimeS(): number {
+    return Math.max(0, this.current) / this.manifest.fps;
+  }
+
+  get speed(): number {
+    return this.clock.speed;
+  }
+
+  /** Playback speed, one of SPEEDS (scene seconds per second); the clock goes on from the frame on screen. */
+  setSpeed(speed: number): void {
+    if (!(SPEEDS as readonly number[]).includes(speed)) throw new RangeError(`speed ${speed} is not one of ${SPEEDS}`);
+    this.clock.speed = speed;
+    this.clock.restart(this.current + 1);
+  }
+
   togglePause(): void {
     this.paused = !this.paused;
     if (!this.paused) {
@@ -250,6 +302,10 @@ export class Player {
   private async tick(now: number): Promise<void> {
     requestAnimationFrame((t) => this.tick(t));
     if (this.busy || !this.manifest) return;
+    if (this.ended && this.loop && !this.paused) {
+      this.loops++;
+      this.seek(0);
+    }
     let next = -1;
     if (!this.paused && !this.ended) {
       const due = this.clock.next(now, this.current, this.totalFrames, (f) => this.ready(f));

@@ -1,7 +1,14 @@
-// The viewer's controls: orbit and fly with mouse, touch and keys; play/pause, seek bar, quality menu, scene
-// cameras, stats overlay, full screen, and the error panel. Every control is a native, focusable element.
+// The viewer's controls: orbit and fly with mouse, touch and keys; play/pause, seek bar, loop, speed, quality
+// menu, scene cameras, stats overlay, link, screenshot, full screen; the scene's title and poster; and the error
+// panel. Every control is a native, focusable element.
+import { SPEEDS } from "./clock";
+import * as L from "./limits";
+import { linkFragment } from "./link";
 import type { Rung } from "./manifest";
 import type { Player } from "./player";
+import type { SceneFace } from "./scene";
+import { fetchStream } from "./stream/fetch";
+import type { UrlPolicy } from "./urlpolicy";
 
 const $ = <T extends HTMLElement>(id: string) => document.getElementById(id) as T;
 
@@ -10,6 +17,40 @@ export function showError(message: string): void {
   panel.textContent = message;
   panel.hidden = false;
   console.error(message); // for the developer tools, and for a driving script's log
+}
+
+/** The scene's title over the view (as text) and its poster until the first frame is shown. */
+export async function showScene(face: SceneFace | null, policy: UrlPolicy): Promise<void> {
+  if (!face) return;
+  const title = $("title");
+  title.textContent = face.title;
+  title.title = face.description;
+  title.hidden = false;
+  document.title = `${face.title} · streamstgs`;
+  if (!face.posterUrl) return;
+  try {
+    const { data } = await fetchStream(face.posterUrl, policy, L.MAX_POSTER_BYTES, "poster", null);
+    const poster = $<HTMLImageElement>("poster");
+    if (poster.dataset.done) return; // the first frame came first
+    poster.src = URL.createObjectURL(new Blob([data as BlobPart], { type: "image/webp" }));
+    poster.hidden = false;
+  } catch (err) {
+    console.warn(`the poster could not be shown: ${err instanceof Error ? err.message : err}`);
+  }
+}
+
+/** Save the canvas as a PNG (the canvas's own resolution) named after the scene and the moment. */
+function saveScreenshot(player: Player): void {
+  const canvas = $<HTMLCanvasElement>("view");
+  canvas.toBlob((blob) => {
+    if (!blob) return;
+    const a = document.createElement("a");
+    a.href = URL.createObjectURL(blob);
+    const name = (player.scene?.title ?? "scene").replace(/[^\w-]+/g, "_").slice(0, 60) || "scene";
+    a.download = `${name}-t${player.shownTimeS().toFixed(2)}s.png`;
+    a.click();
+    setTimeout(() => URL.revokeObjectURL(a.href), 10_000);
+  }, "image/png");
 }
 
 export function bindControls(player: Player): void {
@@ -21,7 +62,16 @@ export function bindControls(player: Player): void {
   const camera = $<HTMLSelectElement>("camera");
   const statsToggle = $<HTMLButtonElement>("stats-toggle");
   const stats = $<HTMLPreElement>("stats");
+  const loop = $<HTMLButtonElement>("loop");
+  const speed = $<HTMLSelectElement>("speed");
+  const poster = $<HTMLImageElement>("poster");
+  const status = $("status");
   const m = player.manifest;
+
+  for (const s of SPEEDS) speed.add(new Option(`${s}×`, String(s)));
+  speed.value = String(player.speed);
+  const showLoop = () => loop.setAttribute("aria-pressed", String(player.loop));
+  showLoop();
 
   seek.max = String(m.gops - 1);
   m.rungs.forEach((r, i) => {
@@ -33,14 +83,33 @@ export function bindControls(player: Player): void {
   });
   if (player.cameras.length) camera.value = "0";
 
-  const togglePause = () => {
-    player.togglePause();
+  const showPlay = () => {
     play.textContent = player.paused ? "Play" : "Pause";
     play.setAttribute("aria-label", player.paused ? "Play" : "Pause");
+  };
+  showPlay();
+  const togglePause = () => {
+    player.togglePause();
+    showPlay();
   };
   const seekTo = (k: number) => {
     player.seek(k);
     seek.value = String(k);
+  };
+  const toggleLoop = () => {
+    player.loop = !player.loop;
+    showLoop();
+  };
+  const copyLink = async () => {
+    const url = new URL(location.href);
+    url.hash = linkFragment(player);
+    history.replaceState(null, "", url);
+    try {
+      await navigator.clipboard.writeText(url.href);
+      status.textContent = "link copied";
+    } catch {
+      status.textContent = `link: ${url.href}`; // no clipboard (an insecure origin, or refused): shown instead
+    }
   };
   const toggleStats = () => {
     stats.hidden = !stats.hidden;
@@ -65,6 +134,10 @@ export function bindControls(player: Player): void {
   quality.onchange = () => player.setRung(quality.value === "auto" ? null : Number(quality.value));
   camera.onchange = () => (camera.value === "" ? moved() : snap(Number(camera.value)));
   statsToggle.onclick = toggleStats;
+  loop.onclick = toggleLoop;
+  speed.onchange = () => player.setSpeed(Number(speed.value));
+  $<HTMLButtonElement>("link").onclick = () => void copyLink();
+  $<HTMLButtonElement>("screenshot").onclick = () => saveScreenshot(player);
   $<HTMLButtonElement>("fullscreen").onclick = fullscreen;
 
   type Point = { x: number; y: number };
@@ -134,6 +207,7 @@ export function bindControls(player: Player): void {
     else if (key === "c") return snap((Number(camera.value || -1) + 1) % Math.max(1, player.cameras.length));
     else if (/^[1-9]$/.test(key)) return snap(Number(key) - 1);
     else if (key === "i") return toggleStats();
+    else if (key === "l") return toggleLoop();
     else if (key === "f") return fullscreen();
     else return;
     e.preventDefault();
@@ -145,7 +219,12 @@ export function bindControls(player: Player): void {
     time.value = `${(shown / m.fps).toFixed(2)} / ${m.durationS.toFixed(2)} s`;
     if (document.activeElement !== seek) seek.value = String(Math.floor(Math.max(0, player.current) / m.shape.gopSize));
     if (!stats.hidden) stats.textContent = player.stats.lines(player.bufferS()).join("\n");
-    if (player.ended && !player.paused) {
+    if (player.stats.shown && !poster.dataset.done) {
+      poster.dataset.done = "1";
+      poster.hidden = true;
+      if (poster.src) URL.revokeObjectURL(poster.src);
+    }
+    if (player.ended && !player.paused && !player.loop) {
       play.textContent = "Replay";
       play.setAttribute("aria-label", "Replay");
     }

@@ -3,7 +3,7 @@
 //
 //   node tools/browse.mjs PLAN.json [CHROMIUM]
 //
-// PLAN: {"webgpu": bool, "viewport": [w, h], "steps": [...]}; each step one of
+// PLAN: {"webgpu": bool, "viewport": [w, h], "touch": bool, "steps": [...]}; each step one of
 //   {"goto": URL}                                   open a page (console errors and page errors are collected)
 //   {"initScript": JS}                              run before every page's own scripts (e.g. remove an API)
 //   {"click": SELECTOR} / {"press": KEY}            a click or a key press
@@ -12,6 +12,9 @@
 //   {"sleep": ms}
 //   {"eval": JS_EXPRESSION, "as": NAME}             evaluate (awaited) and keep the JSON result under NAME
 //   {"screenshot": PATH, "selector": SELECTOR?}     save a PNG
+//   {"download": SELECTOR, "path": PATH, "as": NAME} click, save the file it downloads; keep its suggested name
+//   {"touch": [[x, y], ...], "to": [[x, y], ...], "moves": N}  fingers down at the first points, moved in N steps
+//                                                   to the second, lifted (CDP touch events; needs "touch": true)
 //   {"throttle": {"kbps": N, "latencyMs": N}}       CDP Network.emulateNetworkConditions (null: off)
 // Output: {"results": {...}, "console": [...], "errors": [...], "url": ...}. Exit 1 with one line on stderr when
 // a step fails (the output line still comes first, with "failed").
@@ -62,7 +65,7 @@ const out = { results: {}, console: [], errors: [] };
 let failure = null;
 try {
   const [w, h] = plan.viewport ?? [800, 600];
-  const page = await browser.newPage({ viewport: { width: w, height: h } });
+  const page = await browser.newPage({ viewport: { width: w, height: h }, hasTouch: Boolean(plan.touch) });
   page.on("console", (m) => out.console.push({ type: m.type(), text: m.text().slice(0, 500) }));
   page.on("pageerror", (e) => out.errors.push(String(e).slice(0, 500)));
   let cdp = null;
@@ -75,7 +78,25 @@ try {
     else if (step.wait) await waitFor(page, step.wait, step.timeout ?? 30000);
     else if (step.sleep) await page.waitForTimeout(step.sleep);
     else if (step.eval) out.results[step.as ?? "value"] = await page.evaluate(`(async () => (${step.eval}))()`);
-    else if (step.screenshot) {
+    else if (step.touch) {
+      cdp ??= await page.context().newCDPSession(page);
+      const moves = step.moves ?? 8;
+      const at = (s) =>
+        step.touch.map(([x, y], i) => {
+          const [tx, ty] = step.to[i];
+          return { x: x + ((tx - x) * s) / moves, y: y + ((ty - y) * s) / moves, id: i };
+        });
+      await cdp.send("Input.dispatchTouchEvent", { type: "touchStart", touchPoints: at(0) });
+      for (let s = 1; s <= moves; s++) {
+        await cdp.send("Input.dispatchTouchEvent", { type: "touchMove", touchPoints: at(s) });
+        await page.waitForTimeout(16);
+      }
+      await cdp.send("Input.dispatchTouchEvent", { type: "touchEnd", touchPoints: [] });
+    } else if (step.download) {
+      const [download] = await Promise.all([page.waitForEvent("download"), page.click(step.download)]);
+      await download.saveAs(step.path);
+      out.results[step.as ?? "download"] = download.suggestedFilename();
+    } else if (step.screenshot) {
       const target = step.selector ? page.locator(step.selector) : page;
       await target.screenshot({ path: step.screenshot });
     } else if ("throttle" in step) {

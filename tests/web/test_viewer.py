@@ -1,0 +1,162 @@
+"""The viewer for daily use, in Chromium against `stgs serve`: the catalogue's cards (poster, title as text, the
+watch link), the poster while the first GOP loads, loop and speed, deep links to a moment and a view (and the
+ones that do not hold up), and the screenshot."""
+
+from __future__ import annotations
+
+import cv2
+import pytest
+
+from tests.web.conftest import LOADED, SMALL_TITLE, WEB_SCENE, browse
+
+FRAMES = WEB_SCENE.num_gops * WEB_SCENE.gop_size
+SHOWN = "stgsPlayer.stats.shown !== null"
+VIEW = ("({current: stgsPlayer.current, pose: stgsPlayer.camera.pose && stgsPlayer.camera.pose.name, "
+        "orbit: stgsPlayer.camera.orbitPose(), loops: stgsPlayer.loops, loop: stgsPlayer.loop, "
+        "speed: stgsPlayer.speed})")
+WARNINGS = "deep link ignored"
+
+
+def player(served: str, fragment: str = "", **params: str) -> str:
+    query = "".join(f"&{k}={v}" for k, v in params.items())
+    return f"{served}player/?mpd=/small/manifest.mpd{query}" + (f"#{fragment}" if fragment else "")
+
+
+def test_the_catalogue_shows_cards_with_posters_and_titles_as_text(served):
+    card = "document.querySelector('article[aria-label]')"
+    out = browse({"viewport": [800, 600], "steps": [
+        {"goto": served},
+        {"wait": "[...document.images].every(i => i.complete)"},
+        {"eval": "[...document.querySelectorAll('article img')].map(i => [i.naturalWidth, i.naturalHeight])",
+         "as": "posters"},
+        {"eval": "[...document.querySelectorAll('article h2')].map(h => [h.textContent, h.children.length])",
+         "as": "titles"},
+        {"eval": f"{card} !== null", "as": "card"},
+        {"press": "Tab"},
+        {"eval": "document.activeElement.textContent.trim()", "as": "focused"},
+        {"click": "a[href*='small']"},
+        {"wait": LOADED, "timeout": 60000},
+        {"eval": "[document.getElementById('title').textContent, document.title]", "as": "player_title"},
+    ]})
+    results = out["results"]
+    assert [WEB_SCENE.width, WEB_SCENE.height] in results["posters"]  # the first camera's size, decoded
+    assert [SMALL_TITLE, 0] in results["titles"]  # the markup is text: no element inside the heading
+    assert results["focused"].startswith("watch")  # the first link on the page is a card's watch link
+    assert results["player_title"] == [SMALL_TITLE, f"{SMALL_TITLE} · streamstgs"]
+    assert "player/?mpd=" in out["url"] and not out["errors"]
+
+
+def test_the_poster_shows_until_the_first_frame(served):
+    poster = "document.getElementById('poster')"
+    out = browse({"viewport": [360, 300], "steps": [
+        {"goto": served + "healthz"},
+        {"throttle": {"kbps": 100, "latencyMs": 40}},  # the first GOP takes seconds, the poster a moment
+        {"goto": player(served, size="96x72")},
+        {"wait": f"!{poster}.hidden && {poster}.naturalWidth > 0", "timeout": 60000},
+        {"eval": f"[{SHOWN}, {poster}.naturalWidth]", "as": "early"},
+        {"throttle": None},
+        {"wait": f"{SHOWN} && {poster}.hidden", "timeout": 120000},
+    ]})
+    assert out["results"]["early"] == [False, WEB_SCENE.width]
+
+
+def test_a_short_scene_loops_and_plays_at_the_speed_asked(served):
+    out = browse({"viewport": [360, 300], "steps": [
+        {"goto": player(served, size="64x48", speed="2")},
+        {"wait": LOADED},
+        {"eval": VIEW, "as": "start"},
+        {"wait": "stgsPlayer.loops >= 1 && stgsPlayer.current >= 0 && stgsPlayer.current < 2 * "
+                 f"{WEB_SCENE.gop_size}", "timeout": 240000},
+        {"eval": VIEW, "as": "looped"},
+        {"press": "l"},
+        {"eval": VIEW, "as": "toggled"},
+    ]})
+    r = out["results"]
+    assert r["start"]["loop"] is True and r["start"]["speed"] == 2  # 5 s: under ten seconds, it loops
+    assert r["looped"]["loops"] >= 1 and 0 <= r["looped"]["current"] < FRAMES  # played past the end
+    assert r["toggled"]["loop"] is False
+    assert not [c for c in out["console"] if c["type"] == "error"] and not out["errors"]
+
+
+def test_a_deep_link_lands_on_its_moment_and_camera_and_copy_link_gives_one(served):
+    t, cam = 2.3, "cam02"
+    frame = round(t * WEB_SCENE.fps)
+    out = browse({"viewport": [360, 300], "steps": [
+        {"goto": player(served, f"t={t}&cam={cam}", size="96x72", autoplay="0")},
+        {"wait": f"{LOADED} && {SHOWN}", "timeout": 120000},
+        {"eval": VIEW, "as": "landed"},
+        {"eval": "stgsPlayer.camera.orbit(0.3, 0.1), stgsPlayer.invalidate(), true"},
+        {"click": "#link"},
+        {"wait": "document.getElementById('status').textContent !== ''"},
+        {"eval": "[location.hash, document.getElementById('status').textContent]", "as": "link"},
+        {"eval": "stgsPlayer.camera.orbitPose()", "as": "orbit"},
+    ]})
+    landed = out["results"]["landed"]
+    assert landed["current"] == frame and landed["pose"] == cam
+    fragment, status = out["results"]["link"]
+    assert fragment.startswith(f"#t={frame / WEB_SCENE.fps:.3f}&cam=") and status
+    again = browse({"viewport": [360, 300], "steps": [
+        {"goto": player(served, fragment[1:], size="96x72", autoplay="0")},
+        {"wait": f"{LOADED} && {SHOWN}", "timeout": 120000},
+        {"eval": VIEW, "as": "landed"},
+    ]})
+    landed = again["results"]["landed"]
+    assert landed["current"] == frame and landed["pose"] is None
+    assert landed["orbit"] == out["results"]["orbit"]  # the pose round-trips through the link
+    assert not [c for c in again["console"] if WARNINGS in c["text"]]
+
+
+@pytest.mark.parametrize("fragment, warned", [
+    ("t=NaN&cam=nope", ["t=NaN", "cam=nope"]),
+    ("t=1e308", ["t=1e308"]),
+    ("t=-1&cam=1,2,3", ["t=-1", "cam=1,2,3"]),
+    ("cam=0,0,0,0,0,1e9,60", ["cam=0,0,0,0,0,1e9,60"]),
+])
+def test_a_fragment_that_does_not_hold_up_is_ignored_with_a_warning(served, fragment, warned):
+    out = browse({"viewport": [360, 300], "steps": [
+        {"goto": player(served, fragment, size="64x48", autoplay="0")},
+        {"wait": f"{LOADED} && {SHOWN}", "timeout": 120000},
+        {"eval": VIEW, "as": "view"},
+    ]})
+    view = out["results"]["view"]
+    assert view["current"] == 0 and view["pose"] == "cam00"  # the default view: the first frame, the first camera
+    warnings = [c["text"] for c in out["console"] if c["type"] == "warning" and WARNINGS in c["text"]]
+    assert len(warnings) == len(warned) and all(any(w in text for text in warnings) for w in warned), warnings
+    assert not out["errors"] and not [c for c in out["console"] if c["type"] == "error"]
+
+
+def test_the_screenshot_is_a_png_of_the_canvas(served, tmp_path):
+    out = browse({"viewport": [360, 300], "steps": [
+        {"goto": player(served, "t=1&cam=cam01", size="96x72", autoplay="0")},
+        {"wait": f"{LOADED} && {SHOWN}", "timeout": 120000},
+        {"download": "#screenshot", "path": str(tmp_path / "shot.png"), "as": "name"},
+        {"eval": "[document.getElementById('view').width, document.getElementById('view').height]", "as": "size"},
+    ]})
+    data = (tmp_path / "shot.png").read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    image = cv2.imread(str(tmp_path / "shot.png"))
+    assert [image.shape[1], image.shape[0]] == out["results"]["size"] == [96, 72] and image.std() > 5
+    assert out["results"]["name"].endswith("-t1.00s.png") and out["results"]["name"].startswith("Small_")
+
+
+def test_touch_orbits_with_one_finger_and_zooms_with_a_pinch(served):
+    camera = "[stgsPlayer.camera.yaw, stgsPlayer.camera.pitch, stgsPlayer.camera.radius, stgsPlayer.camera.pose]"
+    out = browse({"viewport": [800, 600], "touch": True, "steps": [
+        {"goto": player(served, size="96x72", autoplay="0")},
+        {"wait": f"{LOADED} && {SHOWN}", "timeout": 120000},
+        {"eval": "document.elementFromPoint(300, 150).id", "as": "under"},
+        {"eval": camera, "as": "before"},
+        {"touch": [[300, 150]], "to": [[380, 130]]},
+        {"eval": camera, "as": "orbited"},
+        {"touch": [[350, 150], [410, 150]], "to": [[310, 150], [450, 150]]},  # fingers apart: closer
+        {"eval": camera, "as": "pinched"},
+    ]})
+    r = out["results"]
+    assert r["under"] == "view"
+    (yaw0, pitch0, radius0, pose0), (yaw1, pitch1, radius1, pose1) = r["before"], r["orbited"]
+    assert pose0 is not None and pose1 is None  # the snapped scene camera is left for the orbit
+    assert yaw1 == pytest.approx(yaw0 - 80 * 0.005) and pitch1 == pytest.approx(pitch0 - 20 * 0.005)
+    assert radius1 == pytest.approx(radius0)
+    yaw2, _, radius2, _ = r["pinched"]
+    assert yaw2 == pytest.approx(yaw1) and radius2 < 0.6 * radius1  # from 60 px apart to 140 px apart
+    assert not out["errors"]
