@@ -91,7 +91,7 @@ def test_bench_play_smoke(tmp_path):
     pack(tmp_path / "model", tmp_path / "dash", PackConfig(ladder="fixed",
                                                            qps=(20, 32), preset="ultrafast"), progress=False)
     result = stgs("bench", "play", "--dash", str(tmp_path / "dash"), "--qps", "20,32", "--width", "64",
-                  "--height", "48")
+                  "--height", "48", "--repeats", "1")
     assert result.returncode == 0, result.stderr
     rows = [line.split("|") for line in result.stdout.splitlines() if line.startswith("| dash |")]
     from stgs.model.native_deform import bf16_available

@@ -233,7 +233,7 @@ def pick_timeline(verdicts: list[tuple[int, int, str, bool, Path]], qps: list[in
 
 
 
-def cli(dash: Path | None, scene, qps: list[int], width: int, height: int) -> int:
+def cli(dash: Path | None, scene, qps: list[int], width: int, height: int, repeats: int = 3) -> int:
     """`stgs bench play`: a packaged tree as it is, else the SynthConfig `scene` synthesised, looped to 60 s and
     packed (in a temporary folder)."""
     import tempfile
@@ -241,7 +241,8 @@ def cli(dash: Path | None, scene, qps: list[int], width: int, height: int) -> in
     from stgs.synth import synthesize
 
     with tempfile.TemporaryDirectory(prefix="stgs-bench-play-") as tmp:
-        argv = ["--qps", ",".join(map(str, qps)), "--size", f"{width}x{height}", "--work", tmp]
+        argv = ["--qps", ",".join(map(str, qps)), "--size", f"{width}x{height}", "--repeats", str(repeats),
+                "--work", tmp]
         if dash is not None:
             return main([*argv, "--dash", str(dash)])
         print(f"synthesising a {scene.grid_side ** 2}-Gaussian scene (minutes) ...", flush=True)

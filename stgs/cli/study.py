@@ -100,7 +100,8 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
                    help="comma-separated Gaussian counts (default: 16384,65536,147456)")
     p.add_argument("--width", type=positive_int, default=640)
     p.add_argument("--height", type=positive_int, default=360)
-    p.add_argument("--repeats", type=positive_int, default=5, help="timed runs per measurement")
+    p.add_argument("--repeats", type=positive_int,
+                   help="timed runs per measurement (render: default 5; play: start-up and seek runs, default 3)")
     p.add_argument("--reference-max", type=int, default=65536,
                    help="render: skip the reference backends above this many Gaussians (time)")
     p.add_argument("--steps", default="25,50,100,200,400,800",
@@ -181,7 +182,7 @@ def run_bench(args: argparse.Namespace) -> int:
         raise UsageError(f"--scene must be one of {', '.join(sorted(PRESETS))}")
     if args.suite == "play":
         qps = int_list(args.qps, "--qps")
-        return bench_suite(name).cli(args.dash, PRESETS[scene], qps, args.width, args.height)
+        return bench_suite(name).cli(args.dash, PRESETS[scene], qps, args.width, args.height, args.repeats or 3)
     if args.suite == "pack":
         from stgs.codec.video import PRESETS as X265_PRESETS
 
@@ -199,4 +200,4 @@ def run_bench(args: argparse.Namespace) -> int:
         qps = int_list(args.qps, "--qps")
         return bench_suite(name).main(steps, args.preset, smoothness, qps)
     sizes = int_list(args.sizes, "--sizes")
-    return bench_suite(name).main(sizes, args.width, args.height, args.repeats, args.reference_max)
+    return bench_suite(name).main(sizes, args.width, args.height, args.repeats or 5, args.reference_max)

@@ -1,13 +1,26 @@
 """The viewer for daily use, in Chromium against `stgs serve`: the catalogue's cards (poster, title as text, the
 watch link), the poster while the first GOP loads, loop and speed, deep links to a moment and a view (and the
-ones that do not hold up), and the screenshot."""
+ones that do not hold up), the screenshot, touch; and a GOP trained on the real Panoptic capture, end to end."""
 
 from __future__ import annotations
 
-import cv2
-import pytest
+import base64
+import json
+import subprocess
+import sys
+from pathlib import Path
 
-from tests.web.conftest import LOADED, SMALL_TITLE, WEB_SCENE, browse
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from stgs.cli.browser import served as serve_root
+from stgs.metrics import psnr
+from stgs.packager import PackConfig, pack
+from stgs.train import budget, train
+from tests.conftest import PANOPTIC
+from tests.web.conftest import LOADED, SMALL_TITLE, WEB_SCENE, browse, need_browser
 
 FRAMES = WEB_SCENE.num_gops * WEB_SCENE.gop_size
 SHOWN = "stgsPlayer.stats.shown !== null"
@@ -15,6 +28,8 @@ VIEW = ("({current: stgsPlayer.current, pose: stgsPlayer.camera.pose && stgsPlay
         "orbit: stgsPlayer.camera.orbitPose(), loops: stgsPlayer.loops, loop: stgsPlayer.loop, "
         "speed: stgsPlayer.speed})")
 WARNINGS = "deep link ignored"
+PANOPTIC_GOP = 6
+"""Frames of the trained Panoptic GOP."""
 
 
 def player(served: str, fragment: str = "", **params: str) -> str:
@@ -160,3 +175,56 @@ def test_touch_orbits_with_one_finger_and_zooms_with_a_pinch(served):
     yaw2, _, radius2, _ = r["pinched"]
     assert yaw2 == pytest.approx(yaw1) and radius2 < 0.6 * radius1  # from 60 px apart to 140 px apart
     assert not out["errors"]
+
+
+@pytest.fixture(scope="module")
+def panoptic_tree(tmp_path_factory) -> Path:
+    """One GOP of the Panoptic capture trained on the quick layered budget at quarter size, packed with one AV1 rung
+    (skipped without ../shared)."""
+    if not PANOPTIC.is_dir():
+        pytest.skip("../shared/data/panoptic-basketball is absent")
+    need_browser()
+    base = tmp_path_factory.mktemp("panoptic")
+    train(PANOPTIC, base / "model", budget("quick", layers="layered", gop_size=PANOPTIC_GOP, max_gops=1, scale=0.25),
+          progress=False)
+    pack(base / "model", base / "root" / "basketball", PackConfig(ladder="fixed", codecs=("av1",), av1_qps=(16,),
+                                                                  jobs=2, title="Panoptic basketball"), progress=False)
+    return base / "root" / "basketball"
+
+
+def test_a_trained_panoptic_gop_plays_and_matches_stgs_play_at_a_scene_camera(panoptic_tree, tmp_path):
+    """A real capture end to end in Chromium: played to its end with no error, then its frame at a scene camera
+    against `stgs play --camera`, then driven by touch (one finger orbits, a pinch zooms, and the view redraws)."""
+    cameras = json.loads((panoptic_tree / "cameras.json").read_text())["cameras"]
+    cam = next(c for c in cameras if c["name"] == "14")  # a held-out camera: the model never saw it
+    size, frame = f"{cam['width']}x{cam['height']}", PANOPTIC_GOP // 2
+    pose = "[stgsPlayer.camera.yaw, stgsPlayer.camera.radius, stgsPlayer.stats.frameTimes.length]"  # draws so far
+    with serve_root(panoptic_tree.parent) as base:
+        url = f"{base}player/?mpd=/basketball/manifest.mpd&size={size}&camera={cam['name']}&loop=0"
+        out = browse({"viewport": [800, 600], "touch": True, "steps": [
+            {"goto": url},
+            {"wait": "window.stgsPlayer && stgsPlayer.ended", "timeout": 180000},
+            {"eval": "stgsPlayer.current", "as": "last"},
+            {"eval": f"stgsPlayer.showFrame({frame})", "as": "shown"},
+            {"eval": "stgsPlayer.capture()", "as": "png"},
+            {"eval": f"(window.before = {pose})", "as": "before"},
+            {"touch": [[300, 150]], "to": [[380, 150]]},
+            {"touch": [[350, 150], [410, 150]], "to": [[310, 150], [450, 150]]},
+            {"wait": "stgsPlayer.stats.frameTimes.length > window.before[2]", "timeout": 30000},
+            {"eval": pose, "as": "after"},
+        ]})
+        result = subprocess.run([sys.executable, "-m", "stgs.cli", "play", base + "basketball/manifest.mpd",
+                                 "--codec", "av1", "--qp", "16", "--camera", cam["name"], "--duration",
+                                 str((frame + 1) / 30.0), "--out", str(tmp_path / "ref")],
+                                capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    r = out["results"]
+    assert r["last"] == PANOPTIC_GOP - 1 and r["shown"] == {"gop": 0, "frame": frame}
+    assert not out["errors"] and not [c for c in out["console"] if c["type"] == "error"]
+    ref = cv2.cvtColor(cv2.imread(str(tmp_path / "ref" / f"{frame:05d}.png")), cv2.COLOR_BGR2RGB) / 255.0
+    raw = np.frombuffer(base64.b64decode(r["png"].split(",", 1)[1]), np.uint8)
+    web = cv2.cvtColor(cv2.imdecode(raw, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB) / 255.0
+    assert web.shape == ref.shape == (cam["height"], cam["width"], 3) and ref.std() > 0.05
+    assert psnr(torch.from_numpy(web), torch.from_numpy(ref)) >= 40.0
+    (yaw0, radius0, _), (yaw1, radius1, _) = r["before"], r["after"]
+    assert yaw1 == pytest.approx(yaw0 - 80 * 0.005) and radius1 < 0.6 * radius0
