@@ -100,6 +100,7 @@ def test_a_deep_link_lands_on_its_moment_and_camera_and_copy_link_gives_one(serv
         {"goto": player(served, f"t={t}&cam={cam}", size="96x72", autoplay="0")},
         {"wait": f"{LOADED} && {SHOWN}", "timeout": 120000},
         {"eval": VIEW, "as": "landed"},
+        {"wait": "document.getElementById('camera').selectedOptions[0].textContent === 'cam02'"},  # the menu too
         {"eval": "stgsPlayer.camera.orbit(0.3, 0.1), stgsPlayer.invalidate(), true"},
         {"click": "#link"},
         {"wait": "document.getElementById('status').textContent !== ''"},

@@ -81,7 +81,11 @@ export function bindControls(player: Player): void {
   player.cameras.forEach((c, i) => {
     camera.add(new Option(c.name, String(i)));
   });
-  if (player.cameras.length) camera.value = "0";
+  const showCamera = () => {
+    const posed = player.camera.pose ? player.cameras.indexOf(player.camera.pose) : -1;
+    camera.value = posed >= 0 ? String(posed) : "";
+  };
+  showCamera();
 
   const showPlay = () => {
     play.textContent = player.paused ? "Play" : "Pause";
@@ -217,6 +221,7 @@ export function bindControls(player: Player): void {
   const refresh = () => {
     const shown = Math.max(0, player.current + 1);
     time.value = `${(shown / m.fps).toFixed(2)} / ${m.durationS.toFixed(2)} s`;
+    if (document.activeElement !== camera) showCamera(); // a deep link may have moved the view
     if (document.activeElement !== seek) seek.value = String(Math.floor(Math.max(0, player.current) / m.shape.gopSize));
     if (!stats.hidden) stats.textContent = player.stats.lines(player.bufferS()).join("\n");
     if (player.stats.shown && !poster.dataset.done) {
