@@ -125,10 +125,66 @@ def test_the_core_imports_downwards_only():
     assert upward_imports() == []
 
 
-# python -m tests.test_import_direction: the core's import graph and what goes against the tiers
+def package_imports() -> dict[str, set[str]]:
+    """`stgs.<name>` -> the other `stgs.<name>` it imports, over the whole package (core, stages, top layer)."""
+    out: dict[str, set[str]] = {}
+    for path, mods in imported_modules(ROOT / "stgs", ROOT).items():
+        parts = Path(path).with_suffix("").parts
+        if parts[1:] == ("__init__",):
+            continue
+        own = parts[1]
+        out.setdefault(own, set()).update(m.split(".")[1] for m in mods
+                                          if under(m, "stgs") and m.count(".") >= 1 and m.split(".")[1] != own)
+    return out
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Every cycle of `graph`, as its strongly connected components of more than one node (Tarjan), sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found = []
+
+    def visit(node: str) -> None:
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        for nxt in sorted(graph.get(node, ())):
+            if nxt not in index:
+                visit(nxt)
+                low[node] = min(low[node], low[nxt])
+            elif nxt in stack:
+                low[node] = min(low[node], index[nxt])
+        if low[node] == index[node]:
+            component = []
+            while (top := stack.pop()) != node:
+                component.append(top)
+            if component:
+                found.append(sorted([node, *component]))
+
+    for node in sorted(graph):
+        if node not in index:
+            visit(node)
+    return sorted(found)
+
+
+def test_the_package_has_no_import_cycle():
+    assert import_cycles(package_imports()) == []
+
+
+def test_the_cycle_finder_finds_the_cycle_the_package_once_had():
+    graph = {"data": {"synth", "camera"}, "synth": {"interop"}, "interop": {"evaluate"}, "evaluate": {"train"},
+             "train": {"data", "model"}, "model": set(), "camera": set()}
+    assert import_cycles(graph) == [["data", "evaluate", "interop", "synth", "train"]]
+    assert import_cycles({"a": {"b"}, "b": set()}) == []
+
+
+# python -m tests.test_import_direction: the import graph of stgs's subpackages, its cycles, and the core's imports
+# that go against the tiers
 if __name__ == "__main__":
-    for module, deps in sorted(core_imports().items()):
+    graph = package_imports()
+    for module, deps in sorted(graph.items()):
         print(f"stgs.{module} -> {', '.join(f'stgs.{d}' for d in sorted(deps)) or '(nothing)'}")
+    print("cycles:", "; ".join(" -> ".join(f"stgs.{m}" for m in c) for c in import_cycles(graph)) or "none")
     print("upward:", ", ".join(upward_imports()) or "none")
 
 

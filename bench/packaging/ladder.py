@@ -25,7 +25,8 @@ import torch
 
 from stgs.codec.video import decode_segment
 from stgs.metrics import mse_psnr
-from stgs.packager.packer import PackConfig, Packer, pack
+from stgs.packager import pack
+from stgs.packager.packer import PackConfig, Packer
 from stgs.packager.segments import view_errors
 from stgs.picks import spread
 

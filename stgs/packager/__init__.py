@@ -13,7 +13,7 @@ from stgs.packager.config import PackConfig
 from stgs.tree import MANIFEST, STATS
 
 if TYPE_CHECKING:
-    from stgs.packager.packer import pack
+    from stgs.packager.run import pack
 
 __all__ = ["DEFAULT_QPS", "MANIFEST", "STATS", "PackConfig", "pack"]
-__getattr__ = lazy_attributes(__name__, {"pack": "stgs.packager.packer"})
+__getattr__ = lazy_attributes(__name__, {"pack": "stgs.packager.run"})

@@ -346,22 +346,3 @@ def point_task_name(k: int, codec: FeatureCodec, q: int) -> str:
     """The name of GOP k's task at one ladder point (in the resume state and the task logs): `gop3-qp20`,
     `gop3-av1q30`."""
     return f"gop{k}-{codec.rep_id(q)}"
-
-
-def pack(model_dir: Path, out: Path, cfg: PackConfig | None = None, progress: bool = True, ray: str | None = None,
-         retries: int = 3) -> dict:
-    """Package a model dir into a DASH tree at `out`; returns the stats document. `ray`: None (this process, on
-    a pool of `cfg.jobs` encoders) or a Ray address (stgs.tasks.open_runner; stgs.packager.tasks)."""
-    packer = Packer(model_dir, Path(out), cfg or PackConfig(), progress)
-    if ray is None:
-        packer.prepare_output()
-        return packer.run()
-    from stgs.packager.tasks import run_tasks
-    from stgs.tasks import open_runner
-
-    runner = open_runner(ray, retries, progress)  # before anything is written: a bad address leaves no output
-    try:
-        packer.prepare_output()
-        return run_tasks(packer, runner)
-    finally:
-        runner.close()
