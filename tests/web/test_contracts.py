@@ -22,6 +22,14 @@ def test_the_pages_caps_are_the_python_caps():
     assert {k: float(getattr(limits, k)) for k in shared} == shared
 
 
+def test_the_pages_poster_path_rule_is_the_catalogues():
+    from stgs.server.catalogue import POSTER_PATH
+
+    text = (WEB / "src" / "scene.ts").read_text()
+    ours = re.search(r"const POSTER_PATH = /\^(.*)\$/;", text)[1].replace("\\/", "/")
+    assert ours == POSTER_PATH.pattern
+
+
 def test_the_pages_view_frustum_is_the_python_one():
     from stgs.model import renderer
 
