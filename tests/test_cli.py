@@ -27,6 +27,14 @@ def test_every_subcommand_has_help(capsys):
     assert result.returncode == 0 and all(name in result.stdout for name in SUBCOMMANDS)
 
 
+def test_synth_help_names_every_effect_the_generator_knows():
+    from stgs.cli.config_flags import field_docs
+    from stgs.synth.config import EFFECTS, SynthConfig
+
+    doc = field_docs(SynthConfig)["effects"]
+    assert all(name in doc for name in EFFECTS)
+
+
 def test_the_parsers_load_neither_torch_nor_opencv():
     """Every subcommand's help, choices and defaults come from light modules: help and a mistyped flag are
     instant, and the heavy stack loads only when a command runs."""

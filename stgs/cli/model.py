@@ -22,9 +22,32 @@ from stgs.cli.config_flags import ConfigFlag, add_config_flags, config_values
 from stgs.cli.interop import add_static_import, describe_import, static_import_overrides
 
 
+def synth_flags() -> tuple[ConfigFlag, ...]:
+    """The SynthConfig fields `stgs synth` sets; their defaults are the preset's."""
+    preset = "the preset's"
+    return (
+        ConfigFlag("grid_side", type=positive_int, metavar="S", default_note=preset),
+        ConfigFlag("num_gops", "--gops", type=positive_int, default_note=preset),
+        ConfigFlag("gop_size", type=positive_int, default_note=preset),
+        ConfigFlag("width", type=positive_int, default_note=preset),
+        ConfigFlag("height", type=positive_int, default_note=preset),
+        ConfigFlag("num_cameras", "--cameras", type=positive_int, default_note=preset),
+        ConfigFlag("fit_steps", default_note=preset),
+        ConfigFlag("feature_smoothness", default_note=preset),
+        ConfigFlag("seed", default_note=preset),
+        ConfigFlag("effects", type=effect_list, metavar="EFFECTS", default_note=preset),
+        ConfigFlag("static_grid_side", type=positive_int, default_note=preset),
+        ConfigFlag("fold", on=True),
+    )
+
+
+SECONDS = (ConfigFlag("num_gops", "--seconds"),)
+"""--seconds sets the scene's length in place of --gops (named in the help texts)."""
+
+
 def add_synth(sub: argparse._SubParsersAction) -> None:
     from stgs.synth import PRESETS
-    from stgs.synth.config import EFFECTS
+    from stgs.synth.config import SynthConfig
 
     p = sub.add_parser("synth", help="generate a synthetic dynamic scene: ground truth + model dir",
                        description="Generate a procedural dynamic scene, render its ground-truth "
@@ -33,27 +56,9 @@ def add_synth(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--preset", choices=sorted(PRESETS), default="small",
                    help="base configuration (default: small)")
     p.add_argument("--config", type=Path, help="TOML file overriding SynthConfig fields")
-    p.add_argument("--grid-side", type=positive_int, help="S: capacity N = S² Gaussians")
-    p.add_argument("--gops", type=positive_int, dest="num_gops", help="number of GOPs")
-    p.add_argument("--gop-size", type=positive_int, help="frames per GOP")
+    add_config_flags(p, SynthConfig, synth_flags(), among=SECONDS)
     p.add_argument("--seconds", type=positive_seconds,
                    help="the capture's length instead of --gops: as many GOPs as it takes at the scene's fps")
-    p.add_argument("--width", type=positive_int, help="ground-truth image width")
-    p.add_argument("--height", type=positive_int, help="ground-truth image height")
-    p.add_argument("--cameras", type=positive_int, dest="num_cameras", help="ground-truth cameras")
-    p.add_argument("--fit-steps", type=int, help="Adam steps of the parameter fit per GOP")
-    p.add_argument("--feature-smoothness", type=float,
-                   help="weight of the fit's feature roughness term, grid and time neighbours (default 0.3; "
-                   "0: off, noise-like features that cost several times the bits)")
-    p.add_argument("--seed", type=int, help="random seed")
-    p.add_argument("--effects", type=effect_list,
-                   help=f"comma-separated effects to simulate (known: {','.join(EFFECTS)}; static_background "
-                   "makes a layered scene, model format 2)")
-    p.add_argument("--static-grid-side", type=positive_int,
-                   help="S_s: Gaussians S_s² of the static layer with static_background (default 32)")
-    p.add_argument("--fold", action="store_true", default=None,
-                   help="with static_background: fold the backdrop into every GOP (the same scene as a "
-                   "single-layer, format-1 model, to compare with the layered one)")
     add_static_import(p, train=False)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(run=run_synth)
@@ -65,9 +70,7 @@ def synth_config_from_args(args: argparse.Namespace):
     cfg = PRESETS[args.preset]
     if args.config:
         cfg = config_from_toml(args.config, cfg)
-    overrides = {f.name: getattr(args, f.name) for f in dataclasses.fields(cfg)
-                 if getattr(args, f.name, None) is not None}
-    cfg = dataclasses.replace(cfg, **overrides)
+    cfg = dataclasses.replace(cfg, **config_values(args, synth_flags()))
     if args.static_from is not None:
         from stgs.interop.static import read_transform
 

@@ -43,7 +43,8 @@ class SynthConfig:
     num_cameras: int = 6
     """Ground-truth cameras on a ring around the scene."""
     effects: tuple[str, ...] = DEFAULT_EFFECTS
-    """Effects to simulate; nothing that is not named here is animated (static_background: a layered scene)."""
+    """Effects to simulate, of rigid, nonrigid, color, appear, view_dependent and static_background (EFFECTS); nothing
+    that is not named here is animated (static_background: a layered scene)."""
     static_grid_side: int = 32
     """S_s of the static layer (the backdrop's S_s² Gaussians) when static_background is on."""
     fit_steps: int = 300
