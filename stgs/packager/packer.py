@@ -32,6 +32,7 @@ from stgs.codec.static import decode_static, pack_static
 from stgs.codec.video import CODECS, HEVC, FeatureCodec, VideoTiming
 from stgs.errors import StgsError
 from stgs.fsio import atomic_write_bytes
+from stgs.limits import MAX_TITLE_CHARS
 from stgs.model.static import StaticLayer
 from stgs.model.store import SceneMeta, load_gop, load_static, read_meta
 from stgs.mpd.profile import StaticLayerDescriptor
@@ -220,7 +221,7 @@ class Packer:
             rgb, view = render_poster(self.model_dir, self.meta, self.static)
             poster = poster_path(self.version_dir)
             self.write(poster, encode_poster(rgb))
-        title = self.cfg.title if self.cfg.title is not None else self.model_dir.resolve().name
+        title = self.cfg.title if self.cfg.title is not None else self.model_dir.resolve().name[:MAX_TITLE_CHARS]
         atomic_write_bytes(self.out / SCENE, scene_document(title, self.cfg.description, poster, view))
 
     def choose_ladder(self) -> dict:
