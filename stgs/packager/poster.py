@@ -12,6 +12,7 @@ import torch
 
 from stgs.camera import Camera, resize
 from stgs.errors import StgsError
+from stgs.model.gop import GOPModel
 from stgs.model.renderer import FrameRenderer, framing_orbit
 from stgs.model.static import StaticLayer
 from stgs.model.store import SceneMeta, load_gop
@@ -24,12 +25,12 @@ POSTER_QUALITY = 85
 """WebP quality (0..100) of the poster."""
 
 
-def poster_camera(model_dir: Path, meta: SceneMeta) -> Camera:
+def poster_camera(model_dir: Path, gop: GOPModel) -> Camera:
     """The first scene camera (scaled so that its longer side is at most POSTER_MAX_SIDE), or for a model with no
-    cameras the first view of an orbit framing GOP 0."""
+    cameras the first view of an orbit framing `gop` (the first GOP)."""
     cameras = scene_cameras(model_dir)
     if not cameras:
-        return framing_orbit(load_gop(model_dir, meta, 0), 1, POSTER_MAX_SIDE, POSTER_MAX_SIDE * 9 // 16)[0]
+        return framing_orbit(gop, 1, POSTER_MAX_SIDE, POSTER_MAX_SIDE * 9 // 16)[0]
     cam = cameras[0]
     scale = min(1.0, POSTER_MAX_SIDE / max(cam.width, cam.height))
     return resize(cam, max(1, round(cam.width * scale)), max(1, round(cam.height * scale)))
@@ -38,9 +39,10 @@ def poster_camera(model_dir: Path, meta: SceneMeta) -> Camera:
 def render_poster(model_dir: Path, meta: SceneMeta, static: StaticLayer | None) -> tuple[np.ndarray, dict]:
     """(H, W, 3) uint8 RGB poster and where it was taken ({"camera", "frame"}): the middle frame of GOP 0, with the
     static layer where the scene has one."""
-    cam = poster_camera(model_dir, meta)
+    gop = load_gop(model_dir, meta, 0)
+    cam = poster_camera(model_dir, gop)
     frame = meta.shape.gop_size // 2
-    image = FrameRenderer(load_gop(model_dir, meta, 0), static=static).render(frame, cam)
+    image = FrameRenderer(gop, static=static).render(frame, cam)
     rgb = (image.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
     return rgb, {"camera": cam.name, "frame": frame}
 

@@ -108,7 +108,7 @@ def quality_views(model_dir: Path, meta: SceneMeta, model: Callable[[], GOPModel
     picked = every if frames is None else spread(every, frames)
     scene = scene_cameras(model_dir)
     by_name = {c.name: c for c in scene}
-    held = (meta.extra or {}).get("validation_cameras") or [] if (model_dir / CAMERAS).is_file() else []
+    held = (meta.extra or {}).get("validation_cameras") or []
     if held and all(name in by_name for name in held):
         return QualityViews([by_name[name] for name in held], "held-out", picked)
     if scene:
