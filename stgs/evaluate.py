@@ -4,7 +4,8 @@ Per frame and per GOP: PSNR and SSIM of renders from the validation cameras
 against the dataset's images (and, where the dataset has foreground masks,
 PSNR inside and outside them), for the uncompressed model dir and, with
 `--dash`, for every feature Representation of the packaged tree (decoded
-exactly as a player decodes it). LPIPS too where its backbone's weights are
+exactly as a player decodes it; a still scene: its static layer at the capture's
+frame, and the tree's as `static`). LPIPS too where its backbone's weights are
 already on this machine (torchvision's cache; never downloaded). Writes
 eval.json and a side-by-side grid (render | ground truth | 10x error).
 """
@@ -14,6 +15,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -26,11 +28,12 @@ from stgs.errors import FieldError, StgsError
 from stgs.fsio import atomic_write_bytes, image_grid, save_png
 from stgs.metrics import LPIPS, lpips_backbone_file, mse_psnr, psnr, ssim
 from stgs.model.gop import GOPModel
-from stgs.model.renderer import FrameRenderer
-from stgs.model.store import load_gop, load_static, read_meta
+from stgs.model.renderer import FrameRenderer, render_still
+from stgs.model.static import StaticLayer
+from stgs.model.store import SceneMeta, load_gop, load_static, read_meta
 from stgs.packaged import packaged_gops, packaged_static
 from stgs.train.images import default_memory, open_views, scale_camera
-from stgs.tree import TRAIN_REPORT
+from stgs.tree import STATIC_REP, TRAIN_REPORT
 
 GRID_ROWS = 4
 
@@ -54,25 +57,21 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
         raise StgsError(f"{ds.name}: no camera(s) {unknown}")
     start = int(extra.get("start_frame", 0))
     scale = float((extra.get("config") or {}).get("scale", 1.0))
-    g = meta.shape.gop_size
-    if start + meta.num_gops * g > ds.num_frames:
-        raise StgsError(f"{ds.name} has {ds.num_frames} frames; the model needs {start + meta.num_gops * g}")
-    sources: dict[str, Callable[[int], GOPModel]] = {"uncompressed": lambda k: load_gop(model_dir, meta, k)}
+    # a still scene is scored as one GOP of one frame (its static layer, uncompressed and as the tree's player draws it)
+    g, gops = (1, 1) if meta.still else (meta.shape.gop_size, meta.num_gops)
+    if start + gops * g > ds.num_frames:
+        raise StgsError(f"{ds.name} has {ds.num_frames} frames; the model needs {start + gops * g}")
     static = load_static(model_dir, meta)
-    statics = dict.fromkeys(sources, static)
-    if dash is not None:
-        packaged = packaged_gops(Path(dash))
-        sources |= packaged
-        statics |= dict.fromkeys(packaged, packaged_static(Path(dash)))  # the tree's, as a player draws it
+    sources, drawers = still_drawers(static, dash) if meta.still else gop_drawers(model_dir, meta, static, dash)
     lpips = LPIPS.load(lpips_net) if lpips_net else None
     result: dict = {"model_dir": str(model_dir), "dataset": ds.name, "validation_cameras": cams_val,
                     "frame_stride": stride, "lpips": lpips_info(lpips, lpips_net), "format": meta.version,
                     "gaussians": {"static": static.capacity if static is not None else 0,
-                                  "dynamic": meta.shape.capacity}, "streams": {}}
+                                  "dynamic": 0 if meta.still else meta.shape.capacity}, "streams": {}}
     grid_rows: list[torch.Tensor] = []
     # View-major: every stream draws a view in turn, so each view's truth is decoded once and a packaged stream is
     # also scored against the uncompressed model's render of the same view (`render_psnr`, as stgs pack measures).
-    frames = [start + k * g + i for k in range(meta.num_gops) for i in range(0, g, stride)]
+    frames = [start + k * g + i for k in range(gops) for i in range(0, g, stride)]
     _, held_out = open_views(ds, [], frames, scale, default_memory() if max_memory is None else max_memory, cams_val)
     assert held_out is not None  # open_views gives the holdout's views when asked for them
     truths = held_out
@@ -81,8 +80,8 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
     streamed = [name for name in sources if name != "uncompressed"]
     try:
         views = iter(range(len(frames)))
-        for k in tqdm(range(meta.num_gops), desc="eval", unit="gop", disable=not progress):
-            renderers = {name: FrameRenderer(load(k), static=statics[name]) for name, load in sources.items()}
+        for k in tqdm(range(gops), desc="eval", unit="gop", disable=not progress):
+            renderers = drawers(k)
             rows: dict[str, list[dict]] = {name: [] for name in sources}
             gop_mse: dict[str, list[float]] = {name: [] for name in streamed}
             for i in range(0, g, stride):
@@ -91,8 +90,8 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
                 for c, cam_name in enumerate(cams_val):
                     cam, truth = scale_camera(by_name[cam_name], scale), truths.target(p, c)
                     reference = torch.empty(0)  # the uncompressed render, drawn first
-                    for name, renderer in renderers.items():
-                        image = renderer.render(i, cam).clamp(0, 1)
+                    for name, render in renderers.items():
+                        image = render(i, cam).clamp(0, 1)
                         row = {"frame": f, "camera": cam_name, "psnr": _finite(psnr(image, truth)),
                                "ssim": float(ssim(image, truth))} | region_psnr(image, truth, ds.mask(f, cam_name))
                         if lpips is not None:
@@ -116,13 +115,47 @@ def evaluate(model_dir: Path, dataset: Path, out: Path, dash: Path | None = None
     finally:
         truths.close()
     report = Path(model_dir) / TRAIN_REPORT
-    if report.is_file():
+    if report.is_file() and not meta.still:
         result["train_seconds_per_gop"] = [gop.get("seconds") for gop in json.loads(report.read_text())["gops"]]
     out = Path(out)
     atomic_write_bytes(out / "eval.json", (json.dumps(result, indent=1) + "\n").encode())
     if grid_rows:
         save_png(out / "eval_grid.png", image_grid(grid_rows, 3))
     return result
+
+
+Drawer = Callable[[int, Camera], torch.Tensor]
+"""Frame i of the GOP it was made for, from a camera."""
+
+
+def gop_drawers(model_dir: Path, meta: SceneMeta, static: StaticLayer | None, dash: Path | None
+                ) -> tuple[list[str], Callable[[int], dict[str, Drawer]]]:
+    """The streams (the uncompressed model and, with `dash`, every Representation of its tree) and GOP k -> a drawer
+    per stream."""
+    sources: dict[str, Callable[[int], GOPModel]] = {"uncompressed": lambda k: load_gop(model_dir, meta, k)}
+    statics = dict.fromkeys(sources, static)
+    if dash is not None:
+        packaged = packaged_gops(Path(dash))
+        sources |= packaged
+        statics |= dict.fromkeys(packaged, packaged_static(Path(dash)))  # the tree's, as a player draws it
+    return list(sources), lambda k: {name: FrameRenderer(load(k), static=statics[name]).render
+                                     for name, load in sources.items()}
+
+
+def still_drawers(static: StaticLayer | None, dash: Path | None
+                  ) -> tuple[list[str], Callable[[int], dict[str, Drawer]]]:
+    """A still scene's streams and drawers (one GOP of one frame): its static layer and, with `dash`, the tree's (as a
+    player decodes it)."""
+    layers = {"uncompressed": static} | ({STATIC_REP: packaged_static(Path(dash))} if dash is not None else {})
+    checked = {name: layer for name, layer in layers.items() if layer is not None}
+    if len(checked) != len(layers):
+        raise StgsError("a still scene needs its static layer, in the model dir and the tree")
+    drawers: dict[str, Drawer] = {name: partial(still_frame, layer) for name, layer in checked.items()}
+    return list(drawers), lambda k: drawers
+
+
+def still_frame(layer: StaticLayer, frame: int, camera: Camera) -> torch.Tensor:
+    return render_still(layer, camera)
 
 
 def scaled_view(ds, camera: Camera, frame: int, scale: float) -> tuple[Camera, torch.Tensor]:

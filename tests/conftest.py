@@ -1,5 +1,5 @@
 """Shared helpers: random scenes and cameras for the splatter tests, the stgs command in a subprocess, the loop-filter
-flags of an HEVC stream."""
+flags of an HEVC stream; a still scene made from a one-frame capture (the client's and the web player's tests)."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import torch
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
@@ -57,3 +58,28 @@ def loop_filter_flags(data: bytes, path: Path) -> dict[str, str]:
             if name in line:
                 flags.setdefault(name, line.split()[-1])
     return flags
+
+
+STILL_CAMERA = "cam00"
+"""The still scene's held-out camera (the trainer holds out the first of the capture's cameras)."""
+
+
+@pytest.fixture(scope="session")
+def still_scene(tmp_path_factory) -> Path:
+    """A still scene end to end from a one-frame capture (a synthetic scene's first frame, COLMAP per-frame layout):
+    `stgs train` as a user runs it (no --layers: it notes the still), then packed to `tree/still`. Its folder holds
+    `capture`, `model`, `train.stderr` and `tree/still`."""
+    from stgs.packager import PackConfig, pack
+    from stgs.synth import SynthConfig
+    from tests.data.captures import ground_truth, write_capture
+
+    base = tmp_path_factory.mktemp("still")
+    cfg = SynthConfig(grid_side=8, num_gops=1, gop_size=2, width=96, height=72, num_cameras=8,
+                      effects=("rigid", "static_background"), static_grid_side=24)
+    write_capture(ground_truth(base / "truth", cfg), base / "capture", "frames", num_frames=1)
+    trained = run_stgs("train", str(base / "capture"), str(base / "model"), "--coarse-iterations", "400",
+                       "--threads", "2", "--quiet")
+    assert trained.returncode == 0, trained.stderr
+    (base / "train.stderr").write_text(trained.stderr)
+    pack(base / "model", base / "tree" / "still", PackConfig(title="A still rig shot"), progress=False)
+    return base

@@ -5,10 +5,10 @@ splat + composite), frames per second, start-up and seek times, per packaged sce
     python -m bench.web.web TREE [TREE ...] [--size 640x360] [--quality top|lowest] [--frames 20]
         [--backend webgl2-texture|webgl2-uniform|webgpu ...]
 
-Each TREE is a packaged scene folder with an AV1 set. `stgs serve` offers them on loopback; the page shows
-each scene's first frames one by one at a scene camera with `timing=sync` (a one-pixel read after each draw, so
-the draw's GPU work is counted in its own stage, not in the next frame's read-back), then seeks to the middle
-GOP. Prints
+Each TREE is a packaged scene folder with an AV1 set, or a still scene. `stgs serve` offers them on loopback; the
+page shows each scene's first frames one by one at a scene camera with `timing=sync` (a one-pixel read after each
+draw, so the draw's GPU work is counted in its own stage, not in the next frame's read-back), then seeks to the
+middle GOP; a still is drawn that many times from the camera (no deformation, no seek). Prints
 Markdown for docs/BENCHMARKS.md ("Web player") and the per-Gaussian cost model of each stage.
 """
 
@@ -40,27 +40,33 @@ def measure(base: str, name: str, size: str, quality: str, frames: int, backend:
     frame after load) and a seek to the middle GOP (first frame after the seek), at the scene's first camera."""
     mpd = json.loads(urllib.request.urlopen(base + "scenes").read())["scenes"]
     scene = next(s for s in mpd if s["name"] == name)
+    still = scene.get("still", False)
     av1 = sorted((r for r in scene["ladder"] if r["codec"] == "av1"), key=lambda r: r["bandwidth"])
     ladder = [r["id"] for r in av1]
-    rung = ladder[-1] if quality == "top" else ladder[0]
+    rung = "-" if still else ladder[-1] if quality == "top" else ladder[0]
     cams = json.loads(urllib.request.urlopen(f"{base}{name}/cameras.json").read())["cameras"]
-    url = (f"{base}player/?mpd=/{name}/manifest.mpd&timing=sync&size={size}&quality={rung}"
-           f"&camera={cams[0]['name']}&autoplay=0&{BACKENDS[backend]}")
-    middle = scene["gops"] // 2
+    url = (f"{base}player/?mpd=/{name}/manifest.mpd&timing=sync&size={size}&camera={cams[0]['name']}&autoplay=0"
+           + ("" if still else f"&quality={rung}&{BACKENDS[backend]}"))
+    storage = "'none (a still)'" if still else "p.deform.kind"
     state = ("({times: s.frameTimes, startup: s.startupMs, keyframe: s.keyframeMs, copy: s.copyMs, "
              "visible: s.visible, capacity: p.manifest.shape.capacity, staticCount: p.manifest.staticLayer ? "
-             "p.manifest.staticLayer.capacity : 0, storage: p.deform.kind})")
-    out = run({"webgpu": True, "viewport": [900, 700], "steps": [
+             f"p.manifest.staticLayer.capacity : 0, storage: {storage}}})")
+    shown = "0" if still else "f"
+    steps = [
         {"goto": url},
         {"wait": "window.stgsPlayer && stgsPlayer.stats.shown !== null", "timeout": 600_000},
-        {"eval": f"(async () => {{ for (let f = 1; f < {frames}; f++) await stgsPlayer.showFrame(f, 600000); "
+        {"eval": f"(async () => {{ for (let f = 1; f < {frames}; f++) await stgsPlayer.showFrame({shown}, 600000); "
                  "return 1; })()", "as": "_"},
         {"eval": f"((p, s) => {state})(stgsPlayer, stgsPlayer.stats)", "as": "play"},
-        {"eval": f"(window.before = stgsPlayer.stats.presentedFrames, stgsPlayer.seek({middle}), 1)", "as": "_"},
-        {"wait": "stgsPlayer.stats.presentedFrames > window.before", "timeout": 600_000},
-        {"eval": "stgsPlayer.stats.seekMs", "as": "seek"},
-        {"eval": "navigator.userAgent", "as": "agent"},
-    ]})
+    ]
+    if not still:
+        steps += [
+            {"eval": f"(window.before = stgsPlayer.stats.presentedFrames, stgsPlayer.seek({scene['gops'] // 2}), 1)",
+             "as": "_"},
+            {"wait": "stgsPlayer.stats.presentedFrames > window.before", "timeout": 600_000},
+            {"eval": "stgsPlayer.stats.seekMs", "as": "seek"}]
+    steps.append({"eval": "navigator.userAgent", "as": "agent"})
+    out = run({"webgpu": True, "viewport": [900, 700], "steps": steps})
     r = out["results"]
     times = r["play"]["times"][2:]  # the first frames include shader warm-up
 
@@ -73,7 +79,7 @@ def measure(base: str, name: str, size: str, quality: str, frames: int, backend:
             "deform": med("deform"), "sort": med("sort"), "sort_wait": med("sortWait"), "draw": med("draw"),
             "frame": statistics.median(total), "fps": 1000 / statistics.median(total),
             "keyframe": r["play"]["keyframe"], "copy": r["play"]["copy"], "startup": r["play"]["startup"],
-            "seek": r["seek"], "agent": r["agent"]}
+            "seek": r.get("seek"), "agent": r["agent"]}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -97,14 +103,15 @@ def main(argv: list[str] | None = None) -> int:
     for r in rows:
         print(f"| {r['scene']} | {r['static']:,} + {r['dynamic']:,} | {r['visible']:,} | {r['size']} | "
               f"{r['storage']} | {r['copy']:.2f} | {r['deform']:.1f} | {r['sort']:.1f}; {r['sort_wait']:.1f} | "
-              f"{r['draw']:.1f} | {r['frame']:.1f} | {r['fps']:.1f} | {r['keyframe']:.0f} | {r['startup']:.0f} | "
-              f"{r['seek']:.0f} |")
+              f"{r['draw']:.1f} | {r['frame']:.1f} | {r['fps']:.1f} | {r['keyframe'] or 0:.0f} | {r['startup']:.0f} | "
+              f"{'-' if r['seek'] is None else format(r['seek'], '.0f')} |")
     print("\nPer-Gaussian cost of each stage (ms per 1,000 Gaussians of the layer it touches):\n")
     print("| scene | deform + read-back / 1k dynamic | sort / 1k Gaussians | draw / 1k drawn |")
     print("|---|---|---|---|")
     for r in rows:
         sort = 1000 * r["sort"] / (r["dynamic"] + r["static"])
-        print(f"| {r['scene']} | {1000 * r['deform'] / r['dynamic']:.2f} | {sort:.3f} | "
+        deform = f"{1000 * r['deform'] / r['dynamic']:.2f}" if r["dynamic"] else "-"
+        print(f"| {r['scene']} | {deform} | {sort:.3f} | "
               f"{1000 * r['draw'] / max(r['visible'], 1):.2f} |")
     return 0
 

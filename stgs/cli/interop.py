@@ -114,14 +114,15 @@ def static_import_overrides(args: argparse.Namespace) -> dict:
             raise UsageError(f"--{extra[0].replace('_', '-')} needs --static-from")
         return {}
     if args.layers == "single":
-        raise UsageError("--static-from makes a layered scene: it does not go with --layers single")
+        raise UsageError("--static-from makes a layered scene (or a still): it does not go with --layers single")
     if args.static_transform is not None and args.static_cameras is not None:
         raise UsageError("--static-transform and --static-cameras both set the file's frame: give one")
     from stgs.interop.files import read_splats
 
     read_splats(args.static_from)  # a bad file is reported before anything is written
     # absolute: Ray tasks run elsewhere
-    out: dict[str, object] = {"static_from": str(args.static_from.resolve()), "layers": "layered"}
+    out: dict[str, object] = {"static_from": str(args.static_from.resolve()),
+                              "layers": "still" if args.layers == "still" else "layered"}
     if args.static_transform is not None:
         from stgs.interop.static import read_transform
 

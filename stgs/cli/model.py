@@ -227,7 +227,10 @@ def run_train(args: argparse.Namespace) -> int:
     from stgs.train import train
 
     num_frames = open_dataset(args.dataset, args.kind, fps=cfg.fps).num_frames
-    tail = cfg.untrained_tail(num_frames)
+    if num_frames - cfg.start_frame == 1 and args.layers is None:
+        cfg = budget(args.budget, **train_overrides(args) | {"layers": "still"})
+        print("stgs: note: the capture has one frame: training a still scene (--layers still)", file=sys.stderr)
+    tail = None if cfg.layers == "still" else cfg.untrained_tail(num_frames)
     if tail is not None:
         usable = num_frames - cfg.start_frame
         sizes = " or ".join(f"--gop-size {g}" for g in gop_sizes_covering(usable, cfg.gop_size))
@@ -240,12 +243,17 @@ def run_train(args: argparse.Namespace) -> int:
         val = f", validation {g['val_psnr']:.2f} dB" if g["val_psnr"] is not None else ""
         print(f"GOP {g['gop']}: {g['iterations']} iterations in {g['seconds']:.0f} s, train {g['train_psnr']:.2f} dB"
               f"{val}, {g['relocated']} relocated, {g['pruned']} pruned")
-    if "static_capacity" in report:
+    if "static_capacity" in report and not report.get("still"):
         print(f"static layer: {report['static_capacity']} Gaussians in {report['static_seconds']:.0f} s "
               f"(moving pixels from {report['moving_mask_source']}; {report['migrated']} Gaussians migrated to the "
               "dynamic layers)")
     if "static_import" in report:
         print(describe_import(report["static_import"]))
+    if report.get("still"):
+        val = f", validation {report['val_psnr']:.2f} dB" if report.get("val_psnr") is not None else ""
+        print(f"wrote {args.out}: a still scene of {report['static_capacity']} Gaussians (train "
+              f"{report['train_psnr']:.2f} dB{val}, {report['static_seconds']:.0f} s)")
+        return 0
     print(f"wrote {args.out} ({report['capacity']} Gaussians per GOP, {len(report['gops'])} GOP(s))")
     return 0
 

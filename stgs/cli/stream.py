@@ -68,6 +68,12 @@ def run_pack(args: argparse.Namespace) -> int:
     cfg = build_config(PackConfig, values)
     stats = pack(args.model_dir, args.out_dir, cfg, progress=not args.quiet, ray=args.ray,
                  retries=args.ray_retries)
+    if stats.get("still"):
+        static, views = stats["static"], stats["quality_views"]
+        print(f"wrote {args.out_dir / MANIFEST}: a still scene, its static layer alone ({static['capacity']} "
+              f"Gaussians, {static['bytes'] / 1e3:.1f} kB; rendered {static['render_psnr']:.2f} dB against the "
+              f"uncompressed layer at {len(views['cameras'])} {views['source']} camera(s))")
+        return 0
     print(f"wrote {args.out_dir / MANIFEST}: {len(stats['gops'])} GOPs, keyframes "
           f"{stats['keyframe_bandwidth'] / 1e3:.0f} kbit/s")
     for rep, info in stats.get("keyframe_representations", {}).items():
@@ -235,6 +241,11 @@ def run_play(args: argparse.Namespace) -> int:
 
 
 def print_playback(s: dict) -> None:
+    if s.get("still"):
+        render = f", render {max(s['render_ms']):.1f} ms/frame at most" if s["render_ms"] else ""
+        print(f"showed a still scene: {s['frames']} frame(s), static layer {s['static_bytes'] / 1e3:.1f} kB in "
+              f"{s['download_s']:.2f} s{render}")
+        return
     reps = ",".join(str(g["rep"]) for g in s["gops"])
     codec = f"{s['codec']} " if "codec" in s else ""
     print(f"played {s['gops_played']} GOP(s), {s['frames']} frames, start-up {s['startup_delay_s']:.2f} s, "

@@ -29,15 +29,14 @@ import asyncio
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 
 from stgs.client.clock import PlaybackClock
-from stgs.client.config import PlaybackError, PlayConfig
+from stgs.client.config import PlayConfig
 from stgs.client.gopdecode import FeaturesBroken, GOPDecoder, ReadyGOP
 from stgs.client.manifest import Presentation
-from stgs.client.output import NullSink, open_sink
+from stgs.client.output import NullSink, open_view_sink
 from stgs.client.playlog import GOPRecord
 from stgs.client.viewpoint import Trajectory, build_trajectory
 from stgs.codec.video import VideoError
@@ -200,10 +199,7 @@ class FramePath:
             return
         turn = round(self.cfg.view.orbit_seconds * self.fps) if self.cfg.view.orbit_seconds else self.frames
         self.trajectory = build_trajectory(self.cfg.view, self.cameras, first.renderer.model, max(1, turn))
-        sizes = {(c.width, c.height) for c in self.trajectory.cameras}
-        if len(sizes) > 1 and self.cfg.out is not None and Path(self.cfg.out).suffix.lower() == ".mp4":
-            raise PlaybackError("an MP4 needs one image size; the camera path has several (use PNG output)")
-        self.sink = open_sink(self.cfg.out, self.fps, *next(iter(sizes)))
+        self.sink = open_view_sink(self.cfg.out, self.fps, self.trajectory.cameras)
 
     # --- the presenter ---
 

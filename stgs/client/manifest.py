@@ -25,6 +25,7 @@ from stgs.limits import (
 from stgs.model.gop import GOPShape
 from stgs.mpd.model import MPD, PROFILE_STGS, AdaptationSet, Representation, parse_mpd
 from stgs.mpd.profile import (
+    FEATURE_SCHEME,
     KEYFRAME_SCHEME,
     STATIC_SCHEME,
     KeyframeDescriptor,
@@ -98,17 +99,68 @@ def _static_layer(a: AdaptationSet) -> StaticLayerInfo:
 
 
 
+STILL_WITH_FEATURES = "a still scene (no keyframe AdaptationSet) has no feature set either"
+
+
+def _checked_mpd(mpd: MPD) -> MPD:
+    """`mpd`, refused unless it declares this profile and has one Period."""
+    if PROFILE_STGS not in mpd.profiles:
+        raise MPDError(f"not a StreamSTGS manifest: @profiles lacks {PROFILE_STGS} "
+                       f"(it lists {', '.join(p for p in mpd.profiles if p) or 'nothing'})")
+    if len(mpd.periods) != 1:
+        raise MPDError(f"a StreamSTGS MPD has exactly one Period, this one has {len(mpd.periods)}")
+    return mpd
+
+
+class StillPresentation:
+    """A still scene's MPD (manifests/PROFILE.md, "A still scene"): the static-layer AdaptationSet alone, no GOP and
+    no clock; a player shows the static layer from whatever viewpoint."""
+
+    def __init__(self, mpd: MPD, url: str):
+        self.mpd = _checked_mpd(mpd)
+        self.url = url
+        self.base = urljoin(url, mpd.base_url) if mpd.base_url else url
+        found = mpd.find_adaptation_set(STATIC_SCHEME)
+        if found is None or mpd.find_adaptation_set(KEYFRAME_SCHEME) is not None:
+            raise MPDError("a still scene's Period holds the static-layer AdaptationSet and no keyframe set")
+        if mpd.find_adaptation_set(FEATURE_SCHEME) is not None:
+            raise MPDError(STILL_WITH_FEATURES)
+        if len(mpd.adaptation_sets(STATIC_SCHEME)) > 1:
+            raise MPDError("the MPD has more than one static-layer AdaptationSet")
+        self.static: StaticLayerInfo = _static_layer(found)
+
+    def static_url(self) -> str:
+        """URL of the static-layer segment."""
+        return urljoin(self.base, expand_template(self.static.media, self.static.rep_id, 0))
+
+    def max_static_bytes(self) -> int:
+        """The static segment's size cap: what its @bandwidth delivers over the Period, with slack."""
+        return segment_cap(self.static.bandwidth, self.mpd.duration)
+
+    def sibling_url(self, name: str) -> str:
+        """URL of a document beside the MPD (stats.json, cameras.json)."""
+        return urljoin(self.url, name)
+
+
+def open_presentation(data: bytes, url: str, codec: str = "auto") -> Presentation | StillPresentation:
+    """The MPD at `url` (its bytes `data`) as a still scene (no keyframe set) or a Presentation of GOPs."""
+    mpd = _checked_mpd(parse_mpd(data))
+    if mpd.find_adaptation_set(KEYFRAME_SCHEME) is None and mpd.find_adaptation_set(STATIC_SCHEME) is not None:
+        return StillPresentation(mpd, url)
+    return Presentation(mpd, url, codec)
+
+
+def segment_cap(bandwidth: int, seconds: float) -> int:
+    """A segment's size cap: what its @bandwidth delivers over its duration, with slack."""
+    return min(MAX_SEGMENT_BYTES, math.ceil(bandwidth * seconds / 8 * SEGMENT_SLACK) + 4096)
+
+
 class Presentation:
     """A parsed, checked StreamSTGS MPD with URL construction for every segment."""
 
     def __init__(self, mpd: MPD, url: str, codec: str = "auto"):
         """codec: which feature set to play where the tree offers two (FEATURE_CODEC_CHOICES)."""
-        if PROFILE_STGS not in mpd.profiles:
-            raise MPDError(f"not a StreamSTGS manifest: @profiles lacks {PROFILE_STGS} "
-                           f"(it lists {', '.join(p for p in mpd.profiles if p) or 'nothing'})")
-        if len(mpd.periods) != 1:
-            raise MPDError(f"a StreamSTGS MPD has exactly one Period, this one has {len(mpd.periods)}")
-        self.mpd = mpd
+        self.mpd = _checked_mpd(mpd)
         self.url = url
         self.base = urljoin(url, mpd.base_url) if mpd.base_url else url
         self.keyframes: AdaptationSet = mpd.adaptation_set(KEYFRAME_SCHEME)
@@ -204,7 +256,7 @@ class Presentation:
         """The static segment's size cap: what its @bandwidth delivers over the Period, with slack."""
         if self.static is None:
             raise MPDError("this presentation has no static layer")
-        return self._cap(self.static.bandwidth, self.duration)
+        return segment_cap(self.static.bandwidth, self.duration)
 
     def init_url(self, rep_id: str) -> str:
         template = self.features.segment_template.initialization
@@ -246,15 +298,11 @@ class Presentation:
         return 3 * self.static.capacity * (14 + 9 * self.static.sh_degree) * 4
 
     def max_keyframe_bytes(self, rep: str = KEYFRAME_REP) -> int:
-        return self._cap(self._keyframe_rep(rep).bandwidth, self.segment_seconds)
+        return segment_cap(self._keyframe_rep(rep).bandwidth, self.segment_seconds)
 
     def max_media_bytes(self, rep_id: str) -> int:
-        return self._cap(self.rung(rep_id).bandwidth, self.segment_seconds)
+        return segment_cap(self.rung(rep_id).bandwidth, self.segment_seconds)
 
-    @staticmethod
-    def _cap(bandwidth: int, seconds: float) -> int:
-        """A segment's size cap: what its @bandwidth delivers over its duration, with slack."""
-        return min(MAX_SEGMENT_BYTES, math.ceil(bandwidth * seconds / 8 * SEGMENT_SLACK) + 4096)
 
     def rung(self, rep_id: str) -> Rung:
         for r in self.ladder:

@@ -11,6 +11,8 @@ from pathlib import Path
 import av
 import numpy as np
 
+from stgs.camera import Camera
+from stgs.client.config import PlaybackError
 from stgs.errors import StgsError
 from stgs.fsio import DIR_MODE, FILE_MODE, atomic_write_bytes, encode_png, to_uint8
 
@@ -116,3 +118,11 @@ def open_sink(out: Path | None, fps: float, width: int, height: int) -> NullSink
     if Path(out).suffix.lower() == ".mp4":
         return Mp4Sink(Path(out), fps, width, height)
     return PngSink(Path(out))
+
+
+def open_view_sink(out: Path | None, fps: float, cameras: list[Camera]) -> NullSink:
+    """open_sink for frames drawn from `cameras` (a camera path): an MP4 needs one image size."""
+    sizes = {(c.width, c.height) for c in cameras}
+    if len(sizes) > 1 and out is not None and Path(out).suffix.lower() == ".mp4":
+        raise PlaybackError("an MP4 needs one image size; the camera path has several (use PNG output)")
+    return open_sink(out, fps, cameras[0].width, cameras[0].height)

@@ -53,9 +53,10 @@ from stgs.client.fetch.steps import (
 )
 from stgs.client.framepath import FrameHook, FramePath, Playback
 from stgs.client.gopdecode import FeaturesBroken, GOPDecoder, KeyframeRejected, ReadyGOP
-from stgs.client.manifest import Presentation
+from stgs.client.manifest import Presentation, StillPresentation, open_presentation
 from stgs.client.playlog import GOPRecord, playback_log
 from stgs.client.resources import check_decode_memory, frozen_heap, process_peak_rss_mb
+from stgs.client.still import show_still
 from stgs.client.threads import ThreadBudget, render_threads, usable_cores
 from stgs.client.urlpolicy import UrlPolicy
 from stgs.errors import MPDError
@@ -294,22 +295,25 @@ async def _optional_json(dl: Downloader, url: str) -> object | None:
 
 
 async def play(cfg: PlayConfig, on_frame: FrameHook | None = None) -> dict:
-    """Play the presentation at cfg.url; returns the playback log (also written to cfg.log)."""
+    """Play the presentation at cfg.url; returns the playback log (also written to cfg.log). A still scene is shown
+    instead (stgs.client.still: one frame per view, no clock; `on_frame` is not called)."""
     cfg.validate()
     requested = time.perf_counter()
     policy = UrlPolicy(cfg.url, cfg.urls)
     async with Downloader(cfg.download, policy) as dl:
         try:
-            pres = Presentation.parse(await dl.fetch(cfg.url, "document", MAX_MPD_BYTES), cfg.url, cfg.codec)
+            pres = open_presentation(await dl.fetch(cfg.url, "document", MAX_MPD_BYTES), cfg.url, cfg.codec)
             policy.allow_hosts_of(pres.base)
         except FetchError as exc:
             raise PlaybackError(f"cannot fetch the manifest: {exc}") from None
         except MPDError as exc:
             raise PlaybackError(f"{cfg.url}: {exc}") from None
-        stats = await _optional_json(dl, pres.sibling_url(STATS))
         cameras = None
         default_orbit = cfg.view.eye is None and cfg.view.path == "orbit"  # circles inside the rig when it can
         if cfg.view.camera is not None or default_orbit:
             doc = await _optional_json(dl, pres.sibling_url(CAMERAS))
             cameras = parse_scene_cameras(doc) if doc is not None else None
+        if isinstance(pres, StillPresentation):
+            return await show_still(cfg, pres, dl, cameras, requested)
+        stats = await _optional_json(dl, pres.sibling_url(STATS))
         return await Session(cfg, pres, dl, stats, cameras, on_frame, requested).run()

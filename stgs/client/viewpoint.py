@@ -10,6 +10,7 @@ from stgs.client.config import ViewSpec
 from stgs.errors import FieldError, StgsError
 from stgs.model.gop import GOPModel
 from stgs.model.renderer import framing_orbit
+from stgs.model.static import StaticLayer
 
 
 class Trajectory:
@@ -35,10 +36,11 @@ def load_path_file(path: Path) -> list[Camera]:
     return checked_cameras(items, str(path))
 
 
-def build_trajectory(spec: ViewSpec, scene_cameras: list[Camera] | None, first_gop: GOPModel,
+def build_trajectory(spec: ViewSpec, scene_cameras: list[Camera] | None, first_gop: GOPModel | StaticLayer,
                      frames_per_turn: int) -> Trajectory:
     """The trajectory `spec` asks for. The orbit circles inside the capture rig when the scene's cameras
-    surround it (a trained capture has walls around the action), else frames the first GOP's Gaussians."""
+    surround it (a trained capture has walls around the action), else frames the first GOP's Gaussians (a still
+    scene's static layer)."""
     if spec.camera is not None:
         if not scene_cameras:
             raise FieldError("camera", "needs the scene's cameras.json beside the MPD, and this scene has none")

@@ -24,9 +24,9 @@ from stgs.model.gop import GOPModel, frame_time
 from stgs.model.static import StaticLayer
 from stgs.model.store import MODEL_META, load_gop, load_static, read_meta
 from stgs.mpd.model import read_mpd
-from stgs.mpd.profile import FEATURE_SCHEME, KEYFRAME_SCHEME, KeyframeDescriptor, gop_count
+from stgs.mpd.profile import FEATURE_SCHEME, KEYFRAME_SCHEME, STATIC_SCHEME, KeyframeDescriptor, gop_count
 from stgs.packaged import packaged_gops, packaged_static
-from stgs.tree import MANIFEST
+from stgs.tree import MANIFEST, STATIC_REP
 
 
 @dataclass
@@ -42,8 +42,13 @@ class SceneSource:
     _last: tuple[int, GOPModel] | None = None
 
     @property
+    def still(self) -> bool:
+        """A still scene: the static layer alone, one frame."""
+        return self.num_gops == 0 and self.static is not None
+
+    @property
     def num_frames(self) -> int:
-        return self.num_gops * self.gop_size
+        return 1 if self.still else self.num_gops * self.gop_size
 
     def gop(self, k: int) -> GOPModel:
         if self._last is None or self._last[0] != k:
@@ -65,6 +70,10 @@ def open_source(path: Path, rep: str | None = None) -> SceneSource:
                            lambda k: load_gop(path, meta, k))
     if not (path / MANIFEST).is_file():
         raise StgsError(f"{path}: neither a model dir ({MODEL_META}) nor a packaged tree ({MANIFEST})")
+    if is_still_tree(path):
+        if rep not in (None, STATIC_REP):
+            raise StgsError(f"{path}: a still scene has one Representation, {STATIC_REP}")
+        return SceneSource(f"{path} ({STATIC_REP})", 1, 0, 1.0, packaged_static(path), no_gop)
     loaders = packaged_gops(path)
     try:
         mpd = read_mpd(path / MANIFEST)
@@ -79,6 +88,19 @@ def open_source(path: Path, rep: str | None = None) -> SceneSource:
         raise StgsError(f"{path}: no Representation {rep!r} (it has {', '.join(sorted(loaders))})")
     num_gops = gop_count(mpd.duration, keyframes.segment_template.seconds)
     return SceneSource(f"{path} ({rep})", d.gop_size, num_gops, d.fps, packaged_static(path), loaders[rep])
+
+
+def is_still_tree(path: Path) -> bool:
+    """Whether the packaged tree at `path` is a still scene (its static-layer set alone)."""
+    try:
+        mpd = read_mpd(path / MANIFEST)
+    except (OSError, MPDError) as exc:
+        raise StgsError(f"{path}: not a packaged scene ({exc})") from None
+    return mpd.find_adaptation_set(KEYFRAME_SCHEME) is None and mpd.find_adaptation_set(STATIC_SCHEME) is not None
+
+
+def no_gop(k: int) -> GOPModel:
+    raise StgsError("a still scene has no GOP")
 
 
 def parse_frames(text: str, num_frames: int) -> list[int]:
@@ -102,6 +124,8 @@ def frame_splats(source: SceneSource, frame: int, eye: torch.Tensor, sh_degree: 
     colours over the centres `cameras` (at least 4, around the scene) and keeps the static layer's degree 1."""
     if sh_degree not in (0, 1):
         raise StgsError(f"sh_degree {sh_degree}: 0 or 1")
+    if source.still and source.static is not None:
+        return static_splats(source.static, eye, sh_degree).canonical()
     if sh_degree and (cameras is None or len(cameras) < 4):
         raise StgsError("a degree-1 export fits the view-dependent colour over the scene's cameras: it needs four "
                         "or more (cameras.json beside the scene)")
@@ -124,15 +148,18 @@ def frame_splats(source: SceneSource, frame: int, eye: torch.Tensor, sh_degree: 
         prior[:, 0] = (g.colors.numpy().astype(np.float64) - 0.5) / harmonics.C0
         sh = harmonics.fit_degree1(values, np.stack(dirs, 1), prior).astype(np.float32)
     dynamic = from_gaussians(g, model.log_scale + offsets[1], sh)
-    static = source.static
-    if static is None:
+    if source.static is None:
         return dynamic.canonical()
-    if sh_degree:
-        layer = static if static.sh_degree else StaticLayer.from_canonical(static, sh_degree=1)
-        fixed = from_static(layer)
-    else:
-        fixed = from_static(StaticLayer.from_canonical(static))
-        if static.sh_degree:  # the view-dependent colour as the eye sees it
-            fixed.sh = colour_to_dc(static.gaussians(eye).colors.detach().numpy())[:, None]
+    fixed = static_splats(source.static, eye, sh_degree)
     return Splats(*(np.concatenate([getattr(fixed, f), getattr(dynamic, f)]) for f in
                     ("means", "log_scales", "quats", "opacity_logits", "sh"))).canonical()
+
+
+def static_splats(static: StaticLayer, eye: torch.Tensor, sh_degree: int) -> Splats:
+    """The static layer as Splats: with its degree-1 colour (`sh_degree` 1), or its colour as `eye` sees it."""
+    if sh_degree:
+        return from_static(static if static.sh_degree else StaticLayer.from_canonical(static, sh_degree=1))
+    fixed = from_static(StaticLayer.from_canonical(static))
+    if static.sh_degree:  # the view-dependent colour as the eye sees it
+        fixed.sh = colour_to_dc(static.gaussians(eye.float()).colors.detach().numpy())[:, None]
+    return fixed

@@ -218,8 +218,20 @@ class FrameRenderer:
         return splat(g, camera, bg, "auto" if self.native else "reference", guarded)
 
 
-def framing_orbit(model: GOPModel, count: int, width: int, height: int, fov_x_deg: float = 60.0) -> list[Camera]:
-    """`count` cameras on a circle that frames the visible canonical Gaussians of a GOP."""
+@torch.no_grad()
+def render_still(static: StaticLayer | StaticDrawer, camera: Camera, background: torch.Tensor | None = None,
+                 native: bool | None = None) -> torch.Tensor:
+    """(H, W, 3) float32 image of a still scene (its static layer alone, no GOP) from `camera`."""
+    drawer = static if isinstance(static, StaticDrawer) else StaticDrawer(static)
+    native = available() if native is None else native
+    bg = background.float() if background is not None else None
+    return splat(drawer.gaussians(camera), camera, bg, "auto" if native else "reference", guarded=True)
+
+
+def framing_orbit(model: GOPModel | StaticLayer, count: int, width: int, height: int,
+                  fov_x_deg: float = 60.0) -> list[Camera]:
+    """`count` cameras on a circle that frames the visible canonical Gaussians of a GOP (or a still's static
+    layer)."""
     visible = torch.sigmoid(model.opacity_logit.detach()) > 0.05
     pts = model.xyz.detach()[visible] if visible.any() else model.xyz.detach()
     center = pts.median(0).values

@@ -1,7 +1,8 @@
 """Model dir: save and load a StreamSTGS scene (format in docs/MODEL_FORMAT.md).
 
 A model dir holds `model.json` (versioned metadata), one safetensors file per
-GOP (the dynamic layer) and, in format 2, one for the scene's static layer.
+GOP (the dynamic layer) and, in format 2, one for the scene's static layer. A
+still scene is format 2 with the static layer alone and no GOP.
 safetensors is a flat tensor container that is parsed, never executed; every
 tensor's shape is checked against model.json before a model is built, and
 capacities are capped before anything is allocated. A scene without a static
@@ -88,6 +89,11 @@ class SceneMeta:
         return len(self.gop_files)
 
     @property
+    def still(self) -> bool:
+        """A still scene: the static layer alone, no GOP (`shape` then describes no file)."""
+        return not self.gop_files
+
+    @property
     def num_frames(self) -> int:
         return self.num_gops * self.shape.gop_size
 
@@ -124,11 +130,13 @@ def write_meta(model_dir: Path, meta: SceneMeta, hashes: list[str]) -> None:
 
 
 def save_model(model_dir: Path, gops: list[GOPModel], fps: float, extra: dict | None = None,
-               static: StaticLayer | None = None) -> SceneMeta:
-    """Write a whole model dir (format 2 with a static layer, else format 1); model.json is written last."""
-    if not gops:
-        raise ValueError("save_model: a scene needs at least one GOP")
-    shape = gops[0].shape
+               static: StaticLayer | None = None, shape: GOPShape | None = None) -> SceneMeta:
+    """Write a whole model dir (format 2 with a static layer, else format 1); model.json is written last. A still
+    scene has a static layer and no GOP: `shape` then gives the GOP sizes model.json records (the trainer's)."""
+    if gops:
+        shape = gops[0].shape
+    elif static is None or shape is None:
+        raise ValueError("save_model: a scene needs at least one GOP, or a static layer and a shape (a still)")
     if any(g.shape != shape for g in gops):
         raise ValueError("save_model: every GOP of a scene must share one shape (capacity, G, W)")
     if static is not None:
@@ -198,8 +206,10 @@ def read_meta(model_dir: Path) -> SceneMeta:
     if not isinstance(fps, (int, float)) or isinstance(fps, bool) or not MIN_FPS <= fps <= MAX_FPS:
         raise StgsError(f"{path}: 'fps' must be a number in {MIN_FPS:g}..{MAX_FPS:g}, got {fps!r}")
     gops = doc.get("gops")
-    if not isinstance(gops, list) or not 0 < len(gops) <= MAX_GOPS:
-        raise StgsError(f"{path}: 'gops' must be a non-empty list")
+    static = _static_meta(doc, path) if version >= 2 else None
+    if not isinstance(gops, list) or len(gops) > MAX_GOPS or (not gops and static is None):
+        raise StgsError(f"{path}: 'gops' must be a list of at most {MAX_GOPS} GOPs, empty only beside a static "
+                        "layer (a still scene)")
     files = []
     for i, entry in enumerate(gops):
         name = entry.get("file") if isinstance(entry, dict) else None
@@ -207,7 +217,6 @@ def read_meta(model_dir: Path) -> SceneMeta:
             raise StgsError(f"{path}: gops[{i}].file must be a plain file name")
         files.append(name)
     extra = doc.get("extra", {})
-    static = _static_meta(doc, path) if version >= 2 else None
     return SceneMeta(shape, float(fps), files, extra if isinstance(extra, dict) else {}, static)
 
 

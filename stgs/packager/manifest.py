@@ -48,6 +48,9 @@ FEATURE_GROUP = 2
 
 STATS_FORMAT = "streamstgs-stats"
 
+STILL_SECONDS = 1
+"""A still scene's nominal Period (seconds): DASH needs a positive duration; a still has no timeline."""
+
 
 @dataclass(frozen=True)
 class SegmentRecord:
@@ -168,6 +171,8 @@ class ManifestBuilder:
         return [c for c in FEATURE_SETS if c in present]
 
     def mpd(self) -> MPD:
+        if self.still:
+            return self.still_mpd()
         shape, side = self.shape, self.grid_side
         descriptor = KeyframeDescriptor(shape.capacity, shape.gop_size, shape.window, shape.pe_freqs, self.fps)
         keyframes = AdaptationSet(
@@ -197,21 +202,47 @@ class ManifestBuilder:
                 reps, [Descriptor(FEATURE_SCHEME, FeatureDescriptor(bits).value)],
                 group=FEATURE_GROUP if len(codecs) > 1 else None))
         gops = len(self.keyframes.segments)
-        sets = [keyframes, *features] if self.static is None else [self.static_set(gops), keyframes, *features]
+        sets = [keyframes, *features] if self.static is None else [
+            self.static_set(self.timescale, gops * self.segment_ticks, gops * self.segment_seconds), keyframes,
+            *features]
         return MPD(gops * self.segment_seconds, self.segment_seconds, [Period("0", sets)])
 
-    def static_set(self, gops: int) -> AdaptationSet:
-        """The static layer's AdaptationSet: one segment spanning the Period (manifests/PROFILE.md)."""
+    @property
+    def still(self) -> bool:
+        """A still scene: a static layer was reported and no GOP."""
+        return self.static is not None and not self.keyframes.segments
+
+    def still_mpd(self) -> MPD:
+        """A still scene's MPD: the static-layer AdaptationSet alone, in a Period of STILL_SECONDS
+        (manifests/PROFILE.md, "A still scene")."""
+        return MPD(STILL_SECONDS, STILL_SECONDS, [Period("0", [self.static_set(1, STILL_SECONDS, STILL_SECONDS)])])
+
+    def static_set(self, timescale: int, ticks: int, seconds: float) -> AdaptationSet:
+        """The static layer's AdaptationSet: one segment spanning the Period, `ticks` in `timescale` (`seconds`)
+        (manifests/PROFILE.md)."""
         if self.static is None:
             raise ValueError("no static layer segment was reported")
-        bandwidth = math.ceil(self.static.bytes * 8 / (gops * self.segment_seconds))
+        bandwidth = math.ceil(self.static.bytes * 8 / seconds)
         return AdaptationSet(
-            0, "application", STATIC_MIME_TYPE,
-            SegmentTemplate(static_template(self.version), self.timescale, gops * self.segment_ticks, 0),
+            0, "application", STATIC_MIME_TYPE, SegmentTemplate(static_template(self.version), timescale, ticks, 0),
             [Representation(STATIC_REP, bandwidth)], [Descriptor(STATIC_SCHEME, self.static.descriptor.value)])
+
+    def static_stats(self) -> dict:
+        """stats.json's `static`: the static layer's segment bytes and sizes."""
+        if self.static is None:
+            raise ValueError("no static layer segment was reported")
+        d = self.static.descriptor
+        return {"bytes": self.static.bytes, "capacity": d.capacity, "grid_side": d.grid_side, "sh_degree": d.sh_degree}
+
+    def still_stats(self, pack_id: str) -> dict:
+        """A still scene's stats.json: the static layer's segment, no Representation or GOP (manifests/PROFILE.md)."""
+        return {"format": STATS_FORMAT, "version": 1, "pack_id": pack_id, "still": True, "representations": {},
+                "gops": [], "static": self.static_stats()}
 
     def stats(self, pack_id: str) -> dict:
         """stats.json: per Representation and per GOP, bytes and quality (manifests/PROFILE.md)."""
+        if self.still:
+            return self.still_stats(pack_id)
         reps = {}
         lossy = [r for r in self.keyframe_order() if r != KEYFRAME_REP]
         for r in self.ladder():
@@ -240,9 +271,7 @@ class ManifestBuilder:
                 rep: {"quant": self.keyframe_quants[rep], "bandwidth": self.keyframe_reps[rep].bandwidth()}
                 for rep in lossy}
         if self.static is not None:  # format 2 only: a format-1 tree's stats.json is unchanged
-            d = self.static.descriptor
-            doc["static"] = {"bytes": self.static.bytes, "capacity": d.capacity, "grid_side": d.grid_side,
-                             "sh_degree": d.sh_degree}
+            doc["static"] = self.static_stats()
         return doc
 
 

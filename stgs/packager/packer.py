@@ -28,11 +28,14 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from stgs.camera import Camera
 from stgs.codec.static import decode_static, pack_static
 from stgs.codec.video import CODECS, HEVC, FeatureCodec, VideoTiming
 from stgs.errors import StgsError
 from stgs.fsio import atomic_write_bytes
 from stgs.limits import MAX_TITLE_CHARS
+from stgs.metrics import psnr
+from stgs.model.renderer import render_still
 from stgs.model.static import StaticLayer
 from stgs.model.store import SceneMeta, load_gop, load_static, read_meta
 from stgs.mpd.profile import StaticLayerDescriptor
@@ -181,6 +184,8 @@ class Packer:
             bar.update(1)
 
         self.write_static()
+        if self.meta.still:
+            return self.finish()
         # GOP k+1 is sorted and tiled while GOP k's ladder encodes; at most two GOPs are held in memory.
         with ThreadPoolExecutor(max_workers=cfg.jobs) as pool:
             previous: list = []
@@ -201,6 +206,8 @@ class Packer:
     def finish(self) -> dict:
         """The rungs chosen (choose_ladder), stats.json, cameras.json and, last, the MPD, from the segments the
         builder was told of."""
+        if self.meta.still:
+            return self.finish_still()
         for codec, q in self.cfg.encodes():
             init = (self.out / feature_path(self.version_dir, codec.rep_id(q), None)).read_bytes()
             self.builder.codecs[codec.rep_id(q)] = codec.codecs(init)
@@ -208,6 +215,22 @@ class Packer:
         views = quality_views(self.model_dir, self.meta, lambda: load_gop(self.model_dir, self.meta, 0),
                               self.cfg.stats_views, self.cfg.stats_frames)
         stats = self.builder.stats(self.id) | {"quality_views": views.describe(), "ladders": ladders}
+        atomic_write_bytes(self.out / STATS, (json.dumps(stats, indent=2) + "\n").encode())
+        self.write_cameras()
+        self.write_scene()
+        atomic_write_bytes(self.out / MANIFEST, self.builder.mpd().to_xml())
+        return stats
+
+    def finish_still(self) -> dict:
+        """A still scene's stats.json (with the static segment's render PSNR against the uncompressed layer at the
+        quality views), cameras.json, scene.json and, last, the MPD of the static layer alone."""
+        if self.static is None or self.decoded_static is None:
+            raise StgsError(f"{self.model_dir}: a still scene needs its static layer")
+        static, decoded = self.static, self.decoded_static
+        views = quality_views(self.model_dir, self.meta, lambda: static, self.cfg.stats_views, None)
+        stats = self.builder.stats(self.id)
+        stats["static"]["render_psnr"] = still_psnr(static, decoded, views.cameras)
+        stats["quality_views"] = views.describe()
         atomic_write_bytes(self.out / STATS, (json.dumps(stats, indent=2) + "\n").encode())
         self.write_cameras()
         self.write_scene()
@@ -300,6 +323,13 @@ class Packer:
         else:
             return
         atomic_write_bytes(self.out / CAMERAS, data)
+
+
+def still_psnr(reference: StaticLayer, decoded: StaticLayer, cameras: list[Camera]) -> float:
+    """Mean PSNR (dB) over `cameras` of a still scene's `decoded` static layer against its `reference`."""
+    values = [psnr(render_still(decoded, cam).clamp(0, 1), render_still(reference, cam).clamp(0, 1))
+              for cam in cameras]
+    return sum(values) / len(values)
 
 
 def pair_id(feature_rep: str, keyframe_rep: str) -> str:

@@ -1,5 +1,6 @@
-"""A packaged scene's face in a catalogue: its title and description (scene.json) and its poster, one still rendered
-from the uncompressed model at the first scene camera and the middle of the first GOP, as a WebP image."""
+"""A packaged scene's face in a catalogue: its title and description (scene.json) and its poster, one picture rendered
+from the uncompressed model at the first scene camera and the middle of the first GOP (a still scene: its static
+layer), as a WebP image."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import torch
 from stgs.camera import Camera, resize
 from stgs.errors import StgsError
 from stgs.model.gop import GOPModel
-from stgs.model.renderer import FrameRenderer, framing_orbit
+from stgs.model.renderer import FrameRenderer, framing_orbit, render_still
 from stgs.model.static import StaticLayer
 from stgs.model.store import SceneMeta, load_gop
 from stgs.packager.segments import scene_cameras
@@ -25,9 +26,9 @@ POSTER_QUALITY = 85
 """WebP quality (0..100) of the poster."""
 
 
-def poster_camera(model_dir: Path, gop: GOPModel) -> Camera:
+def poster_camera(model_dir: Path, gop: GOPModel | StaticLayer) -> Camera:
     """The first scene camera (scaled so that its longer side is at most POSTER_MAX_SIDE), or for a model with no
-    cameras the first view of an orbit framing `gop` (the first GOP)."""
+    cameras the first view of an orbit framing `gop` (the first GOP, or a still's static layer)."""
     cameras = scene_cameras(model_dir)
     if not cameras:
         return framing_orbit(gop, 1, POSTER_MAX_SIDE, POSTER_MAX_SIDE * 9 // 16)[0]
@@ -38,11 +39,17 @@ def poster_camera(model_dir: Path, gop: GOPModel) -> Camera:
 
 def render_poster(model_dir: Path, meta: SceneMeta, static: StaticLayer | None) -> tuple[np.ndarray, dict]:
     """(H, W, 3) uint8 RGB poster and where it was taken ({"camera", "frame"}): the middle frame of GOP 0, with the
-    static layer where the scene has one."""
-    gop = load_gop(model_dir, meta, 0)
-    cam = poster_camera(model_dir, gop)
-    frame = meta.shape.gop_size // 2
-    image = FrameRenderer(gop, static=static).render(frame, cam)
+    static layer where the scene has one; a still scene's static layer (frame 0)."""
+    if meta.still:
+        if static is None:
+            raise StgsError(f"{model_dir}: a still scene needs its static layer")
+        cam = poster_camera(model_dir, static)
+        frame, image = 0, render_still(static, cam)
+    else:
+        gop = load_gop(model_dir, meta, 0)
+        cam = poster_camera(model_dir, gop)
+        frame = meta.shape.gop_size // 2
+        image = FrameRenderer(gop, static=static).render(frame, cam)
     rgb = (image.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
     return rgb, {"camera": cam.name, "frame": frame}
 

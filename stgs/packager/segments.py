@@ -98,13 +98,13 @@ def scene_cameras(model_dir: Path) -> list[Camera]:
     return []
 
 
-def quality_views(model_dir: Path, meta: SceneMeta, model: Callable[[], GOPModel], cameras: int,
+def quality_views(model_dir: Path, meta: SceneMeta, model: Callable[[], GOPModel | StaticLayer], cameras: int,
                   frames: int | None) -> QualityViews:
     """The views rung quality is measured at (QualityViews): the model dir's held-out cameras where it names them,
-    else `cameras` of the scene's cameras spread evenly, else (no cameras) an orbit framing `model()`; `frames`
-    frames of each GOP spread evenly (None: every frame)."""
+    else `cameras` of the scene's cameras spread evenly, else (no cameras) an orbit framing `model()` (GOP 0, or a
+    still's static layer); `frames` frames of each GOP spread evenly (None: every frame; a still has one)."""
     model_dir = Path(model_dir)
-    every = list(range(meta.shape.gop_size))
+    every = [0] if meta.still else list(range(meta.shape.gop_size))
     picked = every if frames is None else spread(every, frames)
     scene = scene_cameras(model_dir)
     by_name = {c.name: c for c in scene}

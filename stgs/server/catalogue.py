@@ -1,5 +1,5 @@
 """The catalogue of packaged scenes at `/` and `/scenes`: JSON, or at `/` for a browser (Accept: text/html) a page
-of cards (poster, title, duration, Gaussians, rungs) that link each playable scene to the web player
+of cards (poster, title, duration or "still", Gaussians, rungs) that link each playable scene to the web player
 (`/player/?mpd=...`). Title, description and poster come from the scene's scene.json (stgs pack); a tree without
 one lists under its folder's name, without a poster.
 
@@ -22,7 +22,7 @@ from aiohttp import web
 
 from stgs.errors import MPDError
 from stgs.limits import MAX_DESCRIPTION_CHARS, MAX_DOC_BYTES, MAX_TITLE_CHARS
-from stgs.mpd.model import read_mpd
+from stgs.mpd.model import MPD, AdaptationSet, read_mpd
 from stgs.mpd.profile import (
     FEATURE_SCHEME,
     KEYFRAME_SCHEME,
@@ -97,10 +97,12 @@ def checked_poster(folder: Path, poster: object) -> str:
 
 def scene_summary(name: str, manifest: Path) -> dict:
     mpd = read_mpd(manifest)
+    static = mpd.find_adaptation_set(STATIC_SCHEME)
+    if static is not None and mpd.find_adaptation_set(KEYFRAME_SCHEME) is None:
+        return still_summary(name, manifest, mpd, static)
     video = mpd.adaptation_set(FEATURE_SCHEME)
     videos = [(a, feature_set_codec(a)) for a in mpd.adaptation_sets(FEATURE_SCHEME)]
     keyframes = mpd.adaptation_set(KEYFRAME_SCHEME)
-    static = mpd.find_adaptation_set(STATIC_SCHEME)
     seconds = video.segment_template.seconds
     dynamic = KeyframeDescriptor.parse(keyframes).capacity
     static_capacity = 0 if static is None else StaticLayerDescriptor.parse(static).capacity
@@ -113,7 +115,19 @@ def scene_summary(name: str, manifest: Path) -> dict:
             "static": None if static is None else {
                 "capacity": static_capacity, "bandwidth": static.representations[0].bandwidth},
             "keyframe_bandwidth": keyframes.representations[0].bandwidth,
-            "codecs": [codec for _, codec in videos], "ladder": ladder}
+            "codecs": [codec for _, codec in videos], "ladder": ladder, "still": False}
+
+
+def still_summary(name: str, manifest: Path, mpd: MPD, static: AdaptationSet) -> dict:
+    """A still scene's entry (manifests/PROFILE.md, "A still scene"): its static layer, no GOP, rung or codec."""
+    capacity = StaticLayerDescriptor.parse(static).capacity
+    if mpd.find_adaptation_set(FEATURE_SCHEME) is not None:
+        raise MPDError("a still scene (no keyframe AdaptationSet) has no feature set either")
+    return {"name": name, "manifest": manifest_url(name), "player": player_url(name),
+            **scene_face(name, manifest.parent), "gaussians": capacity, "rungs": 0, "format": 2, "still": True,
+            "duration": 0.0, "gops": 0, "static": {"capacity": capacity,
+                                                    "bandwidth": static.representations[0].bandwidth},
+            "codecs": [], "ladder": []}
 
 
 def catalogue(root: Path) -> list[dict]:
@@ -166,10 +180,13 @@ def scene_card(scene: dict) -> str:
     picture = (f'<img src="{html.escape(scene["poster"])}" alt="" loading="lazy">' if scene.get("poster")
                else '<div class="noposter"></div>')
     rungs = f"{scene['rungs']} rung{'s' if scene['rungs'] != 1 else ''}"
-    meta = (f"{duration_text(scene['duration'])} · {scene['gaussians']:,} Gaussians · {rungs} "
+    meta = (f"still · {scene['gaussians']:,} Gaussians" if scene["still"] else
+            f"{duration_text(scene['duration'])} · {scene['gaussians']:,} Gaussians · {rungs} "
             f"({html.escape(', '.join(scene['codecs']))})")
-    watch = (f'<a href="{html.escape(scene["player"])}">watch <span class="visually-hidden">{title}</span></a>'
-             if "av1" in scene["codecs"] else "no AV1 set: browsers cannot play it (repack with --codecs hevc,av1)")
+    watch = (f'<a href="{html.escape(scene["player"])}">{"view" if scene["still"] else "watch"} '
+             f'<span class="visually-hidden">{title}</span></a>'
+             if scene["still"] or "av1" in scene["codecs"]
+             else "no AV1 set: browsers cannot play it (repack with --codecs hevc,av1)")
     description = f"<p>{html.escape(scene['description'])}</p>" if scene.get("description") else ""
     return (f"<li><article aria-label=\"{title}\">{picture}<div><h2>{title}</h2>{description}"
             f"<p class=\"meta\">{meta}</p><p>{watch} · <a href=\"{html.escape(scene['manifest'])}\">manifest</a>"

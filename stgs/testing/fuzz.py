@@ -5,7 +5,8 @@ Targets (each a function of the fuzzed input, with the one error type it may rai
 
 - `mpd`: the MPD model and the client's Presentation (URLs, spans, caps) on a StreamSTGS MPD whose attribute
   values are drawn (huge numbers, odd durations, template widths, junk) or whose bytes are mutated; MPDError.
-  The MPD may carry a static-layer AdaptationSet (format 2) with a drawn descriptor.
+  The MPD may carry a static-layer AdaptationSet (format 2) with a drawn descriptor; one that lost its keyframe set
+  to a mutation is read as a still scene (StillPresentation).
 - `keyframe`: the keyframe reader on a real keyframe segment with its safetensors header's fields replaced by
   drawn JSON values or its bytes mutated; KeyframeError.
 - `static`: the static-layer reader on a real static segment (with view-dependent colour) edited the same
@@ -33,14 +34,13 @@ from typing import Any
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
-from stgs.client.manifest import Presentation
+from stgs.client.manifest import StillPresentation, open_presentation
 from stgs.codec.keyframe import KeyframeError, decode_keyframe
 from stgs.codec.mp4 import MP4Error, hevc_codecs, media_timeline, set_timeline, split_fragmented, track_timescale
 from stgs.codec.static import StaticSegmentError, decode_static
 from stgs.errors import MPDError, StgsError
 from stgs.harness.scenario import load_scenario
 from stgs.harness.trace import load_trace
-from stgs.mpd.model import parse_mpd
 from stgs.testing.fuzz_inputs import (
     STATIC_SEED_CAPACITY,
     header_edits,
@@ -84,7 +84,10 @@ def peak_rss_mb() -> float:
 # --- targets ---
 
 def mpd_target(data: bytes) -> None:
-    pres = Presentation(parse_mpd(data), "http://example.com/scene/manifest.mpd")
+    pres = open_presentation(data, "http://example.com/scene/manifest.mpd")
+    if isinstance(pres, StillPresentation):  # a still scene: the static layer alone
+        pres.static_url(), pres.max_static_bytes()
+        return
     last = pres.ladder[-1].rep_id
     pres.keyframe_url(0), pres.init_url(last), pres.media_url(last, pres.num_gops - 1)
     pres.span(0.0, None, None), pres.span(pres.duration / 2, 1.0, 5.0), pres.gop_at(pres.duration)

@@ -26,6 +26,9 @@ from stgs.train.objective import canonical_regularisers, drop_gaussians
 from stgs.train.ops import Optimizer, relocate, sort
 from stgs.train.seeding import init_canonical, initial_points
 
+STAGE_A = "static"
+"""Stage A's name (its seed, checkpoints and regularisers): the static layer of a layered or still scene."""
+
 
 class StageContext(Protocol):
     """What a canonical stage reads of its run."""
@@ -101,8 +104,9 @@ def fit_canonical(ctx: StageContext, views: Views, shape: GOPShape, stage: str =
         return {"iteration": iteration, "triangulated": triangulated, "background": background}
 
     # Stage A's layer is final (no GOP stage refines it): it gets the GOP stage's regularisers, which
-    # measurably generalise better to cameras not trained on (docs/BENCHMARKS.md, "Layered scenes").
-    regularised = views.masked
+    # measurably generalise better to cameras not trained on (docs/BENCHMARKS.md, "Layered scenes"). A layered
+    # scene's stage A draws masked views; a still's draws every pixel (nothing moves in one moment).
+    regularised = stage == STAGE_A
     sorting = regularised and cfg.smooth_weight > 0
     if sorting and start == 0:
         sort(model, opt, torch.zeros(2, shape.capacity), cfg.seed)
@@ -154,6 +158,6 @@ def imported_static_model(ctx: StageContext, views: Views) -> ImportedStatic:
     with torch.no_grad():
         for name in STATIC_TENSORS:
             getattr(model, name).copy_(getattr(layer, name))
-    refined = fit_canonical(trainer, views, model.shape, "static", model, cfg.static_refine) if cfg.static_refine \
+    refined = fit_canonical(trainer, views, model.shape, STAGE_A, model, cfg.static_refine) if cfg.static_refine \
         else None
     return ImportedStatic(refined.model if refined is not None else model, layer, report, refined)

@@ -52,7 +52,8 @@ class TrainConfig:
     """Named size this config started from (quick, cpu, paper)."""
     layers: str = "single"
     """single: every GOP holds every Gaussian (model format 1); layered: a static layer fitted once over the whole
-    span (stage A) + per-GOP dynamic layers (stage B), model format 2."""
+    span (stage A) + per-GOP dynamic layers (stage B), model format 2; still: stage A alone, a still scene of the
+    static layer and no GOP (a capture of one frame, or a static 3DGS brought in with static_from)."""
     grid_side: int = 24
     """S: the scene's capacity is N = S² Gaussians per GOP (layered: the dynamic layer's S_d)."""
     static_grid_side: int = 32
@@ -215,7 +216,7 @@ class TrainConfig:
                   (0 <= self.dynamic_warmup < 1, "dynamic_warmup must be in [0, 1)"),
                   (0 <= self.coarse_low_res < 1, "coarse_low_res must be in [0, 1)"),
                   (0 <= self.gop_low_res < 1, "gop_low_res must be in [0, 1)"),
-                  (self.static_from is None or self.layers == "layered", "static_from needs layers = layered"),
+                  (self.static_from is None or self.layers != "single", "static_from needs layers = layered or still"),
                   (self.static_refine >= 0, "static_refine must be >= 0"),
                   (self.static_transform is None or len(self.static_transform) == 16,
                    "static_transform must be 16 numbers (a 4x4 matrix)"),
@@ -228,8 +229,8 @@ class TrainConfig:
                 raise StgsError(f"train config: {message}")
 
 
-LAYERS = ("single", "layered")
-"""Training modes: model format 1 or 2."""
+LAYERS = ("single", "layered", "still")
+"""Training modes: model format 1, 2, or 2 without a GOP (a still scene)."""
 
 BUDGETS = {
     "quick": TrainConfig(coarse_iterations=1000, iterations=600,
@@ -249,16 +250,16 @@ LAYERED: dict[str, dict[str, Any]] = {
             "iterations": 3700, "gop_low_res": 0.8},
     "paper": {"grid_side": 256, "static_grid_side": 448, "coarse_iterations": 5000, "iterations": 10000},
 }
-"""What layers = "layered" changes in each budget (unless set explicitly): a smaller dynamic layer beside a
-static layer, and iterations moved from the per-GOP stage to stage A (which nothing refines later); cpu: stage A's
-first 40 % and each GOP's first 80 % drawn at half resolution. What each costs and buys is measured in
-docs/BENCHMARKS.md, "Layered scenes (model format 2) against format 1"; paper: not measured."""
+"""What layers = "layered" (and "still", whose stage A is the same) changes in each budget (unless set explicitly):
+a smaller dynamic layer beside a static layer, and iterations moved from the per-GOP stage to stage A (which nothing
+refines later); cpu: stage A's first 40 % and each GOP's first 80 % drawn at half resolution. What each costs and
+buys is measured in docs/BENCHMARKS.md, "Layered scenes (model format 2) against format 1"; paper: not measured."""
 
 
 def budget(name: str, **overrides: Any) -> TrainConfig:
     if name not in BUDGETS:
         raise StgsError(f"unknown budget {name!r}; choose from {', '.join(BUDGETS)}")
-    layered = LAYERED[name] if overrides.get("layers") == "layered" else {}
+    layered = LAYERED[name] if overrides.get("layers") in ("layered", "still") else {}
     cfg = dataclasses.replace(BUDGETS[name], **(layered | overrides))
     cfg.validate()
     return cfg

@@ -31,6 +31,7 @@ from stgs.train.dynamic import gop_dynamic_masks
 from stgs.train.images import Views, default_memory, open_views, scale_camera
 from stgs.train.layers import moving_pixels
 from stgs.train.trainer import Trainer
+from stgs.train.validation import still_scores
 from stgs.tree import CAMERAS, CAMERAS_FORMAT, TRAIN_REPORT, gop_file, gop_stem
 
 LOG_DIR = "logs"
@@ -52,20 +53,26 @@ def base_stage(trainer: Trainer) -> BaseStage:
     path = trainer.state / BASE_FILE
     if path.is_file():
         return saved_base(trainer)
-    views, _ = stage_views(trainer, trainer.coarse_frames())
+    views, val = stage_views(trainer, trainer.coarse_frames(), holdout=trainer.still)
     start = time.perf_counter()
+    scores: dict[str, float | None] = {}
     try:
-        if trainer.layered:
+        if trainer.static_shape is not None:
             trainer.stage_a(views)
             base = BaseStage(static=trainer.static, migrated=trainer.migrated)
         else:
             base = BaseStage(coarse=trainer.coarse(views, trainer.shape))
+        seconds = time.perf_counter() - start
+        if trainer.still and trainer.static is not None:  # a still's report scores its one layer, as a GOP's does
+            scores["train_psnr"] = still_scores(trainer.static, views, limit=8, colour=trainer.colour)[0]
+            scores["val_psnr"], scores["val_ssim"] = (still_scores(trainer.static, val) if val is not None
+                                                      else (None, None))
     finally:
-        views.close()
+        views.close()  # and val's: they share one source
     base.colour = trainer.colour
-    base.info = {"seconds": time.perf_counter() - start, "triangulated_points": trainer.triangulated,
+    base.info = {"seconds": seconds, "triangulated_points": trainer.triangulated,
                  "background_points": trainer.background_points, "peak_rss_mb": process_peak_rss_mb()} \
-        | trainer.layer_info
+        | trainer.layer_info | scores
     if base.colour is not None:
         base.info["camera_colour"] = base.colour.summary(trainer.train_names)
     trainer.state.mkdir(parents=True, exist_ok=True)
@@ -129,7 +136,7 @@ def finish(trainer: Trainer) -> dict:
     extra = {"generator": "stgs.train", "dataset": trainer.ds.name, "start_frame": cfg.start_frame,
              "train_cameras": trainer.train_names, "validation_cameras": trainer.val_names,
              "world_scale": trainer.world_scale, "config": json.loads(json.dumps(dataclasses.asdict(cfg)))}
-    save_model(trainer.out, gops, trainer.ds.fps, extra, static=base.static)
+    save_model(trainer.out, gops, trainer.ds.fps, extra, static=base.static, shape=trainer.shape)
     cams = [scale_camera(c, cfg.scale) for c in trainer.ds.cameras(cfg.start_frame)]
     doc = {"format": CAMERAS_FORMAT, "version": 1, "cameras": [c.to_json() for c in cams]}
     atomic_write_bytes(trainer.out / CAMERAS, (json.dumps(doc, indent=1) + "\n").encode())
@@ -145,6 +152,8 @@ def finish(trainer: Trainer) -> dict:
               "peak_rss_mb": max((p for p in peaks if p is not None), default=None)}
     if base.static is not None:
         report |= {"static_capacity": base.static.capacity, "static_seconds": coarse_s} | info
+    if trainer.still:
+        report["still"] = True
     if colours is not None:
         report["camera_colour"] = colours
     atomic_write_bytes(trainer.out / TRAIN_REPORT, (json.dumps(report, indent=1) + "\n").encode())
@@ -189,8 +198,9 @@ def train(dataset: Path, out: Path, cfg: TrainConfig, progress: bool = True, res
         cfg = dataclasses.replace(cfg, threads=1)
     trainer = Trainer(Path(dataset), Path(out), cfg, progress, resume, kind)
     # A missing or wrongly sized view is found now, from the files' headers, not when its GOP's turn comes.
-    span = range(cfg.start_frame, cfg.start_frame + trainer.num_gops * cfg.gop_size)
-    trainer.ds.check_views(list(span), trainer.train_names + trainer.val_names)
+    span = (trainer.coarse_frames() if trainer.still else
+            list(range(cfg.start_frame, cfg.start_frame + trainer.num_gops * cfg.gop_size)))
+    trainer.ds.check_views(span, trainer.train_names + trainer.val_names)
     runner = open_runner(ray, retries, progress)  # before anything is written: a bad address leaves no output
     try:
         trainer.prepare_output()

@@ -18,6 +18,9 @@ shows moving migrate out of it; step 4 is stage B, which fits each GOP's
 smaller dynamic layer, started from the migrated Gaussians and the GOP's
 triangulated points, drawn over the frozen static layer in one splat (the
 layer kept per training camera: stgs.model.renderer.static_backdrops).
+A still scene (cfg.layers = "still": a capture of one frame, or a static 3DGS
+brought in) is stage A alone: no Gaussian migrates, no GOP trains, and the
+model dir holds the static layer only.
 
 Checkpoints (safetensors + JSON, no pickle) under OUT/.train/ allow --resume;
 a non-finite loss stops the run with the last good checkpoint kept. Each stage
@@ -47,7 +50,7 @@ from stgs.camera import scene_extent
 from stgs.codec.attributes import OPACITY_LOGIT_RANGE
 from stgs.data import open_dataset, split
 from stgs.data.units import in_model_units, world_scale
-from stgs.errors import StgsError
+from stgs.errors import FieldError, StgsError
 from stgs.memory import reuse_large_allocations
 from stgs.metrics import psnr
 from stgs.model.gop import GOPModel, GOPShape
@@ -57,7 +60,7 @@ from stgs.picks import spread
 from stgs.train.aux import AuxTransformer
 from stgs.train.base import BaseStage
 from stgs.train.camera_colour import CameraColour
-from stgs.train.canonical import CanonicalFit, fit_canonical, imported_static_model
+from stgs.train.canonical import STAGE_A, CanonicalFit, fit_canonical, imported_static_model
 from stgs.train.checkpoint import Checkpoints
 from stgs.train.config import TrainConfig, stage_seed
 from stgs.train.gop_report import DivergedError, GOPReport
@@ -87,18 +90,27 @@ class Trainer:
         self.out, self.cfg, self.progress, self.resume = Path(out), cfg, progress, resume
         self.train_names, self.val_names = split(self.ds, cfg.holdout)
         usable = self.ds.num_frames - cfg.start_frame
-        self.num_gops = usable // cfg.gop_size
-        self.tail_frames = cfg.untrained_tail(self.ds.num_frames)
+        self.still = cfg.layers == "still"
+        """A still scene: stage A alone, the static layer and no GOP."""
+        self.num_gops = 0 if self.still else usable // cfg.gop_size
+        self.tail_frames = None if self.still else cfg.untrained_tail(self.ds.num_frames)
         """Frames after the last whole GOP, which no GOP holds (TrainConfig.untrained_tail)."""
         if cfg.max_gops is not None:
             self.num_gops = min(self.num_gops, cfg.max_gops)
-        if self.num_gops < 1:
+        if usable < 1:
+            raise FieldError("start_frame", f"{self.ds.name} has {self.ds.num_frames} frame(s), none from frame "
+                             f"{cfg.start_frame} on")
+        if usable == 1 and not self.still:
+            raise FieldError("layers", f"{self.ds.name} has one frame from frame {cfg.start_frame}: a still scene, "
+                             "which trains with layers = still (no GOP)")
+        if self.num_gops < 1 and not self.still:
             raise StgsError(f"{self.ds.name}: {usable} frame(s) from frame {cfg.start_frame} do not fill one "
                             f"GOP of {cfg.gop_size}")
         self.shape = GOPShape(cfg.grid_side ** 2, cfg.gop_size, cfg.window, cfg.pe_freqs)
+        """The GOPs' sizes (a still scene's model.json records them, for no file)."""
         self.layered = cfg.layers == "layered"
         # Stage A fits the static layer as a GOP model without time (its features are never used).
-        self.static_shape = GOPShape(cfg.static_grid_side ** 2, 2, 1, 0) if self.layered else None
+        self.static_shape = GOPShape(cfg.static_grid_side ** 2, 2, 1, 0) if self.layered or self.still else None
         self.static: StaticLayer | None = None
         self.imported: StaticLayer | None = None  # TrainConfig.static_from's layer, as read
         self.migrated: Migrated | None = None
@@ -153,7 +165,9 @@ class Trainer:
         """The static layer (layered training): fitted on the pixels that do not move, then the Gaussians the
         data shows moving leave it for the dynamic layers."""
         cfg = self.cfg
-        moving = moving_pixels(self.ds, views, cfg.dynamic_theta)
+        # a still is one moment: nothing moves, every pixel is the static layer's (a layered scene's stage A draws the
+        # pixels that do not move)
+        moving = None if self.still else moving_pixels(self.ds, views, cfg.dynamic_theta)
         views.set_masks(moving)
         if self.static_shape is None:
             raise ValueError("stage A trains the static layer of a layered run")
@@ -164,15 +178,16 @@ class Trainer:
             self.layer_info["static_import"] = brought.report
             model = self.keep(brought.refined) if brought.refined is not None else brought.model
         else:
-            model = self.coarse(views, self.static_shape, "static")
-        scores, share = motion_scores(model, views, moving)
-        limit = int(cfg.migrate_share * self.shape.capacity) if cfg.migrate else 0
-        self.migrated = migrate(model, scores, cfg.migrate_score, limit, cfg.dead_opacity)
+            model = self.coarse(views, self.static_shape, STAGE_A)
+        if moving is not None:
+            scores, share = motion_scores(model, views, moving)
+            limit = int(cfg.migrate_share * self.shape.capacity) if cfg.migrate else 0
+            self.migrated = migrate(model, scores, cfg.migrate_score, limit, cfg.dead_opacity)
+            self.layer_info |= {"moving_mask_source": moving.source, "migrated": len(self.migrated.index),
+                                "moving_pixel_share": share}
         sh1 = self.imported.sh1 if self.imported is not None and self.imported.sh_degree and not cfg.static_refine \
             else None  # refining re-sorts the slots
         self.static = StaticLayer.from_canonical(model, sh1=sh1)
-        self.layer_info |= {"moving_mask_source": moving.source, "migrated": len(self.migrated.index),
-                            "moving_pixel_share": share}
         if cfg.static_sh_degree:
             start = time.perf_counter()
             draws = view_draws(cfg.seed, "static/sh1", cfg.static_sh_iterations, *views.counts)
@@ -297,8 +312,10 @@ class Trainer:
 
     def coarse_frames(self) -> list[int]:
         """The base stage's frames: stage A's, every frame of the trained span (or TrainConfig.static_frames spread
-        over it); format 1's coarse stage's, at most two GOPs' worth."""
-        all_frames = [f for k in range(self.num_gops) for f in self.gop_frames(k)]
-        count = self.cfg.static_frames if self.layered else 2 * self.cfg.gop_size
+        over it; a still scene's span is every frame from start_frame); format 1's coarse stage's, at most two GOPs'
+        worth."""
+        all_frames = ([f for k in range(self.num_gops) for f in self.gop_frames(k)] if not self.still else
+                      list(range(self.cfg.start_frame, self.ds.num_frames)))
+        count = self.cfg.static_frames if self.layered or self.still else 2 * self.cfg.gop_size
         step = max(1, len(all_frames) // max(1, min(len(all_frames), count or len(all_frames))))
         return all_frames[::step]

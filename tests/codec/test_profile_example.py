@@ -1,4 +1,5 @@
-"""manifests/example.mpd and example-layered.mpd: valid DASH, and a StreamSTGS profile the parsers accept."""
+"""manifests/example.mpd, example-layered.mpd and example-still.mpd: valid DASH, and a StreamSTGS profile the parsers
+accept."""
 
 from __future__ import annotations
 
@@ -12,9 +13,10 @@ from tests.conftest import SHARED
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "manifests" / "example.mpd"
 LAYERED = EXAMPLE.with_name("example-layered.mpd")
+STILL = EXAMPLE.with_name("example-still.mpd")
 
 
-@pytest.mark.parametrize("example", [EXAMPLE, LAYERED], ids=["format1", "layered"])
+@pytest.mark.parametrize("example", [EXAMPLE, LAYERED, STILL], ids=["format1", "layered", "still"])
 def test_example_validates_against_the_schema(example):
     xsd = SHARED / "dash" / "DASH-MPD.xsd"
     if not xsd.is_file():
@@ -31,6 +33,16 @@ def test_layered_example_parses_with_its_static_layer():
     assert pres.static.capacity == 1024 and pres.static.sh_degree == 0 and pres.shape.capacity == 4096
     assert pres.static_url() == "http://example.org/scene/v-9bf733199119/static/layer.stgl"
     assert Presentation.parse(EXAMPLE.read_bytes(), "http://example.org/manifest.mpd").static is None
+
+
+def test_still_example_parses_as_a_still_scene():
+    from stgs.client.manifest import StillPresentation, open_presentation
+
+    pres = open_presentation(STILL.read_bytes(), "http://example.org/still/manifest.mpd")
+    assert isinstance(pres, StillPresentation) and pres.static.capacity == 576 and pres.mpd.duration == 1
+    assert pres.static_url() == "http://example.org/still/v-8b3785a5d4bd/static/layer.stgl"
+    assert not isinstance(open_presentation(LAYERED.read_bytes(), "http://example.org/manifest.mpd"),
+                          StillPresentation)
 
 
 def test_example_parses_as_the_profile():

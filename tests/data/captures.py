@@ -78,6 +78,19 @@ def _png(path: Path, rgb: np.ndarray) -> None:
     assert cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
 
 
+class FirstFrames:
+    """The first `count` frames of a synthetic scene's views (a still capture: count 1)."""
+
+    def __init__(self, ds: SynthReader, count: int):
+        self.ds, self.num_frames, self.fps = ds, min(count, ds.num_frames), ds.fps
+
+    def cameras(self, frame: int) -> list[Camera]:
+        return self.ds.cameras(frame)
+
+    def pixels(self, frame: int, camera: str):
+        return self.ds.pixels(frame, camera)
+
+
 def lens_of(cam: Camera, model: str, coefficients: tuple[float, ...]) -> Intrinsics | None:
     if model in ("PINHOLE", "SIMPLE_PINHOLE"):
         return None
@@ -86,9 +99,11 @@ def lens_of(cam: Camera, model: str, coefficients: tuple[float, ...]) -> Intrins
 
 def write_capture(ds: SynthReader, out: Path, layout: str, binary: bool = True, model: str = "PINHOLE",
                   coefficients: tuple[float, ...] = (), points: np.ndarray | None = None,
-                  per_frame: bool = False, scale: float = 1.0) -> Path:
+                  per_frame: bool = False, scale: float = 1.0, num_frames: int | None = None) -> Path:
     """`ds` as a capture in `layout` (frames, images, videos, nerfstudio) at `out`, its unit of length 1/`scale`
-    of the synthetic scene's (COLMAP layouts)."""
+    of the synthetic scene's (COLMAP layouts); `num_frames`: its first frames only (None: all)."""
+    if num_frames is not None:
+        ds = FirstFrames(ds, num_frames)
     cams = ds.cameras(0)
     names = [c.name for c in cams]
     lenses = {c.name: lens_of(c, model, coefficients) for c in cams}

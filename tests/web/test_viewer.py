@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import base64
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -19,8 +20,8 @@ from stgs.cli.browser import served as serve_root
 from stgs.metrics import psnr
 from stgs.packager import PackConfig, pack
 from stgs.train import budget, train
-from tests.conftest import PANOPTIC
-from tests.web.conftest import LOADED, SMALL_TITLE, WEB_SCENE, browse, need_browser
+from tests.conftest import PANOPTIC, STILL_CAMERA
+from tests.web.conftest import ERROR_TEXT, LOADED, SMALL_TITLE, WEB_SCENE, browse, need_browser
 
 FRAMES = WEB_SCENE.num_gops * WEB_SCENE.gop_size
 SHOWN = "stgsPlayer.stats.shown !== null"
@@ -229,3 +230,65 @@ def test_a_trained_panoptic_gop_plays_and_matches_stgs_play_at_a_scene_camera(pa
     assert psnr(torch.from_numpy(web), torch.from_numpy(ref)) >= 40.0
     (yaw0, radius0, _), (yaw1, radius1, _) = r["before"], r["after"]
     assert yaw1 == pytest.approx(yaw0 - 80 * 0.005) and radius1 < 0.6 * radius0
+
+
+def test_a_still_scene_shows_in_the_catalogue_and_the_player_and_matches_stgs_play(still_scene, tmp_path):
+    """A one-frame capture trained and packed as a still (tests.conftest.still_scene): its card says so, the player
+    draws it with the camera's controls alone (no clock), redraws it when the view moves, links to a view with no
+    time, and its frame at a scene camera is `stgs play --camera`'s."""
+    hidden = ("['play', 'seek', 'loop', 'speed', 'quality']"
+              ".map(id => document.getElementById(id).closest('[hidden]') !== null)")
+    draws = "stgsPlayer.stats.frameTimes.length"
+    root = tmp_path / "root"
+    shutil.copytree(still_scene / "tree" / "still", root / "still")
+    shutil.copytree(root / "still", root / "badstill")  # a feature set beside the static layer, and no keyframe set
+    mpd = (root / "still" / "manifest.mpd").read_text()
+    bad = mpd.replace("</Period>", '<AdaptationSet id="3" contentType="video" mimeType="video/mp4">'
+                      '<SupplementalProperty schemeIdUri="urn:streamstgs:features:2026" value="tiles=4x4;'
+                      'channels=16;bits=10"/></AdaptationSet></Period>')
+    assert bad != mpd
+    (root / "badstill" / "manifest.mpd").write_text(bad)
+    with serve_root(root) as base:
+        url = f"{base}player/?mpd=/still/manifest.mpd&size=96x72&camera={STILL_CAMERA}"
+        out = browse({"viewport": [640, 480], "steps": [
+            {"goto": base},
+            {"eval": "document.querySelector('article .meta').textContent", "as": "meta"},
+            {"click": "a[href*='still']"},
+            {"wait": f"{LOADED} && {SHOWN}", "timeout": 60000},
+            {"eval": f"[stgsPlayer.still, {hidden}, document.getElementById('time').textContent]", "as": "page"},
+            {"goto": url},
+            {"wait": f"{LOADED} && {SHOWN}", "timeout": 60000},
+            {"eval": "stgsPlayer.capture()", "as": "png"},
+            {"eval": f"(window.before = {draws})", "as": "before"},
+            {"press": "ArrowLeft"},
+            {"wait": f"{draws} > window.before", "timeout": 30000},
+            {"click": "#link"},
+            {"eval": "location.hash", "as": "link"},
+            {"goto": url + "#t=2&cam=cam01"},  # the same page: its fragment changes
+            {"wait": "stgsPlayer.camera.pose && stgsPlayer.camera.pose.name === 'cam01'", "timeout": 30000},
+            {"wait": f"{draws} > window.before + 1", "timeout": 30000},
+            {"goto": f"{base}player/?mpd=/badstill/manifest.mpd"},
+            {"wait": ERROR_TEXT},
+            {"eval": ERROR_TEXT, "as": "bad"},
+            {"initScript": "delete window.VideoDecoder"},  # a still needs no video decoder
+            {"goto": url},
+            {"wait": f"{LOADED} && {SHOWN}", "timeout": 60000},
+            {"eval": "typeof VideoDecoder", "as": "decoder"},
+        ]})
+        result = subprocess.run([sys.executable, "-m", "stgs.cli", "play", base + "still/manifest.mpd", "--camera",
+                                 STILL_CAMERA, "--out", str(tmp_path / "ref")], capture_output=True, text=True,
+                                timeout=300)
+    assert result.returncode == 0, result.stderr
+    r = out["results"]
+    assert r["meta"] == f"still · {24 ** 2} Gaussians"
+    assert r["page"] == [True, [True] * 5, "still"] and r["decoder"] == "undefined"
+    assert r["bad"] == "ManifestError: a still scene (no keyframe AdaptationSet) has no feature set either"
+    assert "t=" not in r["link"] and "cam=" in r["link"]
+    warnings = [c["text"] for c in out["console"] if WARNINGS in c["text"]]
+    assert len(warnings) == 1 and "no timeline" in warnings[0]
+    assert not out["errors"] and [c["text"] for c in out["console"] if c["type"] == "error"] == [r["bad"]]
+    ref = cv2.cvtColor(cv2.imread(str(tmp_path / "ref" / "00000.png")), cv2.COLOR_BGR2RGB) / 255.0
+    raw = np.frombuffer(base64.b64decode(r["png"].split(",", 1)[1]), np.uint8)
+    web = cv2.cvtColor(cv2.imdecode(raw, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB) / 255.0
+    assert web.shape == ref.shape == (72, 96, 3) and ref.std() > 0.05
+    assert psnr(torch.from_numpy(web), torch.from_numpy(ref)) >= 40.0

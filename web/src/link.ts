@@ -10,6 +10,7 @@ const MAX_FRAGMENT_CHARS = 1000;
 export function linkFragment(player: Player): string {
   const pose = player.camera.pose;
   const cam = pose ? pose.name : player.camera.orbitPose();
+  if (player.still) return new URLSearchParams({ cam }).toString(); // no time: a still has one moment
   return new URLSearchParams({ t: player.shownTimeS().toFixed(3), cam }).toString();
 }
 
@@ -39,7 +40,8 @@ export function applyLink(player: Player, hash: string): string[] {
     }
   }
   const t = params.get("t");
-  if (t !== null) {
+  if (t !== null && player.still) warnings.push(`t=${t.slice(0, 40)} is ignored: a still scene has no timeline`);
+  else if (t !== null) {
     const seconds = Number(t);
     if (t.trim() === "" || !Number.isFinite(seconds) || seconds < 0 || seconds > player.manifest.durationS)
       warnings.push(`t=${t.slice(0, 40)} is not a time in the scene (0..${player.manifest.durationS.toFixed(2)} s)`);

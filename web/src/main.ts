@@ -1,8 +1,8 @@
 // The page's entry: options from the query string (?mpd=URL&abr=&quality=&camera=&size=WxH&autoplay=&gop=
 // &loop=0|1&speed=&buffer=GOPs&background=r,g,b; for tests and benchmarks timing=sync, debug=features,
 // weights=uniform|texture, deform=webgpu), a deep link's moment and view from the fragment (#t=&cam=, link.ts),
-// the assets the build named, then the player and its controls. Without ?mpd it lists the scenes of the
-// server it came from (stgs serve's /scenes), when there is one.
+// the assets the build named, then the player and its controls (a still scene: the camera's alone). Without ?mpd it
+// lists the scenes of the server it came from (stgs serve's /scenes), when there is one.
 import { RULES } from "./abr/index";
 import { SPEEDS } from "./clock";
 import { describe, UnsupportedError } from "./errors";
@@ -22,8 +22,6 @@ async function main(): Promise<void> {
   const assets = JSON.parse(document.querySelector<HTMLMetaElement>('meta[name="stgs-assets"]')!.content) as Assets;
   const mpd = params.get("mpd");
   if (!mpd) return listScenes();
-  if (typeof VideoDecoder === "undefined")
-    throw new UnsupportedError("this browser has no WebCodecs VideoDecoder, which the feature video (AV1) needs");
   const abr = params.get("abr") ?? "dynamic";
   if (!(abr in RULES)) throw new Error(`abr=${abr} is not a rule; known: ${Object.keys(RULES).join(", ")}`);
   const size = params.get("size");
@@ -60,14 +58,8 @@ async function main(): Promise<void> {
   const quality = params.get("quality");
   if (params.get("autoplay") === "0") player.paused = true;
   await player.load(mpd);
-  const codec = player.manifest.rungs[0]!.codecs;
-  const side = 4 * player.manifest.shape.side;
-  const { supported } = await VideoDecoder.isConfigSupported({ codec, codedWidth: side, codedHeight: side });
-  if (!supported)
-    throw new UnsupportedError(
-      `this browser's WebCodecs cannot decode ${codec} (AV1 10-bit), which the feature video needs`,
-    );
-  if (quality !== null && quality !== "auto") {
+  if (!player.still) await checkDecoder(player);
+  if (quality !== null && quality !== "auto" && !player.still) {
     const rung = player.manifest.rungs.findIndex((r) => r.id === quality);
     if (rung < 0)
       throw new Error(
@@ -93,6 +85,17 @@ async function main(): Promise<void> {
   bindControls(player);
   status.textContent = "";
   document.getElementById("view")!.focus();
+}
+
+/** The feature video's codec is one this browser's WebCodecs decodes. */
+async function checkDecoder(player: Player): Promise<void> {
+  const codec = player.manifest.rungs[0]!.codecs;
+  const side = 4 * player.manifest.shape.side;
+  const { supported } = await VideoDecoder.isConfigSupported({ codec, codedWidth: side, codedHeight: side });
+  if (!supported)
+    throw new UnsupportedError(
+      `this browser's WebCodecs cannot decode ${codec} (AV1 10-bit), which the feature video needs`,
+    );
 }
 
 async function listScenes(): Promise<void> {

@@ -1,5 +1,6 @@
 // The MPD as the page sees it (stgs/client/manifest.py's checks, manifests/PROFILE.md): one static Period; the
-// keyframe set, the optional static-layer set and the AV1 10-bit feature set found by their scheme URIs;
+// keyframe set, the optional static-layer set and the AV1 10-bit feature set found by their scheme URIs (a still
+// scene: the static-layer set alone);
 // the scene's sizes read from the descriptors and checked against the caps before anything is fetched;
 // SegmentTemplates resolved against the MPD's URL and its BaseURLs, every URL checked by the URL policy.
 import { LOSSLESS, parseQuant, type KeyframeQuant } from "./container";
@@ -59,6 +60,9 @@ export interface StaticLayerInfo {
 
 export interface Manifest {
   url: string;
+  /** A still scene (manifests/PROFILE.md, "A still scene"): the static layer alone, no GOP, no clock. Its `gops` is 0,
+   * `rungs` empty, `shape` all zeros, and the segment URL functions throw. */
+  still: boolean;
   durationS: number;
   gops: number;
   gopSeconds: number;
@@ -234,6 +238,43 @@ export function parseManifest(text: string, url: string): Manifest {
   const bySchema = (s: string) => sets.filter((a) => scheme(a)?.getAttribute("schemeIdUri") === s);
   const durationS = parseDuration(mpd.getAttribute("mediaPresentationDuration"), "@mediaPresentationDuration");
 
+  let staticLayer: StaticLayerInfo | null = null;
+  const staticSets = bySchema(STATIC_SCHEME);
+  if (staticSets.length > 1) fail("the MPD has more than one static-layer AdaptationSet");
+  if (staticSets.length === 1) {
+    const sset = staticSets[0]!;
+    const sf = descriptorFields(scheme(sset)!.getAttribute("value") ?? "", "static-layer");
+    const scap = intField(sf, "capacity", 1, L.MAX_CAPACITY, "static-layer");
+    const sside = intField(sf, "grid_side", 1, 2048, "static-layer");
+    if (sside * sside !== scap) fail(`static-layer grid_side ${sside} does not square to capacity ${scap}`);
+    const shDegree = intField(sf, "sh_degree", 0, 1, "static-layer");
+    const reps = children(sset, "Representation");
+    if (reps.length !== 1) fail("the static-layer AdaptationSet must have exactly one Representation");
+    const st = template(sset);
+    const surl = new URL(
+      expandTemplate(st.media, reps[0]!.getAttribute("id") ?? "", st.start),
+      baseOf(sset, base, policy),
+    ).href;
+    staticLayer = {
+      capacity: scap,
+      side: sside,
+      shDegree,
+      url: surl,
+      bandwidth: intAttr(reps[0]!, "bandwidth", 1, 1e12),
+    };
+  }
+
+  const sceneUrls = {
+    statsUrl: new URL("stats.json", url).href,
+    camerasUrl: new URL("cameras.json", url).href,
+    sceneUrl: new URL("scene.json", url).href,
+  };
+  if (staticLayer && bySchema(KEYFRAME_SCHEME).length === 0) {
+    if (bySchema(FEATURE_SCHEME).length) fail("a still scene (no keyframe AdaptationSet) has no feature set either");
+    policy.check(staticLayer.url);
+    return stillManifest(url, durationS, staticLayer, sceneUrls, policy);
+  }
+
   const keyframeSets = bySchema(KEYFRAME_SCHEME);
   if (keyframeSets.length !== 1) fail(`the MPD needs exactly one keyframe AdaptationSet (${KEYFRAME_SCHEME})`);
   const kset = keyframeSets[0]!;
@@ -276,32 +317,6 @@ export function parseManifest(text: string, url: string): Manifest {
     fail(`a GOP lasts ${gopSeconds} s, not ${gopSize} frames at ${fps} fps`);
   const gops = Math.round(durationS / gopSeconds);
   if (gops < 1 || gops > L.MAX_GOPS) fail(`the presentation has ${gops} GOPs, outside 1..${L.MAX_GOPS}`);
-
-  let staticLayer: StaticLayerInfo | null = null;
-  const staticSets = bySchema(STATIC_SCHEME);
-  if (staticSets.length > 1) fail("the MPD has more than one static-layer AdaptationSet");
-  if (staticSets.length === 1) {
-    const sset = staticSets[0]!;
-    const sf = descriptorFields(scheme(sset)!.getAttribute("value") ?? "", "static-layer");
-    const scap = intField(sf, "capacity", 1, L.MAX_CAPACITY, "static-layer");
-    const sside = intField(sf, "grid_side", 1, 2048, "static-layer");
-    if (sside * sside !== scap) fail(`static-layer grid_side ${sside} does not square to capacity ${scap}`);
-    const shDegree = intField(sf, "sh_degree", 0, 1, "static-layer");
-    const reps = children(sset, "Representation");
-    if (reps.length !== 1) fail("the static-layer AdaptationSet must have exactly one Representation");
-    const st = template(sset);
-    const surl = new URL(
-      expandTemplate(st.media, reps[0]!.getAttribute("id") ?? "", st.start),
-      baseOf(sset, base, policy),
-    ).href;
-    staticLayer = {
-      capacity: scap,
-      side: sside,
-      shDegree,
-      url: surl,
-      bandwidth: intAttr(reps[0]!, "bandwidth", 1, 1e12),
-    };
-  }
 
   const featureSets = bySchema(FEATURE_SCHEME);
   if (featureSets.length === 0) fail(`the MPD has no feature-video AdaptationSet (${FEATURE_SCHEME})`);
@@ -374,6 +389,7 @@ export function parseManifest(text: string, url: string): Manifest {
   };
   const manifest: Manifest = {
     url,
+    still: false,
     durationS,
     gops,
     gopSeconds,
@@ -395,13 +411,43 @@ export function parseManifest(text: string, url: string): Manifest {
     mediaUrl: (i, k) => check(new URL(expandTemplate(ft.media, rungs[i]!.id, ft.start + k), fbase).href),
     maxSegmentBytes: (bandwidth) =>
       Math.min(L.MAX_SEGMENT_BYTES, Math.ceil((bandwidth / 8) * gopSeconds * L.SEGMENT_SLACK) + 4096),
-    statsUrl: new URL("stats.json", url).href,
-    camerasUrl: new URL("cameras.json", url).href,
-    sceneUrl: new URL("scene.json", url).href,
+    ...sceneUrls,
     policy,
   };
   if (staticLayer) policy.check(staticLayer.url);
   for (const rep of keyframeReps.keys()) manifest.keyframeUrl(0, rep);
   manifest.mediaUrl(0, 0);
   return manifest;
+}
+
+/** A still scene's manifest: the static layer alone (no GOP, rung or segment template besides its one segment). */
+function stillManifest(
+  url: string,
+  durationS: number,
+  staticLayer: StaticLayerInfo,
+  urls: { statsUrl: string; camerasUrl: string; sceneUrl: string },
+  policy: UrlPolicy,
+): Manifest {
+  const none = (): never => fail("a still scene has no GOP segments");
+  return {
+    url,
+    still: true,
+    durationS,
+    gops: 0,
+    gopSeconds: durationS,
+    fps: 1,
+    shape: { capacity: 0, side: 0, gopSize: 0, window: 0, peFreqs: 0, numFeatures: 0 },
+    staticLayer,
+    keyframeReps: new Map(),
+    rungs: [],
+    otherCodecs: [],
+    keyframeUrl: none,
+    abrBandwidths: () => [],
+    initUrl: none,
+    mediaUrl: none,
+    maxSegmentBytes: (bandwidth) =>
+      Math.min(L.MAX_SEGMENT_BYTES, Math.ceil((bandwidth / 8) * durationS * L.SEGMENT_SLACK) + 4096),
+    ...urls,
+    policy,
+  };
 }

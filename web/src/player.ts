@@ -2,11 +2,12 @@
 // and presents frames on the wall clock: the frame the clock asks for is shown if its keyframe and feature
 // window are here, frames it passed are dropped, and only when nothing new is ready does the clock stop (a
 // stall). Each shown frame: deform the dynamic layer (GPU), read back its means, depth-sort both layers
-// (worker), splat (GPU). At the end it stops, or starts again from the first frame when it loops.
+// (worker), splat (GPU). At the end it stops, or starts again from the first frame when it loops. A still scene (the
+// static layer alone) has no clock: it is drawn once, and again whenever the camera moves.
 import { DEFAULT_SETTINGS, type Decision, makeRule } from "./abr/index";
 import { type SceneCamera, ViewerCamera, cameraCenter, parseSceneCameras, sceneCenter, sceneUp } from "./camera";
 import { PresentationClock, SPEEDS } from "./clock";
-import { describe } from "./errors";
+import { UnsupportedError, describe } from "./errors";
 import * as L from "./limits";
 import { type Manifest, parseManifest } from "./manifest";
 import { UrlPolicy } from "./urlpolicy";
@@ -15,7 +16,7 @@ import { DeformPass, type WeightStorage } from "./render/deform";
 import { WebGpuDeform } from "./render/deform-webgpu";
 import type { Deformer } from "./render/deformer";
 import { createContext } from "./render/gl";
-import { FramePipeline } from "./render/frame";
+import { FramePipeline, StillFrame } from "./render/frame";
 import { SplatPass, type StaticTextures, staticTextures } from "./render/splat";
 import { Downloader, type GopDownload, type GopState } from "./stream/downloader";
 import { fetchJson, fetchStream } from "./stream/fetch";
@@ -60,6 +61,8 @@ export class Player {
   private sorter!: Sorter;
   private deform!: Deformer;
   private frames!: FramePipeline;
+  /** A still scene's frame (null for a scene of GOPs). */
+  private stillFrame: StillFrame | null = null;
   private readonly gops = new Map<number, GopState>();
   /** Last presented frame (global index), -1 before the first. */
   current = -1;
@@ -89,7 +92,12 @@ export class Player {
   ) {}
 
   get totalFrames(): number {
-    return this.manifest.gops * this.manifest.shape.gopSize;
+    return this.still ? 1 : this.manifest.gops * this.manifest.shape.gopSize;
+  }
+
+  /** A still scene: no clock, no GOP, nothing to play. */
+  get still(): boolean {
+    return this.manifest.still;
   }
 
   playheadS(): number {
@@ -103,6 +111,8 @@ export class Player {
     const text = await fetchStream(absolute, new UrlPolicy(absolute), L.MAX_MPD_BYTES, "manifest", null);
     this.manifest = parseManifest(new TextDecoder().decode(text.data), absolute);
     const m = this.manifest;
+    if (!m.still && typeof VideoDecoder === "undefined")
+      throw new UnsupportedError("this browser has no WebCodecs VideoDecoder, which the feature video (AV1) needs");
     this.clock = new PresentationClock(m.fps);
     this.loop = this.options.loop ?? m.durationS < LOOP_UNDER_S;
     // a scene may come without stats, cameras or a face (an older tree): each is optional
@@ -122,8 +132,9 @@ export class Player {
     this.camera.target = sceneCenter(this.cameras);
     if (this.cameras.length) this.snapTo(0);
     this.keyframes = new KeyframePool(this.assets, Math.max(1, Math.min(4, (navigator.hardwareConcurrency || 2) - 1)));
-    this.features = new FeatureDecoder(this.assets);
     this.sorter = new Sorter(this.assets);
+    if (m.still) return this.loadStill(ctx.gl, ctx.floatBlend, start);
+    this.features = new FeatureDecoder(this.assets);
     this.features.onFrame = (f) => {
       if (this.options.digests) void sha256Hex(f.data).then((hex) => this.digests.set(`${f.gop}:${f.index}`, hex));
       this.ring.add(f);
@@ -174,6 +185,27 @@ export class Player {
     requestAnimationFrame((t) => this.tick(t));
   }
 
+  /** A still scene: its static layer fetched, decoded and drawn (then redrawn whenever the view changes). */
+  private async loadStill(gl: WebGL2RenderingContext, floatBlend: boolean, start: number): Promise<void> {
+    const m = this.manifest;
+    const layer = await loadStaticLayer(m, this.keyframes, this.sorter);
+    this.stats.staticMs = layer.ms;
+    const textures = staticTextures(gl, layer.attributes, layer.capacity, layer.side, layer.shDegree);
+    const sorter = this.sorter;
+    this.stillFrame = new StillFrame(
+      new SplatPass(gl, floatBlend),
+      (means, viewmat, guard) => sorter.sort(means, viewmat, guard),
+      textures,
+      this.options.background,
+      this.options.syncTiming,
+    );
+    this.loop = false;
+    this.stats.loadMs = performance.now() - start;
+    this.stats.seekStart = performance.now();
+    this.dirty = true;
+    requestAnimationFrame((t) => this.tick(t));
+  }
+
   private fail(err: unknown): void {
     this.paused = true;
     this.downloader?.stop();
@@ -210,11 +242,12 @@ export class Player {
   }
 
   setRung(rung: number | null): void {
-    this.downloader.pinned = rung;
+    if (!this.still) this.downloader.pinned = rung;
   }
 
   /** Jump to GOP k: drop what is buffered and fetch from k on (only what k needs: its keyframe and features). */
   seek(k: number): void {
+    if (this.still) return;
     const gop = Math.max(0, Math.min(this.manifest.gops - 1, k));
     this.downloader.stop();
     this.features.reset();
@@ -233,6 +266,7 @@ export class Player {
   /** Jump to the frame at scene time `t` (seconds, clamped to the scene): its GOP is fetched and the clock starts
    * at that frame. */
   seekTime(t: number): void {
+    if (this.still) return;
     const G = this.manifest.shape.gopSize;
     const frame = Math.max(0, Math.min(this.totalFrames - 1, Math.round(t * this.manifest.fps)));
     const k = Math.floor(frame / G);
@@ -244,7 +278,7 @@ export class Player {
 
   /** The scene time (seconds) of the frame on screen. */
   shownTimeS(): number {
-    return Math.max(0, this.current) / this.manifest.fps;
+    return this.still ? 0 : Math.max(0, this.current) / this.manifest.fps;
   }
 
   get speed(): number {
@@ -254,11 +288,13 @@ export class Player {
   /** Playback speed, one of SPEEDS (scene seconds per second); the clock goes on from the frame on screen. */
   setSpeed(speed: number): void {
     if (!(SPEEDS as readonly number[]).includes(speed)) throw new RangeError(`speed ${speed} is not one of ${SPEEDS}`);
+    if (this.still) return;
     this.clock.speed = speed;
     this.clock.restart(this.current + 1);
   }
 
   togglePause(): void {
+    if (this.still) return;
     this.paused = !this.paused;
     if (!this.paused) {
       if (this.ended) this.seek(0);
@@ -269,6 +305,12 @@ export class Player {
   /** Pause and show presentation frame `frame` (seeking to its GOP unless it is ahead in the current one) once
    * its data is here: what the tests and the benchmark use to look at one exact frame. */
   async showFrame(frame: number, timeoutMs = 60000): Promise<{ gop: number; frame: number }> {
+    if (this.still) {
+      if (frame !== 0) throw new RangeError(`a still scene has one frame, not frame ${frame}`);
+      await this.whenIdle(timeoutMs);
+      await this.presentStill();
+      return { gop: 0, frame: 0 };
+    }
     const G = this.manifest.shape.gopSize;
     const k = Math.floor(frame / G);
     this.paused = true;
@@ -299,9 +341,43 @@ export class Player {
     return this.gops.get(k)?.decoded != null && this.ring.has(k, frame % G, this.manifest.shape.window);
   }
 
+  /** Wait until no frame is being drawn. */
+  private async whenIdle(timeoutMs: number): Promise<void> {
+    const until = performance.now() + timeoutMs;
+    while (this.busy) {
+      if (performance.now() > until) throw new Error(`the frame being drawn did not finish within ${timeoutMs} ms`);
+      await new Promise((r) => setTimeout(r, 20));
+    }
+  }
+
+  /** Draw a still scene from the current view. */
+  private async presentStill(): Promise<void> {
+    this.busy = true;
+    try {
+      const [w, h] = this.renderSize();
+      if (this.canvas.width !== w || this.canvas.height !== h) [this.canvas.width, this.canvas.height] = [w, h];
+      this.dirty = false;
+      const t = await this.stillFrame!.draw(this.camera.view(w, h));
+      if (!this.started) {
+        this.started = true;
+        this.stats.started(performance.now()); // the first picture is on screen now, not at the frame's start
+      }
+      this.current = 0;
+      this.presentable = true;
+      this.stats.frame(t.deform, t.sort, t.sortWait, t.draw, 0, t.visible);
+      this.stats.shown = { gop: 0, frame: 0 };
+    } finally {
+      this.busy = false;
+    }
+  }
+
   private async tick(now: number): Promise<void> {
     requestAnimationFrame((t) => this.tick(t));
     if (this.busy || !this.manifest) return;
+    if (this.still) {
+      if (this.dirty) await this.presentStill().catch((err) => this.fail(err));
+      return;
+    }
     if (this.ended && this.loop && !this.paused) {
       this.loops++;
       this.seek(0);
@@ -364,6 +440,7 @@ export class Player {
   }
 
   bufferS(): number {
+    if (this.still) return 0;
     return Math.max(0, this.downloader.downloadedUntilS - this.playheadS());
   }
 }

@@ -1,6 +1,6 @@
 // The viewer's controls: orbit and fly with mouse, touch and keys; play/pause, seek bar, loop, speed, quality
-// menu, scene cameras, stats overlay, link, screenshot, full screen; the scene's title and poster; and the error
-// panel. Every control is a native, focusable element.
+// menu (none of these five for a still scene), scene cameras, stats overlay, link, screenshot, full screen; the
+// scene's title and poster; and the error panel. Every control is a native, focusable element.
 import { SPEEDS } from "./clock";
 import * as L from "./limits";
 import { linkFragment } from "./link";
@@ -67,6 +67,11 @@ export function bindControls(player: Player): void {
   const poster = $<HTMLImageElement>("poster");
   const status = $("status");
   const m = player.manifest;
+  if (player.still) {
+    // a still has nothing to play: the playback controls go, the camera's stay
+    for (const el of [play, seek, loop, speed.parentElement!, quality.parentElement!]) el.hidden = true;
+    $("controls").setAttribute("aria-label", "View controls");
+  }
 
   for (const s of SPEEDS) speed.add(new Option(`${s}×`, String(s)));
   speed.value = String(player.speed);
@@ -220,9 +225,10 @@ export function bindControls(player: Player): void {
 
   const refresh = () => {
     const shown = Math.max(0, player.current + 1);
-    time.value = `${(shown / m.fps).toFixed(2)} / ${m.durationS.toFixed(2)} s`;
+    time.value = player.still ? "still" : `${(shown / m.fps).toFixed(2)} / ${m.durationS.toFixed(2)} s`;
     if (document.activeElement !== camera) showCamera(); // a deep link may have moved the view
-    if (document.activeElement !== seek) seek.value = String(Math.floor(Math.max(0, player.current) / m.shape.gopSize));
+    if (document.activeElement !== seek && !player.still)
+      seek.value = String(Math.floor(Math.max(0, player.current) / m.shape.gopSize));
     if (!stats.hidden) stats.textContent = player.stats.lines(player.bufferS()).join("\n");
     if (player.stats.shown && !poster.dataset.done) {
       poster.dataset.done = "1";

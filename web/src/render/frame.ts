@@ -1,6 +1,7 @@
 // One frame on the GPU, the presentation half of the player: the GOP's dynamic layer deformed from the frame's
 // feature window, every Gaussian depth-ordered (the sort runs in a worker, behind `sort`), the static and
-// dynamic layers splatted together. The player decides which frame and when (clock, seeks, stalls).
+// dynamic layers splatted together (a still scene: the static layer alone, StillFrame). The player decides which
+// frame and when (clock, seeks, stalls).
 import { type View, cameraCenter } from "../camera";
 import type { Attributes } from "../container";
 import { guardLimits } from "../sort";
@@ -76,5 +77,28 @@ export class FramePipeline {
     if (this.syncTiming) this.deformer.sync();
     const t3 = performance.now();
     return { deform: t1 - t0, sort: ms, sortWait: t2 - t1, draw: t3 - t2, visible: order.length };
+  }
+}
+
+/** A still scene's frame (the static layer alone): depth-ordered, splatted; no deformation, no GOP. */
+export class StillFrame {
+  constructor(
+    private readonly splat: SplatPass,
+    private readonly sort: SortFn,
+    readonly staticLayer: StaticTextures,
+    private readonly background: [number, number, number],
+    /** After each draw, wait for the GPU (exact per-stage times, for benchmarks). */
+    private readonly syncTiming: boolean,
+  ) {}
+
+  async draw(view: View): Promise<FrameTimes> {
+    const [fx, , cx, fy, cy] = view.K;
+    const t1 = performance.now();
+    const guard = guardLimits(fx, cx, fy, cy, view.width, view.height);
+    const { order, ms } = await this.sort(new Float32Array(0), view.viewmat, guard);
+    const t2 = performance.now();
+    this.splat.draw(view, order, order.length, this.staticLayer, [], 1, this.background);
+    if (this.syncTiming) this.splat.sync();
+    return { deform: 0, sort: ms, sortWait: t2 - t1, draw: performance.now() - t2, visible: order.length };
   }
 }

@@ -195,7 +195,13 @@ export class SplatPass {
     this.size = [width, height];
   }
 
-  /** Splat the Gaussians `order` names (static ids first, then the dynamic layer's) and composite over `background`. */
+  /** Wait for the GPU to finish what was drawn (a one-pixel read of the canvas): exact per-stage times. */
+  sync(): void {
+    this.gl.readPixels(0, 0, 1, 1, this.gl.RGBA, this.gl.UNSIGNED_BYTE, new Uint8Array(4));
+  }
+
+  /** Splat the Gaussians `order` names (static ids first, then the dynamic layer's; a still scene has no dynamic
+   * textures) and composite over `background`. */
   draw(
     view: View,
     order: Uint32Array,
@@ -226,10 +232,10 @@ export class SplatPass {
       ["uSh0", s[4] ?? this.empty],
       ["uSh1", s[5] ?? this.empty],
       ["uSh2", s[6] ?? this.empty],
-      ["uDMean", dynamic[0]!],
-      ["uDScale", dynamic[1]!],
-      ["uDQuat", dynamic[2]!],
-      ["uDColor", dynamic[3]!],
+      ["uDMean", dynamic[0] ?? this.empty],
+      ["uDScale", dynamic[1] ?? this.empty],
+      ["uDQuat", dynamic[2] ?? this.empty],
+      ["uDColor", dynamic[3] ?? this.empty],
     ]);
     const u = (name: string) => gl.getUniformLocation(p, name);
     gl.uniform1i(u("uStaticCount"), layer?.count ?? 0);
