@@ -201,7 +201,7 @@ export class Player {
     );
     this.loop = false;
     this.stats.loadMs = performance.now() - start;
-    this.stats.seekStart = performance.now();
+    this.stats.seekStart = start; // a still's start-up runs from the manifest's request to its one picture
     this.dirty = true;
     requestAnimationFrame((t) => this.tick(t));
   }
