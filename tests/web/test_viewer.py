@@ -1,6 +1,7 @@
 """The viewer for daily use, in Chromium against `stgs serve`: the catalogue's cards (poster, title as text, the
 watch link), the poster while the first GOP loads, loop and speed, deep links to a moment and a view (and the
-ones that do not hold up), the screenshot, touch; and a GOP trained on the real Panoptic capture, end to end."""
+ones that do not hold up), the screenshot, touch, the controls on a phone; a still scene trained from a one-frame
+capture; and a GOP trained on the real Panoptic capture, end to end."""
 
 from __future__ import annotations
 
@@ -292,3 +293,19 @@ def test_a_still_scene_shows_in_the_catalogue_and_the_player_and_matches_stgs_pl
     web = cv2.cvtColor(cv2.imdecode(raw, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB) / 255.0
     assert web.shape == ref.shape == (72, 96, 3) and ref.std() > 0.05
     assert psnr(torch.from_numpy(web), torch.from_numpy(ref)) >= 40.0
+
+
+def test_on_a_phone_the_controls_are_one_row_that_scrolls_to_a_focused_control(served):
+    rect = ("(id => { const r = document.getElementById(id).getBoundingClientRect(); "
+            "return [r.left, r.right, r.height]; })")
+    out = browse({"viewport": [360, 640], "touch": True, "steps": [
+        {"goto": player(served, size="64x48")},
+        {"wait": LOADED, "timeout": 60000},
+        {"eval": "(c => [c.scrollWidth, c.clientWidth])(document.getElementById('controls'))", "as": "widths"},
+        {"eval": "(document.getElementById('fullscreen').focus(), 1)", "as": "_"},
+        {"eval": f"[{rect}('controls'), {rect}('play'), {rect}('fullscreen')]", "as": "rects"},
+    ]})
+    (scroll, width), (controls, play, last) = out["results"]["widths"], out["results"]["rects"]
+    assert scroll > width == 360  # more controls than fit: they scroll sideways ...
+    assert controls[2] < 2 * play[2]  # ... in one row, not three over the picture
+    assert controls[0] <= last[0] and last[1] <= controls[1]  # the last control, focused, is in view
