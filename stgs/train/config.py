@@ -169,7 +169,8 @@ class TrainConfig:
     """Bytes of decoded views a stage holds (stgs.train.images; None: the machine's RAM / 16, at most 1 GiB).
     Only how often a view is decoded depends on it, never the model's bytes."""
     static_frames: int | None = None
-    """Layered: the frames stage A draws from, spread over the trained span (None: every frame)."""
+    """Layered: the frames stage A draws from, spread over the trained span (None: every frame); still: from
+    start_frame on (None: start_frame alone, one moment)."""
     static_from: str | None = None
     """Layered: a 3DGS file (PLY, SPZ, glb) made elsewhere that is the static layer instead of stage A's fit."""
     static_refine: int = 0

@@ -312,10 +312,13 @@ class Trainer:
 
     def coarse_frames(self) -> list[int]:
         """The base stage's frames: stage A's, every frame of the trained span (or TrainConfig.static_frames spread
-        over it; a still scene's span is every frame from start_frame); format 1's coarse stage's, at most two GOPs'
-        worth."""
-        all_frames = ([f for k in range(self.num_gops) for f in self.gop_frames(k)] if not self.still else
-                      list(range(self.cfg.start_frame, self.ds.num_frames)))
-        count = self.cfg.static_frames if self.layered or self.still else 2 * self.cfg.gop_size
+        over it); a still scene's, start_frame alone (or static_frames spread from it to the capture's end); format
+        1's coarse stage's, at most two GOPs' worth."""
+        if self.still:  # one moment, start_frame's, unless static_frames asks for more of a scene that does not move
+            all_frames = list(range(self.cfg.start_frame, self.ds.num_frames))
+            count: int | None = self.cfg.static_frames or 1
+        else:
+            all_frames = [f for k in range(self.num_gops) for f in self.gop_frames(k)]
+            count = self.cfg.static_frames if self.layered else 2 * self.cfg.gop_size
         step = max(1, len(all_frames) // max(1, min(len(all_frames), count or len(all_frames))))
         return all_frames[::step]

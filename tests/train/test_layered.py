@@ -382,3 +382,22 @@ def test_bad_layer_settings_are_clear_errors(scene, tmp_path):
                   "--quiet")
     assert result.returncode != 0 and "static_grid_side" in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1 and not (tmp_path / "m" / "model.json").exists()
+
+
+def test_a_still_of_a_longer_capture_is_one_moment_unless_more_frames_are_asked_for(scene, tmp_path):
+    """layers = still on a capture of several frames: stage A draws start_frame alone (static_frames: more of them,
+    from start_frame on), over every pixel (no moving-pixel mask: nothing moves in one moment), and trains no GOP."""
+    frames = open_dataset(scene).num_frames
+    cfg = budget("quick", layers="still", start_frame=2, coarse_iterations=2, static_grid_side=4)
+    still = Trainer(scene, tmp_path / "a", cfg, progress=False)
+    assert still.num_gops == 0 and still.coarse_frames() == [2]
+    several = Trainer(scene, tmp_path / "b", budget("quick", layers="still", static_frames=frames), progress=False)
+    assert several.coarse_frames() == list(range(frames))
+    still.prepare_output()
+    views, _ = stage_views(still, still.coarse_frames())
+    try:
+        still.stage_a(views)
+        assert not views.masked and still.migrated is None and "migrated" not in still.layer_info
+        assert still.static is not None and still.static.capacity == 16
+    finally:
+        views.close()
