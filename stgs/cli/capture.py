@@ -32,7 +32,8 @@ def describe(report: dict) -> str:
     """The report as a person reads it."""
     rig = report["rig"]
     lines = [f"{report['path']}: {report['kind']} ({report['name']})",
-             f"  frames: {report['frames']} at {report['fps']:g} fps ({report['seconds']:.2f} s)",
+             f"  frames: {report['frames']} at {report['fps']:g} fps ({report['seconds']:.2f} s)"
+             + (": a still scene (stgs train --layers still)" if report["frames"] == 1 else ""),
              f"  cameras: {report['camera_count']} ({', '.join(report['resolutions'])}), calibration "
              f"{report['calibration']}",
              f"  rig: centre ({', '.join(f'{v:.3g}' for v in rig['centre'])}), radius {rig['radius']:.3g}, span "

@@ -40,6 +40,8 @@ def tree(still_scene):
 
 
 def test_one_frame_trains_a_still_model_dir(still_scene):
+    inspected = run_stgs("inspect", str(still_scene / "capture"))
+    assert inspected.returncode == 0 and "frames: 1 at 30 fps (0.03 s): a still scene" in inspected.stdout
     assert "one frame: training a still scene (--layers still)" in (still_scene / "train.stderr").read_text()
     doc = json.loads((still_scene / "model" / MODEL_META).read_text())
     assert doc["version"] == 2 and doc["gops"] == [] and doc["static"]["capacity"] == 24 ** 2
