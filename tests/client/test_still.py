@@ -16,7 +16,7 @@ from stgs.camera import read_scene_cameras
 from stgs.client import PlaybackError, PlayConfig, play
 from stgs.client.config import ViewSpec
 from stgs.client.manifest import Presentation, StillPresentation, open_presentation
-from stgs.errors import FieldError, MPDError
+from stgs.errors import FieldError, MPDError, StgsError
 from stgs.fsio import to_uint8
 from stgs.metrics import psnr
 from stgs.model.renderer import render_still
@@ -71,7 +71,7 @@ def test_a_one_frame_capture_is_refused_as_gops_and_a_still_needs_its_layer(stil
     del doc["static"]
     (tmp_path / "bad").mkdir()
     (tmp_path / "bad" / MODEL_META).write_text(json.dumps(doc))
-    with pytest.raises(Exception, match="empty only beside a static layer"):
+    with pytest.raises(StgsError, match="empty only beside a static layer"):
         read_meta(tmp_path / "bad")
 
 
