@@ -47,7 +47,7 @@ def row(dataset: Path, frame: int, holdout: list[str], settings: dict, work: Pat
         render_still(drawer, cam)
         times.append((time.perf_counter() - t0) * 1e3)
     label = ", ".join(f"{k} {v:g}" for k, v in settings.items()) or "the budget's"
-    return (f"| {budget_name}: {label} | {layer.capacity:,} | {report['static_seconds']:.0f} ({wall:.0f}) | "
+    return (f"| {budget_name}: {label} | {layer.capacity:,} | {report['static_seconds']:.1f} ({wall:.1f}) | "
             f"{report['val_psnr']:.2f} | {report['val_ssim']:.3f} | {stats['static']['bytes'] / 1e3:.0f} | "
             f"{stats['static']['render_psnr']:.2f} | {statistics.median(times):.1f} |")
 

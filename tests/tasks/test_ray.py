@@ -133,8 +133,11 @@ def test_a_worker_killed_mid_task_is_retried_and_the_model_is_the_same(cluster, 
     out = tmp_path / "model"
     driver = popen_train(scene, out, cluster)
     wait_for(lambda: len(starts(out, "gop_0001")) == 1, 120, "GOP 1 to start")
-    time.sleep(1.0)  # mid-task: a GOP trains for several seconds here
     victim = starts(out, "gop_0001")[0]["pid"]
+    # frozen at once, then killed: mid-task however late this process gets the CPU (a GOP task here takes about
+    # two seconds, and two of them share the two cores with Ray)
+    os.kill(victim, signal.SIGSTOP)
+    assert [e["event"] for e in read_log(out / ".train" / "logs", "gop_0001")] == ["start"], "GOP 1 ended first"
     os.kill(victim, signal.SIGKILL)
     _, stderr = driver.communicate(timeout=300)
     assert driver.returncode == 0, stderr
