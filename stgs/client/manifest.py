@@ -25,7 +25,6 @@ from stgs.limits import (
 from stgs.model.gop import GOPShape
 from stgs.mpd.model import MPD, PROFILE_STGS, AdaptationSet, Representation, parse_mpd
 from stgs.mpd.profile import (
-    FEATURE_SCHEME,
     KEYFRAME_SCHEME,
     STATIC_SCHEME,
     KeyframeDescriptor,
@@ -35,6 +34,7 @@ from stgs.mpd.profile import (
     gop_count,
     keyframe_quant,
     paired_keyframe,
+    still_static_set,
 )
 from stgs.tree import KEYFRAME_REP, expand_template, qp_of
 
@@ -99,9 +99,6 @@ def _static_layer(a: AdaptationSet) -> StaticLayerInfo:
 
 
 
-STILL_WITH_FEATURES = "a still scene (no keyframe AdaptationSet) has no feature set either"
-
-
 def _checked_mpd(mpd: MPD) -> MPD:
     """`mpd`, refused unless it declares this profile and has one Period."""
     if PROFILE_STGS not in mpd.profiles:
@@ -120,13 +117,9 @@ class StillPresentation:
         self.mpd = _checked_mpd(mpd)
         self.url = url
         self.base = urljoin(url, mpd.base_url) if mpd.base_url else url
-        found = mpd.find_adaptation_set(STATIC_SCHEME)
-        if found is None or mpd.find_adaptation_set(KEYFRAME_SCHEME) is not None:
+        found = still_static_set(mpd)
+        if found is None:
             raise MPDError("a still scene's Period holds the static-layer AdaptationSet and no keyframe set")
-        if mpd.find_adaptation_set(FEATURE_SCHEME) is not None:
-            raise MPDError(STILL_WITH_FEATURES)
-        if len(mpd.adaptation_sets(STATIC_SCHEME)) > 1:
-            raise MPDError("the MPD has more than one static-layer AdaptationSet")
         self.static: StaticLayerInfo = _static_layer(found)
 
     def static_url(self) -> str:
@@ -145,7 +138,7 @@ class StillPresentation:
 def open_presentation(data: bytes, url: str, codec: str = "auto") -> Presentation | StillPresentation:
     """The MPD at `url` (its bytes `data`) as a still scene (no keyframe set) or a Presentation of GOPs."""
     mpd = _checked_mpd(parse_mpd(data))
-    if mpd.find_adaptation_set(KEYFRAME_SCHEME) is None and mpd.find_adaptation_set(STATIC_SCHEME) is not None:
+    if still_static_set(mpd) is not None:
         return StillPresentation(mpd, url)
     return Presentation(mpd, url, codec)
 

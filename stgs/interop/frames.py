@@ -24,7 +24,7 @@ from stgs.model.gop import GOPModel, frame_time
 from stgs.model.static import StaticLayer
 from stgs.model.store import MODEL_META, load_gop, load_static, read_meta
 from stgs.mpd.model import read_mpd
-from stgs.mpd.profile import FEATURE_SCHEME, KEYFRAME_SCHEME, STATIC_SCHEME, KeyframeDescriptor, gop_count
+from stgs.mpd.profile import FEATURE_SCHEME, KEYFRAME_SCHEME, KeyframeDescriptor, gop_count, still_static_set
 from stgs.packaged import packaged_gops, packaged_static
 from stgs.tree import MANIFEST, STATIC_REP
 
@@ -93,10 +93,9 @@ def open_source(path: Path, rep: str | None = None) -> SceneSource:
 def is_still_tree(path: Path) -> bool:
     """Whether the packaged tree at `path` is a still scene (its static-layer set alone)."""
     try:
-        mpd = read_mpd(path / MANIFEST)
+        return still_static_set(read_mpd(path / MANIFEST)) is not None
     except (OSError, MPDError) as exc:
         raise StgsError(f"{path}: not a packaged scene ({exc})") from None
-    return mpd.find_adaptation_set(KEYFRAME_SCHEME) is None and mpd.find_adaptation_set(STATIC_SCHEME) is not None
 
 
 def no_gop(k: int) -> GOPModel:

@@ -241,6 +241,21 @@ def choose_feature_set(mpd: MPD, codec: str = "auto") -> tuple[AdaptationSet, st
     return found[want], want
 
 
+def still_static_set(mpd: MPD) -> AdaptationSet | None:
+    """A still scene's one static-layer AdaptationSet (manifests/PROFILE.md, "A still scene": the static set and no
+    keyframe set), or None for a scene of GOPs. MPDError for a still with a feature set or two static sets."""
+    if mpd.find_adaptation_set(KEYFRAME_SCHEME) is not None:
+        return None
+    statics = mpd.adaptation_sets(STATIC_SCHEME)
+    if not statics:
+        return None
+    if mpd.find_adaptation_set(FEATURE_SCHEME) is not None:
+        raise MPDError("a still scene (no keyframe AdaptationSet) has no feature set either")
+    if len(statics) > 1:
+        raise MPDError("the MPD has more than one static-layer AdaptationSet")
+    return statics[0]
+
+
 def _grid_fields(adaptation_set: AdaptationSet, scheme: str, what: str) -> tuple[dict[str, str], int]:
     """The `key=value` fields of a version-1 descriptor of a square grid of Gaussians, and its checked capacity."""
     fields = adaptation_set.descriptor(scheme).fields()

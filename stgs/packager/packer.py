@@ -204,26 +204,27 @@ class Packer:
         return self.finish()
 
     def finish(self) -> dict:
-        """The rungs chosen (choose_ladder), stats.json, cameras.json and, last, the MPD, from the segments the
-        builder was told of."""
-        if self.meta.still:
-            return self.finish_still()
-        for codec, q in self.cfg.encodes():
-            init = (self.out / feature_path(self.version_dir, codec.rep_id(q), None)).read_bytes()
-            self.builder.codecs[codec.rep_id(q)] = codec.codecs(init)
-        ladders = self.choose_ladder()
-        views = quality_views(self.model_dir, self.meta, lambda: load_gop(self.model_dir, self.meta, 0),
-                              self.cfg.stats_views, self.cfg.stats_frames)
-        stats = self.builder.stats(self.id) | {"quality_views": views.describe(), "ladders": ladders}
+        """stats.json, cameras.json, scene.json and, last, the MPD, from the segments the builder was told of."""
+        stats = self.still_stats() if self.meta.still else self.ladder_stats()
         atomic_write_bytes(self.out / STATS, (json.dumps(stats, indent=2) + "\n").encode())
         self.write_cameras()
         self.write_scene()
         atomic_write_bytes(self.out / MANIFEST, self.builder.mpd().to_xml())
         return stats
 
-    def finish_still(self) -> dict:
-        """A still scene's stats.json (with the static segment's render PSNR against the uncompressed layer at the
-        quality views), cameras.json, scene.json and, last, the MPD of the static layer alone."""
+    def ladder_stats(self) -> dict:
+        """The rungs chosen (choose_ladder) and the stats document of a scene of GOPs."""
+        for codec, q in self.cfg.encodes():
+            init = (self.out / feature_path(self.version_dir, codec.rep_id(q), None)).read_bytes()
+            self.builder.codecs[codec.rep_id(q)] = codec.codecs(init)
+        ladders = self.choose_ladder()
+        views = quality_views(self.model_dir, self.meta, lambda: load_gop(self.model_dir, self.meta, 0),
+                              self.cfg.stats_views, self.cfg.stats_frames)
+        return self.builder.stats(self.id) | {"quality_views": views.describe(), "ladders": ladders}
+
+    def still_stats(self) -> dict:
+        """A still scene's stats document, with the static segment's render PSNR against the uncompressed layer at
+        the quality views."""
         if self.static is None or self.decoded_static is None:
             raise StgsError(f"{self.model_dir}: a still scene needs its static layer")
         static, decoded = self.static, self.decoded_static
@@ -231,10 +232,6 @@ class Packer:
         stats = self.builder.stats(self.id)
         stats["static"]["render_psnr"] = still_psnr(static, decoded, views.cameras)
         stats["quality_views"] = views.describe()
-        atomic_write_bytes(self.out / STATS, (json.dumps(stats, indent=2) + "\n").encode())
-        self.write_cameras()
-        self.write_scene()
-        atomic_write_bytes(self.out / MANIFEST, self.builder.mpd().to_xml())
         return stats
 
     def write_scene(self) -> None:

@@ -22,7 +22,7 @@ from aiohttp import web
 
 from stgs.errors import MPDError
 from stgs.limits import MAX_DESCRIPTION_CHARS, MAX_DOC_BYTES, MAX_TITLE_CHARS
-from stgs.mpd.model import MPD, AdaptationSet, read_mpd
+from stgs.mpd.model import AdaptationSet, read_mpd
 from stgs.mpd.profile import (
     FEATURE_SCHEME,
     KEYFRAME_SCHEME,
@@ -30,6 +30,7 @@ from stgs.mpd.profile import (
     KeyframeDescriptor,
     StaticLayerDescriptor,
     feature_set_codec,
+    still_static_set,
 )
 from stgs.server.config import CORS_HEADERS, ROOT_KEY
 from stgs.server.player import PAGE_HEADERS, PLAYER_PREFIX
@@ -97,9 +98,9 @@ def checked_poster(folder: Path, poster: object) -> str:
 
 def scene_summary(name: str, manifest: Path) -> dict:
     mpd = read_mpd(manifest)
+    if (still := still_static_set(mpd)) is not None:
+        return still_summary(name, manifest, still)
     static = mpd.find_adaptation_set(STATIC_SCHEME)
-    if static is not None and mpd.find_adaptation_set(KEYFRAME_SCHEME) is None:
-        return still_summary(name, manifest, mpd, static)
     video = mpd.adaptation_set(FEATURE_SCHEME)
     videos = [(a, feature_set_codec(a)) for a in mpd.adaptation_sets(FEATURE_SCHEME)]
     keyframes = mpd.adaptation_set(KEYFRAME_SCHEME)
@@ -118,11 +119,9 @@ def scene_summary(name: str, manifest: Path) -> dict:
             "codecs": [codec for _, codec in videos], "ladder": ladder, "still": False}
 
 
-def still_summary(name: str, manifest: Path, mpd: MPD, static: AdaptationSet) -> dict:
+def still_summary(name: str, manifest: Path, static: AdaptationSet) -> dict:
     """A still scene's entry (manifests/PROFILE.md, "A still scene"): its static layer, no GOP, rung or codec."""
     capacity = StaticLayerDescriptor.parse(static).capacity
-    if mpd.find_adaptation_set(FEATURE_SCHEME) is not None:
-        raise MPDError("a still scene (no keyframe AdaptationSet) has no feature set either")
     return {"name": name, "manifest": manifest_url(name), "player": player_url(name),
             **scene_face(name, manifest.parent), "gaussians": capacity, "rungs": 0, "format": 2, "still": True,
             "duration": 0.0, "gops": 0, "static": {"capacity": capacity,

@@ -88,6 +88,12 @@ export interface Manifest {
   policy: UrlPolicy;
 }
 
+/** A segment's size cap: what its @bandwidth delivers over `seconds`, with slack (stgs/client/manifest.py
+ * segment_cap). */
+export function segmentCap(bandwidth: number, seconds: number): number {
+  return Math.min(L.MAX_SEGMENT_BYTES, Math.ceil((bandwidth / 8) * seconds * L.SEGMENT_SLACK) + 4096);
+}
+
 function fail(message: string): never {
   throw new ManifestError(message);
 }
@@ -409,8 +415,7 @@ export function parseManifest(text: string, url: string): Manifest {
     },
     initUrl: (i) => check(new URL(expandTemplate(ft.init!, rungs[i]!.id), fbase).href),
     mediaUrl: (i, k) => check(new URL(expandTemplate(ft.media, rungs[i]!.id, ft.start + k), fbase).href),
-    maxSegmentBytes: (bandwidth) =>
-      Math.min(L.MAX_SEGMENT_BYTES, Math.ceil((bandwidth / 8) * gopSeconds * L.SEGMENT_SLACK) + 4096),
+    maxSegmentBytes: (bandwidth) => segmentCap(bandwidth, gopSeconds),
     ...sceneUrls,
     policy,
   };
@@ -445,8 +450,7 @@ function stillManifest(
     abrBandwidths: () => [],
     initUrl: none,
     mediaUrl: none,
-    maxSegmentBytes: (bandwidth) =>
-      Math.min(L.MAX_SEGMENT_BYTES, Math.ceil((bandwidth / 8) * durationS * L.SEGMENT_SLACK) + 4096),
+    maxSegmentBytes: (bandwidth) => segmentCap(bandwidth, durationS),
     ...urls,
     policy,
   };

@@ -2,8 +2,7 @@
 // worker; the sort worker gets its (mean, opacity) here, the splat pass its attributes (as textures, which the
 // player makes: the stream builds nothing on the GPU).
 import { type Attributes, SH1_SPECS, SPECS, imageTensors, staticMetadata } from "../container";
-import * as L from "../limits";
-import type { Manifest } from "../manifest";
+import { type Manifest, segmentCap } from "../manifest";
 import { fetchStream } from "./fetch";
 import type { KeyframePool, Sorter } from "./worker-pools";
 
@@ -19,7 +18,7 @@ export interface StaticLayer {
 /** Fetch and decode the manifest's static layer, and hand its (mean, opacity) to the sorter. */
 export async function loadStaticLayer(m: Manifest, keyframes: KeyframePool, sorter: Sorter): Promise<StaticLayer> {
   const s = m.staticLayer!;
-  const maxBytes = Math.min(L.MAX_SEGMENT_BYTES, Math.ceil((s.bandwidth / 8) * m.durationS * L.SEGMENT_SLACK) + 4096);
+  const maxBytes = segmentCap(s.bandwidth, m.durationS);
   const got = await fetchStream(s.url, m.policy, maxBytes, "static-layer segment", null);
   const specs = s.shDegree ? [...SPECS, ...SH1_SPECS] : SPECS;
   const decoded = await keyframes.decode({
